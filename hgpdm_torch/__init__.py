@@ -1,0 +1,1 @@
+"""hgpdm-torch."""

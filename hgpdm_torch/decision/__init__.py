@@ -1,0 +1,1 @@
+"""decision subpackage of hgpdm_torch."""

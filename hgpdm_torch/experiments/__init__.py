@@ -1,0 +1,1 @@
+"""experiments subpackage of hgpdm_torch."""

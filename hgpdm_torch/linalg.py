@@ -1,0 +1,98 @@
+"""Numerically careful linear algebra shared by every GP routine.
+
+All GP code in the toolkit factorises covariance matrices through :func:`psd_cholesky`, which adds
+jitter in escalating steps and raises a clear error when the matrix still is not positive
+definite. Log-determinants come from the Cholesky diagonal (:func:`cholesky_logdet`) and solves
+use ``torch.cholesky_solve``; no explicit inverse is formed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+
+__all__ = [
+    "CholeskyError",
+    "cholesky_logdet",
+    "jitter",
+    "psd_cholesky",
+    "symmetrize",
+]
+
+# Jitter defaults depend on dtype, as in gpytorch's settings: the first try is free (no jitter),
+# then jitter grows by a factor of 10 from this value.
+_JITTER = {torch.float64: 1e-10, torch.float32: 1e-6, torch.float16: 1e-3, torch.bfloat16: 1e-2}
+_MAX_TRIES = 6
+_override: list[float] = []
+
+
+class CholeskyError(RuntimeError):
+    """A matrix was not positive definite even after jitter was added to its diagonal."""
+
+
+@contextlib.contextmanager
+def jitter(value: float) -> Iterator[None]:
+    """Context manager fixing the first jitter tried by :func:`psd_cholesky`.
+
+    Args:
+        value: Positive diagonal jitter, relative to the mean diagonal of the matrix.
+    """
+    if not value > 0:
+        raise ValueError(f"jitter value must be positive, got {value}")
+    _override.append(float(value))
+    try:
+        yield
+    finally:
+        _override.pop()
+
+
+def symmetrize(a: torch.Tensor) -> torch.Tensor:
+    """Return ``(a + a^T) / 2`` over the last two dimensions. Shapes: ``[..., n, n]``."""
+    return 0.5 * (a + a.transpose(-1, -2))
+
+
+def psd_cholesky(a: torch.Tensor, *, name: str = "matrix") -> torch.Tensor:
+    """Lower Cholesky factor of a batch of symmetric positive-definite matrices.
+
+    Tries the plain factorisation first; where it fails, adds ``eps * mean(diag)`` to the
+    diagonal with eps growing tenfold per try (dtype-dependent start, see :func:`jitter`).
+
+    Args:
+        a: ``[..., n, n]`` symmetric matrices.
+        name: what the matrix is, for the error message.
+
+    Returns:
+        ``[..., n, n]`` lower-triangular factors L with ``L L^T ~= a``.
+
+    Raises:
+        CholeskyError: when the matrix is still not positive definite after the last jitter.
+        ValueError: when ``a`` contains NaN or inf.
+    """
+    if a.shape[-1] != a.shape[-2]:
+        raise ValueError(f"{name} must be square in its last two dims, got shape {tuple(a.shape)}")
+    chol, info = torch.linalg.cholesky_ex(a)
+    if not bool((info > 0).any()):
+        return chol
+    if not bool(torch.isfinite(a).all()):
+        raise ValueError(f"{name} contains NaN or inf; cannot take its Cholesky factor")
+    eps = _override[-1] if _override else _JITTER.get(a.dtype, 1e-6)
+    scale = a.diagonal(dim1=-2, dim2=-1).abs().mean(-1, keepdim=True).clamp_min(1e-300)
+    eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
+    for _ in range(_MAX_TRIES):
+        shifted = a + (eps * scale).unsqueeze(-1) * eye
+        chol, info = torch.linalg.cholesky_ex(shifted)
+        if not bool((info > 0).any()):
+            return chol
+        eps *= 10.0
+    raise CholeskyError(
+        f"{name} of shape {tuple(a.shape)} is not positive definite even with relative jitter "
+        f"{eps / 10:.1e} on its diagonal. Check for duplicated inputs, increase the noise "
+        "hyperparameter, or compute in float64."
+    )
+
+
+def cholesky_logdet(chol: torch.Tensor) -> torch.Tensor:
+    """``log|A|`` from the lower Cholesky factor of A. Shapes: ``[..., n, n] -> [...]``."""
+    return 2.0 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)

@@ -1,0 +1,1 @@
+"""robots subpackage of hgpdm_torch."""

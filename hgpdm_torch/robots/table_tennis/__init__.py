@@ -1,0 +1,1 @@
+"""table_tennis subpackage of hgpdm_torch."""

@@ -1,0 +1,106 @@
+"""Input validation for the public API: one place for the shape, dtype and finiteness checks.
+
+Every public function that takes user data calls these helpers so that bad input produces a
+``TypeError`` or ``ValueError`` that names the argument and what was expected.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["as_tensor", "check_finite", "check_probability", "check_shape", "check_choice"]
+
+
+def as_tensor(
+    value: object,
+    name: str,
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+    ndim: int | None = None,
+    min_ndim: int | None = None,
+    allow_nan: bool = False,
+) -> torch.Tensor:
+    """Convert array-like input to a floating tensor and validate it.
+
+    Args:
+        value: tensor, NumPy array or nested sequence of numbers.
+        name: the argument's name, used in error messages.
+        dtype: floating dtype to convert to; ``None`` keeps a floating tensor's dtype and turns
+            anything else into float64.
+        device: device to move to (default: keep).
+        ndim: exact number of dimensions required.
+        min_ndim: minimum number of dimensions required.
+        allow_nan: whether NaN entries are allowed (e.g. to mark missing observations);
+            inf is never allowed.
+
+    Returns:
+        The validated tensor.
+    """
+    if isinstance(value, torch.Tensor):
+        t = value
+    elif isinstance(value, np.ndarray | Sequence | float | int):
+        try:
+            t = torch.as_tensor(np.asarray(value, dtype=np.float64))
+        except (TypeError, ValueError) as err:
+            raise TypeError(f"{name} must be numeric array-like, got {type(value).__name__}") from err
+    else:
+        raise TypeError(f"{name} must be a tensor or array-like, got {type(value).__name__}")
+    if t.dtype == torch.bool or not (t.is_floating_point() or t.dtype in _INT_DTYPES):
+        raise TypeError(f"{name} must have a real numeric dtype, got {t.dtype}")
+    if dtype is not None:
+        t = t.to(dtype)
+    elif not t.is_floating_point():
+        t = t.to(torch.float64)
+    if device is not None:
+        t = t.to(device)
+    if ndim is not None and t.dim() != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {tuple(t.shape)}")
+    if min_ndim is not None and t.dim() < min_ndim:
+        raise ValueError(
+            f"{name} must have at least {min_ndim} dimensions, got shape {tuple(t.shape)}"
+        )
+    check_finite(t, name, allow_nan=allow_nan)
+    return t
+
+
+_INT_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
+
+
+def check_finite(t: torch.Tensor, name: str, *, allow_nan: bool = False) -> None:
+    """Raise ``ValueError`` if ``t`` holds inf (or NaN, unless ``allow_nan``)."""
+    if allow_nan:
+        if bool(torch.isinf(t).any()):
+            raise ValueError(f"{name} contains inf; expected finite values (NaN marks missing)")
+    elif not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains NaN or inf; expected finite values")
+
+
+def check_shape(t: torch.Tensor, name: str, shape: Sequence[int | None]) -> None:
+    """Check the trailing dims of ``t`` against ``shape`` (``None`` matches any size)."""
+    if t.dim() < len(shape) or any(
+        s is not None and s != d for s, d in zip(shape, t.shape[t.dim() - len(shape) :], strict=True)
+    ):
+        want = ", ".join("*" if s is None else str(s) for s in shape)
+        raise ValueError(f"{name} must have trailing shape [{want}], got {tuple(t.shape)}")
+
+
+def check_probability(p: torch.Tensor, name: str, *, atol: float = 1e-6) -> None:
+    """Check that the last dim of ``p`` holds probability vectors (non-negative, sum to 1)."""
+    check_finite(p, name)
+    if p.numel() == 0:
+        raise ValueError(f"{name} must not be empty")
+    if bool((p < -atol).any()) or not torch.allclose(
+        p.sum(-1), torch.ones((), dtype=p.dtype, device=p.device), atol=atol
+    ):
+        raise ValueError(f"{name} must be non-negative and sum to 1 along its last dim")
+
+
+def check_choice(value: str, name: str, choices: Sequence[str]) -> str:
+    """Check that ``value`` is one of ``choices`` and return it."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"unknown {name} {value!r}; expected one of {', '.join(map(repr, choices))}")
+    return value

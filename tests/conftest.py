@@ -1,0 +1,28 @@
+"""Shared pytest configuration: float64 by default, seeded RNG, CUDA skip marker."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+torch.set_default_dtype(torch.float64)
+torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+
+SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if torch.cuda.is_available():
+        return
+    skip_gpu = pytest.mark.skip(reason="needs CUDA")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip_gpu)
+
+
+@pytest.fixture
+def generator() -> torch.Generator:
+    """A seeded CPU generator; tests that draw random numbers take it for reproducibility."""
+    return torch.Generator().manual_seed(1234)
