@@ -1,0 +1,1 @@
+"""Speed, memory and accuracy benchmarks. Run all with ``python -m benchmarks [--quick]``."""

@@ -1,0 +1,41 @@
+"""The ``hgpdm`` command: ``hgpdm demo`` and one subcommand per experiment.
+
+Each subcommand is a module exposing ``main(argv: list[str]) -> int``; modules are imported only
+when their command runs, so ``hgpdm --help`` stays fast and optional extras stay optional.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+__all__ = ["COMMANDS", "main"]
+
+# command name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("hgpdm_torch.experiments.demo", "fit an H-GPDM on synthetic styles and discover them"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``hgpdm`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(
+        prog="hgpdm",
+        description="hgpdm-torch: H-GPDM models, intention inference and decision making.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, text) in COMMANDS.items():
+        sub.add_parser(name, help=text, add_help=False)
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0
+    if argv[0] not in COMMANDS:
+        parser.error(f"unknown command {argv[0]!r}; expected one of {', '.join(COMMANDS)}")
+    module = importlib.import_module(COMMANDS[argv[0]][0])
+    return int(module.main(argv[1:]) or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
