@@ -16,7 +16,9 @@ def main(argv: list[str]) -> int:
     quick = [a for a in argv if a == "--quick"]
     names = [a for a in argv if not a.startswith("-")]
     folder = Path(__file__).parent
-    found = sorted(m.name for m in pkgutil.iter_modules([str(folder)]) if not m.name.startswith("_"))
+    found = sorted(
+        m.name for m in pkgutil.iter_modules([str(folder)]) if not m.name.startswith("_")
+    )
     unknown = set(names) - set(found)
     if unknown:
         print(f"unknown benchmarks {sorted(unknown)}; available: {found}", file=sys.stderr)

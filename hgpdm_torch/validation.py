@@ -46,7 +46,9 @@ def as_tensor(
         try:
             t = torch.as_tensor(np.asarray(value, dtype=np.float64))
         except (TypeError, ValueError) as err:
-            raise TypeError(f"{name} must be numeric array-like, got {type(value).__name__}") from err
+            raise TypeError(
+                f"{name} must be numeric array-like, got {type(value).__name__}"
+            ) from err
     else:
         raise TypeError(f"{name} must be a tensor or array-like, got {type(value).__name__}")
     if t.dtype == torch.bool or not (t.is_floating_point() or t.dtype in _INT_DTYPES):
@@ -82,7 +84,8 @@ def check_finite(t: torch.Tensor, name: str, *, allow_nan: bool = False) -> None
 def check_shape(t: torch.Tensor, name: str, shape: Sequence[int | None]) -> None:
     """Check the trailing dims of ``t`` against ``shape`` (``None`` matches any size)."""
     if t.dim() < len(shape) or any(
-        s is not None and s != d for s, d in zip(shape, t.shape[t.dim() - len(shape) :], strict=True)
+        s is not None and s != d
+        for s, d in zip(shape, t.shape[t.dim() - len(shape) :], strict=True)
     ):
         want = ", ".join("*" if s is None else str(s) for s in shape)
         raise ValueError(f"{name} must have trailing shape [{want}], got {tuple(t.shape)}")
@@ -102,5 +105,7 @@ def check_probability(p: torch.Tensor, name: str, *, atol: float = 1e-6) -> None
 def check_choice(value: str, name: str, choices: Sequence[str]) -> str:
     """Check that ``value`` is one of ``choices`` and return it."""
     if not isinstance(value, str) or value not in choices:
-        raise ValueError(f"unknown {name} {value!r}; expected one of {', '.join(map(repr, choices))}")
+        raise ValueError(
+            f"unknown {name} {value!r}; expected one of {', '.join(map(repr, choices))}"
+        )
     return value

@@ -61,7 +61,12 @@ class ResultTable:
     def to_json(self, path: str | Path) -> None:
         """Write title, columns, rows and meta as JSON."""
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        payload = {"title": self.title, "columns": self.columns, "rows": self.rows, "meta": self.meta}
+        payload = {
+            "title": self.title,
+            "columns": self.columns,
+            "rows": self.rows,
+            "meta": self.meta,
+        }
         Path(path).write_text(json.dumps(payload, indent=2, default=float))
 
     @classmethod
