@@ -1,0 +1,287 @@
+"""Kernels of the H-GPDM and the IDDM, built from gpytorch kernels.
+
+Inputs of every transition kernel are the concatenation ``[x, g]`` of a latent state
+(``Dx`` columns) and the exogenous variable (``Dg`` columns; for a discrete g one column holding
+the integer code). gpytorch's ``RBFKernel``, ``LinearKernel``, ``ScaleKernel`` and
+``AdditiveKernel`` express most terms; this module adds only what they cannot:
+
+- :class:`IntentionRBFKernel`: ``exp(-a_x/2 ||x - x'||^2 - a_g/2 ||g - g'||^2)``, one width for
+  all latent dims and one for all intention dims (Sec. 2.2.1; the IDDM tensor product of Sec.
+  3.2.2 is ``alpha_1`` times this kernel).
+- :class:`DiscreteIntentionKernel`: ``delta(g, g') k(x, x')`` (Sec. 2.2.1, discrete g).
+
+White-noise terms (``beta_2`` in Eq. 1, ``beta_1`` in Eq. 2, ``alpha_4``) act on training points
+only, so they are not kernels here: the models add them as GP noise on the training diagonal.
+
+The thesis parameterises widths by inverse squared length scales: ``alpha_2 = 1 / lengthscale^2``.
+:func:`measurement_kernel` and :func:`transition_kernel` build the kernels from the thesis's
+hyperparameters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gpytorch
+import torch
+from gpytorch.constraints import Interval, Positive
+from gpytorch.kernels import AdditiveKernel, Kernel, LinearKernel, RBFKernel, ScaleKernel
+from gpytorch.priors import Prior
+
+from .validation import check_choice
+
+__all__ = [
+    "ALPHA_BAR",
+    "DiscreteIntentionKernel",
+    "IntentionRBFKernel",
+    "MEASUREMENT_KERNELS",
+    "TRANSITION_KERNELS",
+    "measurement_kernel",
+    "set_requires_grad",
+    "transition_kernel",
+]
+
+#: Default transition hyperparameters ``[alpha_1, alpha_2, alpha_3, alpha_4]`` (Sec. 2.4.1):
+#: RBF signal variance, RBF inverse squared width, linear variance, white noise.
+ALPHA_BAR: tuple[float, float, float, float] = (0.9, 0.001, 0.1, 1e-4)
+
+MEASUREMENT_KERNELS = ("rbf", "linear")
+TRANSITION_KERNELS = ("gpdm", "continuous", "discrete", "iddm_continuous", "iddm_discrete")
+
+
+class IntentionRBFKernel(Kernel):
+    r"""RBF over ``[x, g]`` with one length scale for the ``x`` dims and one for the ``g`` dims.
+
+    .. math:: k([x, g], [x', g']) = \exp(-\|x - x'\|^2 / (2 l_x^2) - \|g - g'\|^2 / (2 l_g^2))
+
+    so ``alpha_2^x = l_x^{-2}`` and ``alpha_2^g = l_g^{-2}`` in the thesis's notation. Wrap it in a
+    ``ScaleKernel`` for the signal variance ``alpha_1``.
+
+    Args:
+        x_dim: number of latent dims ``Dx`` (the first columns of the input).
+        g_dim: number of intention dims ``Dg`` (the last columns).
+        lengthscale_x_prior, lengthscale_g_prior: optional gpytorch priors.
+        lengthscale_constraint: constraint of both length scales (default ``Positive()``).
+
+    Shapes: inputs ``[..., N, Dx + Dg]``; output ``[..., N, M]`` (or ``[..., N]`` with diag).
+    """
+
+    has_lengthscale = False
+
+    def __init__(
+        self,
+        x_dim: int,
+        g_dim: int,
+        lengthscale_x_prior: Prior | None = None,
+        lengthscale_g_prior: Prior | None = None,
+        lengthscale_constraint: Interval | None = None,
+        **kwargs: object,
+    ) -> None:
+        if x_dim < 1 or g_dim < 1:
+            raise ValueError(f"x_dim and g_dim must be >= 1, got {x_dim} and {g_dim}")
+        super().__init__(**kwargs)
+        self.x_dim, self.g_dim = int(x_dim), int(g_dim)
+        constraint = lengthscale_constraint or Positive()
+        for part, prior in (("x", lengthscale_x_prior), ("g", lengthscale_g_prior)):
+            name = f"raw_lengthscale_{part}"
+            self.register_parameter(name, torch.nn.Parameter(torch.zeros(*self.batch_shape, 1, 1)))
+            self.register_constraint(name, constraint)
+            if prior is not None:
+                self.register_prior(
+                    f"lengthscale_{part}_prior",
+                    prior,
+                    lambda m, p=part: getattr(m, f"lengthscale_{p}"),
+                    lambda m, v, p=part: setattr(m, f"lengthscale_{p}", v),
+                )
+
+    def _get(self, part: str) -> torch.Tensor:
+        raw = getattr(self, f"raw_lengthscale_{part}")
+        return getattr(self, f"raw_lengthscale_{part}_constraint").transform(raw)
+
+    def _set(self, part: str, value: float | torch.Tensor) -> None:
+        raw = getattr(self, f"raw_lengthscale_{part}")
+        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).expand_as(raw)
+        constraint = getattr(self, f"raw_lengthscale_{part}_constraint")
+        self.initialize(**{f"raw_lengthscale_{part}": constraint.inverse_transform(value)})
+
+    @property
+    def lengthscale_x(self) -> torch.Tensor:
+        """Length scale of the latent dims, ``[*batch, 1, 1]``."""
+        return self._get("x")
+
+    @lengthscale_x.setter
+    def lengthscale_x(self, value: float | torch.Tensor) -> None:
+        self._set("x", value)
+
+    @property
+    def lengthscale_g(self) -> torch.Tensor:
+        """Length scale of the intention dims, ``[*batch, 1, 1]``."""
+        return self._get("g")
+
+    @lengthscale_g.setter
+    def lengthscale_g(self, value: float | torch.Tensor) -> None:
+        self._set("g", value)
+
+    def lengthscale_vector(self) -> torch.Tensor:
+        """Per-input-dim length scales ``[*batch, 1, Dx + Dg]`` (the equivalent ARD RBF)."""
+        lx = self.lengthscale_x.expand(*self.batch_shape, 1, self.x_dim)
+        lg = self.lengthscale_g.expand(*self.batch_shape, 1, self.g_dim)
+        return torch.cat([lx, lg], dim=-1)
+
+    def forward(
+        self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False, **params: object
+    ) -> torch.Tensor:
+        dims = self.x_dim + self.g_dim
+        if x1.shape[-1] != dims or x2.shape[-1] != dims:
+            raise ValueError(
+                f"IntentionRBFKernel expects inputs with {dims} columns ([x, g]), "
+                f"got {x1.shape[-1]} and {x2.shape[-1]}"
+            )
+        ls = self.lengthscale_vector()
+        d2 = self.covar_dist(x1 / ls, x2 / ls, diag=diag, square_dist=True)
+        return torch.exp(-0.5 * d2)
+
+
+class DiscreteIntentionKernel(Kernel):
+    r"""Block kernel for a discrete intention: ``k([x, g], [x', g']) = delta(g, g') k_x(x, x')``.
+
+    The last input column holds the integer code of g (as a float); ``base_kernel`` sees only the
+    preceding ``Dx`` columns. Points of different codes are independent (Sec. 2.2.1).
+
+    Args:
+        base_kernel: kernel over the latent state (e.g. ``ScaleKernel(RBFKernel()) +
+            LinearKernel()``); it must not set ``active_dims``.
+        num_values: number of values K of g; codes are ``0 .. K-1``.
+
+    Shapes: inputs ``[..., N, Dx + 1]``; output ``[..., N, M]`` (or ``[..., N]`` with diag).
+    """
+
+    has_lengthscale = False
+
+    def __init__(self, base_kernel: Kernel, num_values: int, **kwargs: object) -> None:
+        if not isinstance(base_kernel, Kernel):
+            raise TypeError(f"base_kernel must be a gpytorch Kernel, got {type(base_kernel)}")
+        if int(num_values) < 1:
+            raise ValueError(f"num_values must be >= 1, got {num_values}")
+        super().__init__(**kwargs)
+        self.base_kernel = base_kernel
+        self.num_values = int(num_values)
+
+    def forward(
+        self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False, **params: object
+    ) -> torch.Tensor:
+        k = self.base_kernel.forward(x1[..., :-1], x2[..., :-1], diag=diag, **params)
+        k = k.to_dense() if hasattr(k, "to_dense") else k
+        if diag:
+            return k * (x1[..., -1] == x2[..., -1]).to(k.dtype)
+        same = x1[..., :, -1:] == x2[..., :, -1:].transpose(-1, -2)
+        return k * same.to(k.dtype)
+
+
+def _rbf_lengthscale(inverse_width: float) -> float:
+    if not inverse_width > 0:
+        raise ValueError(f"RBF inverse squared width must be positive, got {inverse_width}")
+    return float(inverse_width) ** -0.5
+
+
+def measurement_kernel(kind: str, beta1: float = 1.0) -> Kernel:
+    """Measurement kernel ``k_z`` without its noise term.
+
+    Args:
+        kind: ``"rbf"`` for Eq. 1 (isotropic RBF, unit signal variance, inverse squared width
+            ``beta1``) or ``"linear"`` for Eq. 2 (``x^T x'``, variance fixed to 1 because the
+            output scales W carry the signal variance).
+        beta1: initial inverse squared width for ``"rbf"``; ignored for ``"linear"``.
+
+    Returns:
+        A gpytorch kernel over latent states ``[..., N, Dx]``.
+    """
+    check_choice(kind, "measurement kernel", MEASUREMENT_KERNELS)
+    if kind == "rbf":
+        k = RBFKernel()
+        k.lengthscale = _rbf_lengthscale(beta1)
+        return k
+    k = LinearKernel()
+    k.variance = 1.0
+    k.raw_variance.requires_grad_(False)
+    return k
+
+
+def transition_kernel(
+    kind: str,
+    x_dim: int,
+    *,
+    g_dim: int = 1,
+    num_values: int | None = None,
+    alpha: Sequence[float] = ALPHA_BAR,
+    alpha_g: Sequence[float] = (1.0, 0.1),
+) -> Kernel:
+    """Transition kernel ``k_x`` without its white-noise term ``alpha_4``.
+
+    Args:
+        kind: one of :data:`TRANSITION_KERNELS`:
+
+            - ``"gpdm"``: ``alpha_1 RBF(x) + alpha_3 x^T x'`` (no g; inputs ``[N, Dx]``);
+            - ``"continuous"``: ``alpha_1 exp(-alpha_2/2 |x-x'|^2 - alpha_2^g/2 |g-g'|^2)
+              + alpha_3 x^T x' + alpha_3^g g^T g'`` (Sec. 2.2.1);
+            - ``"discrete"``: ``delta(g, g') [alpha_1 RBF(x) + alpha_3 x^T x']`` (Sec. 2.2.1);
+            - ``"iddm_continuous"``: ``alpha_1 exp(-alpha_2/2 |x-x'|^2 - alpha_2^g/2 |g-g'|^2)``
+              (tensor product, Sec. 3.2.2);
+            - ``"iddm_discrete"``: ``delta(g, g') alpha_1 RBF(x)`` (Sec. 3.2.2 with
+              ``alpha_3 = inf``).
+        x_dim: latent dimension ``Dx``.
+        g_dim: intention dimension ``Dg`` for continuous g (discrete g uses one code column).
+        num_values: number of values K of a discrete g (required for the discrete kinds).
+        alpha: ``[alpha_1, alpha_2, alpha_3, alpha_4]``; ``alpha_4`` is the noise and is not used
+            here.
+        alpha_g: ``[alpha_2^g, alpha_3^g]`` for continuous g: inverse squared width and linear
+            variance of the intention dims.
+
+    Returns:
+        A gpytorch kernel over ``[..., N, Dx + Dg]`` inputs (``[..., N, Dx]`` for ``"gpdm"``).
+    """
+    check_choice(kind, "transition kernel", TRANSITION_KERNELS)
+    if len(alpha) != 4:
+        raise ValueError(f"alpha must have 4 entries [a1, a2, a3, a4], got {len(alpha)}")
+    a1, a2, a3, _ = (float(a) for a in alpha)
+    if kind in ("discrete", "iddm_discrete") and (num_values is None or num_values < 1):
+        raise ValueError(f"num_values must be a positive int for kind={kind!r}")
+
+    def scaled(base: Kernel) -> ScaleKernel:
+        k = ScaleKernel(base)
+        k.outputscale = a1
+        return k
+
+    def linear(active: Sequence[int] | None, variance: float) -> LinearKernel:
+        k = LinearKernel(active_dims=None if active is None else torch.as_tensor(list(active)))
+        k.variance = variance
+        return k
+
+    def rbf_x() -> RBFKernel:
+        k = RBFKernel()
+        k.lengthscale = _rbf_lengthscale(a2)
+        return k
+
+    if kind == "gpdm":
+        return AdditiveKernel(scaled(rbf_x()), linear(None, a3))
+    if kind == "discrete":
+        return DiscreteIntentionKernel(
+            AdditiveKernel(scaled(rbf_x()), linear(None, a3)), num_values
+        )
+    if kind == "iddm_discrete":
+        return DiscreteIntentionKernel(scaled(rbf_x()), num_values)
+    if g_dim < 1:
+        raise ValueError(f"g_dim must be >= 1, got {g_dim}")
+    rbf = IntentionRBFKernel(x_dim, g_dim)
+    rbf.lengthscale_x = _rbf_lengthscale(a2)
+    rbf.lengthscale_g = _rbf_lengthscale(float(alpha_g[0]))
+    if kind == "iddm_continuous":
+        return scaled(rbf)
+    x_cols, g_cols = range(x_dim), range(x_dim, x_dim + g_dim)
+    return AdditiveKernel(scaled(rbf), linear(x_cols, a3), linear(g_cols, float(alpha_g[1])))
+
+
+def set_requires_grad(kernel: gpytorch.Module, flag: bool) -> None:
+    """Freeze (``False``) or free (``True``) every raw hyperparameter of a kernel."""
+    for p in kernel.parameters():
+        p.requires_grad_(flag)
