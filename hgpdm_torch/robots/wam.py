@@ -1,0 +1,298 @@
+"""Kinematics of the Barrett WAM table-tennis arm (thesis Sec. 3.5.1, 4.3.1).
+
+The arm is described by ``assets/wam7.urdf`` (standard DH parameters of the WAM, a racket disc on
+the flange) and evaluated with pytorch-kinematics. The arm hangs upside down from above the
+robot's side of the table, as in the thesis's setup; :class:`WAM` applies that mounting so that
+every pose it returns is in the world frame (origin on the floor below the table centre, y from the
+robot towards the opponent, z up).
+
+Shapes: ``q`` is ``[..., 7]`` joint angles (rad); positions and normals are ``[..., 3]`` (m).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from importlib import resources
+
+import pytorch_kinematics as pk
+import torch
+
+from ..linalg import psd_cholesky
+from ..validation import as_tensor, check_shape
+
+__all__ = [
+    "DEFAULT_BASE_POSITION",
+    "DOF",
+    "IKResult",
+    "JOINT_NAMES",
+    "RACKET_LINK",
+    "RACKET_RADIUS",
+    "RacketPose",
+    "WAM",
+    "urdf_path",
+]
+
+DOF = 7
+JOINT_NAMES = tuple(f"wam_joint{i}" for i in range(1, DOF + 1))
+RACKET_LINK = "racket"
+RACKET_RADIUS = 0.076
+# Shoulder (DH frame 0) of the hanging arm: centred laterally, 0.28 m behind the virtual hitting
+# plane and 0.99 m above the table surface.
+DEFAULT_BASE_POSITION = (0.0, -2.45, 1.75)
+# Hanging: the base z axis (joint 1) points down; base x stays world x.
+_HANGING_RPY = (math.pi, 0.0, 0.0)
+
+
+def urdf_path() -> str:
+    """Filesystem path of the packaged WAM URDF."""
+    return str(resources.files("hgpdm_torch.robots") / "assets" / "wam7.urdf")
+
+
+@dataclass(frozen=True)
+class RacketPose:
+    """Racket centre, blade normal and orientation in the world frame.
+
+    Attributes:
+        position: ``[..., 3]`` centre of the racket disc.
+        normal: ``[..., 3]`` unit normal of the disc (the racket frame's z axis).
+        rotation: ``[..., 3, 3]`` racket frame axes as columns.
+    """
+
+    position: torch.Tensor
+    normal: torch.Tensor
+    rotation: torch.Tensor
+
+
+@dataclass(frozen=True)
+class IKResult:
+    """Output of :meth:`WAM.ik`.
+
+    Attributes:
+        q: ``[..., 7]`` joint angles found (within the joint limits).
+        position_error: ``[...]`` distance of the racket centre from the target (m).
+        normal_error: ``[...]`` angle between racket normal and target normal (rad).
+        success: ``[...]`` both errors below the tolerances.
+    """
+
+    q: torch.Tensor
+    position_error: torch.Tensor
+    normal_error: torch.Tensor
+    success: torch.Tensor
+
+
+def _rpy_matrix(roll: float, pitch: float, yaw: float) -> torch.Tensor:
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
+    rz = torch.tensor([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    ry = torch.tensor([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    rx = torch.tensor([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    return (rz @ ry @ rx).to(torch.float64)
+
+
+class WAM:
+    """The hanging 7-DOF WAM with its racket: forward kinematics, Jacobian and batched IK.
+
+    Args:
+        base_position: world position of the shoulder (DH frame 0), metres.
+        base_rpy: roll-pitch-yaw of the base frame in the world (default: hanging, z down).
+        dtype: floating dtype of all computations.
+        device: torch device.
+    """
+
+    def __init__(
+        self,
+        base_position: tuple[float, float, float] = DEFAULT_BASE_POSITION,
+        base_rpy: tuple[float, float, float] = _HANGING_RPY,
+        *,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> None:
+        pos = as_tensor(base_position, "base_position", dtype=dtype, device=device, ndim=1)
+        check_shape(pos, "base_position", (3,))
+        rpy = as_tensor(base_rpy, "base_rpy", ndim=1)
+        check_shape(rpy, "base_rpy", (3,))
+        with open(urdf_path(), "rb") as f:
+            self.chain = pk.build_serial_chain_from_urdf(f.read(), RACKET_LINK).to(
+                dtype=dtype, device=device
+            )
+        if tuple(self.chain.get_joint_parameter_names()) != JOINT_NAMES:
+            raise RuntimeError("wam7.urdf joints do not match JOINT_NAMES")
+        self.dtype, self.device = dtype, pos.device
+        self.base_position = pos
+        self.base_rpy = tuple(float(v) for v in rpy)
+        self.base_rotation = _rpy_matrix(*self.base_rpy).to(dtype=dtype, device=pos.device)
+        lower, upper = self.chain.get_joint_limits()
+        self.lower = torch.as_tensor(lower, dtype=dtype, device=pos.device)
+        self.upper = torch.as_tensor(upper, dtype=dtype, device=pos.device)
+        self.velocity_limit = torch.as_tensor(
+            self.chain.get_joint_velocity_limits()[1], dtype=dtype, device=pos.device
+        )
+        self.effort_limit = torch.as_tensor(
+            self.chain.get_joint_effort_limits()[1], dtype=dtype, device=pos.device
+        )
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _q(self, q: object, name: str = "q") -> torch.Tensor:
+        t = as_tensor(q, name, dtype=self.dtype, device=self.device, min_ndim=1)
+        check_shape(t, name, (DOF,))
+        return t
+
+    def _to_world(self, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotation and translation of base-frame homogeneous matrices ``[..., 4, 4]``."""
+        rot = self.base_rotation @ m[..., :3, :3]
+        pos = m[..., :3, 3] @ self.base_rotation.T + self.base_position
+        return rot, pos
+
+    # -- kinematics ----------------------------------------------------------------------------
+    def fk(self, q: object) -> RacketPose:
+        """Racket pose in the world frame. ``q``: ``[..., 7]``."""
+        q = self._q(q)
+        batch = q.shape[:-1]
+        m = self.chain.forward_kinematics(q.reshape(-1, DOF)).get_matrix()
+        rot, pos = self._to_world(m)
+        rot = rot.reshape(*batch, 3, 3)
+        return RacketPose(pos.reshape(*batch, 3), rot[..., :, 2], rot)
+
+    def frame_positions(self, q: object) -> torch.Tensor:
+        """World positions of the base, every link frame, the flange and the racket.
+
+        Used for drawing the arm. ``q``: ``[..., 7]`` -> ``[..., 10, 3]``.
+        """
+        q = self._q(q)
+        batch = q.shape[:-1]
+        frames = self.chain.forward_kinematics(q.reshape(-1, DOF), end_only=False)
+        names = ["wam_base", *[f"wam_link{i}" for i in range(1, DOF + 1)], "wam_flange"]
+        names.append(RACKET_LINK)
+        pts = torch.stack([self._to_world(frames[n].get_matrix())[1] for n in names], dim=-2)
+        return pts.reshape(*batch, len(names), 3)
+
+    def jacobian(self, q: object) -> torch.Tensor:
+        """Geometric Jacobian of the racket centre in the world frame.
+
+        Rows 0-2 map joint velocities to the racket centre's linear velocity, rows 3-5 to the
+        racket's angular velocity. ``q``: ``[..., 7]`` -> ``[..., 6, 7]``.
+        """
+        q = self._q(q)
+        batch = q.shape[:-1]
+        jac = self.chain.jacobian(q.reshape(-1, DOF))
+        r = self.base_rotation
+        jac = torch.cat([r @ jac[:, :3], r @ jac[:, 3:]], dim=-2)
+        return jac.reshape(*batch, 6, DOF)
+
+    def racket_velocity(self, q: object, qd: object) -> torch.Tensor:
+        """Linear velocity of the racket centre ``J_v(q) qd``. ``[..., 7]`` x2 -> ``[..., 3]``."""
+        qd = self._q(qd, "qd")
+        return (self.jacobian(q)[..., :3, :] @ qd.unsqueeze(-1)).squeeze(-1)
+
+    def ik(
+        self,
+        position: object,
+        normal: object,
+        q0: object,
+        *,
+        q_rest: object | None = None,
+        damping: float = 0.02,
+        rest_gain: float = 0.1,
+        max_iter: int = 200,
+        position_tol: float = 1e-4,
+        normal_tol: float = 1e-3,
+    ) -> IKResult:
+        """Batched damped-least-squares IK for a racket centre and a blade normal.
+
+        Solves for ``q`` with ``fk(q).position = position`` and ``fk(q).normal = normal``; the
+        rotation about the normal is free (5 task constraints, 7 joints). Each iteration takes
+        ``dq = J^T (J J^T + damping^2 I)^-1 e + (I - J^+ J) rest_gain (q_rest - q)`` (J^+ the
+        Moore-Penrose inverse), with J the
+        stacked linear Jacobian and the angular Jacobian projected orthogonally to the normal, and
+        e the position error and the rotation vector ``n x n_target``; joints are clipped to
+        their limits. The null-space term keeps the solution close to ``q_rest``.
+
+        Args:
+            position: ``[..., 3]`` target racket centre (world).
+            normal: ``[..., 3]`` target blade normal (normalised here).
+            q0: ``[..., 7]`` or ``[7]`` initial joint angles.
+            q_rest: ``[..., 7]`` or ``[7]`` posture preferred in the null space (default q0).
+            damping: damping factor of the least squares (m).
+            rest_gain: gain of the null-space pull towards ``q_rest``.
+            max_iter: number of iterations at most.
+            position_tol: success tolerance on the position error (m).
+            normal_tol: success tolerance on the normal error (rad).
+        """
+        p_t = as_tensor(position, "position", dtype=self.dtype, device=self.device, min_ndim=1)
+        check_shape(p_t, "position", (3,))
+        n_t = as_tensor(normal, "normal", dtype=self.dtype, device=self.device, min_ndim=1)
+        check_shape(n_t, "normal", (3,))
+        norm = n_t.norm(dim=-1, keepdim=True)
+        if bool((norm < 1e-9).any()):
+            raise ValueError("normal must have non-zero length")
+        n_t = n_t / norm
+        if not damping > 0 or not max_iter >= 1:
+            raise ValueError("damping must be positive and max_iter at least 1")
+        batch = torch.broadcast_shapes(p_t.shape[:-1], n_t.shape[:-1])
+        q = self._q(q0, "q0").expand(*batch, DOF).reshape(-1, DOF).clone()
+        rest = q0 if q_rest is None else q_rest
+        rest = self._q(rest, "q_rest").expand(*batch, DOF).reshape(-1, DOF)
+        p_t = p_t.expand(*batch, 3).reshape(-1, 3)
+        n_t = n_t.expand(*batch, 3).reshape(-1, 3)
+        eye3 = torch.eye(3, dtype=self.dtype, device=self.device)
+        eye6 = torch.eye(6, dtype=self.dtype, device=self.device)
+        eye7 = torch.eye(DOF, dtype=self.dtype, device=self.device)
+        for _ in range(max_iter):
+            pose = self.fk(q)
+            e_p = p_t - pose.position
+            e_n = torch.linalg.cross(pose.normal, n_t)
+            # Opposite normals give a vanishing cross product; any axis orthogonal to n turns it.
+            flip = (pose.normal * n_t).sum(-1, keepdim=True) < 0
+            e_n = torch.where(flip, e_n / e_n.norm(dim=-1, keepdim=True).clamp_min(1e-9), e_n)
+            err_p = e_p.norm(dim=-1)
+            err_n = torch.atan2(e_n.norm(dim=-1), (pose.normal * n_t).sum(-1))
+            if bool(((err_p < position_tol) & (err_n < normal_tol)).all()):
+                break
+            # Bound the step so that the linearisation holds.
+            e_p = e_p * (0.1 / err_p.clamp_min(0.1)).unsqueeze(-1)
+            jac = self.jacobian(q)
+            proj = eye3 - pose.normal.unsqueeze(-1) * pose.normal.unsqueeze(-2)
+            j = torch.cat([jac[:, :3], proj @ jac[:, 3:]], dim=-2)
+            e = torch.cat([e_p, e_n], dim=-1).unsqueeze(-1)
+            chol = psd_cholesky(j @ j.transpose(-1, -2) + damping**2 * eye6, name="J J^T")
+            pinv = j.transpose(-1, -2) @ torch.cholesky_solve(eye6.expand_as(chol), chol)
+            # Exact projector (SVD pseudo-inverse): the posture pull must not disturb the task.
+            null = eye7 - torch.linalg.pinv(j, rtol=1e-6) @ j
+            dq = (pinv @ e).squeeze(-1) + (null @ (rest_gain * (rest - q)).unsqueeze(-1)).squeeze(
+                -1
+            )
+            q = torch.minimum(torch.maximum(q + dq, self.lower), self.upper)
+        pose = self.fk(q)
+        err_p = (p_t - pose.position).norm(dim=-1)
+        cos = (pose.normal * n_t).sum(-1).clamp(-1.0, 1.0)
+        err_n = torch.acos(cos)
+        ok = (err_p < position_tol) & (err_n < normal_tol)
+        return IKResult(
+            q.reshape(*batch, DOF),
+            err_p.reshape(batch),
+            err_n.reshape(batch),
+            ok.reshape(batch),
+        )
+
+    def joint_velocity(
+        self, q: object, racket_velocity: object, *, damping: float = 1e-3
+    ) -> torch.Tensor:
+        """Joint velocity giving the racket centre a linear velocity and no angular velocity.
+
+        Damped least squares on the full 6-D Jacobian: ``qd = J^T (J J^T + damping^2 I)^-1
+        [v; 0]``. ``q``: ``[..., 7]``, ``racket_velocity``: ``[..., 3]`` -> ``[..., 7]``.
+        """
+        v = as_tensor(racket_velocity, "racket_velocity", dtype=self.dtype, device=self.device)
+        check_shape(v, "racket_velocity", (3,))
+        jac = self.jacobian(q)
+        twist = torch.cat([v, torch.zeros_like(v)], dim=-1).unsqueeze(-1)
+        eye6 = torch.eye(6, dtype=self.dtype, device=self.device)
+        gram = jac @ jac.transpose(-1, -2) + damping**2 * eye6
+        return (jac.transpose(-1, -2) @ torch.linalg.solve(gram, twist)).squeeze(-1)

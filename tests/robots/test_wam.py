@@ -1,0 +1,135 @@
+"""WAM kinematics against an independent DH product, finite differences and IK round trips."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hgpdm_torch.robots.wam import DOF, WAM
+
+# Published standard DH parameters of the 7-DOF Barrett WAM.
+D = [0.0, 0.0, 0.55, 0.0, 0.3, 0.0, 0.06]
+A = [0.0, 0.0, 0.045, -0.045, 0.0, 0.0, 0.0]
+ALPHA = [-math.pi / 2, math.pi / 2, -math.pi / 2, math.pi / 2, -math.pi / 2, math.pi / 2, 0.0]
+
+
+def dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    return np.array(
+        [
+            [ct, -st * ca, st * sa, a * ct],
+            [st, ct * ca, -ct * sa, a * st],
+            [0.0, sa, ca, d],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def racket_dh(q: np.ndarray, base_pos: tuple[float, float, float]) -> np.ndarray:
+    """World pose of the racket: hanging base (rotation pi about x), DH chain, racket offset."""
+    base = np.eye(4)
+    base[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    base[:3, 3] = base_pos
+    t = base
+    for i in range(DOF):
+        t = t @ dh(q[i], D[i], A[i], ALPHA[i])
+    racket = np.eye(4)
+    racket[2, 3] = 0.24  # blade centre 0.3 m beyond the wrist centre
+    racket[:3, :3] = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # Ry(pi/2)
+    return t @ racket
+
+
+@pytest.fixture(scope="module")
+def wam() -> WAM:
+    return WAM()
+
+
+def random_q(wam: WAM, n: int, generator: torch.Generator, margin: float = 0.2) -> torch.Tensor:
+    u = torch.rand(n, DOF, generator=generator)
+    lo, hi = wam.lower + margin, wam.upper - margin
+    return lo + u * (hi - lo)
+
+
+def test_fk_matches_dh_product(wam: WAM, generator: torch.Generator) -> None:
+    q = random_q(wam, 20, generator, margin=0.0)
+    pose = wam.fk(q)
+    # pytorch-kinematics parses URDF origins in float32: agreement to ~1e-8 m is the best possible.
+    for i in range(q.shape[0]):
+        ref = racket_dh(q[i].numpy(), wam.base_position.tolist())
+        np.testing.assert_allclose(pose.position[i].numpy(), ref[:3, 3], atol=1e-7)
+        np.testing.assert_allclose(pose.rotation[i].numpy(), ref[:3, :3], atol=1e-7)
+        np.testing.assert_allclose(pose.normal[i].numpy(), ref[:3, 2], atol=1e-7)
+
+
+def test_frame_positions_end_at_racket(wam: WAM, generator: torch.Generator) -> None:
+    q = random_q(wam, 3, generator)
+    pts = wam.frame_positions(q)
+    assert pts.shape == (3, 10, 3)
+    torch.testing.assert_close(pts[:, -1], wam.fk(q).position)
+    torch.testing.assert_close(pts[:, 0], wam.base_position.expand(3, 3))
+    # Elbow (frame after the upper arm) is 0.55 m (plus the 0.045 m offset) from the shoulder.
+    np.testing.assert_allclose(
+        (pts[:, 4] - pts[:, 0]).norm(dim=-1).numpy(), math.hypot(0.55, 0.045), atol=1e-7
+    )
+
+
+def test_jacobian_matches_finite_differences(wam: WAM, generator: torch.Generator) -> None:
+    q = random_q(wam, 4, generator)
+    jac = wam.jacobian(q)
+    eps = 1e-6
+    for j in range(DOF):
+        dq = torch.zeros(DOF)
+        dq[j] = eps
+        plus, minus = wam.fk(q + dq), wam.fk(q - dq)
+        lin = (plus.position - minus.position) / (2 * eps)
+        # Angular velocity from the skew part of dR R^T.
+        dr = (plus.rotation - minus.rotation) / (2 * eps) @ wam.fk(q).rotation.transpose(-1, -2)
+        ang = torch.stack([dr[:, 2, 1], dr[:, 0, 2], dr[:, 1, 0]], dim=-1)
+        torch.testing.assert_close(jac[:, :3, j], lin, atol=1e-8, rtol=0)
+        torch.testing.assert_close(jac[:, 3:, j], ang, atol=1e-8, rtol=0)
+
+
+def test_ik_reaches_reachable_targets(wam: WAM, generator: torch.Generator) -> None:
+    q_true = random_q(wam, 16, generator, margin=0.4)
+    target = wam.fk(q_true)
+    seed = q_true + 0.3 * torch.randn(q_true.shape, generator=generator)
+    seed = torch.minimum(torch.maximum(seed, wam.lower), wam.upper)
+    res = wam.ik(target.position, target.normal, seed)
+    reached = wam.fk(res.q)
+    err = (reached.position - target.position).norm(dim=-1)
+    assert bool(res.success.float().mean() >= 0.9), res.position_error
+    assert float(err[res.success].max()) < 1e-3
+    cos = (reached.normal * target.normal).sum(-1)[res.success]
+    assert float(cos.min()) > math.cos(2e-3)
+    assert bool(((res.q >= wam.lower) & (res.q <= wam.upper)).all())
+    torch.testing.assert_close(res.position_error, err)
+
+
+def test_ik_reports_unreachable_target(wam: WAM) -> None:
+    far = wam.base_position + torch.tensor([0.0, 0.0, -3.0])
+    res = wam.ik(far, torch.tensor([0.0, 1.0, 0.0]), torch.zeros(DOF), max_iter=50)
+    assert not bool(res.success)
+    assert float(res.position_error) > 1.5
+
+
+def test_joint_velocity_produces_racket_velocity(wam: WAM, generator: torch.Generator) -> None:
+    q = random_q(wam, 5, generator, margin=0.4)
+    v = torch.randn(5, 3, generator=generator)
+    qd = wam.joint_velocity(q, v, damping=1e-6)
+    torch.testing.assert_close(wam.racket_velocity(q, qd), v, atol=1e-6, rtol=0)
+    ang = (wam.jacobian(q)[:, 3:] @ qd.unsqueeze(-1)).squeeze(-1)
+    assert float(ang.abs().max()) < 1e-6
+
+
+def test_bad_input(wam: WAM) -> None:
+    with pytest.raises(ValueError, match="q"):
+        wam.fk(torch.zeros(6))
+    with pytest.raises(ValueError, match="normal"):
+        wam.ik(torch.zeros(3), torch.zeros(3), torch.zeros(DOF))
+    with pytest.raises(ValueError, match="q"):
+        wam.fk(torch.full((DOF,), float("nan")))
+    with pytest.raises(TypeError, match="q"):
+        wam.fk("abc")
