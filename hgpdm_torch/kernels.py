@@ -32,6 +32,7 @@ from .validation import check_choice
 
 __all__ = [
     "ALPHA_BAR",
+    "DenseLinearKernel",
     "DiscreteIntentionKernel",
     "IntentionRBFKernel",
     "MEASUREMENT_KERNELS",
@@ -170,12 +171,30 @@ class DiscreteIntentionKernel(Kernel):
     def forward(
         self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False, **params: object
     ) -> torch.Tensor:
-        k = self.base_kernel.forward(x1[..., :-1], x2[..., :-1], diag=diag, **params)
+        k = self.base_kernel(x1[..., :-1], x2[..., :-1], diag=diag, **params)
         k = k.to_dense() if hasattr(k, "to_dense") else k
         if diag:
             return k * (x1[..., -1] == x2[..., -1]).to(k.dtype)
         same = x1[..., :, -1:] == x2[..., :, -1:].transpose(-1, -2)
         return k * same.to(k.dtype)
+
+
+class DenseLinearKernel(LinearKernel):
+    """gpytorch's ``LinearKernel`` returning a dense tensor.
+
+    gpytorch returns a low-rank operator for ``k(X, X)``; adding it to the dense RBF term of a sum
+    kernel makes linear_operator take a jittered Cholesky of that term (slow, and it warns).
+    The GP code here factorises dense matrices itself, so this subclass returns
+    ``variance * x1 x2^T`` densely. Shapes: ``[..., N, D], [..., M, D] -> [..., N, M]``.
+    """
+
+    def forward(
+        self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False, **params: object
+    ) -> torch.Tensor:
+        v = self.variance
+        if diag:
+            return (x1 * x2 * v.squeeze(-2)).sum(-1)
+        return (x1 * v) @ x2.transpose(-1, -2)
 
 
 def _rbf_lengthscale(inverse_width: float) -> float:
@@ -201,7 +220,7 @@ def measurement_kernel(kind: str, beta1: float = 1.0) -> Kernel:
         k = RBFKernel()
         k.lengthscale = _rbf_lengthscale(beta1)
         return k
-    k = LinearKernel()
+    k = DenseLinearKernel()
     k.variance = 1.0
     k.raw_variance.requires_grad_(False)
     return k
@@ -253,7 +272,7 @@ def transition_kernel(
         return k
 
     def linear(active: Sequence[int] | None, variance: float) -> LinearKernel:
-        k = LinearKernel(active_dims=None if active is None else torch.as_tensor(list(active)))
+        k = DenseLinearKernel(active_dims=None if active is None else torch.as_tensor(list(active)))
         k.variance = variance
         return k
 

@@ -1,0 +1,494 @@
+"""The Gaussian Process Dynamics Model (GPDM) and the MAP objective shared by its extensions.
+
+A GPDM explains J observed sequences ``Z^j [T_j, Dz]`` by latent trajectories ``X^j [T_j, Dx]``
+with a GP measurement map ``h: x -> z`` and a GP transition map ``f: x_t -> x_{t+1}``, both
+marginalised out (thesis Sec. 2.2). The latent states X, the measurement hyperparameters beta and
+the output scales W are learned by minimising the negative log posterior of Eq. 6 with any torch
+optimizer; the transition hyperparameters alpha are fixed to alpha-bar (Sec. 2.4.1) unless
+``learn_alpha=True``.
+
+Subclasses change the transition inputs and kernel (:class:`~hgpdm_torch.models.HGPDM` appends
+the exogenous variable g), or override :meth:`GPDM.initial_latents` and
+:meth:`GPDM.build_transition_kernel`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import gpytorch
+import torch
+from gpytorch.constraints import GreaterThan, Positive
+from gpytorch.kernels import Kernel
+from gpytorch.priors import NormalPrior
+from tqdm.auto import trange
+
+from ..gp import GPPosterior
+from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
+from ..linalg import cholesky_logdet, psd_cholesky
+from ..validation import as_tensor, check_choice
+
+__all__ = ["GPDM", "load_model"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+SequencesLike = Sequence[Any] | torch.Tensor
+
+
+def _check_sequences(sequences: SequencesLike, dtype: torch.dtype) -> list[torch.Tensor]:
+    """Validate ``sequences`` (a list of ``[T_j, Dz]`` arrays or a ``[J, T, Dz]`` tensor)."""
+    if isinstance(sequences, torch.Tensor):
+        if sequences.dim() != 3:
+            raise ValueError(
+                f"sequences as a tensor must have shape [J, T, Dz], got {tuple(sequences.shape)}"
+            )
+        sequences = list(sequences)
+    if not isinstance(sequences, Sequence) or isinstance(sequences, str):
+        raise TypeError(
+            f"sequences must be a list of [T, Dz] arrays, got {type(sequences).__name__}"
+        )
+    if len(sequences) == 0:
+        raise ValueError("sequences must contain at least one sequence, got an empty list")
+    out = []
+    for j, s in enumerate(sequences):
+        t = as_tensor(s, f"sequences[{j}]", ndim=2, dtype=dtype)
+        if t.shape[0] < 2:
+            raise ValueError(
+                f"sequences[{j}] must have at least 2 frames (a transition), got {t.shape[0]}"
+            )
+        if t.shape[1] < 1:
+            raise ValueError(f"sequences[{j}] must have at least one observed dim")
+        if out and t.shape[1] != out[0].shape[1]:
+            raise ValueError(
+                f"sequences[{j}] has {t.shape[1]} observed dims, expected {out[0].shape[1]} "
+                "like sequences[0]"
+            )
+        out.append(t)
+    return out
+
+
+class GPDM(gpytorch.Module):
+    """Gaussian Process Dynamics Model with MAP learning (Eq. 3-6 without the exogenous g).
+
+    Args:
+        sequences: J observed sequences, each ``[T_j, Dz]`` with ``T_j >= 2`` (a list; lengths may
+            differ), or a ``[J, T, Dz]`` tensor. No transition crosses a sequence boundary.
+        latent_dim: ``Dx``.
+        measurement: measurement kernel, ``"rbf"`` (Eq. 1) or ``"linear"`` (Eq. 2).
+        alpha: transition hyperparameters ``[alpha_1, alpha_2, alpha_3, alpha_4]``
+            (default alpha-bar of Sec. 2.4.1).
+        learn_alpha: learn alpha with the other parameters instead of keeping it fixed.
+        init: ``"pca"`` (default) or a ``[M, Dx]`` tensor of initial latent states, M the total
+            number of frames.
+        dtype: floating dtype of data and parameters (float64 recommended for GP algebra).
+
+    Attributes:
+        latent: ``[M, Dx]`` parameter, the latent states of all frames, sequences concatenated.
+        observations: ``[M, Dz]`` buffer; ``obs_mean`` ``[Dz]`` its column means.
+        measurement_kernel, transition_kernel: gpytorch kernels (noise terms excluded).
+    """
+
+    transition_kind = "gpdm"
+
+    def __init__(
+        self,
+        sequences: SequencesLike,
+        latent_dim: int = 3,
+        *,
+        measurement: str = "rbf",
+        alpha: Sequence[float] = ALPHA_BAR,
+        learn_alpha: bool = False,
+        init: str | torch.Tensor = "pca",
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        if not isinstance(latent_dim, int) or latent_dim < 1:
+            raise ValueError(f"latent_dim must be a positive int, got {latent_dim!r}")
+        check_choice(measurement, "measurement", ("rbf", "linear"))
+        alpha = tuple(float(a) for a in alpha)
+        if len(alpha) != 4 or not all(a > 0 for a in alpha):
+            raise ValueError(f"alpha must be 4 positive numbers [a1, a2, a3, a4], got {alpha}")
+        seqs = _check_sequences(sequences, dtype)
+        self.latent_dim = latent_dim
+        self.measurement = measurement
+        self.alpha_init = alpha
+        self._config: dict[str, Any] = {
+            "latent_dim": latent_dim,
+            "measurement": measurement,
+            "alpha": list(alpha),
+            "learn_alpha": bool(learn_alpha),
+        }
+
+        z = torch.cat(seqs, dim=0)
+        lengths = torch.tensor([s.shape[0] for s in seqs])
+        starts = torch.cumsum(lengths, 0) - lengths
+        src = torch.cat([torch.arange(s, s + n - 1) for s, n in zip(starts, lengths, strict=True)])
+        self.register_buffer("observations", z)
+        self.register_buffer("obs_mean", z.mean(0))
+        self.register_buffer("lengths", lengths)
+        self.register_buffer("first_index", starts)
+        self.register_buffer("src_index", src)
+        self.register_buffer(
+            "seq_of_src", torch.repeat_interleave(torch.arange(len(seqs)), lengths - 1)
+        )
+
+        latent = self._initial(init, z - z.mean(0))
+        self.latent = torch.nn.Parameter(latent)
+
+        # Measurement: beta (kernel width for "rbf", and noise) and the output scales W carry
+        # log-normal priors, i.e. 1/2 ||log beta||^2 + 1/2 ||log w||^2 in Eq. 6.
+        self.measurement_kernel = measurement_kernel(measurement)
+        if measurement == "rbf":
+            self.measurement_kernel.register_prior(
+                "beta1_prior", NormalPrior(0.0, 1.0), lambda k: k.lengthscale.pow(-2).log()
+            )
+        self.register_parameter(
+            "raw_measurement_noise", torch.nn.Parameter(torch.zeros((), dtype=dtype))
+        )
+        self.register_constraint("raw_measurement_noise", GreaterThan(1e-6))
+        self.measurement_noise = 0.01 if measurement == "rbf" else 0.1
+        self.register_prior(
+            "measurement_noise_prior", NormalPrior(0.0, 1.0), lambda m: m.measurement_noise.log()
+        )
+        std = z.std(0).clamp_min(1e-8)
+        self.register_parameter("raw_scales", torch.nn.Parameter(torch.zeros_like(std)))
+        self.register_constraint("raw_scales", Positive())
+        self.scales = 1.0 / std
+        self.register_prior("scales_prior", NormalPrior(0.0, 1.0), lambda m: m.scales.log())
+
+        self.transition_kernel = self.build_transition_kernel()
+        self.register_parameter(
+            "raw_transition_noise", torch.nn.Parameter(torch.zeros((), dtype=dtype))
+        )
+        self.register_constraint("raw_transition_noise", GreaterThan(1e-8))
+        self.transition_noise = alpha[3]
+        self.learn_alpha = learn_alpha
+        self.to(dtype)
+
+    # ----------------------------------------------------------------- construction hooks
+    def build_transition_kernel(self) -> Kernel:
+        """The transition kernel ``k_x`` without noise; override to use another kernel."""
+        return transition_kernel(self.transition_kind, self.latent_dim, alpha=self.alpha_init)
+
+    def initial_latents(self, centred: torch.Tensor) -> torch.Tensor:
+        """PCA initialisation of the latent states.
+
+        Args:
+            centred: ``[M, Dz]`` observations minus their column means.
+
+        Returns:
+            ``[M, Dx]`` projections on the leading principal directions, scaled to unit variance.
+        """
+        dz = centred.shape[1]
+        if self.latent_dim > dz:
+            raise ValueError(
+                f"latent_dim ({self.latent_dim}) must not exceed Dz ({dz}) for PCA init"
+            )
+        _, _, v = torch.linalg.svd(centred / centred.std(0).clamp_min(1e-8), full_matrices=False)
+        proj = centred / centred.std(0).clamp_min(1e-8) @ v[: self.latent_dim].T
+        return proj / proj.std(0).clamp_min(1e-8)
+
+    def _initial(self, init: str | torch.Tensor, centred: torch.Tensor) -> torch.Tensor:
+        if isinstance(init, str):
+            check_choice(init, "init", ("pca",))
+            return self.initial_latents(centred)
+        x = as_tensor(init, "init", ndim=2, dtype=centred.dtype)
+        if x.shape != (centred.shape[0], self.latent_dim):
+            raise ValueError(
+                f"init must have shape [M, Dx] = [{centred.shape[0]}, {self.latent_dim}], "
+                f"got {tuple(x.shape)}"
+            )
+        return x.clone()
+
+    # ----------------------------------------------------------------- parameters
+    def _constrained(self, name: str) -> torch.Tensor:
+        return getattr(self, f"raw_{name}_constraint").transform(getattr(self, f"raw_{name}"))
+
+    def _set_constrained(self, name: str, value: float | torch.Tensor) -> None:
+        raw = getattr(self, f"raw_{name}")
+        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).expand_as(raw)
+        with torch.no_grad():
+            raw.copy_(getattr(self, f"raw_{name}_constraint").inverse_transform(value))
+
+    @property
+    def measurement_noise(self) -> torch.Tensor:
+        """White noise of the measurement kernel: beta_2 of Eq. 1, or beta_1 of Eq. 2."""
+        return self._constrained("measurement_noise")
+
+    @measurement_noise.setter
+    def measurement_noise(self, value: float | torch.Tensor) -> None:
+        self._set_constrained("measurement_noise", value)
+
+    @property
+    def scales(self) -> torch.Tensor:
+        """``[Dz]`` diagonal of W, the per-dimension output scales."""
+        return self._constrained("scales")
+
+    @scales.setter
+    def scales(self, value: float | torch.Tensor) -> None:
+        self._set_constrained("scales", value)
+
+    @property
+    def transition_noise(self) -> torch.Tensor:
+        """alpha_4, the white noise of the transition kernel."""
+        return self._constrained("transition_noise")
+
+    @transition_noise.setter
+    def transition_noise(self, value: float | torch.Tensor) -> None:
+        self._set_constrained("transition_noise", value)
+
+    @property
+    def learn_alpha(self) -> bool:
+        """Whether the transition hyperparameters alpha are learned (default: fixed)."""
+        return self.raw_transition_noise.requires_grad
+
+    @learn_alpha.setter
+    def learn_alpha(self, flag: bool) -> None:
+        set_requires_grad(self.transition_kernel, bool(flag))
+        self.raw_transition_noise.requires_grad_(bool(flag))
+        self._config["learn_alpha"] = bool(flag)
+
+    # ----------------------------------------------------------------- data views
+    @property
+    def num_sequences(self) -> int:
+        """J, the number of training sequences."""
+        return int(self.lengths.numel())
+
+    @property
+    def obs_dim(self) -> int:
+        """Dz, the observation dimension."""
+        return int(self.observations.shape[1])
+
+    def sequences(self) -> list[torch.Tensor]:
+        """The training sequences, each ``[T_j, Dz]``."""
+        return list(torch.split(self.observations, self.lengths.tolist()))
+
+    def latent_sequences(self) -> list[torch.Tensor]:
+        """The latent trajectories, each ``[T_j, Dx]`` (detached)."""
+        return list(torch.split(self.latent.detach(), self.lengths.tolist()))
+
+    def transition_inputs(self, latent: torch.Tensor) -> torch.Tensor:
+        """Inputs of the transition GP: ``[m, Dx]`` states ``X_{1:T-1}`` of every sequence."""
+        return latent[self.src_index]
+
+    def transition_targets(self, latent: torch.Tensor) -> torch.Tensor:
+        """Targets of the transition GP: ``[m, Dx]`` states ``X_{2:T}`` of every sequence."""
+        return latent[self.src_index + 1]
+
+    # ----------------------------------------------------------------- objective
+    def measurement_nll(self) -> torch.Tensor:
+        """``-log p(Z | X, beta, W)`` of Eq. 4, constants included."""
+        x = self.latent
+        m, dz = self.observations.shape
+        k = self.measurement_kernel(x).to_dense()
+        k = k + self.measurement_noise * torch.eye(m, dtype=x.dtype, device=x.device)
+        chol = psd_cholesky(k, name="measurement kernel matrix K_z")
+        y = (self.observations - self.obs_mean) * self.scales
+        quad = (y * torch.cholesky_solve(y, chol)).sum()
+        return (
+            0.5 * dz * cholesky_logdet(chol)
+            + 0.5 * quad
+            - m * self.scales.log().sum()
+            + 0.5 * m * dz * _LOG_2PI
+        )
+
+    def _gaussian_sequence_nll(self, inputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """``-log N(targets; 0, K_x(inputs) + alpha_4 I)`` per output column, summed (Eq. 5)."""
+        n, dx = targets.shape
+        k = self.transition_kernel(inputs).to_dense()
+        k = k + self.transition_noise * torch.eye(n, dtype=k.dtype, device=k.device)
+        chol = psd_cholesky(k, name="transition kernel matrix K_x")
+        quad = (targets * torch.cholesky_solve(targets, chol)).sum()
+        return 0.5 * dx * cholesky_logdet(chol) + 0.5 * quad + 0.5 * n * dx * _LOG_2PI
+
+    def transition_nll(self) -> torch.Tensor:
+        """``-log p(X | g)`` of Eq. 5: GP transitions plus the unit Gaussian on first states."""
+        x = self.latent
+        first = x[self.first_index]
+        nll = self._gaussian_sequence_nll(self.transition_inputs(x), self.transition_targets(x))
+        return nll + 0.5 * first.pow(2).sum() + 0.5 * first.numel() * _LOG_2PI
+
+    def prior_nll(self) -> torch.Tensor:
+        """``-sum log p(theta)`` over every registered gpytorch prior (log-normal on beta, W)."""
+        total = torch.zeros((), dtype=self.latent.dtype, device=self.latent.device)
+        for _, module, prior, closure, _ in self.named_priors():
+            total = total - prior.log_prob(closure(module)).sum()
+        return total
+
+    def loss(self) -> torch.Tensor:
+        """The negative log posterior ``L`` of Eq. 6 (with all normalising constants)."""
+        value = self.measurement_nll() + self.transition_nll() + self.prior_nll()
+        if not bool(torch.isfinite(value)):
+            raise FloatingPointError(
+                "the negative log posterior is not finite; lower the learning rate or check "
+                "the data for outliers"
+            )
+        return value
+
+    def log_posterior(self) -> float:
+        """``-loss()`` as a float (no gradient)."""
+        with torch.no_grad():
+            return float(-self.loss())
+
+    # ----------------------------------------------------------------- fitting
+    def fit(
+        self,
+        steps: int = 100,
+        *,
+        optimizer: str | torch.optim.Optimizer | Callable[..., torch.optim.Optimizer] = "lbfgs",
+        lr: float | None = None,
+        progress: bool = False,
+    ) -> list[float]:
+        """MAP fit (Eq. 3): minimise :meth:`loss` over X, beta, W (and alpha if learned).
+
+        Args:
+            steps: optimizer iterations (for L-BFGS: iterations, each with a line search).
+            optimizer: ``"lbfgs"`` (default; strong-Wolfe line search), ``"adam"``, an optimizer
+                over this model's parameters, or a callable ``params -> optimizer``.
+            lr: learning rate for ``"lbfgs"`` (default 1) or ``"adam"`` (default 0.01).
+            progress: show a tqdm progress bar.
+
+        Returns:
+            The loss after every step.
+        """
+        if not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"steps must be a non-negative int, got {steps!r}")
+        params = [p for p in self.parameters() if p.requires_grad]
+        if isinstance(optimizer, str):
+            check_choice(optimizer, "optimizer", ("lbfgs", "adam"))
+            if optimizer == "lbfgs":
+                opt: torch.optim.Optimizer = torch.optim.LBFGS(
+                    params,
+                    lr=lr or 1.0,
+                    max_iter=1,
+                    history_size=50,
+                    line_search_fn="strong_wolfe",
+                )
+            else:
+                opt = torch.optim.Adam(params, lr=lr or 0.01)
+        elif isinstance(optimizer, torch.optim.Optimizer):
+            opt = optimizer
+        elif callable(optimizer):
+            opt = optimizer(params)
+        else:
+            raise TypeError(
+                f"optimizer must be a name, an Optimizer or a factory, got {optimizer!r}"
+            )
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            value = self.loss()
+            value.backward()
+            return value
+
+        self.train()
+        history: list[float] = []
+        start = time.perf_counter()
+        for _ in trange(steps, disable=not progress, desc=f"fit {type(self).__name__}"):
+            value = opt.step(closure)
+            history.append(float(value.detach() if value is not None else self.loss().detach()))
+        self.fit_seconds = time.perf_counter() - start
+        self.eval()
+        return history
+
+    # ----------------------------------------------------------------- posteriors
+    def measurement_posterior(self) -> GPPosterior:
+        """The measurement GP ``x -> z`` conditioned on the fitted model (detached).
+
+        Predictions are in the units of the observations: mean ``k^T K_z^-1 (Z - mean) + mean``,
+        variance per dim ``sigma^2(x) / w_d^2``.
+        """
+        with torch.no_grad():
+            return GPPosterior(
+                self.measurement_kernel,
+                self.latent.detach(),
+                self.observations - self.obs_mean,
+                self.measurement_noise.detach(),
+                scale=1.0 / self.scales.detach(),
+                offset=self.obs_mean,
+            )
+
+    def transition_posterior(self) -> GPPosterior:
+        """The transition GP ``[x_t, g] -> x_{t+1}`` conditioned on the fitted model (detached)."""
+        with torch.no_grad():
+            x = self.latent.detach()
+            return GPPosterior(
+                self.transition_kernel,
+                self.transition_inputs(x),
+                self.transition_targets(x),
+                self.transition_noise.detach(),
+            )
+
+    def _rollout_inputs(self, x: torch.Tensor, g: Any) -> torch.Tensor:
+        if g is not None:
+            raise ValueError("a GPDM has no exogenous variable; pass g=None")
+        return x
+
+    def rollout(self, x0: torch.Tensor, steps: int, g: Any = None) -> torch.Tensor:
+        """Mean rollout of the latent dynamics: ``x_{t+1} = E[f(x_t, g)]``.
+
+        Args:
+            x0: ``[..., Dx]`` initial states.
+            steps: number of transitions.
+            g: the exogenous variable (HGPDM only).
+
+        Returns:
+            ``[..., steps + 1, Dx]`` latent trajectory, ``x0`` first.
+        """
+        x = as_tensor(x0, "x0", min_ndim=1, dtype=self.latent.dtype)
+        if x.shape[-1] != self.latent_dim:
+            raise ValueError(
+                f"x0 must have trailing dim Dx={self.latent_dim}, got {tuple(x.shape)}"
+            )
+        post = self.transition_posterior()
+        out = [x]
+        for _ in range(int(steps)):
+            x, _ = post.predict(self._rollout_inputs(x, g))
+            out.append(x)
+        return torch.stack(out, dim=-2)
+
+    # ----------------------------------------------------------------- persistence
+    def config(self) -> dict[str, Any]:
+        """Constructor arguments (other than data) that rebuild this model."""
+        return dict(self._config)
+
+    def _data_arguments(self) -> dict[str, Any]:
+        return {"sequences": [s.clone() for s in self.sequences()]}
+
+    def save(self, path: str | Path) -> None:
+        """Save configuration, training data and state (parameters, buffers) to ``path``."""
+        cls = type(self)
+        torch.save(
+            {
+                "class": f"{cls.__module__}:{cls.__qualname__}",
+                "config": self.config(),
+                "data": self._data_arguments(),
+                "state_dict": self.state_dict(),
+                "dtype": str(self.latent.dtype).removeprefix("torch."),
+            },
+            Path(path),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> GPDM:
+        """Load a model written by :meth:`save` (the saved class is rebuilt)."""
+        return load_model(path)
+
+
+def load_model(path: str | Path) -> GPDM:
+    """Rebuild a model saved with :meth:`GPDM.save`: same class, data, parameters and buffers."""
+    blob = torch.load(Path(path), map_location="cpu", weights_only=True)
+    module_name, _, qualname = blob["class"].partition(":")
+    cls: Any = importlib.import_module(module_name)
+    for part in qualname.split("."):
+        cls = getattr(cls, part)
+    if not (isinstance(cls, type) and issubclass(cls, GPDM)):
+        raise TypeError(f"{blob['class']} is not a GPDM model class")
+    dtype = getattr(torch, blob["dtype"])
+    model = cls(**blob["data"], **blob["config"], dtype=dtype)
+    model.load_state_dict(blob["state_dict"])
+    return model

@@ -1,0 +1,256 @@
+"""The Hierarchical GPDM (H-GPDM, thesis Sec. 2.2) and the Intention-Driven Dynamics Model (IDDM,
+Sec. 3.2), and the unsupervised discovery of a discrete exogenous variable (Algorithm 2.1).
+
+The exogenous variable g (a style, an intention, a target) is constant within a sequence and
+enters the transition GP as extra input columns: ``f([x_t, g]) -> x_{t+1}``. A discrete g is coded
+``0 .. K-1`` in one column; a continuous g has ``Dg`` columns.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from gpytorch.kernels import Kernel
+from sklearn.cluster import KMeans
+from tqdm.auto import trange
+
+from ..kernels import transition_kernel
+from ..validation import as_tensor, check_choice
+from .gpdm import GPDM, SequencesLike
+
+__all__ = ["HGPDM", "IDDM"]
+
+INTENTION_KINDS = ("discrete", "continuous")
+
+
+def _check_intentions(
+    intentions: Any, num_sequences: int, kind: str, num_values: int | None, dtype: torch.dtype
+) -> tuple[torch.Tensor, int | None]:
+    """Validate g per sequence; returns ``[J, Dg]`` values (codes for discrete) and K."""
+    if kind == "discrete":
+        g = torch.as_tensor(np.asarray(intentions))
+        if g.dim() != 1 or g.is_floating_point() and not bool((g == g.round()).all()):
+            raise ValueError(
+                f"discrete intentions must be a [J] vector of ints, got {tuple(g.shape)}"
+            )
+        if g.is_complex() or g.dtype == torch.bool:
+            raise TypeError(f"discrete intentions must be integers, got dtype {g.dtype}")
+        g = g.long()
+        k = int(g.max()) + 1 if num_values is None else int(num_values)
+        if k < 1:
+            raise ValueError(f"num_values must be >= 1, got {k}")
+        if bool((g < 0).any()) or bool((g >= k).any()):
+            raise ValueError(f"discrete intentions must lie in [0, {k - 1}], got {g.tolist()}")
+        values = g.to(dtype).unsqueeze(-1)
+    else:
+        values = as_tensor(intentions, "intentions", dtype=dtype)
+        if values.dim() == 1:
+            values = values.unsqueeze(-1)
+        if values.dim() != 2:
+            raise ValueError(
+                f"continuous intentions must be [J] or [J, Dg], got {tuple(values.shape)}"
+            )
+        k = None
+    if values.shape[0] != num_sequences:
+        raise ValueError(
+            f"got {values.shape[0]} intentions for {num_sequences} sequences; need one per sequence"
+        )
+    return values, k
+
+
+class HGPDM(GPDM):
+    """Hierarchical GPDM: GP dynamics driven by an exogenous variable g (Sec. 2.2.1).
+
+    Args:
+        sequences: J sequences ``[T_j, Dz]`` (see :class:`GPDM`).
+        intentions: g per sequence: ``[J]`` integer codes in ``0 .. K-1`` (``intention=
+            "discrete"``) or ``[J]`` / ``[J, Dg]`` reals (``intention="continuous"``).
+        latent_dim: ``Dx``.
+        intention: ``"discrete"`` or ``"continuous"``.
+        num_values: K for a discrete g (default ``max(intentions) + 1``).
+        alpha_g: ``[alpha_2^g, alpha_3^g]`` of the continuous kernel (inverse squared width and
+            linear variance of g).
+        **kwargs: see :class:`GPDM` (``measurement``, ``alpha``, ``learn_alpha``, ``init``,
+            ``dtype``).
+
+    The transition kernel is ``delta(g, g') [alpha_1 RBF(x) + alpha_3 x^T x']`` for a discrete g and
+    ``alpha_1 RBF([x, g]) + alpha_3 x^T x' + alpha_3^g g g'`` for a continuous g (Sec. 2.2.1).
+    """
+
+    kinds = {"discrete": "discrete", "continuous": "continuous"}
+
+    def __init__(
+        self,
+        sequences: SequencesLike,
+        intentions: Any,
+        latent_dim: int = 3,
+        *,
+        intention: str = "discrete",
+        num_values: int | None = None,
+        alpha_g: Sequence[float] = (1.0, 0.1),
+        **kwargs: Any,
+    ) -> None:
+        check_choice(intention, "intention", INTENTION_KINDS)
+        dtype = kwargs.get("dtype", torch.float64)
+        num_seq = len(sequences)
+        values, k = _check_intentions(intentions, num_seq, intention, num_values, dtype)
+        self.intention = intention
+        self.num_values = k
+        self.intention_dim = values.shape[1]
+        self.alpha_g = tuple(float(a) for a in alpha_g)
+        super().__init__(sequences, latent_dim, **kwargs)
+        self.register_buffer("intentions", values)
+        self._config.update(intention=intention, num_values=k, alpha_g=list(self.alpha_g))
+
+    @property
+    def transition_kind(self) -> str:  # type: ignore[override]
+        return self.kinds[self.intention]
+
+    def build_transition_kernel(self) -> Kernel:
+        return transition_kernel(
+            self.transition_kind,
+            self.latent_dim,
+            g_dim=self.intention_dim,
+            num_values=self.num_values,
+            alpha=self.alpha_init,
+            alpha_g=self.alpha_g,
+        )
+
+    def transition_inputs(self, latent: torch.Tensor) -> torch.Tensor:
+        """``[m, Dx + Dg]`` inputs ``[x_t, g]`` of the transition GP."""
+        return torch.cat([latent[self.src_index], self.intentions[self.seq_of_src]], dim=-1)
+
+    def intention_codes(self) -> torch.Tensor:
+        """``[J]`` integer codes of a discrete g."""
+        if self.intention != "discrete":
+            raise ValueError("intention_codes() needs a discrete intention")
+        return self.intentions[:, 0].long()
+
+    def set_intentions(self, intentions: Any) -> None:
+        """Replace g of every training sequence (same kind and K)."""
+        values, _ = _check_intentions(
+            intentions, self.num_sequences, self.intention, self.num_values, self.latent.dtype
+        )
+        self.intentions.copy_(values.to(self.intentions.device))
+
+    def _rollout_inputs(self, x: torch.Tensor, g: Any) -> torch.Tensor:
+        if g is None:
+            raise ValueError("rollout of an HGPDM needs the exogenous variable g")
+        g = torch.as_tensor(g, dtype=x.dtype, device=x.device).reshape(-1)
+        if g.numel() != self.intention_dim:
+            raise ValueError(f"g must have {self.intention_dim} values, got {g.numel()}")
+        if self.intention == "discrete" and not (0 <= int(g[0]) < self.num_values):
+            raise ValueError(f"g must be a code in [0, {self.num_values - 1}], got {int(g[0])}")
+        return torch.cat([x, g.expand(*x.shape[:-1], -1)], dim=-1)
+
+    def _data_arguments(self) -> dict[str, Any]:
+        data = super()._data_arguments()
+        g = self.intentions.clone()
+        data["intentions"] = g[:, 0].long() if self.intention == "discrete" else g
+        return data
+
+    # ----------------------------------------------------------------- Algorithm 2.1
+    @classmethod
+    def discover(
+        cls,
+        sequences: SequencesLike,
+        num_styles: int,
+        iterations: int = 10,
+        *,
+        steps: int = 30,
+        latent_dim: int = 3,
+        init: str = "kmeans",
+        seed: int = 0,
+        progress: bool = False,
+        **kwargs: Any,
+    ) -> HGPDM:
+        """Unsupervised discovery of a discrete exogenous variable (Algorithm 2.1).
+
+        Alternates (1) assigning each sequence the style that maximises the joint posterior
+        ``p(X, beta, W, Z | g)`` given the others, and (2) the MAP fit of X, beta, W, until the
+        assignment stops changing or ``iterations`` is reached. Each step can only lower the
+        loss, so the algorithm converges to a local optimum.
+
+        Args:
+            sequences: J sequences ``[T_j, Dz]``.
+            num_styles: K, the number of styles to discover.
+            iterations: maximum number of alternations I (the thesis used 100).
+            steps: L-BFGS steps of the MAP fit per iteration.
+            latent_dim: ``Dx``.
+            init: initial assignment: ``"kmeans"`` (k-means on per-sequence summaries of the PCA
+                latents: mean position and mean squared step) or ``"random"``.
+            seed: seed of the initial assignment.
+            progress: show a progress bar.
+            **kwargs: passed to the constructor.
+
+        Returns:
+            The fitted model; ``model.intention_codes()`` is the discovered assignment and
+            ``model.discovery_history`` the loss after each iteration.
+        """
+        if not isinstance(num_styles, int) or num_styles < 1:
+            raise ValueError(f"num_styles must be a positive int, got {num_styles!r}")
+        check_choice(init, "init", ("kmeans", "random"))
+        kwargs.pop("intention", None)
+        model = cls(
+            sequences,
+            torch.zeros(len(sequences), dtype=torch.long),
+            latent_dim,
+            intention="discrete",
+            num_values=num_styles,
+            **kwargs,
+        )
+        if num_styles > model.num_sequences:
+            raise ValueError(
+                f"num_styles ({num_styles}) exceeds the number of sequences ({model.num_sequences})"
+            )
+        rng = np.random.default_rng(seed)
+        if init == "random":
+            codes = rng.permutation(np.arange(model.num_sequences) % num_styles)
+        else:
+            feats = []
+            for lat in model.latent_sequences():
+                step = lat[1:] - lat[:-1]
+                feats.append(torch.cat([lat.mean(0), step.pow(2).mean(0).sqrt()]).numpy())
+            km = KMeans(num_styles, n_init=10, random_state=int(rng.integers(2**31)))
+            codes = km.fit_predict(np.stack(feats))
+        model.set_intentions(codes)
+        model.discovery_history = []
+        for _ in trange(iterations, disable=not progress, desc="discover styles"):
+            changed = model._assign_styles()
+            model.fit(steps)
+            model.discovery_history.append(float(model.loss().detach()))
+            if not changed:
+                break
+        return model
+
+    def _assign_styles(self) -> bool:
+        """Step 3 of Algorithm 2.1: coordinate-wise best style per sequence. Returns changed."""
+        before = self.intention_codes().clone()
+        codes = before.clone()
+        with torch.no_grad():
+            for j in range(self.num_sequences):
+                scores = []
+                for k in range(self.num_values):
+                    codes[j] = k
+                    self.set_intentions(codes)
+                    # Only the transition term of Eq. 6 depends on g.
+                    scores.append(float(self.transition_nll()))
+                codes[j] = int(np.argmin(scores))
+                self.set_intentions(codes)
+        return not torch.equal(before, codes)
+
+
+class IDDM(HGPDM):
+    """Intention-Driven Dynamics Model (Sec. 3.2): an H-GPDM with the tensor-product kernel.
+
+    The transition kernel is ``alpha_1 exp(-alpha_2/2 |x - x'|^2 - alpha_3/2 (g - g')^2)`` for a
+    continuous g, and ``delta(g, g') alpha_1 exp(-alpha_2/2 |x - x'|^2)`` for a discrete g (Sec.
+    3.2.2, ``alpha_3 = inf``). Here ``alpha_g[0]`` is the thesis's ``alpha_3`` (the g width);
+    ``alpha[2]`` (the linear variance) is unused. The measurement kernel is typically
+    ``"linear"`` (Eq. 20) for low-dimensional noisy observations.
+    """
+
+    kinds = {"discrete": "iddm_discrete", "continuous": "iddm_continuous"}
