@@ -1,0 +1,934 @@
+"""Table-tennis ball physics: flight, table bounce, net, racket contact, aiming (thesis Sec. 4.3).
+
+The thesis evaluates its robot player in the SL simulator of the Barrett WAM table-tennis setup
+(Mülling et al., 2011; Kober/Mülling lineage), whose ball model this module reproduces in batched
+torch (float64, any leading batch dims ``...``):
+
+* flight: ``dv/dt = -g e_z - k_d |v| v + k_m (w x v)`` (gravity, quadratic drag, Magnus force), the
+  spin ``w`` constant in flight; integrated with RK4;
+* table bounce: normal velocity times ``-0.88``, tangential velocity factors 0.72 (x) and 0.68 (y)
+  (SL constants), extended to spin by applying the factors to the contact point's slip velocity
+  and giving the spin the matching angular impulse (for a spin-free ball this is exactly the SL
+  law);
+* net: a vertical plane at ``y = 0`` that the ball must clear by its radius; a ball that touches
+  it loses most of its speed;
+* racket: reflection of the ball's velocity about the racket normal in the racket's frame with
+  restitution 0.78 (the SL racket law); a frictionless contact, so the spin is kept.
+
+Table and net contacts are events located inside a step to machine precision (a safeguarded
+Newton search on the RK4 flow), so results do not depend on the step size for ``dt <= 10 ms``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from tqdm.auto import tqdm
+
+from hgpdm_torch.robots.table_tennis import geometry as geo
+from hgpdm_torch.validation import as_tensor, check_shape
+
+__all__ = [
+    "BallParams",
+    "BallState",
+    "BallTrajectory",
+    "Landing",
+    "StepEvents",
+    "aim",
+    "aim_through_bounce",
+    "flight",
+    "is_legal_return",
+    "landing",
+    "make_state",
+    "predict_plane_crossing",
+    "racket_contact",
+    "racket_velocity_for_return",
+    "simulate",
+    "step",
+    "step_events",
+    "table_point",
+]
+
+_AIR_DENSITY = 1.2  # kg/m^3 at ~20 C, sea level
+_MAX_DT = 0.05  # one event of each kind per step is assumed; 10 ms is the design step
+
+
+def _magnus_coefficient(radius: float, mass: float) -> float:
+    # Lift of a spinning sphere F = 0.5 rho A C_L |v|^2 with C_L ~= r|w|/|v| (the lift coefficient
+    # roughly equals the spin parameter S = r|w|/|v| for the S ~ 0.1-0.5 of table-tennis strokes)
+    # gives F = 0.5 rho A r (w x v), i.e. k_m = rho pi r^3 / (2 m) ~= 5.6e-3 (dimensionless).
+    return _AIR_DENSITY * math.pi * radius**3 / (2.0 * mass)
+
+
+@dataclass(frozen=True)
+class BallParams:
+    """Constants of the ball model (SL simulator lineage; Mülling et al., 2011; ITTF rules).
+
+    Attributes:
+        gravity: ``g`` [m/s^2] (9.802 in SL).
+        drag: ``k_d`` [1/m] of the drag acceleration ``-k_d |v| v`` (0.1414 in SL; equals
+            ``0.5 C_D rho A / m`` with ``C_D ~= 0.5``).
+        magnus: ``k_m`` (dimensionless) of the Magnus acceleration ``k_m (w x v)``; the SL
+            simulator ignores spin, we use ``rho pi r^3 / (2 m) ~= 5.6e-3`` from a lift
+            coefficient equal to the spin parameter ``r|w|/|v|``.
+        table_restitution: factor ``-e`` on the normal velocity at a table bounce (0.88).
+        table_friction_x: tangential velocity factor along ``x`` at a table bounce (0.72).
+        table_friction_y: tangential velocity factor along ``y`` at a table bounce (0.68).
+        racket_restitution: restitution of the racket contact along its normal (0.78).
+        net_restitution: restitution along ``y`` when the ball touches the net (our choice: the
+            net is soft and absorbs most of the energy).
+        net_damping: factor on the other velocity components and the spin at a net contact.
+        radius: ball radius [m].
+        mass: ball mass [kg].
+        inertia_factor: moment of inertia over ``m r^2`` (2/3 for the thin shell of a ball).
+    """
+
+    gravity: float = geo.GRAVITY
+    drag: float = 0.1414
+    magnus: float = _magnus_coefficient(geo.BALL_RADIUS, geo.BALL_MASS)
+    table_restitution: float = 0.88
+    table_friction_x: float = 0.72
+    table_friction_y: float = 0.68
+    racket_restitution: float = 0.78
+    net_restitution: float = 0.1
+    net_damping: float = 0.5
+    radius: float = geo.BALL_RADIUS
+    mass: float = geo.BALL_MASS
+    inertia_factor: float = 2.0 / 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("gravity", "drag", "magnus", "net_restitution", "net_damping"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"BallParams.{name} must be finite and >= 0, got {value}")
+        for name in ("radius", "mass", "inertia_factor"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"BallParams.{name} must be finite and > 0, got {value}")
+        for name in (
+            "table_restitution",
+            "table_friction_x",
+            "table_friction_y",
+            "racket_restitution",
+        ):
+            value = getattr(self, name)
+            if not 0 <= value <= 1:
+                raise ValueError(f"BallParams.{name} must lie in [0, 1], got {value}")
+
+
+DEFAULT_PARAMS = BallParams()
+
+
+class BallState(NamedTuple):
+    """State of a batch of balls; every field has shape ``[..., 3]``.
+
+    Attributes:
+        pos: centre position [m] in the world frame of :mod:`.geometry`.
+        vel: linear velocity [m/s].
+        spin: angular velocity [rad/s].
+    """
+
+    pos: torch.Tensor
+    vel: torch.Tensor
+    spin: torch.Tensor
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The leading batch dims ``...``."""
+        return self.pos.shape[:-1]
+
+    def where(self, mask: torch.Tensor, other: BallState) -> BallState:
+        """``self`` where ``mask`` [...] is true, ``other`` elsewhere."""
+        m = mask.unsqueeze(-1)
+        return BallState(*(torch.where(m, a, b) for a, b in zip(self, other, strict=True)))
+
+
+class StepEvents(NamedTuple):
+    """Contacts that happened during one call of :func:`step_events`; shapes ``[...]``/``[..., 3]``.
+
+    Attributes:
+        bounce: whether the ball bounced on the table.
+        bounce_pos: contact point on the table surface (``z = TABLE_HEIGHT``) of the first
+            bounce; zeros where ``bounce`` is false.
+        bounce_time: time of that bounce after the start of the step [s]; zero where none.
+        net: whether the ball touched the net.
+    """
+
+    bounce: torch.Tensor
+    bounce_pos: torch.Tensor
+    bounce_time: torch.Tensor
+    net: torch.Tensor
+
+
+class BallTrajectory(NamedTuple):
+    """A simulated flight sampled every ``dt``; ``S`` samples including the start.
+
+    Attributes:
+        times: ``[S]`` sample times [s], ``times[0] = 0``.
+        pos: ``[..., S, 3]`` centre positions.
+        vel: ``[..., S, 3]`` velocities.
+        spin: ``[..., S, 3]`` angular velocities.
+        bounce: ``[..., S]`` whether a table bounce happened in the step ending at sample s
+            (``bounce[..., 0]`` is false).
+        bounce_pos: ``[..., S, 3]`` contact point of that bounce on the table surface (zeros
+            where none).
+        bounce_time: ``[..., S]`` absolute time of that bounce [s] (zero where none).
+        net: ``[..., S]`` whether the ball touched the net in the step ending at sample s.
+    """
+
+    times: torch.Tensor
+    pos: torch.Tensor
+    vel: torch.Tensor
+    spin: torch.Tensor
+    bounce: torch.Tensor
+    bounce_pos: torch.Tensor
+    bounce_time: torch.Tensor
+    net: torch.Tensor
+
+
+class Landing(NamedTuple):
+    """The first table bounce of a trajectory; shapes ``[..., 3]`` and ``[...]``.
+
+    Attributes:
+        pos: contact point on the table surface (zeros where ``landed`` is false).
+        time: time of the contact [s] (zero where ``landed`` is false).
+        landed: whether the ball touched the table at all.
+        net_before: whether the ball touched the net before that bounce (or at all, if it never
+            landed).
+    """
+
+    pos: torch.Tensor
+    time: torch.Tensor
+    landed: torch.Tensor
+    net_before: torch.Tensor
+
+
+# --------------------------------------------------------------------------------------------
+# construction and validation
+
+
+def make_state(
+    pos: object, vel: object, spin: object | None = None, *, dtype: torch.dtype | None = None
+) -> BallState:
+    """Validate and broadcast ``pos``, ``vel``, ``spin`` ([..., 3] each) into a :class:`BallState`.
+
+    ``spin`` defaults to zeros. Raises ``ValueError`` for a wrong trailing shape or non-finite
+    entries and ``TypeError`` for non-numeric input.
+    """
+    p = as_tensor(pos, "pos", dtype=dtype, min_ndim=1)
+    v = as_tensor(vel, "vel", dtype=dtype or p.dtype, device=p.device, min_ndim=1)
+    w = (
+        torch.zeros_like(v)
+        if spin is None
+        else as_tensor(spin, "spin", dtype=dtype or p.dtype, device=p.device, min_ndim=1)
+    )
+    for t, name in ((p, "pos"), (v, "vel"), (w, "spin")):
+        check_shape(t, name, (3,))
+    try:
+        p, v, w = torch.broadcast_tensors(p, v, w)
+    except RuntimeError as err:
+        raise ValueError(
+            f"pos {tuple(p.shape)}, vel {tuple(v.shape)} and spin {tuple(w.shape)} must broadcast"
+        ) from err
+    return BallState(p.contiguous(), v.contiguous(), w.contiguous())
+
+
+def _check_state(state: BallState, name: str = "state") -> BallState:
+    if not isinstance(state, BallState):
+        raise TypeError(f"{name} must be a BallState, got {type(state).__name__}")
+    return make_state(state.pos, state.vel, state.spin)
+
+
+def _check_params(params: BallParams) -> BallParams:
+    if not isinstance(params, BallParams):
+        raise TypeError(f"params must be a BallParams, got {type(params).__name__}")
+    return params
+
+
+def _check_dt(dt: float, name: str = "dt") -> float:
+    if not isinstance(dt, int | float) or not math.isfinite(dt) or not 0 < dt <= _MAX_DT:
+        raise ValueError(f"{name} must be a number in (0, {_MAX_DT}] s, got {dt!r}")
+    return float(dt)
+
+
+def table_point(x: object, y: object) -> torch.Tensor:
+    """Centre ``[..., 3]`` of a ball touching the table surface at ``(x, y)`` (each ``[...]``)."""
+    xt = as_tensor(x, "x")
+    yt = as_tensor(y, "y", dtype=xt.dtype, device=xt.device)
+    xt, yt = torch.broadcast_tensors(xt, yt)
+    return torch.stack([xt, yt, torch.full_like(xt, geo.TABLE_HEIGHT + geo.BALL_RADIUS)], -1)
+
+
+# --------------------------------------------------------------------------------------------
+# flight
+
+
+def flight(state: BallState, params: BallParams = DEFAULT_PARAMS) -> torch.Tensor:
+    """Acceleration ``[..., 3]`` in free flight: ``-g e_z - k_d |v| v + k_m (w x v)``."""
+    v, w = state.vel, state.spin
+    acc = -params.drag * v.norm(dim=-1, keepdim=True) * v
+    if params.magnus:
+        acc = acc + params.magnus * torch.linalg.cross(w, v, dim=-1)
+    gravity = torch.zeros(3, dtype=v.dtype, device=v.device)
+    gravity[2] = -params.gravity
+    return acc + gravity
+
+
+def _rk4(state: BallState, h: torch.Tensor, params: BallParams) -> BallState:
+    """One classical RK4 step of the flight ODE with a per-ball step ``h`` [...] (may be 0)."""
+    h = h.unsqueeze(-1)
+    p, v, w = state
+
+    def acc(vel: torch.Tensor) -> torch.Tensor:
+        return flight(BallState(p, vel, w), params)
+
+    a1 = acc(v)
+    v2 = v + 0.5 * h * a1
+    a2 = acc(v2)
+    v3 = v + 0.5 * h * a2
+    a3 = acc(v3)
+    v4 = v + h * a3
+    a4 = acc(v4)
+    new_p = p + h / 6.0 * (v + 2 * v2 + 2 * v3 + v4)
+    new_v = v + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+    return BallState(new_p, new_v, w)
+
+
+# --------------------------------------------------------------------------------------------
+# events
+
+# An event maps a state to a scalar ``g`` (positive before contact) and its time derivative.
+_Event = Callable[[BallState], tuple[torch.Tensor, torch.Tensor]]
+_Propagator = Callable[[BallState, torch.Tensor], BallState]
+
+
+def _find_root(
+    start: BallState,
+    hi: torch.Tensor,
+    g_start: torch.Tensor,
+    g_end: torch.Tensor,
+    event: _Event,
+    propagate: _Propagator,
+    iters: int = 12,
+) -> torch.Tensor:
+    """Time ``tau`` [...] in ``[0, hi]`` where ``event`` crosses zero along ``propagate``.
+
+    ``g_start > 0 >= g_end`` is assumed where the result is used. Newton steps on ``tau`` use the
+    event's time derivative; a step that leaves the current bracket falls back to bisection.
+    """
+    lo = torch.zeros_like(hi)
+    denom = g_start - g_end
+    safe = denom > 0
+    tau = torch.where(safe, hi * g_start / torch.where(safe, denom, torch.ones_like(denom)), hi)
+    tau = tau.clamp(min=0).minimum(hi)
+    for _ in range(iters):
+        s = propagate(start, tau)
+        g, gdot = event(s)
+        above = g > 0
+        lo = torch.where(above, tau, lo)
+        hi = torch.where(above, hi, tau)
+        ok_d = gdot != 0
+        newton = tau - g / torch.where(ok_d, gdot, torch.ones_like(gdot))
+        inside = ok_d & (newton > lo) & (newton < hi)
+        tau = torch.where(inside, newton, 0.5 * (lo + hi))
+    # the last bracket end with g <= 0 places the ball on (or a hair past) the contact surface
+    return hi
+
+
+class _TableEvent:
+    def __init__(self, params: BallParams) -> None:
+        self.level = geo.TABLE_HEIGHT + params.radius
+
+    def __call__(self, s: BallState) -> tuple[torch.Tensor, torch.Tensor]:
+        return s.pos[..., 2] - self.level, s.vel[..., 2]
+
+
+class _PlaneEvent:
+    """``g = sign * (y - y_plane) - offset``; ``sign`` [...] orients g to be positive at start."""
+
+    def __init__(self, y_plane: torch.Tensor, sign: torch.Tensor, offset: float = 0.0) -> None:
+        self.y_plane, self.sign, self.offset = y_plane, sign, offset
+
+    def __call__(self, s: BallState) -> tuple[torch.Tensor, torch.Tensor]:
+        return (
+            self.sign * (s.pos[..., 1] - self.y_plane) - self.offset,
+            self.sign * s.vel[..., 1],
+        )
+
+
+def _table_bounce(s: BallState, params: BallParams) -> BallState:
+    """Post-bounce state of balls touching the table (SL law on the contact point's slip)."""
+    r = params.radius
+    v, w = s.vel, s.spin
+    # slip velocity of the contact point r_c = (0, 0, -r): v + w x r_c
+    slip_x = v[..., 0] - r * w[..., 1]
+    slip_y = v[..., 1] + r * w[..., 0]
+    dvx = (params.table_friction_x - 1.0) * slip_x
+    dvy = (params.table_friction_y - 1.0) * slip_y
+    new_v = torch.stack(
+        [v[..., 0] + dvx, v[..., 1] + dvy, -params.table_restitution * v[..., 2]], -1
+    )
+    # angular impulse of the friction impulse m dv at r_c: I dw = r_c x (m dv), I = kappa m r^2
+    kr = params.inertia_factor * r
+    new_w = torch.stack([w[..., 0] + dvy / kr, w[..., 1] - dvx / kr, w[..., 2]], -1)
+    pos = s.pos.clone()
+    pos[..., 2] = geo.TABLE_HEIGHT + r  # exactly on the surface so the event cannot re-trigger
+    return BallState(pos, new_v, new_w)
+
+
+def _net_hit(s: BallState, sign: torch.Tensor, params: BallParams) -> BallState:
+    """Post-contact state of balls touching the net face (``sign`` = direction of travel in y)."""
+    scale = torch.tensor(
+        [params.net_damping, -params.net_restitution, params.net_damping],
+        dtype=s.vel.dtype,
+        device=s.vel.device,
+    )
+    pos = s.pos.clone()
+    pos[..., 1] = geo.NET_Y - sign * params.radius
+    return BallState(pos, s.vel * scale, s.spin * params.net_damping)
+
+
+def _on_table(pos: torch.Tensor) -> torch.Tensor:
+    return (pos[..., 0].abs() <= geo.TABLE_HALF_WIDTH) & (
+        pos[..., 1].abs() <= geo.TABLE_HALF_LENGTH
+    )
+
+
+def _at_net(pos: torch.Tensor, params: BallParams) -> torch.Tensor:
+    # the ball must clear the net's top by its radius; below the playing surface there is no net
+    z = pos[..., 2] - geo.TABLE_HEIGHT
+    return (
+        (pos[..., 0].abs() <= geo.NET_HALF_WIDTH + params.radius)
+        & (z > 0)
+        & (z < geo.NET_HEIGHT + params.radius)
+    )
+
+
+def _advance(
+    state: BallState, h: torch.Tensor, params: BallParams, max_events: int = 4
+) -> tuple[BallState, StepEvents]:
+    """Propagate each ball by its own time ``h`` [...] through table and net contacts."""
+    remaining = h.clone()
+    zeros = torch.zeros_like(h)
+    bounce = torch.zeros(h.shape, dtype=torch.bool, device=h.device)
+    net = torch.zeros_like(bounce)
+    bounce_pos = torch.zeros_like(state.pos)
+    bounce_time = zeros.clone()
+    elapsed = zeros.clone()
+    table_event = _TableEvent(params)
+
+    def fly(s: BallState, tau: torch.Tensor) -> BallState:
+        return _rk4(s, tau, params)
+
+    for _ in range(max_events + 1):
+        active = remaining > 0
+        if not bool(active.any()):
+            break
+        trial = _rk4(state, remaining, params)
+        g0_t, _ = table_event(state)
+        g1_t, _ = table_event(trial)
+        table_cand = active & (g0_t > 0) & (g1_t <= 0)
+        sign = torch.sign(state.vel[..., 1])
+        net_event = _PlaneEvent(torch.full_like(h, geo.NET_Y), -sign, params.radius)
+        g0_n, _ = net_event(state)
+        g1_n, _ = net_event(trial)
+        net_cand = active & (sign != 0) & (g0_n > 0) & (g1_n <= 0)
+        if not bool((table_cand | net_cand).any()):
+            state = trial.where(active, state)
+            break
+        tau_t = torch.full_like(h, math.inf)
+        tau_n = torch.full_like(h, math.inf)
+        if bool(table_cand.any()):
+            tau = _find_root(state, remaining, g0_t, g1_t, table_event, fly)
+            table_cand = table_cand & _on_table(fly(state, tau).pos)
+            tau_t = torch.where(table_cand, tau, tau_t)
+        if bool(net_cand.any()):
+            tau = _find_root(state, remaining, g0_n, g1_n, net_event, fly)
+            net_cand = net_cand & _at_net(fly(state, tau).pos, params)
+            tau_n = torch.where(net_cand, tau, tau_n)
+        use_t = table_cand & (tau_t <= tau_n)
+        use_n = net_cand & ~use_t
+        hit = use_t | use_n
+        tau = torch.where(use_t, tau_t, torch.where(use_n, tau_n, remaining))
+        at = fly(state, tau)
+        first = use_t & ~bounce
+        contact = at.pos.clone()
+        contact[..., 2] = geo.TABLE_HEIGHT
+        bounce_pos = torch.where(first.unsqueeze(-1), contact, bounce_pos)
+        bounce_time = torch.where(first, elapsed + tau, bounce_time)
+        bounce = bounce | use_t
+        net = net | use_n
+        after = _table_bounce(at, params).where(use_t, _net_hit(at, sign, params).where(use_n, at))
+        state = after.where(active, state)
+        elapsed = elapsed + torch.where(active, tau, zeros)
+        remaining = torch.where(hit, remaining - tau, zeros)
+    else:
+        # more contacts in one step than max_events (a ball trapped at the net): finish in flight
+        state = _rk4(state, remaining, params)
+    return state, StepEvents(bounce, bounce_pos, bounce_time, net)
+
+
+def step_events(
+    state: BallState, dt: float, params: BallParams = DEFAULT_PARAMS
+) -> tuple[BallState, StepEvents]:
+    """Advance a batch of balls by ``dt`` seconds and report table/net contacts in the step.
+
+    Args:
+        state: :class:`BallState` with fields ``[..., 3]``.
+        dt: step [s], ``0 < dt <= 0.05`` (contacts are exact for ``dt <= 10 ms``).
+        params: ball constants.
+
+    Returns:
+        The new state and the :class:`StepEvents` of the step.
+    """
+    state = _check_state(state)
+    params = _check_params(params)
+    dt = _check_dt(dt)
+    h = torch.full(state.batch_shape, dt, dtype=state.pos.dtype, device=state.pos.device)
+    return _advance(state, h, params)
+
+
+def step(state: BallState, dt: float, params: BallParams = DEFAULT_PARAMS) -> BallState:
+    """Advance a batch of balls by ``dt`` seconds: RK4 flight with exact table and net contacts.
+
+    Shapes: ``[..., 3]`` fields in and out. See :func:`step_events` for the contacts.
+    """
+    return step_events(state, dt, params)[0]
+
+
+def simulate(
+    state: BallState,
+    duration: float,
+    dt: float,
+    params: BallParams = DEFAULT_PARAMS,
+    *,
+    progress: bool = False,
+) -> BallTrajectory:
+    """Simulate a batch of balls for ``duration`` seconds, sampled every step.
+
+    The step is ``duration / round(duration / dt)`` so that the last sample falls on ``duration``.
+
+    Args:
+        state: initial :class:`BallState` ``[..., 3]``.
+        duration: simulated time [s] (> 0).
+        dt: nominal step [s], ``0 < dt <= 0.05``.
+        params: ball constants.
+        progress: show a tqdm bar over steps.
+
+    Returns:
+        :class:`BallTrajectory` with ``S = round(duration / dt) + 1`` samples.
+    """
+    state = _check_state(state)
+    params = _check_params(params)
+    dt = _check_dt(dt)
+    if not isinstance(duration, int | float) or not math.isfinite(duration) or duration <= 0:
+        raise ValueError(f"duration must be a positive number of seconds, got {duration!r}")
+    n = max(1, round(duration / dt))
+    h_val = duration / n
+    h = torch.full(state.batch_shape, h_val, dtype=state.pos.dtype, device=state.pos.device)
+    pos, vel, spin = [state.pos], [state.vel], [state.spin]
+    no = torch.zeros(state.batch_shape, dtype=torch.bool, device=state.pos.device)
+    bounce, bpos, btime, net = [no], [torch.zeros_like(state.pos)], [h * 0], [no]
+    for k in tqdm(range(n), disable=not progress, desc="ball", leave=False):
+        state, ev = _advance(state, h, params)
+        pos.append(state.pos)
+        vel.append(state.vel)
+        spin.append(state.spin)
+        bounce.append(ev.bounce)
+        bpos.append(ev.bounce_pos)
+        btime.append(torch.where(ev.bounce, ev.bounce_time + k * h_val, ev.bounce_time))
+        net.append(ev.net)
+    times = torch.arange(n + 1, dtype=state.pos.dtype, device=state.pos.device) * h_val
+    return BallTrajectory(
+        times,
+        torch.stack(pos, -2),
+        torch.stack(vel, -2),
+        torch.stack(spin, -2),
+        torch.stack(bounce, -1),
+        torch.stack(bpos, -2),
+        torch.stack(btime, -1),
+        torch.stack(net, -1),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# landing and legality
+
+
+def landing(traj: BallTrajectory) -> Landing:
+    """The first table bounce of each simulated ball. Shapes ``[..., S] -> [...]``.
+
+    ``net_before`` tells whether the net was touched before that bounce (or at all, if the ball
+    never landed).
+    """
+    if not isinstance(traj, BallTrajectory):
+        raise TypeError(f"traj must be a BallTrajectory, got {type(traj).__name__}")
+    landed = traj.bounce.any(-1)
+    first = torch.argmax(traj.bounce.to(torch.int8), dim=-1)  # index of the first true
+    pos = torch.gather(
+        traj.bounce_pos, -2, first[..., None, None].expand(*first.shape, 1, 3)
+    ).squeeze(-2)
+    time = torch.gather(traj.bounce_time, -1, first[..., None]).squeeze(-1)
+    idx = torch.arange(traj.bounce.shape[-1], device=first.device)
+    upto = torch.where(landed[..., None], idx <= first[..., None], torch.ones_like(traj.bounce))
+    # a net touch and a bounce in the same step: the step's event order is not kept, so count it
+    net_before = (traj.net & upto).any(-1)
+    zero = torch.zeros_like(time)
+    return Landing(
+        torch.where(landed[..., None], pos, torch.zeros_like(pos)),
+        torch.where(landed, time, zero),
+        landed,
+        net_before,
+    )
+
+
+def is_legal_return(traj: BallTrajectory, side: int = geo.OPPONENT_SIDE) -> torch.Tensor:
+    """Whether each ball first lands on the given half, clearing the net. ``[..., S] -> [...]``.
+
+    Legal means: the first table contact has ``side * y in (0, 1.37]`` and ``|x| <= 0.7625`` and
+    the ball did not touch the net before it.
+
+    Args:
+        traj: simulated flight starting after the hit.
+        side: ``+1`` (the opponent's half, :data:`geometry.OPPONENT_SIDE`) for the robot's returns,
+            ``-1`` (the robot's half) for the opponent's returns.
+    """
+    if side not in (-1, 1):
+        raise ValueError(f"side must be +1 (opponent's half) or -1 (robot's half), got {side!r}")
+    land = landing(traj)
+    on_half = (side * land.pos[..., 1] > 0) & (side * land.pos[..., 1] <= geo.TABLE_HALF_LENGTH)
+    inside = land.pos[..., 0].abs() <= geo.TABLE_HALF_WIDTH
+    return land.landed & on_half & inside & ~land.net_before
+
+
+# --------------------------------------------------------------------------------------------
+# plane crossing
+
+
+def predict_plane_crossing(
+    state: BallState,
+    y_plane: float | torch.Tensor,
+    params: BallParams = DEFAULT_PARAMS,
+    *,
+    max_time: float = 2.0,
+    dt: float = 0.005,
+) -> tuple[torch.Tensor, BallState, torch.Tensor]:
+    """When and where each ball first crosses the plane ``y = y_plane``, bounces included.
+
+    Used by the robot to predict the ball at its virtual hitting plane (thesis Fig. 4.2).
+
+    Args:
+        state: :class:`BallState` ``[..., 3]``.
+        y_plane: plane position, a float or a tensor broadcastable to ``[...]``.
+        params: ball constants.
+        max_time: give up after this many seconds.
+        dt: integration step [s] (the crossing itself is located exactly).
+
+    Returns:
+        ``t`` [...] time of the crossing [s], the :class:`BallState` at the crossing, and ``valid``
+        [...]: whether the ball crossed within ``max_time`` before falling to the floor. Where
+        ``valid`` is false ``t`` is ``max_time`` and the state is the last one simulated.
+    """
+    state = _check_state(state)
+    params = _check_params(params)
+    dt = _check_dt(dt)
+    if not isinstance(max_time, int | float) or not math.isfinite(max_time) or max_time <= 0:
+        raise ValueError(f"max_time must be a positive number of seconds, got {max_time!r}")
+    yp = as_tensor(y_plane, "y_plane", dtype=state.pos.dtype, device=state.pos.device)
+    yp = torch.broadcast_to(yp, state.batch_shape).clone()
+    g0 = state.pos[..., 1] - yp
+    event = _PlaneEvent(yp, torch.where(g0 >= 0, 1.0, -1.0).to(yp.dtype))
+
+    def fly(s: BallState, tau: torch.Tensor) -> BallState:
+        return _advance(s, tau, params)[0]
+
+    shape = state.batch_shape
+    done = torch.zeros(shape, dtype=torch.bool, device=yp.device)
+    valid = torch.zeros_like(done)
+    t_cross = torch.full(shape, float(max_time), dtype=yp.dtype, device=yp.device)
+    out = state
+    t = 0.0
+    n = math.ceil(max_time / dt - 1e-9)
+    for k in range(n):
+        h_val = min(dt, max_time - k * dt)
+        h = torch.full(shape, h_val, dtype=yp.dtype, device=yp.device)
+        new, _ = _advance(state, h, params)
+        g_start, _ = event(state)
+        g_end, _ = event(new)
+        crossed = ~done & (g_start > 0) & (g_end <= 0)
+        if bool(crossed.any()):
+            tau = _find_root(state, h, g_start, g_end, event, fly)
+            at = fly(state, tau)
+            floor_ok = at.pos[..., 2] > params.radius
+            out = at.where(crossed, out)
+            t_cross = torch.where(crossed, t + tau, t_cross)
+            valid = valid | (crossed & floor_ok)
+            done = done | crossed
+        fell = ~done & (new.pos[..., 2] <= params.radius)
+        out = new.where(fell, out)
+        done = done | fell
+        t += h_val
+        state = new
+        if bool(done.all()):
+            break
+    out = out.where(done, state)
+    return t_cross, out, valid
+
+
+# --------------------------------------------------------------------------------------------
+# racket contact
+
+
+def _unit(n: torch.Tensor, name: str) -> torch.Tensor:
+    norm = n.norm(dim=-1, keepdim=True)
+    if bool((norm < 1e-12).any()):
+        raise ValueError(f"{name} must be non-zero vectors")
+    return n / norm
+
+
+def racket_contact(
+    ball_vel: object,
+    ball_spin: object,
+    racket_vel: object,
+    racket_normal: object,
+    params: BallParams = DEFAULT_PARAMS,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ball velocity and spin after a racket contact (SL racket law, Mülling et al., 2011).
+
+    In the racket's frame the ball's normal velocity is reversed and scaled by the restitution
+    ``e`` and its tangential velocity kept:
+    ``v_out = v + (1 + e) ((v_r - v) . n) n``. The contact is frictionless, so the spin is kept.
+    The law is symmetric in the sign of ``n``. All arguments ``[..., 3]`` (broadcast); the normal
+    need not be unit length.
+
+    Returns:
+        ``(vel_out, spin_out)``, each ``[..., 3]``.
+    """
+    params = _check_params(params)
+    v = as_tensor(ball_vel, "ball_vel", min_ndim=1)
+    kw = {"dtype": v.dtype, "device": v.device, "min_ndim": 1}
+    w = as_tensor(ball_spin, "ball_spin", **kw)
+    vr = as_tensor(racket_vel, "racket_vel", **kw)
+    n = as_tensor(racket_normal, "racket_normal", **kw)
+    for t, name in ((v, "ball_vel"), (w, "ball_spin"), (vr, "racket_vel"), (n, "racket_normal")):
+        check_shape(t, name, (3,))
+    n = _unit(n, "racket_normal")
+    closing = ((vr - v) * n).sum(-1, keepdim=True)
+    vel_out = v + (1.0 + params.racket_restitution) * closing * n
+    return vel_out, torch.broadcast_to(w, vel_out.shape).clone()
+
+
+def racket_velocity_for_return(
+    ball_vel_in: object,
+    desired_vel_out: object,
+    params: BallParams = DEFAULT_PARAMS,
+    *,
+    tangential: object | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Racket normal and velocity that turn ``ball_vel_in`` into ``desired_vel_out``.
+
+    Inverts :func:`racket_contact`: the velocity change ``dv = v_out - v_in`` lies along the
+    normal, so ``n = dv / |dv|``, and its size fixes the racket's normal speed,
+    ``v_r . n = v_in . n + |dv| / (1 + e)``. The racket's tangential velocity does not affect the
+    ball; it is ``tangential`` projected onto the racket plane (default zero, the slowest racket).
+
+    Args:
+        ball_vel_in: ``[..., 3]`` ball velocity just before contact.
+        desired_vel_out: ``[..., 3]`` ball velocity wanted just after contact.
+        params: ball constants (uses ``racket_restitution``).
+        tangential: optional ``[..., 3]`` racket velocity whose in-plane part is kept.
+
+    Returns:
+        ``(racket_normal, racket_vel)``, each ``[..., 3]``; the normal is a unit vector pointing
+        along ``dv`` (towards where the ball is sent).
+    """
+    params = _check_params(params)
+    v_in = as_tensor(ball_vel_in, "ball_vel_in", min_ndim=1)
+    v_out = as_tensor(desired_vel_out, "desired_vel_out", dtype=v_in.dtype, device=v_in.device)
+    check_shape(v_in, "ball_vel_in", (3,))
+    check_shape(v_out, "desired_vel_out", (3,))
+    dv = v_out - v_in
+    if bool((dv.norm(dim=-1) < 1e-9).any()):
+        raise ValueError(
+            "desired_vel_out must differ from ball_vel_in (no contact changes nothing)"
+        )
+    n = dv / dv.norm(dim=-1, keepdim=True)
+    speed = (v_in * n).sum(-1, keepdim=True) + dv.norm(dim=-1, keepdim=True) / (
+        1.0 + params.racket_restitution
+    )
+    racket_vel = speed * n
+    if tangential is not None:
+        tan = as_tensor(tangential, "tangential", dtype=v_in.dtype, device=v_in.device)
+        check_shape(tan, "tangential", (3,))
+        racket_vel = racket_vel + tan - (tan * n).sum(-1, keepdim=True) * n
+    return n, racket_vel
+
+
+# --------------------------------------------------------------------------------------------
+# aiming
+
+
+def _fly_for(
+    pos: torch.Tensor, vel: torch.Tensor, spin: torch.Tensor, t: torch.Tensor, params: BallParams
+) -> torch.Tensor:
+    """Free-flight position after ``t`` [...] seconds (RK4, steps <= 2.5 ms, no contacts)."""
+    n = max(8, math.ceil(float(t.max()) / 0.0025))
+    h = t / n
+    s = BallState(pos, vel, spin)
+    for _ in range(n):
+        s = _rk4(s, h, params)
+    return s.pos
+
+
+def aim(
+    pos: object,
+    target_pos: object,
+    flight_time: object,
+    params: BallParams = DEFAULT_PARAMS,
+    *,
+    spin: object | None = None,
+    tol: float = 1e-9,
+    max_iter: int = 20,
+) -> torch.Tensor:
+    """Initial velocity that carries a ball from ``pos`` to ``target_pos`` in ``flight_time``.
+
+    A batched shooting method on the free-flight model (gravity, drag, Magnus with constant
+    ``spin``): Newton's method on ``p(T; v0) - target = 0`` with a central-difference Jacobian,
+    started from the drag-free ballistic solution. Table and net contacts are not modelled on
+    the way; check the result with :func:`simulate` and :func:`is_legal_return`.
+
+    Args:
+        pos: ``[..., 3]`` start position of the ball centre.
+        target_pos: ``[..., 2]`` landing point ``(x, y)`` on the table surface (the ball centre
+            then reaches ``z = TABLE_HEIGHT + radius``), or ``[..., 3]`` a ball-centre point.
+        flight_time: ``[...]`` or scalar time to reach the target [s] (> 0).
+        params: ball constants.
+        spin: ``[..., 3]`` angular velocity during the flight (default zero).
+        tol: stop when every position residual is below this [m].
+        max_iter: Newton iterations at most.
+
+    Returns:
+        ``v0`` ``[..., 3]``.
+
+    Raises:
+        ValueError: for bad shapes/values, or when Newton does not reach ``1e-6`` m.
+    """
+    params = _check_params(params)
+    p0 = as_tensor(pos, "pos", min_ndim=1)
+    kw = {"dtype": p0.dtype, "device": p0.device}
+    tgt = as_tensor(target_pos, "target_pos", min_ndim=1, **kw)
+    check_shape(p0, "pos", (3,))
+    if tgt.shape[-1] == 2:
+        tgt = torch.cat(
+            [tgt, torch.full_like(tgt[..., :1], geo.TABLE_HEIGHT + params.radius)], dim=-1
+        )
+    check_shape(tgt, "target_pos", (3,))
+    t = as_tensor(flight_time, "flight_time", **kw)
+    if bool((t <= 0).any()):
+        raise ValueError("flight_time must be positive")
+    w = torch.zeros(3, **kw) if spin is None else as_tensor(spin, "spin", min_ndim=1, **kw)
+    check_shape(w, "spin", (3,))
+    shape = torch.broadcast_shapes(p0.shape, tgt.shape, w.shape, t.shape + (3,))
+    p0, tgt, w = (x.expand(shape) for x in (p0, tgt, w))
+    t = t.expand(shape[:-1])
+    g = torch.zeros(3, **kw)
+    g[2] = params.gravity
+    v = (tgt - p0) / t[..., None] + 0.5 * g * t[..., None]  # drag-free ballistic guess
+    eps = 1e-6
+    eye = torch.eye(3, **kw)
+    pert = torch.cat([torch.zeros(1, 3, **kw), eps * eye, -eps * eye])  # [7, 3]
+    for _ in range(max_iter):
+        vs = v.unsqueeze(-2) + pert  # [..., 7, 3]
+        end = _fly_for(
+            p0.unsqueeze(-2), vs, w.unsqueeze(-2), t[..., None].expand(vs.shape[:-1]), params
+        )
+        resid = end[..., 0, :] - tgt
+        if float(resid.abs().max()) < tol:
+            break
+        jac = (end[..., 1:4, :] - end[..., 4:7, :]).transpose(-1, -2) / (2 * eps)  # [..., 3, 3]
+        v = v - torch.linalg.solve(jac, resid.unsqueeze(-1)).squeeze(-1)
+    else:
+        end = _fly_for(p0, v, w, t, params)
+        resid = end - tgt
+    if float(resid.abs().max()) > 1e-6:
+        raise ValueError(
+            f"aim did not converge (max residual {float(resid.abs().max()):.2e} m); "
+            "the target may be unreachable in the given flight_time"
+        )
+    return v
+
+
+def aim_through_bounce(
+    pos: object,
+    plane_x: object,
+    bounce_y: object,
+    flight_time: object,
+    params: BallParams = DEFAULT_PARAMS,
+    *,
+    y_plane: float = geo.HITTING_PLANE_Y,
+    spin: object | None = None,
+    tol: float = 1e-6,
+    max_iter: int = 12,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Initial velocity for a ball that bounces at ``y = bounce_y`` and crosses ``y_plane`` at x.
+
+    The opponent's return (thesis Fig. 4.2): the ball must land on the robot's half and pass the
+    robot's virtual hitting plane at the intended lateral position ``plane_x``. For a bounce
+    point ``(x_b, bounce_y)`` reached in ``flight_time`` :func:`aim` gives the velocity; the
+    secant method then adjusts ``x_b`` until the simulated crossing (bounce included) is at
+    ``plane_x``.
+
+    Args:
+        pos: ``[..., 3]`` start position.
+        plane_x: ``[...]`` wanted lateral position on the plane.
+        bounce_y: ``[...]`` ``y`` of the bounce on the table.
+        flight_time: ``[...]`` time from ``pos`` to the bounce [s].
+        params: ball constants.
+        y_plane: the plane (default: the robot's hitting plane).
+        spin: ``[..., 3]`` spin right after the hit (default zero).
+        tol: stop when every crossing is within this of ``plane_x`` [m].
+        max_iter: secant iterations at most.
+
+    Returns:
+        ``(v0 [..., 3], bounce_x [...])``.
+    """
+    params = _check_params(params)
+    p0 = as_tensor(pos, "pos", min_ndim=1)
+    check_shape(p0, "pos", (3,))
+    kw = {"dtype": p0.dtype, "device": p0.device}
+    px = as_tensor(plane_x, "plane_x", **kw)
+    by = as_tensor(bounce_y, "bounce_y", **kw)
+    ft = as_tensor(flight_time, "flight_time", **kw)
+    w = torch.zeros(3, **kw) if spin is None else as_tensor(spin, "spin", min_ndim=1, **kw)
+    shape = torch.broadcast_shapes(p0.shape[:-1], px.shape, by.shape, ft.shape, w.shape[:-1])
+    p0, w = p0.expand(*shape, 3), w.expand(*shape, 3)
+    px, by, ft = (x.expand(shape) for x in (px, by, ft))
+
+    def crossing_x(xb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        v0 = aim(p0, torch.stack([xb, by], -1), ft, params, spin=w)
+        _, at, valid = predict_plane_crossing(BallState(p0, v0, w), y_plane, params)
+        if not bool(valid.all()):
+            raise ValueError("a ball aimed through the bounce never reached y_plane")
+        return at.pos[..., 0], v0
+
+    # straight-line guess from the start over the bounce to the plane
+    frac = (by - p0[..., 1]) / (y_plane - p0[..., 1])
+    x_a = p0[..., 0] + frac * (px - p0[..., 0])
+    f_a, v0 = crossing_x(x_a)
+    x_b = x_a + 0.5 * (px - f_a)
+    for _ in range(max_iter):
+        f_b, v0 = crossing_x(x_b)
+        err = f_b - px
+        if float(err.abs().max()) < tol:
+            return v0, x_b
+        slope = (f_b - f_a) / (x_b - x_a)
+        slope = torch.where(slope.abs() > 1e-3, slope, torch.ones_like(slope))
+        x_a, f_a = x_b, f_b
+        x_b = x_b - err / slope
+    raise ValueError(
+        f"aim_through_bounce did not converge (max error {float(err.abs().max()):.2e} m)"
+    )
