@@ -319,6 +319,7 @@ def _find_root(
 
     ``g_start > 0 >= g_end`` is assumed where the result is used. Newton steps on ``tau`` use the
     event's time derivative; a step that leaves the current bracket falls back to bisection.
+    Callers snap the ball onto the contact surface, so a residual of ~1e-16 s cannot re-trigger.
     """
     lo = torch.zeros_like(hi)
     denom = g_start - g_end
@@ -333,10 +334,10 @@ def _find_root(
         hi = torch.where(above, hi, tau)
         ok_d = gdot != 0
         newton = tau - g / torch.where(ok_d, gdot, torch.ones_like(gdot))
-        inside = ok_d & (newton > lo) & (newton < hi)
+        inside = ok_d & (newton >= lo) & (newton <= hi)
         tau = torch.where(inside, newton, 0.5 * (lo + hi))
-    # the last bracket end with g <= 0 places the ball on (or a hair past) the contact surface
-    return hi
+    # Newton converges quadratically from either side; a bracket end may stay at its first value
+    return tau
 
 
 class _TableEvent:
