@@ -9,6 +9,10 @@ points (Eq. 7 of the thesis, Sec. 3.2.1):
 
 ``scale`` and ``offset`` express the H-GPDM's measurement scaling: the GP models ``(z - offset) W``,
 so predictions of z divide the variance by ``w_d^2`` and leave the mean unscaled.
+
+At a Gaussian input ``x ~ N(mu, Sigma)`` :meth:`GPPosterior.predict_gaussian` matches the first
+two moments of ``f(x)`` exactly (Sec. 3.3.1, Eq. 29-35; Deisenroth et al. 2012), from the kernel
+expectations of :mod:`hgpdm_torch.expectations`.
 """
 
 from __future__ import annotations
@@ -16,7 +20,15 @@ from __future__ import annotations
 import torch
 from gpytorch.kernels import Kernel
 
-from .linalg import psd_cholesky
+from .expectations import (
+    check_gaussian,
+    kernel_leaves,
+    leaves_psi0,
+    split_terms,
+    term_psi1_grad,
+    term_psi2,
+)
+from .linalg import psd_cholesky, symmetrize
 from .validation import as_tensor, check_shape
 
 __all__ = ["GPPosterior"]
@@ -133,3 +145,141 @@ class GPPosterior:
             f_var = f_var + self.noise
         var = f_var.unsqueeze(-1) * self.scale.pow(2)
         return mean.reshape(*lead, self.output_dim), var.reshape(*lead, self.output_dim)
+
+    @property
+    def kinv(self) -> torch.Tensor:
+        """``[N, N]`` ``(K + noise I)^-1`` from the Cholesky factor, computed once.
+
+        Only the expected predictive variance uses it (``tr(K^-1 psi2)`` is an elementwise
+        product with an ``N x N`` matrix, which a solve cannot do in ``O(N^2)``).
+        """
+        if getattr(self, "_kinv", None) is None:
+            self._kinv = torch.cholesky_inverse(self.chol)
+        return self._kinv
+
+    def predict_gaussian(
+        self,
+        mu: torch.Tensor,
+        Sigma: torch.Tensor,
+        *,
+        g: torch.Tensor | None = None,
+        include_noise: bool = False,
+        joint_cov: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        r"""Exact mean and covariance of ``f(x~)`` at a Gaussian input (moment matching).
+
+        The input is ``x~ = [x, g]``: ``x ~ N(mu, Sigma)`` covers the first ``D`` columns and the
+        optional known ``g`` the remaining ``Din - D`` (a known continuous intention, or the code
+        of a discrete one). A Gaussian intention correlated with ``x`` is simply part of ``x``.
+        With ``beta = K^-1 Y`` and the kernel expectations ``psi0, psi1, psi2``
+        (Eq. 29-31 and ``Q^x`` of Sec. 3.3.1)::
+
+            mean = psi1 beta + offset
+            cov  = beta^T psi2 beta - (psi1 beta)^T (psi1 beta)
+                   + diag(scale^2 (psi0 - tr(K^-1 psi2) [+ noise]))
+            Cov[x, f] = Sigma E[d k(x~, X)/dx] beta               (Stein's lemma)
+
+        The outputs share one kernel, so one ``N x N`` ``psi2`` serves all output pairs. Each
+        kernel term splits into an ``x`` part and a per-training-point factor of ``g``, so the
+        ``N x N`` work over ``x`` is done once for all ``g`` that share an input distribution: pass
+        ``mu [B, 1, D]`` with ``g [B, K, Dg]`` (or ``g [K, 1, Dg]`` with ``mu [B, D]``) and each
+        intention only rescales the training weights. Temporaries are ``O(B N^2)`` over ``x`` plus
+        ``O(B K N Dout)``, never ``O(B K N^2)`` when ``x`` is shared.
+
+        With ``Sigma = 0`` this equals :meth:`predict`.
+
+        Args:
+            mu: ``[..., D]`` input mean.
+            Sigma: ``[..., D, D]`` input covariance (symmetric PSD; may be singular).
+            g: ``[..., Din - D]`` known trailing input columns, or ``None`` (``D = Din``).
+            include_noise: add the training noise variance (scaled like the outputs) to the
+                diagonal: the moments of a new noisy output (for the transition GP: the
+                process noise ``alpha_4``).
+            joint_cov: optional ``[..., S, D]`` covariance ``Cov[s, x]`` of another variable
+                ``s`` jointly Gaussian with ``x``; the third output is then ``Cov[s, f]``.
+                ``joint_cov = Sigma`` gives the default.
+
+        Returns:
+            ``mean [..., Dout]``, ``cov [..., Dout, Dout]`` and the input-output covariance
+            ``Cov[x, f] [..., D, Dout]`` (``[..., S, Dout]`` with ``joint_cov``); ``...`` is the
+            broadcast of the batch shapes of ``mu``, ``Sigma``, ``g``.
+        """
+        dtype, device = self.train_inputs.dtype, self.train_inputs.device
+        mu, Sigma = check_gaussian(
+            as_tensor(mu, "mu", min_ndim=1, dtype=dtype, device=device), Sigma
+        )
+        D, din = mu.shape[-1], self.input_dim
+        if g is None:
+            if D != din:
+                raise ValueError(
+                    f"mu must have {din} entries (the GP input dim) when g is None, got {D}"
+                )
+        else:
+            g = as_tensor(g, "g", min_ndim=1, dtype=dtype, device=device)
+            if D + g.shape[-1] != din:
+                raise ValueError(
+                    f"mu [..., {D}] and g [..., {g.shape[-1]}] must together have the GP input "
+                    f"dim {din}"
+                )
+        if joint_cov is not None:
+            joint_cov = as_tensor(joint_cov, "joint_cov", min_ndim=2, dtype=dtype, device=device)
+            check_shape(joint_cov, "joint_cov", [None, D])
+
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.detach):
+            leaves = kernel_leaves(self.kernel, din)
+            kinv = self.kinv
+        X = self.train_inputs
+        terms = split_terms(leaves, X, g, D)
+        Xx = X[:, :D]
+        beta = self.weights
+        ones = torch.ones(X.shape[0], dtype=dtype, device=device)
+        factors = [ones if t.factor is None else t.factor for t in terms]
+        fbeta = [f[..., None] * beta for f in factors]  # [..., N, Dout]
+
+        mean, grad = 0.0, 0.0
+        for t, fb in zip(terms, fbeta, strict=True):
+            p1, gr = term_psi1_grad(t, mu, Sigma, Xx)
+            mean = mean + _shared_matmul(p1[..., None, :], fb)[..., 0, :]
+            grad = grad + _shared_matmul(gr, fb)  # E[d f / dx]  [..., D, Dout]
+        second, trace = 0.0, 0.0
+        for i, (a, fa, fba) in enumerate(zip(terms, factors, fbeta, strict=True)):
+            for j in range(i, len(terms)):
+                q = term_psi2(a, terms[j], mu, Sigma, Xx)
+                m = fba.transpose(-1, -2) @ _shared_matmul(q, fbeta[j])
+                tr = (fa * _shared_matmul(kinv * q, factors[j][..., None])[..., 0]).sum(-1)
+                if j > i:  # the (j, i) pair is the transpose
+                    m, tr = m + m.transpose(-1, -2), 2.0 * tr
+                second, trace = second + m, trace + tr
+        var = (leaves_psi0(leaves, mu, Sigma, g) - trace).clamp_min(0.0)
+        if include_noise:
+            var = var + self.noise
+        cov = symmetrize(second - mean[..., :, None] * mean[..., None, :])
+        cov = cov + torch.diag_embed(var[..., None] * self.scale.pow(2))
+        io = (Sigma if joint_cov is None else joint_cov) @ grad
+        return mean + self.offset, cov, io
+
+
+def _shared_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` with batch broadcasting, without expanding ``a`` over dims where it has size 1.
+
+    ``a [*A, n, m]``, ``b [*Bb, m, k]`` -> ``[*broadcast(A, Bb), n, k]``. Batch dims along which
+    only ``b`` varies are folded into its columns, so an ``N x N`` matrix shared by K intentions
+    is multiplied once with an ``N x (K k)`` matrix instead of being copied K times.
+    """
+    nb = max(a.dim(), b.dim()) - 2
+    a = a.reshape((1,) * (nb + 2 - a.dim()) + a.shape)
+    b = b.reshape((1,) * (nb + 2 - b.dim()) + b.shape)
+    share = [i for i in range(nb) if a.shape[i] == 1 and b.shape[i] > 1]
+    if not share:
+        return a @ b
+    keep = [i for i in range(nb) if i not in share]
+    m, k = b.shape[-2], b.shape[-1]
+    bp = b.permute(*keep, nb, *share, nb + 1).reshape(*(b.shape[i] for i in keep), m, -1)
+    ap = a.reshape(*(a.shape[i] for i in keep), a.shape[-2], m)
+    out = ap @ bp  # [*keep, n, prod(share) k]
+    out = out.reshape(*out.shape[:-1], *(b.shape[i] for i in share), k)
+    # current order: keep..., n, share..., k -> back to batch order, n, k
+    order = keep + share
+    nk = len(keep)
+    perm = [order.index(i) if order.index(i) < nk else order.index(i) + 1 for i in range(nb)]
+    return out.permute(*perm, nk, nb + 1)

@@ -1,0 +1,563 @@
+r"""Kernel expectations under a Gaussian input (the "psi statistics").
+
+For an input ``x ~ N(mu, Sigma)`` with full covariance and training inputs ``X [N, Din]``::
+
+    psi0 = E[k(x, x)]                       [...]
+    psi1 = E[k(x, X)]                       [..., N]
+    psi2 = E[k_a(x, X)^T k_b(x, X)]         [..., N, N]   (entry ij: E[k_a(x, X_i) k_b(x, X_j)])
+    x_psi1 = E[x k(x, X)^T]                 [..., D, N]
+
+These are the integrals behind the VB free energy (thesis App. 2.A: ``l``, ``Q``, ``R``) and the
+moment-matching filter (Eq. 29-31 and the ``Q^x`` matrix of Sec. 3.3.1). Leading dims of ``mu``,
+``Sigma``, ``X`` and ``g`` broadcast (streams B, intentions K, particles I).
+
+Known trailing input columns. The Gaussian covers the first ``D`` input columns; the remaining
+``Dg = Din - D`` columns may be passed as known values ``g [..., Dg]`` (a known intention, or the
+integer code of a discrete intention, which can never be Gaussian). With ``g=None``, ``D = Din``:
+a continuous intention that is uncertain and correlated with ``x`` is simply part of the Gaussian.
+
+How it is organised (GPflow-style dispatch, on a normal form):
+
+1. :func:`kernel_leaves` dispatches on the gpytorch kernel type (``RBFKernel`` ARD or not,
+   ``LinearKernel``, ``ScaleKernel``, ``AdditiveKernel``, ``active_dims``, and our
+   ``IntentionRBFKernel`` and ``DiscreteIntentionKernel``) and rewrites the kernel as a sum of
+   :class:`Leaf` terms over all input columns: ``coef * exp(-1/2 sum_c w_c (x_c - x'_c)^2)`` or
+   ``coef * sum_c w_c x_c x'_c``, each times Kronecker deltas on code columns.
+2. :func:`split_terms` splits every leaf into a part over the Gaussian columns times a per-training-
+   point factor from the known columns (:class:`Term`): e.g. the tensor-product kernel
+   ``exp(-|x - x_i|^2/2l_x^2) exp(-|g - g_i|^2/2l_g^2)`` becomes an RBF over ``x`` times the factor
+   ``exp(-|g - g_i|^2/2l_g^2)``. The ``x`` part is therefore shared by all values of ``g``
+   (DESIGN sec. 8), and the discrete kernel's delta is a 0/1 factor.
+3. One function per quantity (:func:`term_psi1`, :func:`term_grad`, :func:`term_psi2`) dispatches
+   on the term kinds ``"rbf"``, ``"linear"``, ``"const"`` (and pairs of kinds for psi2).
+
+Closed forms (``s = sqrt(w)`` elementwise, ``B = I + diag(s) Sigma diag(s)``, ``d_i = X_i - mu``):
+
+- RBF psi1: ``coef |B|^{-1/2} exp(-1/2 (s d_i)^T B^{-1} (s d_i))`` (Eq. 30-31 with
+  ``Omega = Sigma Lambda^{-1} + I``; ``|B| = |Omega|``; B stays well conditioned when a precision
+  is zero, so unused columns and singular ``Sigma`` need no special case).
+- ``E[d/dx k(x, X_i)] = psi1_i diag(s) B^{-1} (s d_i)``, so by Stein's lemma
+  ``E[x k(x, X_i)] = mu psi1_i + Sigma E[d/dx k]`` (App. 2.A ``R_i``; the cross-covariance of Sec.
+  3.3.1 is ``Sigma E[grad k] beta``).
+- RBF x RBF with precisions ``w_a, w_b`` (``w = w_a + w_b``, ``u_i = w_a d_i / s``,
+  ``v_j = w_b d_j / s``, ``C = I - B^{-1}``)::
+
+      log psi2_ij = log(coef_a coef_b) - 1/2 log|B| - 1/2 d_i^T W_a d_i - 1/2 d_j^T W_b d_j
+                    + 1/2 (u_i + v_j)^T C (u_i + v_j)
+
+  (``Q_ij`` of Sec. 3.3.1 / App. 2.A, evaluated in log space so no factor underflows alone).
+- RBF x Linear: ``E[x k_a(x, X_i)]^T W_b X_j``; Linear x Linear:
+  ``X_i^T W_a (Sigma + mu mu^T) W_b X_j``.
+
+Every closed form is tested against Gauss-Hermite quadrature and Monte Carlo of the gpytorch
+kernel itself.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from functools import singledispatch
+
+import torch
+from gpytorch.kernels import AdditiveKernel, Kernel, LinearKernel, RBFKernel, ScaleKernel
+
+from .kernels import DiscreteIntentionKernel, IntentionRBFKernel
+from .validation import as_tensor
+
+__all__ = [
+    "Leaf",
+    "Term",
+    "check_gaussian",
+    "kernel_leaves",
+    "leaves_psi0",
+    "psi0",
+    "psi1",
+    "psi2",
+    "split_terms",
+    "term_psi1_grad",
+    "term_psi1",
+    "term_psi2",
+    "x_psi1",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# 1. Kernel -> sum of leaves over all input columns
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Leaf:
+    """One additive term of a kernel over all ``Din`` input columns.
+
+    Attributes:
+        kind: ``"rbf"`` (``coef exp(-1/2 sum_c w_c (x_c - x'_c)^2)``) or ``"linear"``
+            (``coef sum_c w_c x_c x'_c``).
+        coef: scalar tensor, product of the enclosing ``ScaleKernel`` output scales.
+        weight: ``[Din]`` inverse squared length scales (rbf) or variances (linear); zero on
+            columns the term does not read.
+        cols: the columns the term reads (structural, independent of the weight values).
+        codes: columns holding discrete codes; the term is multiplied by ``delta(x_c, x'_c)``.
+    """
+
+    kind: str
+    coef: torch.Tensor
+    weight: torch.Tensor
+    cols: frozenset[int]
+    codes: tuple[int, ...] = ()
+
+
+def kernel_leaves(kernel: Kernel, input_dim: int) -> list[Leaf]:
+    """Rewrite ``kernel`` as a sum of :class:`Leaf` terms over ``input_dim`` input columns.
+
+    Follows gpytorch's calling conventions: a kernel's ``active_dims`` selects columns when it is
+    called (at the top level and inside ``AdditiveKernel``), while ``ScaleKernel`` and
+    ``DiscreteIntentionKernel`` call their base kernel's ``forward`` on the columns they see.
+
+    Raises:
+        TypeError: for a kernel type without closed-form expectations.
+        ValueError: for batched kernels or inconsistent dimensions.
+    """
+    if not isinstance(kernel, Kernel):
+        raise TypeError(f"kernel must be a gpytorch Kernel, got {type(kernel).__name__}")
+    return _called(kernel, list(range(int(input_dim))), int(input_dim))
+
+
+def _called(kernel: Kernel, cols: list[int], din: int) -> list[Leaf]:
+    if kernel.active_dims is not None:
+        idx = [int(i) for i in kernel.active_dims.tolist()]
+        if any(i < -len(cols) or i >= len(cols) for i in idx):
+            raise ValueError(
+                f"{type(kernel).__name__}.active_dims {idx} out of range for {len(cols)} columns"
+            )
+        cols = [cols[i] for i in idx]
+    return _leaves(kernel, cols, din)
+
+
+def _check_unbatched(kernel: Kernel) -> None:
+    if len(kernel.batch_shape) != 0:
+        raise ValueError(
+            f"{type(kernel).__name__} has batch_shape {tuple(kernel.batch_shape)}; Gaussian-input "
+            "expectations support unbatched kernels only (batch the inputs instead)"
+        )
+
+
+def _scatter(values: torch.Tensor, cols: list[int], din: int) -> torch.Tensor:
+    idx = torch.as_tensor(cols, dtype=torch.long, device=values.device)
+    out = torch.zeros(din, dtype=values.dtype, device=values.device)
+    return out.index_add(0, idx, values.reshape(-1).expand(len(cols)))
+
+
+def _rbf_leaf(lengthscale: torch.Tensor, cols: list[int], din: int, name: str) -> Leaf:
+    ls = lengthscale.reshape(-1)
+    if ls.numel() not in (1, len(cols)):
+        raise ValueError(
+            f"{name} has {ls.numel()} length scales but sees {len(cols)} input columns"
+        )
+    w = _scatter(ls.pow(-2), cols, din)
+    return Leaf("rbf", torch.ones((), dtype=w.dtype, device=w.device), w, frozenset(cols))
+
+
+@singledispatch
+def _leaves(kernel: Kernel, cols: list[int], din: int) -> list[Leaf]:
+    raise TypeError(
+        f"no Gaussian-input expectations for {type(kernel).__name__}; supported: RBFKernel, "
+        "LinearKernel, ScaleKernel, AdditiveKernel, IntentionRBFKernel, DiscreteIntentionKernel"
+    )
+
+
+@_leaves.register
+def _(kernel: RBFKernel, cols: list[int], din: int) -> list[Leaf]:
+    _check_unbatched(kernel)
+    return [_rbf_leaf(kernel.lengthscale, cols, din, "RBFKernel")]
+
+
+@_leaves.register
+def _(kernel: IntentionRBFKernel, cols: list[int], din: int) -> list[Leaf]:
+    _check_unbatched(kernel)
+    if len(cols) != kernel.x_dim + kernel.g_dim:
+        raise ValueError(
+            f"IntentionRBFKernel expects {kernel.x_dim + kernel.g_dim} columns, sees {len(cols)}"
+        )
+    return [_rbf_leaf(kernel.lengthscale_vector(), cols, din, "IntentionRBFKernel")]
+
+
+@_leaves.register
+def _(kernel: LinearKernel, cols: list[int], din: int) -> list[Leaf]:
+    _check_unbatched(kernel)
+    w = _scatter(kernel.variance.reshape(1), cols, din)
+    return [Leaf("linear", torch.ones((), dtype=w.dtype, device=w.device), w, frozenset(cols))]
+
+
+@_leaves.register
+def _(kernel: ScaleKernel, cols: list[int], din: int) -> list[Leaf]:
+    _check_unbatched(kernel)
+    scale = kernel.outputscale.reshape(())
+    return [
+        replace(leaf, coef=leaf.coef * scale) for leaf in _leaves(kernel.base_kernel, cols, din)
+    ]
+
+
+@_leaves.register
+def _(kernel: AdditiveKernel, cols: list[int], din: int) -> list[Leaf]:
+    return [leaf for k in kernel.kernels for leaf in _called(k, cols, din)]
+
+
+@_leaves.register
+def _(kernel: DiscreteIntentionKernel, cols: list[int], din: int) -> list[Leaf]:
+    _check_unbatched(kernel)
+    code = cols[-1]
+    return [
+        replace(leaf, codes=(*leaf.codes, code))
+        for leaf in _leaves(kernel.base_kernel, cols[:-1], din)
+    ]
+
+
+# --------------------------------------------------------------------------------------------
+# 2. Leaves -> terms over the Gaussian columns times per-training-point factors
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Term:
+    """A kernel term over the Gaussian columns, times a per-training-point factor.
+
+    ``k_term(x, X_i) = factor_i * coef * base(x, X_i[:D])`` with base an RBF with precisions
+    ``weight`` (``"rbf"``), ``sum_c weight_c x_c X_ic`` (``"linear"``) or 1 (``"const"``).
+
+    Attributes:
+        kind: ``"rbf"``, ``"linear"`` or ``"const"``.
+        coef: scalar tensor.
+        weight: ``[D]`` precisions or variances over the Gaussian columns (unused for const).
+        factor: ``[..., N]`` factor from the known columns (``g``), or ``None`` for all ones.
+    """
+
+    kind: str
+    coef: torch.Tensor
+    weight: torch.Tensor
+    factor: torch.Tensor | None
+
+
+def split_terms(
+    leaves: Sequence[Leaf], train_inputs: torch.Tensor, g: torch.Tensor | None, dim: int
+) -> list[Term]:
+    """Split leaves into Gaussian-column terms and known-column factors.
+
+    Args:
+        leaves: from :func:`kernel_leaves`.
+        train_inputs: ``[..., N, Din]`` training inputs.
+        g: ``[..., Din - dim]`` known values of the trailing columns, or ``None`` when
+            ``dim == Din``.
+        dim: ``D``, the number of leading Gaussian columns.
+
+    Returns:
+        Terms with factors of shape ``[..., N]`` (batch of ``g`` and ``train_inputs``).
+
+    Raises:
+        ValueError: when a discrete code column lies among the Gaussian columns.
+    """
+    Xg = train_inputs[..., dim:]
+    terms: list[Term] = []
+    for leaf in leaves:
+        if any(c < dim for c in leaf.codes):
+            raise ValueError(
+                "a discrete intention code column cannot be Gaussian: pass the code as the known "
+                f"input g (code column {min(leaf.codes)} < Gaussian dim {dim})"
+            )
+        factor = None
+        for c in leaf.codes:
+            same = (g[..., c - dim, None] == Xg[..., c - dim]).to(Xg.dtype)
+            factor = same if factor is None else factor * same
+        wx, wg = leaf.weight[:dim], leaf.weight[dim:]
+        on_x, on_g = any(c < dim for c in leaf.cols), any(c >= dim for c in leaf.cols)
+        if leaf.kind == "rbf":
+            if on_g:
+                # exp(-1/2 sum_c w_c (g_c - X_ic)^2) for the known columns
+                f = torch.exp(-0.5 * ((g[..., None, :] - Xg).pow(2) * wg).sum(-1))
+                factor = f if factor is None else factor * f
+            terms.append(Term("rbf" if on_x else "const", leaf.coef, wx, factor))
+            continue
+        if on_x:
+            terms.append(Term("linear", leaf.coef, wx, factor))
+        if on_g:
+            f = (Xg * wg) @ g[..., :, None]
+            f = f.squeeze(-1)
+            terms.append(Term("const", leaf.coef, wx, f if factor is None else factor * f))
+    return terms
+
+
+def leaves_psi0(
+    leaves: Sequence[Leaf], mu: torch.Tensor, Sigma: torch.Tensor, g: torch.Tensor | None
+) -> torch.Tensor:
+    """``E[k(x~, x~)]``, ``x~ = [x, g]``, from leaves; only ``diag(Sigma)`` matters. ``[...]``."""
+    second = Sigma.diagonal(dim1=-2, dim2=-1) + mu.pow(2)  # E[x_c^2]
+    if g is not None:
+        batch = torch.broadcast_shapes(second.shape[:-1], g.shape[:-1])
+        second = torch.cat(
+            [second.expand(*batch, second.shape[-1]), g.pow(2).expand(*batch, g.shape[-1])], -1
+        )
+    out = torch.zeros(second.shape[:-1], dtype=mu.dtype, device=mu.device)
+    for leaf in leaves:
+        if leaf.kind == "rbf":
+            out = out + leaf.coef  # delta(g, g) = 1 for code columns too
+        else:
+            out = out + leaf.coef * (second * leaf.weight).sum(-1)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# 3. One function per quantity, dispatched on the term kinds
+# --------------------------------------------------------------------------------------------
+
+
+def _sqrt_weight(w: torch.Tensor) -> torch.Tensor:
+    # sqrt with a finite gradient at w = 0 (unused columns)
+    pos = w > 0
+    return torch.where(pos, torch.where(pos, w, torch.ones_like(w)).sqrt(), torch.zeros_like(w))
+
+
+def _rbf_factor(
+    w: torch.Tensor, Sigma: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``s = sqrt(w)``, Cholesky factor of ``B = I + diag(s) Sigma diag(s)`` and ``log|B|``."""
+    s = _sqrt_weight(w)
+    eye = torch.eye(w.shape[-1], dtype=Sigma.dtype, device=Sigma.device)
+    B = eye + s[:, None] * Sigma * s[None, :]
+    L = torch.linalg.cholesky(B)  # B >= I: always positive definite
+    logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    return s, L, logdet
+
+
+def _rbf_psi1_parts(
+    t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    s, L, logdet = _rbf_factor(t.weight, Sigma)
+    sd = ((X - mu[..., None, :]) * s).transpose(-1, -2)  # [..., D, N]
+    y = torch.linalg.solve_triangular(L, sd, upper=False)
+    p1 = t.coef * torch.exp(-0.5 * (logdet[..., None] + y.pow(2).sum(-2)))
+    return p1, s, L, sd
+
+
+def term_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """``coef E[base(x, X_i)]`` of one term, without its factor.
+
+    Shapes: ``mu [..., D]``, ``Sigma [..., D, D]``, ``X [..., N, D]`` -> ``[..., N]``.
+    """
+    if t.kind == "rbf":
+        return _rbf_psi1_parts(t, mu, Sigma, X)[0]
+    if t.kind == "linear":
+        return t.coef * ((X * t.weight) @ mu[..., :, None]).squeeze(-1)
+    return t.coef * torch.ones(X.shape[:-1], dtype=X.dtype, device=X.device)
+
+
+def term_psi1_grad(
+    t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`term_psi1` and ``coef E[d base(x, X_i) / dx]`` ``[..., D, N]`` of one term.
+
+    By Stein's lemma ``Cov[x, k(x, X_i)] = Sigma E[grad k]``; the expected gradient also gives the
+    covariance of any variable jointly Gaussian with ``x``.
+    """
+    if t.kind == "rbf":
+        p1, s, L, sd = _rbf_psi1_parts(t, mu, Sigma, X)
+        return p1, p1[..., None, :] * s[:, None] * torch.cholesky_solve(sd, L)
+    p1 = term_psi1(t, mu, Sigma, X)
+    if t.kind == "linear":
+        return p1, t.coef * (X * t.weight).transpose(-1, -2)
+    return p1, torch.zeros(X.shape[-1], X.shape[-2], dtype=X.dtype, device=X.device)
+
+
+def _x_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """``coef E[x base(x, X_i)]`` of one term, ``[..., D, N]``."""
+    p1, grad = term_psi1_grad(t, mu, Sigma, X)
+    return mu[..., :, None] * p1[..., None, :] + Sigma @ grad
+
+
+def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
+    s, L, logdet = _rbf_factor(a.weight + b.weight, Sigma)
+    inv_s = torch.where(s > 0, 1.0 / torch.where(s > 0, s, torch.ones_like(s)), torch.zeros_like(s))
+    d = X - mu[..., None, :]  # [..., N, D]
+    u, v = d * (a.weight * inv_s), d * (b.weight * inv_s)
+    eye = torch.eye(s.shape[-1], dtype=Sigma.dtype, device=Sigma.device)
+    C = eye - torch.cholesky_inverse(L)  # I - B^{-1}, PSD with eigenvalues in [0, 1)
+    uC, vC = u @ C, v @ C
+    row = -0.5 * (d.pow(2) * a.weight).sum(-1) + 0.5 * (uC * u).sum(-1)
+    col = -0.5 * (d.pow(2) * b.weight).sum(-1) + 0.5 * (vC * v).sum(-1)
+    log_q = row[..., :, None] + col[..., None, :] + uC @ v.transpose(-1, -2)
+    return a.coef * b.coef * torch.exp(log_q - 0.5 * logdet[..., None, None])
+
+
+def _psi2_rbf_linear(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
+    return b.coef * _x_psi1(a, mu, Sigma, X).transpose(-1, -2) @ (X * b.weight).transpose(-1, -2)
+
+
+def _psi2_linear_linear(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
+    second = Sigma + mu[..., :, None] * mu[..., None, :]
+    return a.coef * b.coef * (X * a.weight) @ second @ (X * b.weight).transpose(-1, -2)
+
+
+def _psi2_const_any(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
+    p1 = term_psi1(b, mu, Sigma, X)
+    return a.coef * p1[..., None, :].expand(*p1.shape[:-1], X.shape[-2], X.shape[-2])
+
+
+_PSI2: dict[tuple[str, str], Callable[..., torch.Tensor]] = {
+    ("rbf", "rbf"): _psi2_rbf_rbf,
+    ("rbf", "linear"): _psi2_rbf_linear,
+    ("linear", "linear"): _psi2_linear_linear,
+    ("const", "rbf"): _psi2_const_any,
+    ("const", "linear"): _psi2_const_any,
+    ("const", "const"): _psi2_const_any,
+}
+
+
+def term_psi2(
+    a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+) -> torch.Tensor:
+    """``coef_a coef_b E[base_a(x, X_i) base_b(x, X_j)]`` without factors. ``[..., N, N]``."""
+    fn = _PSI2.get((a.kind, b.kind))
+    if fn is not None:
+        return fn(a, b, mu, Sigma, X)
+    return _PSI2[(b.kind, a.kind)](b, a, mu, Sigma, X).transpose(-1, -2)
+
+
+# --------------------------------------------------------------------------------------------
+# Public quantities
+# --------------------------------------------------------------------------------------------
+
+
+def check_gaussian(
+    mu: object, Sigma: object, name: str = "input"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate a batch of Gaussians; return ``mu [..., D]`` and ``Sigma [..., D, D]``.
+
+    Raises:
+        ValueError: NaN/inf entries, mismatched shapes, an asymmetric or a non-PSD covariance
+            (tolerance ``10 sqrt(eps)`` relative to the largest variance).
+    """
+    mu = as_tensor(mu, f"{name} mean mu", min_ndim=1)
+    Sigma = as_tensor(
+        Sigma, f"{name} covariance Sigma", min_ndim=2, dtype=mu.dtype, device=mu.device
+    )
+    D = mu.shape[-1]
+    if Sigma.shape[-2:] != (D, D):
+        raise ValueError(
+            f"{name} covariance Sigma must have trailing shape [{D}, {D}] to match mu [..., {D}], "
+            f"got {tuple(Sigma.shape)}"
+        )
+    try:
+        torch.broadcast_shapes(mu.shape[:-1], Sigma.shape[:-2])
+    except RuntimeError as err:
+        raise ValueError(
+            f"{name} batch shapes of mu {tuple(mu.shape)} and Sigma {tuple(Sigma.shape)} do not "
+            "broadcast"
+        ) from err
+    scale = Sigma.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(torch.finfo(mu.dtype).tiny)
+    tol = 10.0 * torch.finfo(mu.dtype).eps ** 0.5 * scale
+    if bool(((Sigma - Sigma.transpose(-1, -2)).abs().amax((-1, -2)) > tol).any()):
+        raise ValueError(f"{name} covariance Sigma must be symmetric")
+    eig_min = torch.linalg.eigvalsh(Sigma.detach()).amin(-1)
+    if bool((eig_min < -tol.detach()).any()):
+        raise ValueError(
+            f"{name} covariance Sigma must be positive semi-definite; smallest eigenvalue "
+            f"{float(eig_min.min()):.3g}"
+        )
+    return mu, Sigma
+
+
+def _prepare(
+    kernel: Kernel, mu: object, Sigma: object, X: object | None, g: object | None
+) -> tuple[list[Leaf], torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    mu, Sigma = check_gaussian(mu, Sigma)
+    D = mu.shape[-1]
+    if g is not None:
+        g = as_tensor(g, "g", min_ndim=1, dtype=mu.dtype, device=mu.device)
+    din = D + (0 if g is None else g.shape[-1])
+    if X is not None:
+        X = as_tensor(X, "X", min_ndim=2, dtype=mu.dtype, device=mu.device)
+        if X.shape[-1] != din:
+            raise ValueError(
+                f"X must have {din} columns (mu's {D} + g's {din - D}), got {tuple(X.shape)}"
+            )
+    return kernel_leaves(kernel, din), mu, Sigma, X, g
+
+
+def psi0(kernel: Kernel, mu: object, Sigma: object, *, g: object | None = None) -> torch.Tensor:
+    """``E[k(x~, x~)]`` with ``x~ = [x, g]``, ``x ~ N(mu, Sigma)``.
+
+    Shapes: ``mu [..., D]``, ``Sigma [..., D, D]``, ``g [..., Dg]`` -> ``[...]``.
+    """
+    leaves, mu, Sigma, _, g = _prepare(kernel, mu, Sigma, None, g)
+    return leaves_psi0(leaves, mu, Sigma, g)
+
+
+def psi1(
+    kernel: Kernel, mu: object, Sigma: object, X: object, *, g: object | None = None
+) -> torch.Tensor:
+    """``E[k([x, g], X)]`` (Eq. 29-31; App. 2.A vector ``l``).
+
+    Shapes: ``mu [..., D]``, ``Sigma [..., D, D]``, ``X [..., N, D + Dg]``, ``g [..., Dg]``
+    -> ``[..., N]``.
+    """
+    leaves, mu, Sigma, X, g = _prepare(kernel, mu, Sigma, X, g)
+    D = mu.shape[-1]
+    out = 0.0
+    for t in split_terms(leaves, X, g, D):
+        p = term_psi1(t, mu, Sigma, X[..., :D])
+        out = out + (p if t.factor is None else t.factor * p)
+    return out
+
+
+def x_psi1(
+    kernel: Kernel, mu: object, Sigma: object, X: object, *, g: object | None = None
+) -> torch.Tensor:
+    """``E[x k([x, g], X)^T]`` over the Gaussian columns (App. 2.A matrix ``R``).
+
+    Shapes: ``mu [..., D]``, ``Sigma [..., D, D]``, ``X [..., N, D + Dg]``, ``g [..., Dg]``
+    -> ``[..., D, N]``.
+    """
+    leaves, mu, Sigma, X, g = _prepare(kernel, mu, Sigma, X, g)
+    D = mu.shape[-1]
+    out = 0.0
+    for t in split_terms(leaves, X, g, D):
+        p = _x_psi1(t, mu, Sigma, X[..., :D])
+        out = out + (p if t.factor is None else t.factor[..., None, :] * p)
+    return out
+
+
+def psi2(
+    kernel: Kernel,
+    mu: object,
+    Sigma: object,
+    X: object,
+    *,
+    g: object | None = None,
+    kernel_b: Kernel | None = None,
+) -> torch.Tensor:
+    """``E[k_a([x, g], X)^T k_b([x, g], X)]`` (Sec. 3.3.1 ``Q^x``; App. 2.A ``Q`` and cross terms).
+
+    Args:
+        kernel: ``k_a``.
+        mu, Sigma: ``[..., D]``, ``[..., D, D]``.
+        X: ``[..., N, D + Dg]`` training inputs.
+        g: ``[..., Dg]`` known trailing input columns, or ``None``.
+        kernel_b: ``k_b``; default ``k_a``. E.g. the two parts of a sum kernel.
+
+    Returns:
+        ``[..., N, N]`` with entry ``ij = E[k_a(x~, X_i) k_b(x~, X_j)]``.
+    """
+    leaves, mu, Sigma, X, g = _prepare(kernel, mu, Sigma, X, g)
+    D = mu.shape[-1]
+    leaves_b = leaves if kernel_b is None else kernel_leaves(kernel_b, X.shape[-1])
+    terms_a, terms_b = split_terms(leaves, X, g, D), split_terms(leaves_b, X, g, D)
+    out = 0.0
+    for a in terms_a:
+        for b in terms_b:
+            q = term_psi2(a, b, mu, Sigma, X[..., :D])
+            if a.factor is not None:
+                q = a.factor[..., :, None] * q
+            if b.factor is not None:
+                q = q * b.factor[..., None, :]
+            out = out + q
+    return out
