@@ -171,6 +171,20 @@ def test_batch_equals_loop(generator: torch.Generator) -> None:
     assert torch.equal(valid[:, 0], valid1)
 
 
+def test_propagate_gives_each_ball_its_own_time(generator: torch.Generator) -> None:
+    state = _served(3, generator)
+    traj = B.simulate(state, 0.9, 0.005)
+    steps = torch.tensor([40, 110, 180])
+    out = B.propagate(state, traj.times[steps])
+    torch.testing.assert_close(out.pos, traj.pos[torch.arange(3), steps], atol=1e-12, rtol=0)
+    torch.testing.assert_close(out.spin, traj.spin[torch.arange(3), steps], atol=1e-12, rtol=0)
+    # an off-grid time: half a step further equals flying that half step
+    half = B.propagate(state, traj.times[steps] + 0.0025)
+    torch.testing.assert_close(half.pos, B.propagate(out, 0.0025).pos, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="duration"):
+        B.propagate(state, -0.1)
+
+
 def test_aim_hits_its_target_within_a_millimetre(generator: torch.Generator) -> None:
     n = 8
     u = torch.rand(n, 5, generator=generator)

@@ -45,6 +45,7 @@ __all__ = [
     "landing",
     "make_state",
     "predict_plane_crossing",
+    "propagate",
     "racket_contact",
     "racket_velocity_for_return",
     "simulate",
@@ -499,6 +500,40 @@ def step(state: BallState, dt: float, params: BallParams = DEFAULT_PARAMS) -> Ba
     Shapes: ``[..., 3]`` fields in and out. See :func:`step_events` for the contacts.
     """
     return step_events(state, dt, params)[0]
+
+
+def propagate(
+    state: BallState,
+    duration: object,
+    params: BallParams = DEFAULT_PARAMS,
+    *,
+    dt: float = 0.005,
+) -> BallState:
+    """Advance each ball by its own time ``duration`` [...] (>= 0), contacts included.
+
+    Each ball takes steps of ``dt`` and one shorter last step, so a ball's result equals
+    :func:`simulate`'s sample at that time when the grids agree.
+
+    Args:
+        state: :class:`BallState` ``[..., 3]``.
+        duration: ``[...]`` (broadcast to the batch) or scalar time [s].
+        params: ball constants.
+        dt: step [s], ``0 < dt <= 0.05``.
+
+    Returns:
+        The :class:`BallState` ``[..., 3]`` after ``duration``.
+    """
+    state = _check_state(state)
+    params = _check_params(params)
+    dt = _check_dt(dt)
+    d = as_tensor(duration, "duration", dtype=state.pos.dtype, device=state.pos.device)
+    if bool((d < 0).any()):
+        raise ValueError("duration must be >= 0")
+    d = torch.broadcast_to(d, state.batch_shape)
+    n = math.ceil(float(d.max()) / dt - 1e-9) if d.numel() else 0
+    for k in range(n):
+        state = _advance(state, (d - k * dt).clamp(0.0, dt), params)[0]
+    return state
 
 
 def simulate(
