@@ -329,6 +329,10 @@ class GPDM(gpytorch.Module):
             )
         return value
 
+    def forward(self) -> torch.Tensor:
+        """Calling the model returns :meth:`loss` (so ``torch.func.functional_call`` works)."""
+        return self.loss()
+
     def log_posterior(self) -> float:
         """``-loss()`` as a float (no gradient)."""
         with torch.no_grad():

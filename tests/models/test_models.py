@@ -1,0 +1,136 @@
+"""Model API: fitting, a user's own optimisation loop, style discovery, bad input, persistence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hgpdm_torch.datasets import styled_movements, targeted_movements
+from hgpdm_torch.models import GPDM, HGPDM, IDDM, load_model
+
+
+@pytest.fixture(scope="module")
+def styles():
+    return styled_movements(3, 3, 30, 10, seed=3)
+
+
+def _purity(truth: torch.Tensor, found: torch.Tensor) -> float:
+    """Fraction of sequences whose found cluster's majority truth label is theirs."""
+    total = 0
+    for k in found.unique():
+        total += int(torch.bincount(truth[found == k]).max())
+    return total / len(truth)
+
+
+def test_fit_lowers_loss_and_posteriors_reconstruct(styles):
+    model = HGPDM(styles.sequences, styles.labels, 3)
+    before = float(model.loss().detach())
+    history = model.fit(25)
+    assert history[-1] < before
+    assert all(np.diff(history) <= 1e-6 * abs(before))  # L-BFGS with line search is monotone
+    z_hat, z_var = model.measurement_posterior().predict(model.latent.detach())
+    resid = (z_hat - model.observations).pow(2).mean() / model.observations.var(0).mean()
+    assert resid < 0.05
+    assert (z_var > 0).all()
+
+
+def test_user_loop_over_parameters_matches_fit_api(styles):
+    model = GPDM(styles.sequences[:4], 2)
+    opt = torch.optim.Adam(model.parameters(), lr=0.01)
+    first = float(model.loss().detach())
+    for _ in range(30):
+        opt.zero_grad()
+        loss = model.loss()
+        loss.backward()
+        opt.step()
+    assert float(model.loss().detach()) < first
+    # alpha stays fixed: no gradient reaches it
+    assert all(p.grad is None for n, p in model.named_parameters() if n.startswith("transition"))
+
+
+def test_discover_recovers_planted_styles(styles):
+    model = HGPDM.discover(styles.sequences, 3, iterations=4, steps=20, seed=0)
+    assert _purity(styles.labels, model.intention_codes()) >= 0.9
+    hist = model.discovery_history
+    assert len(hist) >= 1 and np.isfinite(hist).all()
+
+
+def test_continuous_models_fit_and_rollout():
+    data = targeted_movements(8, 20, 8, seed=1)
+    for cls in (HGPDM, IDDM):
+        model = cls(data.sequences, data.labels, 3, intention="continuous", measurement="linear")
+        h = model.fit(10)
+        assert h[-1] < h[0]
+        path = model.rollout(model.latent_sequences()[0][0], 5, g=data.labels[0])
+        assert path.shape == (6, 3) and torch.isfinite(path).all()
+
+
+def test_transitions_do_not_cross_sequence_boundaries():
+    seqs = [torch.randn(4, 3), torch.randn(6, 3)]
+    model = GPDM(seqs, 2)
+    assert model.src_index.tolist() == [0, 1, 2, 4, 5, 6, 7, 8]
+    assert model.transition_inputs(model.latent).shape == (8, 2)
+
+
+def test_save_load_round_trip(tmp_path, styles):
+    for model in (
+        HGPDM(styles.sequences[:5], [0, 1, 2, 0, 1], 2),
+        IDDM(
+            styles.sequences[:4],
+            [0.1, -0.3, 0.7, 0.2],
+            2,
+            intention="continuous",
+            measurement="linear",
+            learn_alpha=True,
+        ),
+    ):
+        model.fit(3)
+        path = tmp_path / "model.pt"
+        model.save(path)
+        again = load_model(path)
+        assert type(again) is type(model)
+        assert again.learn_alpha == model.learn_alpha
+        assert float(again.loss().detach()) == float(model.loss().detach())
+        x = torch.randn(3, 2)
+        for post, post2 in ((model.measurement_posterior(), again.measurement_posterior()),):
+            torch.testing.assert_close(post.predict(x), post2.predict(x), rtol=0, atol=0)
+        xin = model.transition_posterior().train_inputs[:3]
+        torch.testing.assert_close(
+            model.transition_posterior().predict(xin),
+            again.transition_posterior().predict(xin),
+            rtol=0,
+            atol=0,
+        )
+
+
+SEQS = [torch.randn(5, 3), torch.randn(6, 3)]
+
+
+@pytest.mark.parametrize(
+    "build,error,match",
+    [
+        (lambda: GPDM([], 2), ValueError, "at least one sequence"),
+        (lambda: GPDM([torch.randn(1, 3)], 2), ValueError, "at least 2 frames"),
+        (lambda: GPDM([torch.randn(5, 3), torch.randn(5, 4)], 2), ValueError, "observed dims"),
+        (lambda: GPDM([torch.randn(5)], 2), ValueError, "dimensions"),
+        (lambda: GPDM([torch.tensor([[0.0, float("nan")]] * 3)], 1), ValueError, "NaN or inf"),
+        (lambda: GPDM([torch.tensor([[0.0, float("inf")]] * 3)], 1), ValueError, "NaN or inf"),
+        (lambda: GPDM(SEQS, 0), ValueError, "latent_dim"),
+        (lambda: GPDM(SEQS, 2, measurement="poly"), ValueError, "unknown measurement"),
+        (lambda: GPDM("abc", 2), TypeError, "sequences"),
+        (lambda: GPDM(SEQS, 2, alpha=(1, 2, 3)), ValueError, "alpha"),
+        (lambda: HGPDM(SEQS, [0], 2), ValueError, "one per sequence"),
+        (lambda: HGPDM(SEQS, [0, 3], 2, num_values=2), ValueError, r"\[0, 1\]"),
+        (lambda: HGPDM(SEQS, [0, -1], 2), ValueError, "lie in"),
+        (lambda: HGPDM(SEQS, [0.5, 1.0], 2), ValueError, "ints"),
+        (lambda: HGPDM(SEQS, [0, 1], 2, intention="ordinal"), ValueError, "unknown intention"),
+        (lambda: HGPDM(SEQS, [0.1, float("nan")], 2, intention="continuous"), ValueError, "NaN"),
+        (lambda: GPDM(SEQS, 2, init=torch.randn(3, 2)), ValueError, "init"),
+        (lambda: GPDM(SEQS, 2).fit(5, optimizer="sgd"), ValueError, "unknown optimizer"),
+        (lambda: HGPDM.discover(SEQS, 3), ValueError, "num_styles"),
+    ],
+)
+def test_bad_input_raises(build, error, match):
+    with pytest.raises(error, match=match):
+        build()

@@ -1,0 +1,33 @@
+"""Cholesky with jitter escalation and its error."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hgpdm_torch.linalg import CholeskyError, cholesky_logdet, jitter, psd_cholesky
+
+
+def test_cholesky_and_logdet_match_dense(generator):
+    a = torch.randn(6, 6, generator=generator)
+    spd = a @ a.T + 6 * torch.eye(6)
+    chol = psd_cholesky(spd)
+    torch.testing.assert_close(chol @ chol.T, spd)
+    torch.testing.assert_close(cholesky_logdet(chol), torch.logdet(spd))
+
+
+def test_jitter_rescues_a_singular_psd_matrix(generator):
+    v = torch.randn(5, 2, generator=generator)
+    singular = v @ v.T  # rank 2
+    chol = psd_cholesky(singular)
+    assert torch.isfinite(chol).all()
+    torch.testing.assert_close(chol @ chol.T, singular, atol=1e-6, rtol=0)
+
+
+def test_indefinite_matrix_raises_with_advice():
+    with pytest.raises(CholeskyError, match="not positive definite"):
+        psd_cholesky(torch.diag(torch.tensor([1.0, -1.0])), name="K")
+    with pytest.raises(ValueError, match="NaN"):
+        psd_cholesky(torch.tensor([[float("nan"), 0.0], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="jitter"), jitter(0.0):
+        pass
