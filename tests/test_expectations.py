@@ -1,0 +1,347 @@
+"""Gaussian-input kernel expectations against quadrature, Monte Carlo and finite differences.
+
+The oracles evaluate the gpytorch kernel objects themselves at the quadrature nodes / samples, so
+they are independent of the leaf/term decomposition in ``hgpdm_torch.expectations``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+from gpytorch.kernels import AdditiveKernel, LinearKernel, MaternKernel, RBFKernel, ScaleKernel
+from scipy import integrate
+
+from hgpdm_torch import expectations as ex
+from hgpdm_torch.kernels import IntentionRBFKernel, transition_kernel
+
+
+def gauss_hermite(mu: torch.Tensor, Sigma: torch.Tensor, n: int):
+    """Tensor-product Gauss-Hermite nodes ``[n^D, D]`` and weights for ``N(mu, Sigma)``."""
+    D = mu.shape[-1]
+    u, w = np.polynomial.hermite.hermgauss(n)
+    nodes = torch.tensor(np.array(list(itertools.product(u, repeat=D))))
+    weights = torch.tensor(np.prod(np.array(list(itertools.product(w, repeat=D))), axis=1))
+    L = torch.linalg.cholesky(Sigma)
+    return mu + math.sqrt(2.0) * nodes @ L.T, weights / math.pi ** (D / 2)
+
+
+def random_cov(D: int, gen: torch.Generator, scale: float = 0.3) -> torch.Tensor:
+    A = torch.randn(D, D, generator=gen) * scale
+    return A @ A.T + 0.05 * torch.eye(D)
+
+
+def dense(kernel, x1, x2=None, diag=False):
+    with torch.no_grad():
+        out = kernel(x1, x1 if x2 is None else x2, diag=diag)
+        return out if diag else out.to_dense()
+
+
+# nodes per dim: converged to ~1e-10 for the covariances drawn by random_cov
+NODES = {1: 60, 2: 48, 3: 40}
+
+
+def close(actual, expected, rtol=1e-6):
+    actual = actual.detach()
+    atol = 1e-9 * float(expected.abs().max()) + 1e-300
+    torch.testing.assert_close(actual, expected, rtol=rtol, atol=atol)
+
+
+# ----- kernels under test: (name, builder(D) -> kernel, g_dim known) ----------------------------
+
+
+def rbf_iso(D):
+    k = RBFKernel()
+    k.lengthscale = 0.9
+    return k
+
+
+def rbf_ard(D):
+    k = ScaleKernel(RBFKernel(ard_num_dims=D))
+    k.base_kernel.lengthscale = torch.linspace(0.7, 1.6, D)
+    k.outputscale = 1.3
+    return k
+
+
+def linear(D):
+    k = LinearKernel()
+    k.variance = 0.4
+    return k
+
+
+def gpdm(D):
+    k = transition_kernel("gpdm", D, alpha=(0.9, 1.2, 0.3, 1e-3))
+    return k
+
+
+def active_dims(D):
+    idx = torch.tensor([0, D - 1])
+    rbf = ScaleKernel(RBFKernel(ard_num_dims=2, active_dims=idx))
+    rbf.base_kernel.lengthscale = torch.tensor([0.8, 1.3])
+    lin = LinearKernel(active_dims=torch.tensor([D - 1]))
+    lin.variance = 0.7
+    return AdditiveKernel(rbf, lin)
+
+
+def intention_uncertain(D):
+    # IDDM tensor product over [x, g] with g uncertain (part of the Gaussian)
+    k = transition_kernel(
+        "continuous", D - 1, g_dim=1, alpha=(0.8, 1.0, 0.2, 1e-3), alpha_g=(2.0, 0.5)
+    )
+    return k
+
+
+KERNELS = {
+    "rbf_iso": rbf_iso,
+    "rbf_ard": rbf_ard,
+    "linear": linear,
+    "gpdm": gpdm,
+    "active_dims": active_dims,
+    "intention_uncertain": intention_uncertain,
+}
+
+
+def setup(D, seed, N=6):
+    gen = torch.Generator().manual_seed(seed)
+    mu = 0.5 * torch.randn(D, generator=gen)
+    Sigma = random_cov(D, gen)
+    X = torch.randn(N, D, generator=gen)
+    return mu, Sigma, X
+
+
+@pytest.mark.parametrize("D", [1, 2, 3])
+@pytest.mark.parametrize("name", list(KERNELS))
+def test_against_gauss_hermite(name, D):
+    if name in ("active_dims", "intention_uncertain") and D == 1:
+        pytest.skip("needs at least two columns")
+    kernel = KERNELS[name](D)
+    mu, Sigma, X = setup(D, seed=10 * D)
+    x, w = gauss_hermite(mu, Sigma, NODES[D])
+    K = dense(kernel, x, X)
+    close(ex.psi0(kernel, mu, Sigma), w @ dense(kernel, x, diag=True))
+    close(ex.psi1(kernel, mu, Sigma, X), w @ K)
+    close(ex.psi2(kernel, mu, Sigma, X), torch.einsum("n,ni,nj->ij", w, K, K))
+    close(ex.x_psi1(kernel, mu, Sigma, X), torch.einsum("n,nd,ni->di", w, x, K))
+
+
+def _pair(kind: str, D: int):
+    rbf_a = RBFKernel(ard_num_dims=D)
+    rbf_a.lengthscale = torch.linspace(0.8, 1.4, D)
+    rbf_b = ScaleKernel(RBFKernel())
+    rbf_b.base_kernel.lengthscale = 0.6
+    rbf_b.outputscale = 0.5
+    lin_a, lin_b = LinearKernel(), LinearKernel(active_dims=torch.tensor([D - 1]))
+    lin_a.variance, lin_b.variance = 0.3, 1.7
+    return {
+        "rbf_rbf": (rbf_a, rbf_b),
+        "rbf_linear": (rbf_a, lin_a),
+        "linear_rbf": (lin_a, rbf_b),
+        "linear_linear": (lin_a, lin_b),
+    }[kind]
+
+
+@pytest.mark.parametrize("D", [1, 2, 3])
+@pytest.mark.parametrize("kind", ["rbf_rbf", "rbf_linear", "linear_rbf", "linear_linear"])
+def test_cross_psi2_against_gauss_hermite(kind, D):
+    ka, kb = _pair(kind, D)
+    mu, Sigma, X = setup(D, seed=7 + D)
+    x, w = gauss_hermite(mu, Sigma, NODES[D])
+    expected = torch.einsum("n,ni,nj->ij", w, dense(ka, x, X), dense(kb, x, X))
+    close(ex.psi2(ka, mu, Sigma, X, kernel_b=kb), expected)
+
+
+@pytest.mark.parametrize("kind", ["continuous", "iddm_continuous", "discrete", "iddm_discrete"])
+def test_known_intention_columns(kind):
+    """Known trailing columns g (continuous values or discrete codes) against quadrature."""
+    Dx, N = 2, 7
+    gen = torch.Generator().manual_seed(3)
+    kernel = transition_kernel(kind, Dx, g_dim=1, num_values=3, alpha=(0.9, 0.8, 0.3, 1e-3))
+    mu, Sigma = 0.3 * torch.randn(Dx, generator=gen), random_cov(Dx, gen)
+    X = torch.randn(N, Dx, generator=gen)
+    if "discrete" in kind:
+        col = torch.tensor([0.0, 1, 2, 1, 0, 2, 1])[:, None]
+        g = torch.tensor([1.0])
+    else:
+        col = torch.randn(N, 1, generator=gen)
+        g = torch.tensor([0.4])
+    X = torch.cat([X, col], -1)
+    x, w = gauss_hermite(mu, Sigma, 40)
+    xg = torch.cat([x, g.expand(len(x), 1)], -1)
+    K = dense(kernel, xg, X)
+    close(ex.psi0(kernel, mu, Sigma, g=g), w @ dense(kernel, xg, diag=True))
+    close(ex.psi1(kernel, mu, Sigma, X, g=g), w @ K)
+    close(ex.psi2(kernel, mu, Sigma, X, g=g), torch.einsum("n,ni,nj->ij", w, K, K))
+    close(ex.x_psi1(kernel, mu, Sigma, X, g=g), torch.einsum("n,nd,ni->di", w, x, K))
+    if "discrete" in kind:  # points of other codes are masked out exactly
+        assert torch.all(ex.psi1(kernel, mu, Sigma, X, g=g)[col[:, 0] != 1] == 0)
+
+
+def test_log_space_where_factors_underflow():
+    """Far-away training points: k(mu, X_i)^2 underflows, the expectation does not (scipy quad)."""
+    k = RBFKernel()
+    k.lengthscale = 1.0
+    X = torch.tensor([[40.0], [41.0]])
+    mu, Sigma = torch.tensor([0.0]), torch.tensor([[900.0]])
+    assert float(dense(k, mu[None], X).max()) == 0.0  # exp(-800) underflows in float64
+
+    def gauss(x):
+        return math.exp(-0.5 * x**2 / 900.0) / math.sqrt(2 * math.pi * 900.0)
+
+    def kern(x, c):
+        return math.exp(-0.5 * (x - c) ** 2)
+
+    p2 = ex.psi2(k, mu, Sigma, X).detach()
+    for i, j in [(0, 0), (0, 1), (1, 1)]:
+        ci, cj = float(X[i, 0]), float(X[j, 0])
+        ref = integrate.quad(
+            lambda x, ci=ci, cj=cj: gauss(x) * kern(x, ci) * kern(x, cj), 30, 50, epsabs=0
+        )[0]
+        assert ref > 1e-6
+        assert float(p2[i, j]) == pytest.approx(ref, rel=1e-8)
+
+
+def monte_carlo(fn, mu, Sigma, n, gen, chunk=100_000):
+    """Mean and standard error of ``fn(x)`` for ``x ~ N(mu, Sigma)``, accumulated in chunks."""
+    L = torch.linalg.cholesky(Sigma)
+    s1 = s2 = 0.0
+    for _ in range(n // chunk):
+        x = mu + torch.randn(chunk, mu.shape[-1], generator=gen) @ L.T
+        v = fn(x)
+        s1, s2 = s1 + v.sum(0), s2 + v.pow(2).sum(0)
+    mean = s1 / n
+    return mean, ((s2 / n - mean.pow(2)).clamp_min(0) / n).sqrt()
+
+
+@pytest.mark.parametrize(
+    "name,D",
+    [("intention_uncertain", 4), ("gpdm", 5), ("active_dims", 5), ("intention6", 6)],
+)
+def test_against_monte_carlo_high_dim(name, D):
+    if name == "intention6":
+        kernel = transition_kernel("continuous", 4, g_dim=2, alpha=(0.9, 0.6, 0.2, 1e-3))
+    else:
+        kernel = KERNELS[name](D)
+    mu, Sigma, X = setup(D, seed=D, N=4)
+    gen = torch.Generator().manual_seed(100 + D)
+    N = X.shape[0]
+
+    def stats(x):
+        K = dense(kernel, x, X)
+        outer = (K[:, :, None] * K[:, None, :]).reshape(len(x), -1)
+        xk = (x[:, :, None] * K[:, None, :]).reshape(len(x), -1)
+        return torch.cat([K, outer, xk], -1)
+
+    mean, se = monte_carlo(stats, mu, Sigma, 1_000_000, gen)
+    ours = torch.cat(
+        [
+            ex.psi1(kernel, mu, Sigma, X),
+            ex.psi2(kernel, mu, Sigma, X).reshape(-1),
+            ex.x_psi1(kernel, mu, Sigma, X).reshape(-1),
+        ]
+    ).detach()
+    assert ours.shape == (N + N * N + D * N,)
+    z = (ours - mean).abs() / (se + 1e-12)
+    assert float(z.max()) < 5.0, f"max |error| / standard error = {float(z.max()):.2f}"
+
+
+def test_batched_broadcasting_matches_loop():
+    kernel = transition_kernel("continuous", 2, g_dim=1, alpha=(0.9, 0.8, 0.3, 1e-3))
+    gen = torch.Generator().manual_seed(5)
+    B, K, N = 3, 4, 6
+    mu = torch.randn(B, 1, 2, generator=gen)
+    Sigma = torch.stack([random_cov(2, gen) for _ in range(B)])[:, None]
+    g = torch.randn(1, K, 1, generator=gen)
+    X = torch.randn(N, 3, generator=gen)
+    out1, out2 = ex.psi1(kernel, mu, Sigma, X, g=g), ex.psi2(kernel, mu, Sigma, X, g=g)
+    out0, outx = ex.psi0(kernel, mu, Sigma, g=g), ex.x_psi1(kernel, mu, Sigma, X, g=g)
+    assert out1.shape == (B, K, N) and out2.shape == (B, K, N, N)
+    assert out0.shape == (B, K) and outx.shape == (B, K, 2, N)
+    for b, k in itertools.product(range(B), range(K)):
+        args = (kernel, mu[b, 0], Sigma[b, 0])
+        torch.testing.assert_close(out1[b, k], ex.psi1(*args, X, g=g[0, k]))
+        torch.testing.assert_close(out2[b, k], ex.psi2(*args, X, g=g[0, k]))
+        torch.testing.assert_close(out0[b, k], ex.psi0(*args, g=g[0, k]))
+        torch.testing.assert_close(outx[b, k], ex.x_psi1(*args, X, g=g[0, k]))
+
+
+def test_zero_covariance_is_point_evaluation():
+    kernel = intention_uncertain(3)
+    mu, _, X = setup(3, seed=2)
+    zero = torch.zeros(3, 3)
+    K = dense(kernel, mu[None], X)[0]
+    torch.testing.assert_close(ex.psi1(kernel, mu, zero, X).detach(), K)
+    torch.testing.assert_close(ex.psi2(kernel, mu, zero, X).detach(), K[:, None] * K[None, :])
+    torch.testing.assert_close(ex.x_psi1(kernel, mu, zero, X).detach(), mu[:, None] * K[None, :])
+
+
+@pytest.mark.parametrize("fn", ["psi1", "psi2", "x_psi1", "psi0"])
+def test_gradcheck_inputs(fn):
+    kernel = transition_kernel("continuous", 2, g_dim=1, alpha=(0.9, 0.8, 0.3, 1e-3))
+    mu, Sigma, X = setup(3, seed=4, N=4)
+    A = torch.linalg.cholesky(Sigma)
+
+    def f(mu, A, X):
+        S = A @ A.T
+        if fn == "psi0":
+            return ex.psi0(kernel, mu, S) + 0.0 * X.sum()
+        return getattr(ex, fn)(kernel, mu, S, X)
+
+    inputs = tuple(t.clone().requires_grad_(True) for t in (mu, A, X))
+    assert torch.autograd.gradcheck(f, inputs)
+
+
+def test_hyperparameter_gradients_match_finite_differences():
+    """Gradients reach every raw hyperparameter (needed by VB) and match central differences."""
+    kernel = transition_kernel("continuous", 2, g_dim=1, alpha=(0.9, 0.8, 0.3, 1e-3))
+    mu, Sigma, X = setup(3, seed=6, N=5)
+
+    def value():
+        return (
+            ex.psi2(kernel, mu, Sigma, X).sum()
+            + ex.psi1(kernel, mu, Sigma, X).sum()
+            + ex.x_psi1(kernel, mu, Sigma, X).sum()
+            + ex.psi0(kernel, mu, Sigma)
+        )
+
+    params = dict(kernel.named_parameters())
+    kernel.zero_grad()
+    value().backward()
+    assert len(params) == 5
+    for name, p in params.items():
+        assert p.grad is not None, name
+        for idx in np.ndindex(*p.shape):
+            with torch.no_grad():
+                old = p[idx].item()
+                p[idx] = old + 1e-6
+                up = value().item()
+                p[idx] = old - 1e-6
+                down = value().item()
+                p[idx] = old
+            assert p.grad[idx].item() == pytest.approx((up - down) / 2e-6, rel=1e-5, abs=1e-8)
+
+
+def test_bad_inputs_raise():
+    kernel = gpdm(2)
+    mu, Sigma, X = setup(2, seed=1)
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        ex.psi1(kernel, mu, torch.tensor([[1.0, 2.0], [2.0, 1.0]]), X)
+    with pytest.raises(ValueError, match="symmetric"):
+        ex.psi1(kernel, mu, torch.tensor([[1.0, 0.5], [0.0, 1.0]]), X)
+    with pytest.raises(ValueError, match="trailing shape"):
+        ex.psi1(kernel, mu, torch.eye(3), X)
+    with pytest.raises(ValueError, match="NaN"):
+        ex.psi1(kernel, torch.tensor([float("nan"), 0.0]), Sigma, X)
+    with pytest.raises(ValueError, match="columns"):
+        ex.psi1(kernel, mu, Sigma, torch.zeros(4, 3))
+    with pytest.raises(TypeError, match="MaternKernel"):
+        ex.psi1(MaternKernel(), mu, Sigma, X)
+    with pytest.raises(ValueError, match="batch_shape"):
+        ex.psi1(RBFKernel(batch_shape=torch.Size([2])), mu, Sigma, X)
+    discrete = transition_kernel("discrete", 1, num_values=2)
+    with pytest.raises(ValueError, match="code"):
+        ex.psi1(discrete, mu, Sigma, X)  # the code column may not be Gaussian
+    with pytest.raises(ValueError, match="IntentionRBFKernel"):
+        ex.psi1(IntentionRBFKernel(2, 1), mu, Sigma, X)
