@@ -38,8 +38,9 @@ JOINT_NAMES = tuple(f"wam_joint{i}" for i in range(1, DOF + 1))
 RACKET_LINK = "racket"
 RACKET_RADIUS = 0.076
 # Shoulder (DH frame 0) of the hanging arm: centred laterally, 0.28 m behind the virtual hitting
-# plane and 0.99 m above the table surface.
-DEFAULT_BASE_POSITION = (0.0, -2.45, 1.75)
+# plane and 0.69 m above the table surface, so that balls crossing the plane at 0.5-1.0 m height
+# (typical returns) lie within reach.
+DEFAULT_BASE_POSITION = (0.0, -2.45, 1.45)
 # Hanging: the base z axis (joint 1) points down; base x stays world x.
 _HANGING_RPY = (math.pi, 0.0, 0.0)
 
@@ -284,15 +285,15 @@ class WAM:
     def joint_velocity(
         self, q: object, racket_velocity: object, *, damping: float = 1e-3
     ) -> torch.Tensor:
-        """Joint velocity giving the racket centre a linear velocity and no angular velocity.
+        """Smallest joint velocity giving the racket centre a linear velocity.
 
-        Damped least squares on the full 6-D Jacobian: ``qd = J^T (J J^T + damping^2 I)^-1
-        [v; 0]``. ``q``: ``[..., 7]``, ``racket_velocity``: ``[..., 3]`` -> ``[..., 7]``.
+        Damped least squares on the linear Jacobian: ``qd = J_v^T (J_v J_v^T + damping^2 I)^-1 v``
+        (the racket may turn meanwhile; a ball contact is too short for that to matter).
+        ``q``: ``[..., 7]``, ``racket_velocity``: ``[..., 3]`` -> ``[..., 7]``.
         """
         v = as_tensor(racket_velocity, "racket_velocity", dtype=self.dtype, device=self.device)
         check_shape(v, "racket_velocity", (3,))
-        jac = self.jacobian(q)
-        twist = torch.cat([v, torch.zeros_like(v)], dim=-1).unsqueeze(-1)
-        eye6 = torch.eye(6, dtype=self.dtype, device=self.device)
-        gram = jac @ jac.transpose(-1, -2) + damping**2 * eye6
-        return (jac.transpose(-1, -2) @ torch.linalg.solve(gram, twist)).squeeze(-1)
+        jv = self.jacobian(q)[..., :3, :]
+        eye3 = torch.eye(3, dtype=self.dtype, device=self.device)
+        gram = jv @ jv.transpose(-1, -2) + damping**2 * eye3
+        return (jv.transpose(-1, -2) @ torch.linalg.solve(gram, v.unsqueeze(-1))).squeeze(-1)
