@@ -1,0 +1,92 @@
+"""Kernels of the H-GPDM/IDDM against explicit formulas, and their parameter handling."""
+
+from __future__ import annotations
+
+import gpytorch
+import pytest
+import torch
+
+from hgpdm_torch.kernels import (
+    ALPHA_BAR,
+    DenseLinearKernel,
+    DiscreteIntentionKernel,
+    IntentionRBFKernel,
+    measurement_kernel,
+    transition_kernel,
+)
+
+
+def test_intention_rbf_matches_formula_and_ard_equivalent(generator):
+    k = IntentionRBFKernel(3, 2)
+    k.lengthscale_x, k.lengthscale_g = 0.7, 1.9
+    x1, x2 = torch.randn(4, 5, generator=generator), torch.randn(6, 5, generator=generator)
+    dx = torch.cdist(x1[:, :3], x2[:, :3]) ** 2
+    dg = torch.cdist(x1[:, 3:], x2[:, 3:]) ** 2
+    want = torch.exp(-0.5 * dx / 0.7**2 - 0.5 * dg / 1.9**2)
+    torch.testing.assert_close(k(x1, x2).to_dense(), want)
+    ard = gpytorch.kernels.RBFKernel(ard_num_dims=5)
+    ard.lengthscale = k.lengthscale_vector()
+    torch.testing.assert_close(k(x1, x2).to_dense(), ard(x1, x2).to_dense())
+    torch.testing.assert_close(k(x1, x1, diag=True), torch.ones(4))
+
+
+def test_intention_rbf_prior_and_constraint():
+    prior = gpytorch.priors.GammaPrior(2.0, 2.0)
+    k = IntentionRBFKernel(2, 1, lengthscale_x_prior=prior)
+    names = [name for name, *_ in k.named_priors()]
+    assert names == ["lengthscale_x_prior"]
+    with torch.no_grad():
+        k.raw_lengthscale_x.fill_(-50.0)
+    assert float(k.lengthscale_x) > 0
+
+
+def test_discrete_kernel_is_block_diagonal(generator):
+    base = measurement_kernel("rbf")
+    k = DiscreteIntentionKernel(base, 3)
+    x = torch.randn(6, 2, generator=generator)
+    codes = torch.tensor([0.0, 1, 2, 0, 1, 2])[:, None]
+    gram = k(torch.cat([x, codes], -1)).to_dense()
+    same = codes == codes.T
+    torch.testing.assert_close(gram, base(x).to_dense() * same)
+
+
+def test_dense_linear_kernel_equals_gpytorch_linear(generator):
+    x1, x2 = torch.randn(5, 3, generator=generator), torch.randn(4, 3, generator=generator)
+    ours, ref = DenseLinearKernel(ard_num_dims=3), gpytorch.kernels.LinearKernel(ard_num_dims=3)
+    ours.variance = ref.variance = torch.tensor([[0.5, 1.0, 2.0]])
+    torch.testing.assert_close(ours(x1, x2).to_dense(), ref(x1, x2).to_dense())
+    torch.testing.assert_close(ours(x1, x1, diag=True), ref(x1, x1, diag=True))
+
+
+def test_transition_kernel_hyperparameters_follow_the_thesis():
+    k = transition_kernel("discrete", 3, num_values=2)
+    scale, lin = k.base_kernel.kernels
+    a1, a2, a3, _ = ALPHA_BAR
+    assert float(scale.outputscale) == pytest.approx(a1)
+    assert float(scale.base_kernel.lengthscale) ** -2 == pytest.approx(a2)
+    assert float(lin.variance) == pytest.approx(a3)
+    lin_m = measurement_kernel("linear")
+    assert float(lin_m.variance) == 1.0 and not lin_m.raw_variance.requires_grad
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (lambda: transition_kernel("quadratic", 2), "unknown transition kernel"),
+        (lambda: measurement_kernel("matern"), "unknown measurement kernel"),
+        (lambda: transition_kernel("discrete", 2), "num_values"),
+        (lambda: transition_kernel("gpdm", 2, alpha=(1.0, 2.0)), "alpha"),
+        (lambda: transition_kernel("gpdm", 2, alpha=(1.0, -2.0, 1.0, 1.0)), "inverse squared"),
+        (lambda: IntentionRBFKernel(0, 1), "x_dim"),
+        (lambda: DiscreteIntentionKernel(measurement_kernel("rbf"), 0), "num_values"),
+        (lambda: IntentionRBFKernel(2, 1)(torch.randn(3, 2)).to_dense(), "3 columns"),
+    ],
+)
+def test_bad_kernel_arguments(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_discrete_kernel_rejects_non_kernel():
+    with pytest.raises(TypeError, match="base_kernel"):
+        DiscreteIntentionKernel("rbf", 2)
