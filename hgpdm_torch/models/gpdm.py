@@ -309,8 +309,20 @@ class GPDM(gpytorch.Module):
         """``-log p(X | g)`` of Eq. 5: GP transitions plus the unit Gaussian on first states."""
         x = self.latent
         first = x[self.first_index]
-        nll = self._gaussian_sequence_nll(self.transition_inputs(x), self.transition_targets(x))
+        inputs, targets = self.transition_inputs(x), self.transition_targets(x)
+        nll = sum(
+            self._gaussian_sequence_nll(inputs[rows], targets[rows])
+            for rows in self.transition_blocks()
+        )
         return nll + 0.5 * first.pow(2).sum() + 0.5 * first.numel() * _LOG_2PI
+
+    def transition_blocks(self) -> list[torch.Tensor]:
+        """Row sets of independent blocks of ``K_x`` (one block: all transitions).
+
+        Subclasses whose transition kernel is block-diagonal (a discrete g) return one index set
+        per block, so Eq. 5 factorises into smaller Cholesky factors.
+        """
+        return [torch.arange(self.src_index.numel(), device=self.src_index.device)]
 
     def prior_nll(self) -> torch.Tensor:
         """``-sum log p(theta)`` over every registered gpytorch prior (log-normal on beta, W)."""

@@ -123,6 +123,17 @@ class HGPDM(GPDM):
         """``[m, Dx + Dg]`` inputs ``[x_t, g]`` of the transition GP."""
         return torch.cat([latent[self.src_index], self.intentions[self.seq_of_src]], dim=-1)
 
+    def transition_blocks(self) -> list[torch.Tensor]:
+        """One block of ``K_x`` per value of a discrete g (``delta(g, g')`` zeroes the rest)."""
+        if self.intention != "discrete":
+            return super().transition_blocks()
+        codes = self.intentions[self.seq_of_src, 0]
+        return [
+            rows
+            for k in range(self.num_values)
+            if (rows := torch.nonzero(codes == k)[:, 0]).numel()
+        ]
+
     def intention_codes(self) -> torch.Tensor:
         """``[J]`` integer codes of a discrete g."""
         if self.intention != "discrete":
