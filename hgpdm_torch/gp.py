@@ -17,10 +17,14 @@ expectations of :mod:`hgpdm_torch.expectations`.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from gpytorch.kernels import Kernel
 
 from .expectations import (
+    Leaf,
+    Term,
     check_gaussian,
     kernel_leaves,
     leaves_psi0,
@@ -28,6 +32,7 @@ from .expectations import (
     term_psi1_grad,
     term_psi2,
 )
+from .kernels import DiscreteIntentionKernel
 from .linalg import psd_cholesky, symmetrize
 from .validation import as_tensor, check_shape
 
@@ -225,38 +230,108 @@ class GPPosterior:
             joint_cov = as_tensor(joint_cov, "joint_cov", min_ndim=2, dtype=dtype, device=device)
             check_shape(joint_cov, "joint_cov", [None, D])
 
-        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.detach):
-            leaves = kernel_leaves(self.kernel, din)
-            kinv = self.kinv
-        X = self.train_inputs
-        terms = split_terms(leaves, X, g, D)
-        Xx = X[:, :D]
-        beta = self.weights
-        ones = torch.ones(X.shape[0], dtype=dtype, device=device)
-        factors = [ones if t.factor is None else t.factor for t in terms]
-        fbeta = [f[..., None] * beta for f in factors]  # [..., N, Dout]
-
-        mean, grad = 0.0, 0.0
-        for t, fb in zip(terms, fbeta, strict=True):
-            p1, gr = term_psi1_grad(t, mu, Sigma, Xx)
-            mean = mean + _shared_matmul(p1[..., None, :], fb)[..., 0, :]
-            grad = grad + _shared_matmul(gr, fb)  # E[d f / dx]  [..., D, Dout]
-        second, trace = 0.0, 0.0
-        for i, (a, fa, fba) in enumerate(zip(terms, factors, fbeta, strict=True)):
-            for j in range(i, len(terms)):
-                q = term_psi2(a, terms[j], mu, Sigma, Xx)
-                m = fba.transpose(-1, -2) @ _shared_matmul(q, fbeta[j])
-                tr = (fa * _shared_matmul(kinv * q, factors[j][..., None])[..., 0]).sum(-1)
-                if j > i:  # the (j, i) pair is the transpose
-                    m, tr = m + m.transpose(-1, -2), 2.0 * tr
-                second, trace = second + m, trace + tr
-        var = (leaves_psi0(leaves, mu, Sigma, g) - trace).clamp_min(0.0)
+        leaves = self._leaves()
+        if g is not None and self._blocks() is not None:
+            # discrete g: each code touches only its own training points (DESIGN.md sec. 8)
+            X, beta, kinv, mask = self._gather_blocks(g)
+            leaves = [replace(lf, weight=lf.weight[:D], codes=()) for lf in leaves]
+            terms = [replace(t, factor=mask) for t in split_terms(leaves, X, None, D)]
+            g_psi0 = None
+        else:
+            X, beta, kinv = self.train_inputs, self.weights, self.kinv
+            terms = split_terms(leaves, X, g, D)
+            g_psi0 = g
+        mean, second, trace, grad = _moments(terms, mu, Sigma, X[..., :D], beta, kinv)
+        var = (leaves_psi0(leaves, mu, Sigma, g_psi0) - trace).clamp_min(0.0)
         if include_noise:
             var = var + self.noise
         cov = symmetrize(second - mean[..., :, None] * mean[..., None, :])
         cov = cov + torch.diag_embed(var[..., None] * self.scale.pow(2))
         io = (Sigma if joint_cov is None else joint_cov) @ grad
         return mean + self.offset, cov, io
+
+    def _leaves(self) -> list[Leaf]:
+        """Kernel leaves; cached when detached (the posterior is then a frozen snapshot)."""
+        if self.detach and getattr(self, "_leaf_cache", None) is not None:
+            return self._leaf_cache
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.detach):
+            leaves = kernel_leaves(self.kernel, self.input_dim)
+        if self.detach:
+            self._leaf_cache = leaves
+        return leaves
+
+    def _blocks(self) -> tuple[torch.Tensor, ...] | None:
+        """Per-code padded training blocks of a top-level ``DiscreteIntentionKernel``, or None.
+
+        ``(X [K, M, Din], beta [K, M, Dout], kinv [K, M, M], mask [K, M])`` with ``M`` the largest
+        block. ``K + noise I`` is block-diagonal over codes, so its inverse's block for code c is
+        ``(K_cc + noise I)^-1`` and ``beta``'s rows of code c are that block's weights.
+        """
+        kernel = self.kernel
+        if not isinstance(kernel, DiscreteIntentionKernel) or kernel.active_dims is not None:
+            return None
+        if getattr(self, "_block_cache", None) is None:
+            codes = self.train_inputs[:, -1]
+            index = [torch.nonzero(codes == c).flatten() for c in range(kernel.num_values)]
+            M = max(1, max(len(i) for i in index))
+            kinv = self.kinv
+            n, dout = len(codes), self.output_dim
+            pad = torch.full((kernel.num_values, M), n, dtype=torch.long, device=codes.device)
+            for c, i in enumerate(index):
+                pad[c, : len(i)] = i
+            mask = (pad < n).to(kinv.dtype)
+            X = torch.cat([self.train_inputs, self.train_inputs.new_zeros(1, self.input_dim)])
+            beta = torch.cat([self.weights, self.weights.new_zeros(1, dout)])
+            kinv = torch.nn.functional.pad(kinv, (0, 1, 0, 1))
+            self._block_cache = (X[pad], beta[pad], kinv[pad[:, :, None], pad[:, None, :]], mask)
+        return self._block_cache
+
+    def _gather_blocks(self, g: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The blocks of the codes ``g [..., 1]``: X, beta, kinv, mask with batch ``[...]``."""
+        if g.shape[-1] != 1:
+            raise ValueError(
+                f"a discrete intention g must have one column (the code), got {g.shape}"
+            )
+        code = g[..., 0].round()
+        num = self.kernel.num_values
+        if bool((code != g[..., 0]).any()) or bool(((code < 0) | (code >= num)).any()):
+            raise ValueError(f"discrete intention codes g must be integers in [0, {num - 1}]")
+        code = code.long()
+        return tuple(block[code] for block in self._blocks())
+
+
+def _moments(
+    terms: list[Term],
+    mu: torch.Tensor,
+    Sigma: torch.Tensor,
+    X: torch.Tensor,
+    beta: torch.Tensor,
+    kinv: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``psi1 beta``, ``beta^T psi2 beta``, ``tr(K^-1 psi2)`` and ``E[d f / dx]``.
+
+    Shapes: ``X [..., N, D]``, ``beta [..., N, Dout]``, ``kinv [..., N, N]`` -> ``[..., Dout]``,
+    ``[..., Dout, Dout]``, ``[...]``, ``[..., D, Dout]``. ``psi2`` is summed over term pairs
+    without forming it per intention: factors rescale ``beta`` (``_shared_matmul``).
+    """
+    ones = torch.ones(X.shape[-2], dtype=X.dtype, device=X.device)
+    factors = [ones if t.factor is None else t.factor for t in terms]
+    fbeta = [f[..., None] * beta for f in factors]  # [..., N, Dout]
+    mean, grad = 0.0, 0.0
+    for t, fb in zip(terms, fbeta, strict=True):
+        p1, gr = term_psi1_grad(t, mu, Sigma, X)
+        mean = mean + _shared_matmul(p1[..., None, :], fb)[..., 0, :]
+        grad = grad + _shared_matmul(gr, fb)
+    second, trace = 0.0, 0.0
+    for i, (a, fa, fba) in enumerate(zip(terms, factors, fbeta, strict=True)):
+        for j in range(i, len(terms)):
+            q = term_psi2(a, terms[j], mu, Sigma, X)
+            m = fba.transpose(-1, -2) @ _shared_matmul(q, fbeta[j])
+            tr = (fa * _shared_matmul(kinv * q, factors[j][..., None])[..., 0]).sum(-1)
+            if j > i:  # the (j, i) pair is the transpose
+                m, tr = m + m.transpose(-1, -2), 2.0 * tr
+            second, trace = second + m, trace + tr
+    return mean, second, trace, grad
 
 
 def _shared_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

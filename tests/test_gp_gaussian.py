@@ -224,3 +224,39 @@ def test_bad_inputs_raise(generator):
         gp.predict_gaussian(torch.zeros(DX), eye, g=torch.zeros(2))
     with pytest.raises(ValueError, match="joint_cov"):
         gp.predict_gaussian(torch.zeros(DX), eye, g=g, joint_cov=torch.zeros(3, 3))
+
+
+def test_discrete_blocks_equal_generic_masking(generator):
+    """The per-code block path equals the generic path (delta factors over all N points)."""
+    from gpytorch.kernels import AdditiveKernel
+
+    gp = make_posterior("discrete", generator)
+    # wrapping the kernel hides it from the block path but leaves the function unchanged
+    generic = GPPosterior(
+        AdditiveKernel(gp.kernel),
+        gp.train_inputs,
+        gp.train_targets,
+        gp.noise,
+        scale=gp.scale,
+        offset=gp.offset,
+    )
+    assert gp._blocks() is not None and generic._blocks() is None
+    mu = torch.randn(2, 1, DX, generator=generator)
+    Sigma = torch.stack([random_cov(DX, generator) for _ in range(2)])[:, None]
+    g = torch.tensor([0.0, 1.0, 2.0])[None, :, None]
+    for a, b in zip(
+        gp.predict_gaussian(mu, Sigma, g=g), generic.predict_gaussian(mu, Sigma, g=g), strict=True
+    ):
+        torch.testing.assert_close(a, b)
+
+
+def test_discrete_code_without_points_and_bad_codes(generator):
+    gp = make_posterior("iddm_discrete", generator)
+    keep = gp.train_inputs[:, -1] != 2  # code 2 gets no training points
+    gp = GPPosterior(gp.kernel, gp.train_inputs[keep], gp.train_targets[keep], gp.noise)
+    mean, cov, io = gp.predict_gaussian(torch.zeros(DX), 0.1 * torch.eye(DX), g=torch.tensor([2.0]))
+    torch.testing.assert_close(mean, torch.zeros(DX))  # prior mean
+    torch.testing.assert_close(cov, 0.9 * torch.eye(DX))  # prior variance alpha_1
+    for bad in (torch.tensor([1.5]), torch.tensor([3.0]), torch.tensor([-1.0])):
+        with pytest.raises(ValueError, match="codes"):
+            gp.predict_gaussian(torch.zeros(DX), torch.eye(DX), g=bad)

@@ -1,0 +1,135 @@
+"""Cost of moment-matching GP prediction and of one GP-ADF step versus N, streams B, intentions K.
+
+``python -m benchmarks moment_matching [--quick]``. Writes
+``benchmarks/results/moment_matching.json`` (``moment_matching_quick.json`` with ``--quick``).
+
+Setting: IDDM transition GP over ``[x, g]`` (Dx = 3) with the tensor-product kernel
+(``iddm_continuous``, Dg = 1) or the discrete-g kernel (``iddm_discrete``, N/K points per code),
+float64, one thread. For each (N, B, K):
+
+- ``shared``: one :meth:`GPPosterior.predict_gaussian` call for B input Gaussians and all K
+  intentions (``mu [B, 1, Dx]``, ``g [1, K, Dg]``): the N x N expectation over x is computed once
+  per stream and shared by the K intentions (DESIGN.md sec. 8);
+- ``loop``: the naive alternative measured in the same process, one call per intention
+  (B streams batched, K calls), each redoing the N x N work; ``x faster`` = loop / shared;
+- ``filter step``: one :func:`gp_adf_predict` + :func:`gp_adf_update` (linear measurement,
+  Dz = 4) for K x B distinct state Gaussians, as in :func:`filter_sequence` with all K at once.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.gp import GPPosterior
+from hgpdm_torch.inference.filtering import gp_adf_predict, gp_adf_update
+from hgpdm_torch.kernels import measurement_kernel, transition_kernel
+
+RESULTS = Path(__file__).parent / "results"
+DX, DZ = 3, 4
+
+
+def _best_of(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def _posteriors(kind: str, n: int, k: int, gen: torch.Generator):
+    kernel = transition_kernel(kind, DX, num_values=k, alpha=(0.9, 0.5, 0.1, 1e-3))
+    x = torch.randn(n, DX, generator=gen, dtype=torch.float64)
+    if kind == "iddm_discrete":
+        g_col = torch.arange(n, dtype=torch.float64)[:, None] % k
+        values = torch.arange(k, dtype=torch.float64)[:, None]
+    else:
+        g_col = torch.rand(n, 1, generator=gen, dtype=torch.float64) * 2 - 1
+        values = torch.linspace(-1, 1, k, dtype=torch.float64)[:, None]
+    y = torch.tanh(x) + 0.3 * g_col
+    trans = GPPosterior(kernel, torch.cat([x, g_col], -1), y, 1e-3)
+    c = torch.randn(DX, DZ, generator=gen, dtype=torch.float64)
+    meas = GPPosterior(measurement_kernel("linear"), x, x @ c, 1e-2)
+    return trans, meas, values
+
+
+def run(sizes: list[int], configs: list[tuple[int, int]], repeats: int) -> ResultTable:
+    table = ResultTable(
+        "Moment matching (Dx=3, float64, 1 thread): predict_gaussian for B streams x K "
+        "intentions, shared vs a per-intention loop, and one GP-ADF filter step",
+        ["kernel", "N", "B", "K", "shared [ms]", "loop [ms]", "x faster", "filter step [ms]"],
+        meta={
+            "torch": torch.__version__,
+            "machine": platform.processor() or platform.machine(),
+            "threads": torch.get_num_threads(),
+            "repeats (best of)": repeats,
+        },
+    )
+    gen = torch.Generator().manual_seed(0)
+    for kind in ("iddm_continuous", "iddm_discrete"):
+        for n in sizes:
+            for b, k in configs:
+                trans, meas, values = _posteriors(kind, n, k, gen)
+                mu = 0.3 * torch.randn(b, 1, DX, generator=gen, dtype=torch.float64)
+                a = 0.2 * torch.randn(b, 1, DX, DX, generator=gen, dtype=torch.float64)
+                sigma = a @ a.transpose(-1, -2) + 0.01 * torch.eye(DX, dtype=torch.float64)
+                g = values[None]  # [1, K, 1]
+
+                def shared(mu=mu, sigma=sigma, g=g, trans=trans):
+                    trans.predict_gaussian(mu, sigma, g=g, include_noise=True)
+
+                def loop(mu=mu[:, 0], sigma=sigma[:, 0], values=values, trans=trans):
+                    for v in values:
+                        trans.predict_gaussian(
+                            mu, sigma, g=v.expand(len(mu), 1), include_noise=True
+                        )
+
+                # K x B distinct states, as after the first step of a filter over all K
+                mu_kb = mu[:, 0].expand(k, b, DX) + 0.01 * torch.randn(
+                    k, b, DX, generator=gen, dtype=torch.float64
+                )
+                sig_kb = sigma[:, 0].expand(k, b, DX, DX)
+                z = torch.randn(b, DZ, generator=gen, dtype=torch.float64)
+
+                def step(
+                    mu_kb=mu_kb, sig_kb=sig_kb, g=values[:, None], z=z, trans=trans, meas=meas
+                ):
+                    m, s, _ = gp_adf_predict(trans, mu_kb, sig_kb, g=g)
+                    gp_adf_update(meas, m, s, z)
+
+                with torch.no_grad():
+                    shared(), loop(), step()  # warm-up (and kinv cache)
+                    t_shared = _best_of(shared, repeats)
+                    t_loop = _best_of(loop, repeats)
+                    t_step = _best_of(step, repeats)
+                table.add(
+                    **{
+                        "kernel": kind,
+                        "N": n,
+                        "B": b,
+                        "K": k,
+                        "shared [ms]": 1e3 * t_shared,
+                        "loop [ms]": 1e3 * t_loop,
+                        "x faster": t_loop / t_shared,
+                        "filter step [ms]": 1e3 * t_step,
+                    }
+                )
+                print(table.rows[-1], flush=True)
+    return table
+
+
+def main(argv: list[str]) -> int:
+    quick = "--quick" in argv
+    torch.set_num_threads(1)
+    if quick:
+        table = run([50, 100], [(1, 5), (4, 5)], repeats=2)
+    else:
+        table = run([100, 250, 500], [(1, 1), (1, 25), (8, 25)], repeats=5)
+    print(table.to_markdown())
+    table.to_json(RESULTS / ("moment_matching_quick.json" if quick else "moment_matching.json"))
+    return 0
