@@ -1,0 +1,353 @@
+"""Two-player games of thesis Ch. 5: normal-form games, their baselines and finite-stage trees.
+
+Player i is the learner, Player j the opponent. A normal-form game is Player i's reward matrix
+``R`` of shape ``[Ai, Aj]``: Player i gets ``R[a_i, a_j]`` for the joint action, so strategies
+``pi_i`` ``[Ai]`` and ``pi_j`` ``[Aj]`` earn ``pi_i^T R pi_j`` in expectation (Sec. 5.2).
+
+The baselines of Sec. 5.1 live here: the best response to one opponent model, fictitious play
+(best response to the empirical distribution) and the minimax strategy (a linear program). A
+finite-stage stochastic game (Sec. 5.3) is a tree of states, each with its own reward matrix and
+transition probabilities to its children given the joint action.
+
+Everything is NumPy: the problems are a few actions wide and the solvers run once per game.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.optimize import linprog
+
+__all__ = [
+    "RPS_REWARD",
+    "SERVE_ACTIONS",
+    "SERVE_REGIONS",
+    "TABLE_TENNIS_REWARD",
+    "FiniteStageGame",
+    "as_array",
+    "as_rng",
+    "best_response",
+    "check_counts",
+    "check_reward_matrix",
+    "check_strategy",
+    "expected_reward",
+    "fictitious_play",
+    "minimax_strategy",
+    "sample_counts",
+    "two_stage_rps",
+]
+
+#: Table 5.1: rock-paper-scissors, rows and columns ordered rock, paper, scissors.
+RPS_REWARD = np.array([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]])
+
+#: Table 5.3: success rate of the robot's preparation pose (rows) against the region a serve
+#: lands in (columns), estimated by the low-level planner from 600 recorded serves.
+TABLE_TENNIS_REWARD = np.array([[0.65, 0.52, 0.06], [0.41, 0.74, 0.56], [0.04, 0.12, 0.39]])
+SERVE_ACTIONS = ("forehand", "middle", "backhand")
+SERVE_REGIONS = ("forehand side", "middle", "backhand side")
+
+
+def as_rng(generator: np.random.Generator | torch.Generator | int) -> np.random.Generator:
+    """A NumPy generator from a NumPy generator, a seeded torch generator or an integer seed."""
+    if isinstance(generator, np.random.Generator):
+        return generator
+    if isinstance(generator, torch.Generator):
+        seed = int(torch.randint(0, 2**62, (), generator=generator))
+        return np.random.default_rng(seed)
+    if isinstance(generator, int | np.integer) and not isinstance(generator, bool):
+        return np.random.default_rng(int(generator))
+    raise TypeError(
+        "generator must be a numpy Generator, a torch Generator or an int seed, "
+        f"got {type(generator).__name__}"
+    )
+
+
+def as_array(value: object, name: str, ndim: int) -> np.ndarray:
+    """``value`` as a finite float64 NumPy array with ``ndim`` dimensions.
+
+    The checks of :mod:`hgpdm_torch.validation` in NumPy: the online learner validates its
+    inputs on every game, and a round trip through torch would cost more than the solve.
+    """
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    if isinstance(value, str | bytes) or value is None:
+        raise TypeError(f"{name} must be numeric array-like, got {type(value).__name__}")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name} must be numeric array-like, got {type(value).__name__}") from err
+    if arr.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} contains NaN or inf; expected finite values")
+    return arr
+
+
+def check_reward_matrix(reward: object, name: str = "reward") -> np.ndarray:
+    """Validate a reward matrix: finite, 2-D, at least one action each. Returns ``[Ai, Aj]``."""
+    r = as_array(reward, name, 2)
+    if r.shape[0] < 1 or r.shape[1] < 1:
+        raise ValueError(f"{name} must have at least one row and column, got shape {r.shape}")
+    return r
+
+
+def check_strategy(
+    strategy: object, n_actions: int | None, name: str, *, atol: float = 1e-8
+) -> np.ndarray:
+    """Validate a mixed strategy (non-negative, sums to one) of ``n_actions`` entries (any
+    number if ``None``).
+
+    Returns:
+        ``[n_actions]`` the strategy clipped at zero and renormalised.
+    """
+    s = as_array(strategy, name, 1)
+    if n_actions is not None and s.shape[0] != n_actions:
+        raise ValueError(
+            f"{name} must have {n_actions} entries to match the reward matrix, got {s.shape[0]}"
+        )
+    if s.shape[0] == 0:
+        raise ValueError(f"{name} must not be empty")
+    if (s < -atol).any() or abs(s.sum() - 1.0) > atol:
+        raise ValueError(f"{name} must be a probability vector (non-negative, sums to 1), got {s}")
+    s = np.clip(s, 0.0, None)
+    return s / s.sum()
+
+
+def check_counts(counts: object, n_actions: int | None, name: str = "counts") -> np.ndarray:
+    """Validate observed action counts: non-negative integers, ``[n_actions]`` (any number if
+    ``None``). Returns them as float64."""
+    c = as_array(counts, name, 1)
+    if n_actions is not None and c.shape[0] != n_actions:
+        raise ValueError(
+            f"{name} must have {n_actions} entries (one per opponent action), got {c.shape[0]}"
+        )
+    if c.shape[0] == 0:
+        raise ValueError(f"{name} must not be empty")
+    if (c < 0).any() or not np.array_equal(c, np.round(c)):
+        raise ValueError(f"{name} must hold non-negative integer counts, got {c}")
+    return c
+
+
+def expected_reward(reward: object, strategy_i: object, strategy_j: object) -> float:
+    """Player i's expected reward ``pi_i^T R pi_j`` (Sec. 5.2).
+
+    Args:
+        reward: ``[Ai, Aj]`` reward matrix of Player i.
+        strategy_i: ``[Ai]`` Player i's mixed strategy.
+        strategy_j: ``[Aj]`` Player j's mixed strategy.
+    """
+    r = check_reward_matrix(reward)
+    pi_i = check_strategy(strategy_i, r.shape[0], "strategy_i")
+    pi_j = check_strategy(strategy_j, r.shape[1], "strategy_j")
+    return float(pi_i @ r @ pi_j)
+
+
+def best_response(reward: object, strategy_j: object) -> np.ndarray:
+    """``BR(pi_j) = argmax_pi_i pi_i^T R pi_j`` (Sec. 5.2): uniform over the maximising actions.
+
+    Returns:
+        ``[Ai]`` a best-response strategy; ties share the mass equally so the response does not
+        depend on action order.
+    """
+    r = check_reward_matrix(reward)
+    payoff = r @ check_strategy(strategy_j, r.shape[1], "strategy_j")
+    best = payoff >= payoff.max() - 1e-12 * max(1.0, abs(payoff.max()))
+    return best / best.sum()
+
+
+def fictitious_play(reward: object, counts: object) -> np.ndarray:
+    """Fictitious play (Brown 1951): the best response to the empirical opponent distribution.
+
+    Args:
+        reward: ``[Ai, Aj]`` reward matrix.
+        counts: ``[Aj]`` how often each opponent action was observed; with no observations the
+            opponent is modelled as uniform.
+
+    Returns:
+        ``[Ai]`` the best response to ``counts / counts.sum()``.
+    """
+    r = check_reward_matrix(reward)
+    c = check_counts(counts, r.shape[1])
+    n = c.sum()
+    empirical = c / n if n > 0 else np.full(r.shape[1], 1.0 / r.shape[1])
+    return best_response(r, empirical)
+
+
+def minimax_strategy(reward: object) -> tuple[np.ndarray, float]:
+    """The maximin strategy ``argmax_pi_i min_pi_j pi_i^T R pi_j`` and its value, by an LP.
+
+    Solves ``max v  s.t.  R^T pi_i >= v 1,  pi_i in simplex`` with scipy's HiGHS ``linprog``. It is
+    Player i's safe strategy without an opponent model and the limit of Problem (38) as the
+    opponent model grows to the whole simplex.
+
+    Returns:
+        ``([Ai] strategy, value)``.
+    """
+    r = check_reward_matrix(reward)
+    n_i, n_j = r.shape
+    cost = np.r_[np.zeros(n_i), -1.0]  # minimise -v
+    a_ub = np.c_[-r.T, np.ones(n_j)]  # v - (R^T pi)_k <= 0
+    a_eq = np.r_[np.ones(n_i), 0.0][None]
+    bounds = [(0.0, None)] * n_i + [(None, None)]
+    res = linprog(cost, A_ub=a_ub, b_ub=np.zeros(n_j), A_eq=a_eq, b_eq=[1.0], bounds=bounds)
+    if res.status != 0:
+        raise RuntimeError(f"minimax LP failed: {res.message}")
+    pi = np.clip(res.x[:n_i], 0.0, None)
+    pi /= pi.sum()
+    return pi, float((r.T @ pi).min())
+
+
+def sample_counts(
+    strategy: object, n_samples: int, generator: np.random.Generator | torch.Generator | int
+) -> np.ndarray:
+    """Counts of ``n_samples`` actions drawn from ``strategy``: one multinomial draw, so 1e8
+    games cost no more than ten.
+
+    Returns:
+        ``[A]`` int64 counts summing to ``n_samples``.
+    """
+    if not isinstance(n_samples, int | np.integer) or n_samples < 0:
+        raise ValueError(f"n_samples must be a non-negative integer, got {n_samples!r}")
+    p = check_strategy(strategy, None, "strategy")
+    return as_rng(generator).multinomial(int(n_samples), p)
+
+
+@dataclass(frozen=True)
+class FiniteStageGame:
+    """A stochastic game with a finite number of stages, as a tree of states (Sec. 5.3).
+
+    State 0 is the root. ``children[s]`` lists the states that may follow ``s`` (empty for a
+    leaf) and ``transitions[s]`` ``[Ai_s, Aj_s, len(children[s])]`` holds
+    ``P_s(s_k | a_i, a_j)``. Player i collects ``rewards[s][a_i, a_j]`` at every state it visits;
+    its return is the sum over the stages.
+
+    Attributes:
+        rewards: per state, the ``[Ai_s, Aj_s]`` reward matrix.
+        children: per state, the indices of its child states.
+        transitions: per state, ``[Ai_s, Aj_s, n_children]`` transition probabilities (``None``
+            or an array with last dim 0 for leaves).
+    """
+
+    rewards: tuple[np.ndarray, ...]
+    children: tuple[tuple[int, ...], ...]
+    transitions: tuple[np.ndarray, ...]
+
+    def __post_init__(self) -> None:
+        n = len(self.rewards)
+        if n == 0 or len(self.children) != n or len(self.transitions) != n:
+            raise ValueError(
+                "rewards, children and transitions must be non-empty and have one entry per state, "
+                f"got {len(self.rewards)}, {len(self.children)}, {len(self.transitions)}"
+            )
+        parents = np.zeros(n, dtype=int)
+        for s in range(n):
+            r = check_reward_matrix(self.rewards[s], f"rewards[{s}]")
+            kids = tuple(self.children[s])
+            if any(not 0 < k < n for k in kids):
+                raise ValueError(f"children[{s}] must index states 1..{n - 1}, got {kids}")
+            parents[list(kids)] += 1
+            t = np.asarray(self.transitions[s], dtype=float)
+            if t.shape != (*r.shape, len(kids)):
+                raise ValueError(
+                    f"transitions[{s}] must have shape {(*r.shape, len(kids))}, got {t.shape}"
+                )
+            if kids and ((t < 0).any() or not np.allclose(t.sum(-1), 1.0)):
+                raise ValueError(f"transitions[{s}] must sum to 1 over the children of state {s}")
+        if parents[0] != 0 or (parents[1:] != 1).any():
+            raise ValueError("children must form a tree rooted at state 0 (one parent per state)")
+
+    @property
+    def n_states(self) -> int:
+        """Number of states ``|S|``."""
+        return len(self.rewards)
+
+    def bottom_up(self) -> list[int]:
+        """State indices ordered so that every state comes after all of its children."""
+        order, stack = [], [0]
+        while stack:
+            s = stack.pop()
+            order.append(s)
+            stack.extend(self.children[s])
+        return order[::-1]
+
+    def continuation_matrix(self, state: int, child_values: Sequence[float]) -> np.ndarray:
+        """``R^s + sum_k P_s(s_k | a_i, a_j) V(s_k)``: the stage reward plus future values.
+
+        Args:
+            state: the state ``s``.
+            child_values: one value per child of ``s``, in the order of ``children[s]``.
+
+        Returns:
+            ``[Ai_s, Aj_s]`` the reward matrix the backward recursion plays at ``s``.
+        """
+        v = np.asarray(child_values, dtype=float)
+        if v.shape != (len(self.children[state]),):
+            raise ValueError(
+                f"child_values must have one value per child of state {state} "
+                f"({len(self.children[state])}), got shape {v.shape}"
+            )
+        r = np.asarray(self.rewards[state], dtype=float)
+        return r + np.asarray(self.transitions[state], dtype=float) @ v if v.size else r.copy()
+
+    def values(
+        self, strategies_i: Sequence[np.ndarray], strategies_j: Sequence[np.ndarray]
+    ) -> np.ndarray:
+        """Expected return from every state when both players follow the given local strategies.
+
+        Returns:
+            ``[|S|]`` expected sum of rewards from each state to a leaf.
+        """
+        self._check_profile(strategies_i, 0, "strategies_i")
+        self._check_profile(strategies_j, 1, "strategies_j")
+        v = np.zeros(self.n_states)
+        for s in self.bottom_up():
+            m = self.continuation_matrix(s, v[list(self.children[s])])
+            v[s] = strategies_i[s] @ m @ strategies_j[s]
+        return v
+
+    def best_response(
+        self, strategies_j: Sequence[np.ndarray]
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """Backward induction against known opponent strategies: the globally optimal return.
+
+        Returns:
+            ``(strategies_i, values)``: a best-response local strategy per state and ``[|S|]``
+            the optimal expected returns.
+        """
+        self._check_profile(strategies_j, 1, "strategies_j")
+        v = np.zeros(self.n_states)
+        pis: list[np.ndarray] = [np.zeros(0)] * self.n_states
+        for s in self.bottom_up():
+            m = self.continuation_matrix(s, v[list(self.children[s])])
+            pis[s] = best_response(m, strategies_j[s])
+            v[s] = pis[s] @ m @ strategies_j[s]
+        return pis, v
+
+    def _check_profile(self, strategies: Sequence[np.ndarray], axis: int, name: str) -> None:
+        if len(strategies) != self.n_states:
+            raise ValueError(f"{name} must hold one strategy per state ({self.n_states})")
+        for s, pi in enumerate(strategies):
+            check_strategy(pi, self.rewards[s].shape[axis], f"{name}[{s}]")
+
+
+def two_stage_rps(stage2_scale: float = 2.0) -> FiniteStageGame:
+    """Two-stage rock-paper-scissors (Sec. 5.4.1): a root game and one child per joint action.
+
+    State 0 is Stage 1; state ``1 + 3 a_i + a_j`` follows the joint action ``(a_i, a_j)``
+    (actions ordered rock, paper, scissors, so states 1..9 are s_1..s_9 of Table 5.2). Stage 2
+    pays ``stage2_scale`` times the Stage 1 reward (twice in the thesis).
+    """
+    n = 3
+    transitions = np.zeros((n, n, n * n))
+    for a_i in range(n):
+        for a_j in range(n):
+            transitions[a_i, a_j, n * a_i + a_j] = 1.0
+    leaf = np.zeros((n, n, 0))
+    return FiniteStageGame(
+        rewards=(RPS_REWARD.copy(),) + (stage2_scale * RPS_REWARD,) * (n * n),
+        children=(tuple(range(1, n * n + 1)),) + ((),) * (n * n),
+        transitions=(transitions,) + (leaf,) * (n * n),
+    )
