@@ -214,7 +214,7 @@ def test_racket_contact_law_and_its_inverse_round_trip(generator: torch.Generato
     tangential = torch.randn(n, 3, generator=generator)
     normal, v_r = B.racket_velocity_for_return(v_in, v_out, tangential=tangential)
     torch.testing.assert_close(normal.norm(dim=-1), torch.ones(n))
-    got, spin_out = B.racket_contact(v_in, spin, v_r, normal)
+    got, spin_out = B.racket_contact(v_in, spin, v_r, normal, B.BallParams(racket_spin="kept"))
     torch.testing.assert_close(got, v_out, atol=1e-12, rtol=0)
     torch.testing.assert_close(spin_out, spin)
     # the law in the racket frame: normal relative velocity reversed times e, tangential kept
@@ -228,11 +228,42 @@ def test_racket_contact_law_and_its_inverse_round_trip(generator: torch.Generato
     assert bool((n_in < 0).all())
     flipped, _ = B.racket_contact(v_in, spin, v_r, -3.0 * normal)
     torch.testing.assert_close(flipped, got)
+    # with the default (rolling) law the spin does not depend on the normal's sign either
+    torch.testing.assert_close(
+        B.racket_contact(v_in, spin, v_r, -normal)[1], B.racket_contact(v_in, spin, v_r, normal)[1]
+    )
     # the tangential velocity was kept in the racket plane
     torch.testing.assert_close(
         v_r - (v_r * normal).sum(-1, keepdim=True) * normal,
         tangential - (tangential * normal).sum(-1, keepdim=True) * normal,
     )
+
+
+def test_rolling_racket_spin_law_and_its_inverse(generator: torch.Generator) -> None:
+    n = 40
+    v_in = torch.randn(n, 3, generator=generator) * 2 + torch.tensor([0.0, 5.0, -1.0])
+    v_out = torch.randn(n, 3, generator=generator) + torch.tensor([0.0, -6.0, 1.5])
+    spin_in = torch.randn(n, 3, generator=generator) * 80
+    wanted = torch.randn(n, 3, generator=generator) * 60
+    normal, v_r = B.racket_velocity_for_return(v_in, v_out, spin_out=wanted)
+    vel, spin = B.racket_contact(v_in, spin_in, v_r, normal)
+    torch.testing.assert_close(vel, v_out, atol=1e-12, rtol=0)
+    # in-plane spin as wanted; the spin about the normal is the incoming one
+
+    def along(w: torch.Tensor) -> torch.Tensor:
+        return (w * normal).sum(-1, keepdim=True) * normal
+
+    torch.testing.assert_close(spin - along(spin), wanted - along(wanted), atol=1e-9, rtol=0)
+    torch.testing.assert_close(along(spin), along(spin_in), atol=1e-9, rtol=0)
+    # the ball leaves rolling: its contact point (at -r n) has no in-plane velocity on the racket
+    cp = vel + torch.linalg.cross(spin, -P.radius * normal) - v_r
+    torch.testing.assert_close(cp - along(cp), torch.zeros(n, 3), atol=1e-9, rtol=0)
+    # an upward brush on a ball sent towards -y gives topspin (w_x > 0 for motion along -y)
+    n0 = torch.tensor([0.0, -1.0, 0.0])
+    vel, spin = B.racket_contact([0.0, 4.0, 0.0], [0.0, 0.0, 0.0], [0.0, -2.0, 3.0], n0)
+    assert float(vel[1]) < 0 and float(spin[0]) > 0
+    with pytest.raises(ValueError, match="at most one"):
+        B.racket_velocity_for_return(v_in, v_out, tangential=wanted, spin_out=wanted)
 
 
 def test_predict_plane_crossing_is_consistent_with_simulate(generator: torch.Generator) -> None:
@@ -284,7 +315,8 @@ def test_aim_through_bounce_reaches_the_hitting_plane_target() -> None:
     pos = torch.tensor([[0.3, 1.8, 1.0], [-0.4, 1.7, 0.95], [0.0, 1.9, 1.05]])
     plane_x = torch.tensor([-1.0, 0.9, 0.1])
     bounce_y = torch.tensor([-0.8, -0.9, -1.0])
-    v0, bounce_x = B.aim_through_bounce(pos, plane_x, bounce_y, 0.5)
+    v0, bounce_x, converged = B.aim_through_bounce(pos, plane_x, bounce_y, 0.5)
+    assert bool(converged.all())
     state = B.make_state(pos, v0)
     t, at, valid = B.predict_plane_crossing(state, geo.HITTING_PLANE_Y)
     assert bool(valid.all())
@@ -295,6 +327,9 @@ def test_aim_through_bounce_reaches_the_hitting_plane_target() -> None:
         land.pos[:, :2], torch.stack([bounce_x, bounce_y], -1), atol=1e-3, rtol=0
     )
     assert bool(B.is_legal_return(traj, side=geo.ROBOT_SIDE).all())
+    # a flat ball from low down meets the net: reported, not raised
+    low = B.aim_through_bounce(torch.tensor([0.0, 1.6, 0.85]), 0.0, -0.4, 0.25)
+    assert not bool(low.converged)
 
 
 def test_bad_input_raises() -> None:

@@ -13,7 +13,8 @@ torch (float64, any leading batch dims ``...``):
 * net: a vertical plane at ``y = 0`` that the ball must clear by its radius; a ball that touches
   it loses most of its speed;
 * racket: reflection of the ball's velocity about the racket normal in the racket's frame with
-  restitution 0.78 (the SL racket law); a frictionless contact, so the spin is kept.
+  restitution 0.78 (the SL racket law); the rubber's grip sets the spin so that the ball leaves
+  the face rolling (SL has no spin; a frictionless, spin-keeping contact is an option).
 
 Table and net contacts are events located inside a step to machine precision (a safeguarded
 Newton search on the RK4 flow), so results do not depend on the step size for ``dt <= 10 ms``.
@@ -30,12 +31,14 @@ import torch
 from tqdm.auto import tqdm
 
 from hgpdm_torch.robots.table_tennis import geometry as geo
-from hgpdm_torch.validation import as_tensor, check_shape
+from hgpdm_torch.validation import as_tensor, check_choice, check_shape
 
 __all__ = [
+    "DEFAULT_PARAMS",
     "BallParams",
     "BallState",
     "BallTrajectory",
+    "BounceAim",
     "Landing",
     "StepEvents",
     "aim",
@@ -80,6 +83,8 @@ class BallParams:
         table_friction_x: tangential velocity factor along ``x`` at a table bounce (0.72).
         table_friction_y: tangential velocity factor along ``y`` at a table bounce (0.68).
         racket_restitution: restitution of the racket contact along its normal (0.78).
+        racket_spin: spin law of the racket contact: ``"rolling"`` (the ball leaves the
+            gripping rubber rolling) or ``"kept"`` (frictionless, spin unchanged).
         net_restitution: restitution along ``y`` when the ball touches the net (our choice: the
             net is soft and absorbs most of the energy).
         net_damping: factor on the other velocity components and the spin at a net contact.
@@ -95,6 +100,7 @@ class BallParams:
     table_friction_x: float = 0.72
     table_friction_y: float = 0.68
     racket_restitution: float = 0.78
+    racket_spin: str = "rolling"
     net_restitution: float = 0.1
     net_damping: float = 0.5
     radius: float = geo.BALL_RADIUS
@@ -119,6 +125,7 @@ class BallParams:
             value = getattr(self, name)
             if not 0 <= value <= 1:
                 raise ValueError(f"BallParams.{name} must lie in [0, 1], got {value}")
+        check_choice(self.racket_spin, "racket_spin", ("rolling", "kept"))
 
 
 DEFAULT_PARAMS = BallParams()
@@ -736,10 +743,13 @@ def racket_contact(
     """Ball velocity and spin after a racket contact (SL racket law, Mülling et al., 2011).
 
     In the racket's frame the ball's normal velocity is reversed and scaled by the restitution
-    ``e`` and its tangential velocity kept:
-    ``v_out = v + (1 + e) ((v_r - v) . n) n``. The contact is frictionless, so the spin is kept.
-    The law is symmetric in the sign of ``n``. All arguments ``[..., 3]`` (broadcast); the normal
-    need not be unit length.
+    ``e`` and its tangential velocity kept: ``v_out = v + (1 + e) ((v_r - v) . n) n``; the
+    velocity law is symmetric in the sign of ``n``. The SL law has no spin; with
+    ``params.racket_spin == "rolling"`` (default) the rubber grips the ball so that it leaves the
+    face rolling: ``w_out = (w . n) n + n' x (v_out - v_r) / r`` with ``n'`` the normal oriented
+    towards the departing ball (an upward brush gives topspin). With ``"kept"`` the contact is
+    frictionless and ``w_out = w``. All arguments ``[..., 3]`` (broadcast); the normal need not
+    be unit length.
 
     Returns:
         ``(vel_out, spin_out)``, each ``[..., 3]``.
@@ -755,7 +765,14 @@ def racket_contact(
     n = _unit(n, "racket_normal")
     closing = ((vr - v) * n).sum(-1, keepdim=True)
     vel_out = v + (1.0 + params.racket_restitution) * closing * n
-    return vel_out, torch.broadcast_to(w, vel_out.shape).clone()
+    w = torch.broadcast_to(w, vel_out.shape)
+    if params.racket_spin == "kept":
+        return vel_out, w.clone()
+    rel = vel_out - vr
+    n = torch.broadcast_to(n, vel_out.shape)
+    n_out = n * torch.sign((rel * n).sum(-1, keepdim=True))  # the face the ball leaves from
+    spin_out = (w * n).sum(-1, keepdim=True) * n + torch.linalg.cross(n_out, rel) / params.radius
+    return vel_out, spin_out
 
 
 def racket_velocity_for_return(
@@ -764,19 +781,24 @@ def racket_velocity_for_return(
     params: BallParams = DEFAULT_PARAMS,
     *,
     tangential: object | None = None,
+    spin_out: object | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Racket normal and velocity that turn ``ball_vel_in`` into ``desired_vel_out``.
 
     Inverts :func:`racket_contact`: the velocity change ``dv = v_out - v_in`` lies along the
     normal, so ``n = dv / |dv|``, and its size fixes the racket's normal speed,
-    ``v_r . n = v_in . n + |dv| / (1 + e)``. The racket's tangential velocity does not affect the
-    ball; it is ``tangential`` projected onto the racket plane (default zero, the slowest racket).
+    ``v_r . n = v_in . n + |dv| / (1 + e)``. The racket's tangential velocity does not change the
+    ball's velocity. It is ``tangential`` projected onto the racket plane, or, given
+    ``spin_out`` (``"rolling"`` spin law), the one that makes the ball leave with that spin's
+    in-plane part, ``v_r,t = v_out,t + r n x w_out``; by default zero (the slowest racket).
 
     Args:
         ball_vel_in: ``[..., 3]`` ball velocity just before contact.
         desired_vel_out: ``[..., 3]`` ball velocity wanted just after contact.
-        params: ball constants (uses ``racket_restitution``).
+        params: ball constants (uses ``racket_restitution``, ``radius``).
         tangential: optional ``[..., 3]`` racket velocity whose in-plane part is kept.
+        spin_out: optional ``[..., 3]`` wanted spin after contact; its component along ``n``
+            cannot be changed by the racket and is ignored.
 
     Returns:
         ``(racket_normal, racket_vel)``, each ``[..., 3]``; the normal is a unit vector pointing
@@ -784,9 +806,14 @@ def racket_velocity_for_return(
     """
     params = _check_params(params)
     v_in = as_tensor(ball_vel_in, "ball_vel_in", min_ndim=1)
-    v_out = as_tensor(desired_vel_out, "desired_vel_out", dtype=v_in.dtype, device=v_in.device)
+    kw = {"dtype": v_in.dtype, "device": v_in.device}
+    v_out = as_tensor(desired_vel_out, "desired_vel_out", **kw)
     check_shape(v_in, "ball_vel_in", (3,))
     check_shape(v_out, "desired_vel_out", (3,))
+    if tangential is not None and spin_out is not None:
+        raise ValueError("give at most one of tangential and spin_out")
+    if spin_out is not None and params.racket_spin != "rolling":
+        raise ValueError('spin_out needs params.racket_spin == "rolling"')
     dv = v_out - v_in
     if bool((dv.norm(dim=-1) < 1e-9).any()):
         raise ValueError(
@@ -798,9 +825,14 @@ def racket_velocity_for_return(
     )
     racket_vel = speed * n
     if tangential is not None:
-        tan = as_tensor(tangential, "tangential", dtype=v_in.dtype, device=v_in.device)
+        tan = as_tensor(tangential, "tangential", **kw)
         check_shape(tan, "tangential", (3,))
         racket_vel = racket_vel + tan - (tan * n).sum(-1, keepdim=True) * n
+    elif spin_out is not None:
+        w = as_tensor(spin_out, "spin_out", **kw)
+        check_shape(w, "spin_out", (3,))
+        v_t = v_out - (v_out * n).sum(-1, keepdim=True) * n
+        racket_vel = racket_vel + v_t + params.radius * torch.linalg.cross(n, w.expand_as(n))
     return n, racket_vel
 
 
@@ -898,6 +930,21 @@ def aim(
     return v
 
 
+class BounceAim(NamedTuple):
+    """Result of :func:`aim_through_bounce`; shapes ``[..., 3]`` and ``[...]``.
+
+    Attributes:
+        vel: initial velocity.
+        bounce_x: ``x`` of the bounce on the table.
+        converged: whether the ball crosses the plane within ``tol`` of the wanted ``x``
+            (false where it cannot reach the plane, e.g. because it hits the net).
+    """
+
+    vel: torch.Tensor
+    bounce_x: torch.Tensor
+    converged: torch.Tensor
+
+
 def aim_through_bounce(
     pos: object,
     plane_x: object,
@@ -909,14 +956,14 @@ def aim_through_bounce(
     spin: object | None = None,
     tol: float = 1e-6,
     max_iter: int = 12,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> BounceAim:
     """Initial velocity for a ball that bounces at ``y = bounce_y`` and crosses ``y_plane`` at x.
 
     The opponent's return (thesis Fig. 4.2): the ball must land on the robot's half and pass the
     robot's virtual hitting plane at the intended lateral position ``plane_x``. For a bounce
     point ``(x_b, bounce_y)`` reached in ``flight_time`` :func:`aim` gives the velocity; the
-    secant method then adjusts ``x_b`` until the simulated crossing (bounce included) is at
-    ``plane_x``.
+    secant method then adjusts ``x_b`` until the simulated crossing (bounce and net included) is
+    at ``plane_x``. Balls that cannot reach the plane are reported, not raised.
 
     Args:
         pos: ``[..., 3]`` start position.
@@ -926,11 +973,11 @@ def aim_through_bounce(
         params: ball constants.
         y_plane: the plane (default: the robot's hitting plane).
         spin: ``[..., 3]`` spin right after the hit (default zero).
-        tol: stop when every crossing is within this of ``plane_x`` [m].
+        tol: an element has converged when its crossing is within this of ``plane_x`` [m].
         max_iter: secant iterations at most.
 
     Returns:
-        ``(v0 [..., 3], bounce_x [...])``.
+        :class:`BounceAim` ``(vel [..., 3], bounce_x [...], converged [...])``.
     """
     params = _check_params(params)
     p0 = as_tensor(pos, "pos", min_ndim=1)
@@ -944,27 +991,26 @@ def aim_through_bounce(
     p0, w = p0.expand(*shape, 3), w.expand(*shape, 3)
     px, by, ft = (x.expand(shape) for x in (px, by, ft))
 
-    def crossing_x(xb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def crossing_x(xb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         v0 = aim(p0, torch.stack([xb, by], -1), ft, params, spin=w)
         _, at, valid = predict_plane_crossing(BallState(p0, v0, w), y_plane, params)
-        if not bool(valid.all()):
-            raise ValueError("a ball aimed through the bounce never reached y_plane")
-        return at.pos[..., 0], v0
+        return at.pos[..., 0], v0, valid
 
     # straight-line guess from the start over the bounce to the plane
     frac = (by - p0[..., 1]) / (y_plane - p0[..., 1])
     x_a = p0[..., 0] + frac * (px - p0[..., 0])
-    f_a, v0 = crossing_x(x_a)
+    f_a, v0, _ = crossing_x(x_a)
     x_b = x_a + 0.5 * (px - f_a)
     for _ in range(max_iter):
-        f_b, v0 = crossing_x(x_b)
+        f_b, v0, valid = crossing_x(x_b)
         err = f_b - px
-        if float(err.abs().max()) < tol:
-            return v0, x_b
-        slope = (f_b - f_a) / (x_b - x_a)
-        slope = torch.where(slope.abs() > 1e-3, slope, torch.ones_like(slope))
+        converged = valid & (err.abs() < tol)
+        if bool((converged | ~valid).all()):
+            break
+        dx = x_b - x_a
+        slope = (f_b - f_a) / torch.where(dx != 0, dx, torch.ones_like(dx))
+        slope = torch.where((slope.abs() > 1e-3) & (dx != 0), slope, torch.ones_like(slope))
         x_a, f_a = x_b, f_b
-        x_b = x_b - err / slope
-    raise ValueError(
-        f"aim_through_bounce did not converge (max error {float(err.abs().max()):.2e} m)"
-    )
+        # converged and unreachable elements stay put
+        x_b = torch.where(converged | ~valid, x_b, x_b - err / slope)
+    return BounceAim(v0, x_b, converged)
