@@ -55,7 +55,7 @@ kernel itself.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import singledispatch
 
@@ -78,6 +78,7 @@ __all__ = [
     "term_psi1_grad",
     "term_psi1",
     "term_psi2",
+    "term_psi2_factors",
     "x_psi1",
 ]
 
@@ -388,38 +389,43 @@ def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: to
     return a.coef * b.coef * torch.exp(log_q - 0.5 * logdet[..., None, None])
 
 
-def _psi2_rbf_linear(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
-    return b.coef * _x_psi1(a, mu, Sigma, X).transpose(-1, -2) @ (X * b.weight).transpose(-1, -2)
+def term_psi2_factors(
+    a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, bool] | None:
+    """Low-rank form of a psi2 block unless both terms are RBFs (then ``None``).
 
+    Every pair involving a linear or constant term has rank ``r <= D``:
+    ``psi2_ab = U^T V`` (``a_on_u=True``: U indexes a's points) or ``V^T U`` (``a_on_u=False``),
+    where ``V [..., r, N]`` depends on the training inputs only. Rbf x Linear is
+    ``E[x k_a(x, X_i)]^T W_b X_j``, Linear x Linear ``X_i^T W_a (Sigma + mu mu^T) W_b X_j``,
+    Const x any ``coef_a psi1_b``. Moment matching uses the factors directly, so a linear
+    measurement kernel never forms an ``N x N`` matrix per input (Eq. 33-35).
 
-def _psi2_linear_linear(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
-    second = Sigma + mu[..., :, None] * mu[..., None, :]
-    return a.coef * b.coef * (X * a.weight) @ second @ (X * b.weight).transpose(-1, -2)
-
-
-def _psi2_const_any(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
-    p1 = term_psi1(b, mu, Sigma, X)
-    return a.coef * p1[..., None, :].expand(*p1.shape[:-1], X.shape[-2], X.shape[-2])
-
-
-_PSI2: dict[tuple[str, str], Callable[..., torch.Tensor]] = {
-    ("rbf", "rbf"): _psi2_rbf_rbf,
-    ("rbf", "linear"): _psi2_rbf_linear,
-    ("linear", "linear"): _psi2_linear_linear,
-    ("const", "rbf"): _psi2_const_any,
-    ("const", "linear"): _psi2_const_any,
-    ("const", "const"): _psi2_const_any,
-}
+    Returns:
+        ``(U [..., r, N], V [..., r, N], a_on_u)`` or ``None``.
+    """
+    if a.kind == "rbf" and b.kind == "rbf":
+        return None
+    if b.kind == "linear":
+        return _x_psi1(a, mu, Sigma, X), b.coef * (X * b.weight).transpose(-1, -2), True
+    if a.kind == "linear":
+        U, V, _ = term_psi2_factors(b, a, mu, Sigma, X)
+        return U, V, False
+    ones = torch.ones(1, X.shape[-2], dtype=X.dtype, device=X.device)
+    if a.kind == "const":
+        return term_psi1(b, mu, Sigma, X)[..., None, :], a.coef * ones, False
+    return term_psi1(a, mu, Sigma, X)[..., None, :], b.coef * ones, True
 
 
 def term_psi2(
     a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
 ) -> torch.Tensor:
     """``coef_a coef_b E[base_a(x, X_i) base_b(x, X_j)]`` without factors. ``[..., N, N]``."""
-    fn = _PSI2.get((a.kind, b.kind))
-    if fn is not None:
-        return fn(a, b, mu, Sigma, X)
-    return _PSI2[(b.kind, a.kind)](b, a, mu, Sigma, X).transpose(-1, -2)
+    factors = term_psi2_factors(a, b, mu, Sigma, X)
+    if factors is None:
+        return _psi2_rbf_rbf(a, b, mu, Sigma, X)
+    U, V, a_on_u = factors
+    return U.transpose(-1, -2) @ V if a_on_u else V.transpose(-1, -2) @ U
 
 
 # --------------------------------------------------------------------------------------------

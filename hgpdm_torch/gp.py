@@ -31,6 +31,7 @@ from .expectations import (
     split_terms,
     term_psi1_grad,
     term_psi2,
+    term_psi2_factors,
 )
 from .kernels import DiscreteIntentionKernel
 from .linalg import psd_cholesky, symmetrize
@@ -325,9 +326,19 @@ def _moments(
     second, trace = 0.0, 0.0
     for i, (a, fa, fba) in enumerate(zip(terms, factors, fbeta, strict=True)):
         for j in range(i, len(terms)):
-            q = term_psi2(a, terms[j], mu, Sigma, X)
-            m = fba.transpose(-1, -2) @ _shared_matmul(q, fbeta[j])
-            tr = (fa * _shared_matmul(kinv * q, factors[j][..., None])[..., 0]).sum(-1)
+            b, fb, fbb = terms[j], factors[j], fbeta[j]
+            low_rank = term_psi2_factors(a, b, mu, Sigma, X)
+            if low_rank is None:  # RBF x RBF: one N x N matrix per input Gaussian
+                q = term_psi2(a, b, mu, Sigma, X)
+                m = fba.transpose(-1, -2) @ _shared_matmul(q, fbb)
+                tr = (fa * _shared_matmul(kinv * q, fb[..., None])[..., 0]).sum(-1)
+            else:  # psi2 = U^T V of rank <= D: no N x N matrix per input
+                U, V, a_on_u = low_rank
+                (fu, fbu), (fv, fbv) = ((fa, fba), (fb, fbb)) if a_on_u else ((fb, fbb), (fa, fba))
+                mu_u, mu_v = _shared_matmul(U, fbu), _shared_matmul(V, fbv)  # [..., r, Dout]
+                m = mu_u.transpose(-1, -2) @ mu_v if a_on_u else mu_v.transpose(-1, -2) @ mu_u
+                vk = (V * fv[..., None, :]) @ kinv  # [..., r, N]; constant when fv is
+                tr = (U * fu[..., None, :] * vk).sum((-1, -2))
             if j > i:  # the (j, i) pair is the transpose
                 m, tr = m + m.transpose(-1, -2), 2.0 * tr
             second, trace = second + m, trace + tr
