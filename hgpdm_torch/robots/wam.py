@@ -38,9 +38,9 @@ JOINT_NAMES = tuple(f"wam_joint{i}" for i in range(1, DOF + 1))
 RACKET_LINK = "racket"
 RACKET_RADIUS = 0.076
 # Shoulder (DH frame 0) of the hanging arm: centred laterally, 0.28 m behind the virtual hitting
-# plane and 0.69 m above the table surface, so that balls crossing the plane at 0.5-1.0 m height
+# plane and 0.49 m above the table surface, so that balls crossing the plane at 0.3-1.0 m height
 # (typical returns) lie within reach.
-DEFAULT_BASE_POSITION = (0.0, -2.45, 1.45)
+DEFAULT_BASE_POSITION = (0.0, -2.45, 1.25)
 # Hanging: the base z axis (joint 1) points down; base x stays world x.
 _HANGING_RPY = (math.pi, 0.0, 0.0)
 

@@ -33,6 +33,7 @@ from .scene import TableTennisScene
 __all__ = [
     "MOVEMENTS",
     "HitPlan",
+    "LimitedTracker",
     "Quintic",
     "StrokeConfig",
     "StrokeOutcome",
@@ -65,18 +66,18 @@ class StrokeConfig:
             the simulated model wins.
     """
 
-    awaiting_position: tuple[float, float, float] = (0.0, -2.25, 1.0)
+    awaiting_position: tuple[float, float, float] = (0.0, -2.25, 0.8)
     prep_x: dict[str, float] = field(
         default_factory=lambda: {"forehand": 0.45, "middle": 0.0, "backhand": -0.45}
     )
-    prep_height: float = 0.95
+    prep_height: float = 0.7
     prep_backswing: float = 0.25
     face: dict[str, float] = field(
         default_factory=lambda: {"forehand": 1.0, "middle": 1.0, "backhand": -1.0}
     )
     acceleration_limit: tuple[float, ...] = (25.0, 25.0, 30.0, 30.0, 50.0, 50.0, 50.0)
     predict_delay: float = 0.16
-    hit_duration: float = 0.4
+    hit_duration: float = 0.35
     finish_duration: float = 0.3
     return_target: tuple[float, float] = (0.0, 0.8)
     return_flight_times: tuple[float, ...] = (0.55, 0.65, 0.75, 0.85)

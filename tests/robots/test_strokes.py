@@ -1,0 +1,129 @@
+"""Hitting movements: trajectory pieces against oracles, and strokes simulated in SAPIEN."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hgpdm_torch.robots.table_tennis import ball as B
+from hgpdm_torch.robots.table_tennis import geometry as geo
+from hgpdm_torch.robots.table_tennis.scene import TableTennisScene
+from hgpdm_torch.robots.table_tennis.strokes import (
+    LimitedTracker,
+    Quintic,
+    StrokeConfig,
+    StrokePlanner,
+    execute_stroke,
+    min_quintic_duration,
+)
+
+START = torch.tensor([0.0, 1.65, 1.0])
+
+
+def test_quintic_boundaries_and_derivatives() -> None:
+    rng = np.random.default_rng(0)
+    q0, v0, a0, q1, v1, a1 = (rng.normal(size=7) for _ in range(6))
+    qu = Quintic(0.2, 0.5, q0, v0, a0, q1, v1, a1)
+    for t, ref in ((0.2, (q0, v0, a0)), (0.7, (q1, v1, a1))):
+        for got, want in zip(qu(t), ref, strict=True):
+            np.testing.assert_allclose(got, want, atol=1e-12)
+    h = 1e-6
+    p_minus, v_minus, _ = qu(0.4 - h)
+    p_plus, v_plus, _ = qu(0.4 + h)
+    _, v, a = qu(0.4)
+    np.testing.assert_allclose((p_plus - p_minus) / (2 * h), v, atol=1e-6)
+    np.testing.assert_allclose((v_plus - v_minus) / (2 * h), a, atol=1e-5)
+
+
+def test_min_quintic_duration_meets_limits() -> None:
+    q0, q1 = np.zeros(7), np.linspace(-1.0, 1.5, 7)
+    vmax, amax = np.full(7, 3.0), np.full(7, 20.0)
+    T = min_quintic_duration(q0, q1, vmax, amax)
+    z = np.zeros(7)
+    qu = Quintic(0.0, T, q0, z, z, q1, z, z)
+    ts = np.linspace(0, T, 2001)
+    vel = np.stack([qu(t)[1] for t in ts])
+    acc = np.stack([qu(t)[2] for t in ts])
+    assert np.abs(vel).max() <= 3.0 + 1e-9 and np.abs(acc).max() <= 20.0 + 1e-6
+    # It is also the shortest: one of the two limits is met with equality.
+    assert max(np.abs(vel).max() / 3.0, np.abs(acc).max() / 20.0) > 0.999
+
+
+def test_tracker_follows_feasible_plan_and_saturates_infeasible() -> None:
+    z = np.zeros(7)
+    q1 = np.full(7, 0.3)
+    slow = Quintic(0.0, 1.0, z, z, z, q1, z, z)
+    tr = LimitedTracker(z, np.full(7, 10.0), np.full(7, 50.0))
+    for k in range(1000):
+        tr.update(slow((k + 1) * 1e-3), 1e-3)
+    np.testing.assert_allclose(tr.q, q1, atol=1e-3)
+    fast = Quintic(0.0, 0.1, z, z, z, q1, z, z)  # needs ~170 rad/s^2
+    tr = LimitedTracker(z, np.full(7, 10.0), np.full(7, 20.0))
+    for k in range(100):
+        tr.update(fast((k + 1) * 1e-3), 1e-3)
+    # With 20 rad/s^2 the reference covers at most a t^2 / 4 = 0.05 rad of a rest-to-rest move.
+    assert float(np.abs(tr.q).max()) < 0.3 / 2
+
+
+@pytest.fixture(scope="module")
+def sim() -> tuple[TableTennisScene, StrokePlanner]:
+    planner = StrokePlanner()
+    return TableTennisScene(wam=planner.wam), planner
+
+
+def incoming(x: float) -> B.BallState:
+    """A return from the opponent's side crossing the hitting plane at lateral ``x``."""
+    res = B.aim_through_bounce(START, x, -0.9, 0.47)
+    assert bool(res.converged)
+    return B.BallState(START, res.vel, torch.zeros(3))
+
+
+def test_preparation_poses_put_racket_behind_plane(sim) -> None:
+    _, planner = sim
+    cfg = planner.config
+    for name, q in planner.prep.items():
+        pos = planner.wam.fk(torch.as_tensor(q)).position
+        assert abs(float(pos[0]) - cfg.prep_x[name]) < 1e-3
+        assert float(pos[1]) < geo.HITTING_PLANE_Y
+
+
+@pytest.mark.parametrize("movement, x", [("forehand", 0.3), ("middle", 0.0), ("backhand", -0.3)])
+def test_movement_returns_ball_in_its_region(sim, movement: str, x: float) -> None:
+    scene, planner = sim
+    out = execute_stroke(scene, planner, incoming(x), movement, -0.24)
+    assert out.hit and out.success, out
+    assert 0 < out.landing[1] <= geo.TABLE_HALF_LENGTH
+    assert abs(out.landing[0]) <= geo.TABLE_HALF_WIDTH
+
+
+@pytest.mark.parametrize("movement, x", [("forehand", -0.9), ("backhand", 0.6)])
+def test_movement_misses_far_outside_its_region(sim, movement: str, x: float) -> None:
+    scene, planner = sim
+    assert not execute_stroke(scene, planner, incoming(x), movement, -0.24).success
+
+
+def test_late_start_fails(sim) -> None:
+    scene, planner = sim
+    ball = incoming(0.3)
+    t_cross, _, _ = B.predict_plane_crossing(ball, geo.HITTING_PLANE_Y)
+    out = execute_stroke(scene, planner, ball, "forehand", float(t_cross) - 0.15)
+    assert not out.success
+
+
+def test_bad_configuration(sim) -> None:
+    scene, planner = sim
+    ball = incoming(0.0)
+    with pytest.raises(ValueError, match="movement"):
+        execute_stroke(scene, planner, ball, "smash", -0.2)
+    t_cross, _, _ = B.predict_plane_crossing(ball, geo.HITTING_PLANE_Y)
+    with pytest.raises(ValueError, match="start_time"):
+        execute_stroke(scene, planner, ball, "middle", float(t_cross) + 0.01)
+    with pytest.raises(ValueError, match="start_time"):
+        execute_stroke(scene, planner, ball, "middle", math.nan)
+    with pytest.raises(ValueError, match="acceleration_limit"):
+        StrokeConfig(acceleration_limit=(1.0,) * 3)
+    with pytest.raises(ValueError, match="keys"):
+        StrokeConfig(prep_x={"forehand": 0.4})
