@@ -158,7 +158,8 @@ class _WorstCase:
                 q[k] = w * self.center[k]
             q[k_min] += 1.0 - w
             return sum(ck * qk for ck, qk in zip(c, q, strict=True)), q
-        u_hi = math.log(spread) - _log_expm1(eps)  # y(u_hi) <= 0 by AM-GM
+        # y(u_hi) <= 0 by AM-GM; below the floor mu is within e^-700 of c_s, as good as there
+        u_hi = max(math.log(spread) - _log_expm1(eps), _U_FLOOR)
         u_lo = -math.inf  # y > 0 below u_lo; unknown yet unless the boundary is checked
         if c_all < c_s:
             u_lo = max(math.log(c_s - c_all), _U_FLOOR)
@@ -574,9 +575,9 @@ class AdaptiveLearner:
     reward: object
     delta: float | Callable[[int], float] = 0.1
     n_min: int = 256
-    alpha: float = 0.05
+    alpha: float = 0.01
     change_detection: bool = True
-    tol: float = 1e-6
+    tol: float = 1e-4
     max_iter: int = 200
     resets: list[int] = field(default_factory=list, init=False)
 
