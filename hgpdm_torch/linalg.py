@@ -9,13 +9,16 @@ use ``torch.cholesky_solve``; no explicit inverse is formed.
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 
 import torch
+from torch.autograd.function import once_differentiable
 
 __all__ = [
     "CholeskyError",
     "cholesky_logdet",
+    "gaussian_nll",
     "jitter",
     "psd_cholesky",
     "symmetrize",
@@ -96,3 +99,55 @@ def psd_cholesky(a: torch.Tensor, *, name: str = "matrix") -> torch.Tensor:
 def cholesky_logdet(chol: torch.Tensor) -> torch.Tensor:
     """``log|A|`` from the lower Cholesky factor of A. Shapes: ``[..., n, n] -> [...]``."""
     return 2.0 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+
+
+class _GaussianNLL(torch.autograd.Function):
+    """Forward via Cholesky; backward with the closed form ``dL/dK = (d K^-1 - a a^T) / 2``."""
+
+    @staticmethod
+    def forward(ctx, cov: torch.Tensor, y: torch.Tensor, name: str) -> torch.Tensor:  # type: ignore[override]
+        chol = psd_cholesky(cov, name=name)
+        alpha = torch.cholesky_solve(y, chol)
+        n, d = y.shape
+        ctx.save_for_backward(chol, alpha)
+        return (
+            0.5 * d * cholesky_logdet(chol)
+            + 0.5 * (y * alpha).sum()
+            + 0.5 * n * d * math.log(2.0 * math.pi)
+        )
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        chol, alpha = ctx.saved_tensors
+        d = alpha.shape[1]
+        grad_cov = grad_y = None
+        if ctx.needs_input_grad[0]:
+            grad_cov = 0.5 * grad * (d * torch.cholesky_inverse(chol) - alpha @ alpha.T)
+        if ctx.needs_input_grad[1]:
+            grad_y = grad * alpha
+        return grad_cov, grad_y, None
+
+
+def gaussian_nll(cov: torch.Tensor, y: torch.Tensor, *, name: str = "covariance") -> torch.Tensor:
+    """Negative log density of the columns of ``y`` under ``N(0, cov)``, summed over columns.
+
+    ``L = d/2 log|K| + 1/2 tr(K^-1 Y Y^T) + n d/2 log(2 pi)`` (the form of Eq. 4 and 5). The
+    gradient uses the closed form ``dL/dK = (d K^-1 - K^-1 Y Y^T K^-1) / 2`` from one Cholesky
+    inverse, several times cheaper than differentiating through the factorisation.
+
+    Args:
+        cov: ``[n, n]`` symmetric positive-definite covariance (factorised by
+            :func:`psd_cholesky`, with its jitter policy).
+        y: ``[n, d]`` observations, one independent Gaussian vector per column.
+        name: what ``cov`` is, for error messages.
+
+    Returns:
+        A scalar tensor. First derivatives only (no double backward).
+    """
+    if cov.dim() != 2 or y.dim() != 2 or cov.shape[0] != cov.shape[1] or y.shape[0] != cov.shape[0]:
+        raise ValueError(
+            f"gaussian_nll expects cov [n, n] and y [n, d], got "
+            f"{tuple(cov.shape)} and {tuple(y.shape)}"
+        )
+    return _GaussianNLL.apply(cov, y, name)

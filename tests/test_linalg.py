@@ -31,3 +31,22 @@ def test_indefinite_matrix_raises_with_advice():
         psd_cholesky(torch.tensor([[float("nan"), 0.0], [0.0, 1.0]]))
     with pytest.raises(ValueError, match="jitter"), jitter(0.0):
         pass
+
+
+def test_gaussian_nll_value_and_gradient(generator):
+    from scipy.stats import multivariate_normal
+
+    from hgpdm_torch.linalg import gaussian_nll
+
+    a = torch.randn(5, 5, generator=generator)
+    y = torch.randn(5, 3, generator=generator)
+    cov = a @ a.T + torch.eye(5)
+    want = -sum(multivariate_normal.logpdf(y[:, d].numpy(), cov=cov.numpy()) for d in range(3))
+    assert float(gaussian_nll(cov, y)) == pytest.approx(want, rel=1e-12)
+    a_ = a.clone().requires_grad_(True)
+    y_ = y.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda a, y: gaussian_nll(a @ a.T + torch.eye(5), y), (a_, y_), eps=1e-6, atol=1e-6
+    )
+    with pytest.raises(ValueError, match="cov"):
+        gaussian_nll(cov, y[:4])
