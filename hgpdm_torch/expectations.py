@@ -384,9 +384,14 @@ def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: to
     C = eye - torch.cholesky_inverse(L)  # I - B^{-1}, PSD with eigenvalues in [0, 1)
     uC, vC = u @ C, v @ C
     row = -0.5 * (d.pow(2) * a.weight).sum(-1) + 0.5 * (uC * u).sum(-1)
+    row = row + torch.log(a.coef * b.coef) - 0.5 * logdet[..., None]
     col = -0.5 * (d.pow(2) * b.weight).sum(-1) + 0.5 * (vC * v).sum(-1)
-    log_q = row[..., :, None] + col[..., None, :] + uC @ v.transpose(-1, -2)
-    return a.coef * b.coef * torch.exp(log_q - 0.5 * logdet[..., None, None])
+    # the whole exponent row_i + col_j + uC_i . v_j as one [N, D+2] x [D+2, N] product, so the
+    # N x N work is one matmul and one in-place exp (the hot path of moment matching)
+    one = torch.ones_like(row)
+    left = torch.cat([uC, row[..., None], one[..., None]], dim=-1)
+    right = torch.cat([v.expand_as(uC), one[..., None], col[..., None]], dim=-1)
+    return (left @ right.transpose(-1, -2)).exp_()
 
 
 def term_psi2_factors(

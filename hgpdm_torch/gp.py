@@ -331,7 +331,8 @@ def _moments(
             if low_rank is None:  # RBF x RBF: one N x N matrix per input Gaussian
                 q = term_psi2(a, b, mu, Sigma, X)
                 m = fba.transpose(-1, -2) @ _shared_matmul(q, fbb)
-                tr = (fa * _shared_matmul(kinv * q, fb[..., None])[..., 0]).sum(-1)
+                qk = q * kinv if q.requires_grad else q.mul_(kinv)  # reuse q's memory
+                tr = (fa * _shared_matmul(qk, fb[..., None])[..., 0]).sum(-1)
             else:  # psi2 = U^T V of rank <= D: no N x N matrix per input
                 U, V, a_on_u = low_rank
                 (fu, fbu), (fv, fbv) = ((fa, fba), (fb, fbb)) if a_on_u else ((fb, fbb), (fa, fba))
