@@ -185,12 +185,14 @@ class GPPosterior:
                    + diag(scale^2 (psi0 - tr(K^-1 psi2) [+ noise]))
             Cov[x, f] = Sigma E[d k(x~, X)/dx] beta               (Stein's lemma)
 
-        The outputs share one kernel, so one ``N x N`` ``psi2`` serves all output pairs. Each
-        kernel term splits into an ``x`` part and a per-training-point factor of ``g``, so the
-        ``N x N`` work over ``x`` is done once for all ``g`` that share an input distribution: pass
-        ``mu [B, 1, D]`` with ``g [B, K, Dg]`` (or ``g [K, 1, Dg]`` with ``mu [B, D]``) and each
-        intention only rescales the training weights. Temporaries are ``O(B N^2)`` over ``x`` plus
-        ``O(B K N Dout)``, never ``O(B K N^2)`` when ``x`` is shared.
+        Cost (DESIGN.md sec. 8). The outputs share one kernel, so one ``N x N`` ``psi2`` serves
+        all output pairs, and only RBF x RBF term pairs need one at all (pairs with a linear term
+        have rank ``<= D``). Each kernel term splits into an ``x`` part and a per-training-point
+        factor of ``g``, so the ``N x N`` work over ``x`` is done once for all ``g`` that share an
+        input distribution: pass ``mu [B, 1, D]`` with ``g [B, K, Dg]`` (or ``g [K, 1, Dg]`` with
+        ``mu [B, D]``) and each intention only rescales the training weights; temporaries are
+        then ``O(B N^2 + B K N Dout)``. For a top-level ``DiscreteIntentionKernel`` each code
+        touches only its own ``N_k`` training points (``O(B K N_k^2)``).
 
         With ``Sigma = 0`` this equals :meth:`predict`.
 
