@@ -1,0 +1,749 @@
+r"""Intention inference with the IDDM: batch (Algorithm 3.1) and online (Algorithm 3.2).
+
+Both algorithms score every value of a discrete or discretised intention ``g`` (a grid of K
+values) with a variational bound built from Gaussian (moment-matched) smoothing distributions
+``q`` of the latent states (thesis Sec. 3.3-3.4):
+
+- **batch** (:func:`infer_intention`, Algorithm 3.1): for each ``g`` the GP-RTSS smoother gives
+  ``q_g(x_{1:T})`` and the bound of Eq. 22 is evaluated in full,
+  ``B(g) = log p(g) + E_q[log p(x_1)] + sum_t E_q[log p(z_t | x_t)] + sum_t Q_t(g) + H(q_g)``.
+  Algorithm 3.1 (line 3) prints only the transition part; the other terms also depend on ``g``
+  through ``q_g``, so they are kept (with a shared ``q`` they are constants, which is why the
+  online algorithm can drop them).
+- **online** (:class:`OnlineIntentionFilter`, Algorithm 3.2): one ``q`` shared by all ``g``,
+  from one-step filtering and one-step backward smoothing under the current belief (the K
+  predictions mixed and moment matched, or, Sec. 3.4.2, a Gaussian over ``g``), and the recursion
+  ``B_t(g) = Q_{t-1}(g) + (1 - eps) B_{t-1}(g)`` with the forgetting factor ``eps``.
+
+``Q_t(g) = E_q[log p(x_{t+1} | x_t, g)]`` (Sec. 3.3.2 and DESIGN.md sec. 7). With
+``q~ = N(m, S)``, the moment-matched Gaussian of ``p(x_{t+1} | x_t, g) q'(x_t)``, the
+transition is replaced by the conditional of ``q~`` (a statistical linearisation),
+``q~(x_{t+1} | x_t) = N(A x_t + c, V)``, and the expectation under ``q(x_t, x_{t+1})`` is exact.
+With ``q' = q(x_t)`` this equals ``-KL(q || q~) - H(q(x_t, x_{t+1})) + H(q(x_t))`` of DESIGN.md;
+with ``q'`` the filtered ``q(x_t | z_{1:t})`` (the online default) it differs from that only by
+terms shared by all ``g``, and the K moment matchings of the prediction step are reused.
+
+Where the speed comes from (DESIGN.md sec. 8): the transition kernel of the IDDM is
+``alpha_1 exp(-alpha_2/2 |x - x'|^2) phi(g, g')`` (``phi`` an RBF in g, or ``delta`` for a
+discrete g). The online input ``q(x_{t-1})`` is shared by all K intentions, so the ``N x N``
+expectation ``psi2`` over ``x`` is computed once per stream and step; and as ``g`` is constant
+within a training sequence, the N training points form U groups of equal ``g``. All K second
+moments and traces then follow from ``U x U`` group sums of ``psi2``:
+``beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv (beta_u^T psi2_uv beta_v)`` — no ``N x N`` work
+per intention. See :class:`SharedTransition`.
+
+Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
+``Dg`` intention dims, ``N`` transition training points.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from ..expectations import Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
+from ..gp import GPPosterior
+from ..linalg import psd_cholesky, symmetrize
+from ..models import HGPDM
+from ..validation import as_tensor, check_choice, check_probability
+from .filtering import filter_sequence, gp_adf_update, smooth
+
+__all__ = [
+    "IntentionBelief",
+    "OnlineIntentionFilter",
+    "SharedTransition",
+    "expected_log_conditional",
+    "infer_intention",
+    "intention_grid",
+]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass
+class IntentionBelief:
+    """A posterior over K intention values.
+
+    Attributes:
+        prob: ``[..., K]`` posterior probabilities.
+        log_prob: ``[..., K]`` their logs (normalised).
+        values: ``[K, Dg]`` the intention values (codes for a discrete g).
+        mean: ``[..., Dg]`` posterior mean of a continuous g (``None`` for a discrete g).
+        std: ``[..., Dg]`` posterior standard deviation of a continuous g (or ``None``).
+    """
+
+    prob: torch.Tensor
+    log_prob: torch.Tensor
+    values: torch.Tensor
+    mean: torch.Tensor | None = None
+    std: torch.Tensor | None = None
+
+    @classmethod
+    def from_log(
+        cls, log_weights: torch.Tensor, values: torch.Tensor, continuous: bool
+    ) -> IntentionBelief:
+        """Normalise unnormalised log weights ``[..., K]`` over ``values [K, Dg]``."""
+        log_prob = log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
+        prob = log_prob.exp()
+        if not continuous:
+            return cls(prob, log_prob, values)
+        mean = prob @ values
+        var = (prob @ values.pow(2) - mean.pow(2)).clamp_min(0.0)
+        return cls(prob, log_prob, values, mean, var.sqrt())
+
+    def credible_set(self, level: float = 0.9) -> torch.Tensor:
+        """``[..., K]`` mask of the smallest set of values holding at least ``level`` mass."""
+        if not 0.0 < level < 1.0:
+            raise ValueError(f"level must be in (0, 1), got {level}")
+        p, order = self.prob.sort(-1, descending=True)
+        before = p.cumsum(-1) - p  # mass of the values ranked above
+        keep = before < level
+        return torch.zeros_like(keep).scatter(-1, order, keep)
+
+
+# ------------------------------------------------------------------------------------------
+# Set-up shared by both algorithms
+# ------------------------------------------------------------------------------------------
+
+
+def intention_grid(model: HGPDM, intentions: Any = None, num: int = 25) -> torch.Tensor:
+    """The K intention values to score, ``[K, Dg]`` (codes ``[K, 1]`` for a discrete g).
+
+    Args:
+        model: a fitted :class:`~hgpdm_torch.models.HGPDM` / ``IDDM``.
+        intentions: ``[K]`` or ``[K, Dg]`` values (continuous g) or integer codes (discrete g);
+            default: all codes, or ``num`` evenly spaced values over the training range
+            (``Dg = 1`` only).
+        num: default grid size for a continuous g.
+    """
+    if not isinstance(model, HGPDM):
+        raise TypeError(f"model must be an HGPDM/IDDM, got {type(model).__name__}")
+    dtype = model.latent.dtype
+    if intentions is None:
+        if model.intention == "discrete":
+            return torch.arange(model.num_values, dtype=dtype)[:, None]
+        if model.intention_dim != 1:
+            raise ValueError("a multi-dimensional continuous g needs an explicit intentions grid")
+        g = model.intentions[:, 0]
+        return torch.linspace(float(g.min()), float(g.max()), int(num), dtype=dtype)[:, None]
+    values = as_tensor(intentions, "intentions", dtype=dtype)
+    if values.dim() == 1:
+        values = values[:, None]
+    if values.dim() != 2 or values.shape[0] == 0:
+        raise ValueError(
+            f"intentions must be a non-empty [K] or [K, Dg] grid, got {tuple(values.shape)}"
+        )
+    if values.shape[1] != model.intention_dim:
+        raise ValueError(
+            f"intentions must have Dg = {model.intention_dim} columns, got {values.shape[1]}"
+        )
+    if model.intention == "discrete":
+        codes = values[:, 0]
+        if bool((codes != codes.round()).any()) or bool(
+            ((codes < 0) | (codes >= model.num_values)).any()
+        ):
+            raise ValueError(
+                f"discrete intentions must be integer codes in [0, {model.num_values - 1}]"
+            )
+    return values
+
+
+def _log_prior(prior: Any, k: int, dtype: torch.dtype) -> torch.Tensor:
+    if prior is None:
+        return torch.full((k,), -math.log(k), dtype=dtype)
+    p = as_tensor(prior, "prior", ndim=1, dtype=dtype)
+    if p.shape[0] != k:
+        raise ValueError(f"prior must have K = {k} entries (one per intention), got {p.shape[0]}")
+    check_probability(p, "prior")
+    return p.clamp_min(torch.finfo(dtype).tiny).log()
+
+
+def _posterior_as(post: GPPosterior, dtype: torch.dtype) -> GPPosterior:
+    """The same GP in another dtype (Cholesky refactorised in that dtype)."""
+    if post.train_inputs.dtype == dtype:
+        return post
+    return GPPosterior(
+        copy.deepcopy(post.kernel).to(dtype),
+        post.train_inputs.to(dtype),
+        post.train_targets.to(dtype),
+        post.noise.to(dtype),
+        scale=post.scale.to(dtype),
+        offset=post.offset.to(dtype),
+    )
+
+
+def _state_prior(
+    model: HGPDM, mu0: Any, Sigma0: Any, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Prior of the first latent state: default the empirical marginal of the training latents
+    (a window may start anywhere in a movement, not only at its first frame)."""
+    x = model.latent.detach()
+    mu = x.mean(0) if mu0 is None else as_tensor(mu0, "mu0", ndim=1, dtype=x.dtype)
+    if Sigma0 is None:
+        d = x - x.mean(0)
+        Sigma = d.T @ d / max(x.shape[0] - 1, 1)
+    else:
+        Sigma = as_tensor(Sigma0, "Sigma0", ndim=2, dtype=x.dtype)
+    dx = model.latent_dim
+    if mu.shape != (dx,) or Sigma.shape != (dx, dx):
+        raise ValueError(
+            f"mu0 and Sigma0 must have shapes [{dx}] and [{dx}, {dx}], got "
+            f"{tuple(mu.shape)} and {tuple(Sigma.shape)}"
+        )
+    psd_cholesky(Sigma, name="Sigma0")
+    return mu.to(dtype), symmetrize(Sigma).to(dtype)
+
+
+def _check_observations(z: Any, dz: int, dtype: torch.dtype, min_ndim: int) -> torch.Tensor:
+    z = as_tensor(z, "z", min_ndim=min_ndim, dtype=dtype, allow_nan=True)
+    if z.shape[-1] != dz:
+        raise ValueError(f"z must have Dz = {dz} columns (the model's), got {z.shape[-1]}")
+    nan = torch.isnan(z)
+    if bool((nan.any(-1) & ~nan.all(-1)).any()):
+        raise ValueError("z rows must be fully observed or all NaN (missing); got partial NaN")
+    return z
+
+
+# ------------------------------------------------------------------------------------------
+# Statistical linearisation: E_q[log q~(y | x)]
+# ------------------------------------------------------------------------------------------
+
+
+def expected_log_conditional(
+    lin_mean_in: torch.Tensor,
+    lin_cov_in: torch.Tensor,
+    lin_mean_out: torch.Tensor,
+    lin_cov_out: torch.Tensor,
+    lin_cross: torch.Tensor,
+    q_mean_in: torch.Tensor,
+    q_cov_in: torch.Tensor,
+    q_mean_out: torch.Tensor,
+    q_cov_out: torch.Tensor | None,
+    q_cross: torch.Tensor | None,
+) -> torch.Tensor:
+    r"""``E_q[log q~(y | x)]`` for a jointly Gaussian linearisation ``q~`` and a Gaussian ``q``.
+
+    ``q~(x, y) = N([a, m], [[P, C], [C^T, S]])`` gives ``q~(y | x) = N(m + A (x - a), V)`` with
+    ``A = C^T P^-1`` and ``V = S - C^T P^-1 C``; under ``q(x, y)`` with means ``(mu_x, mu_y)``,
+    covariances ``Sx, Sy`` and ``Sxy = Cov[x, y]``, with ``r = mu_y - m - A (mu_x - a)``::
+
+        E = -1/2 [log|2 pi V| + tr(V^-1 (r r^T + Sy - A Sxy - Sxy^T A^T + A Sx A^T))]
+
+    This is ``Q_t(g)`` of Sec. 3.3.2 (``x = x_t``, ``y = x_{t+1}``) and, with ``y = z_t`` observed
+    (``Sy = Sxy = 0``), the measurement term ``E_q[log p(z_t | x_t)]`` of Eq. 22.
+
+    Shapes: ``lin_*`` over ``[..., Dx]``/``[..., Dy]``; ``q_*`` broadcast against them;
+    ``q_cov_out``/``q_cross`` ``None`` for an observed ``y``. Returns ``[...]``.
+    """
+    L = psd_cholesky(lin_cov_in, name="linearisation input covariance")
+    A = torch.cholesky_solve(lin_cross, L).transpose(-1, -2)  # C^T P^-1  [..., Dy, Dx]
+    V = symmetrize(lin_cov_out - A @ lin_cross)
+    LV = psd_cholesky(V, name="linearised conditional covariance")
+    r = q_mean_out - lin_mean_out - (A @ (q_mean_in - lin_mean_in)[..., None])[..., 0]
+    E = r[..., :, None] * r[..., None, :] + A @ q_cov_in @ A.transpose(-1, -2)
+    if q_cov_out is not None:
+        AC = A @ q_cross
+        E = E + q_cov_out - AC - AC.transpose(-1, -2)
+    W = torch.linalg.solve_triangular(LV, symmetrize(E), upper=False)
+    W = torch.linalg.solve_triangular(LV, W.transpose(-1, -2), upper=False)
+    trace = W.diagonal(dim1=-2, dim2=-1).sum(-1)
+    logdet = 2.0 * LV.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    return -0.5 * (trace + logdet + V.shape[-1] * _LOG_2PI)
+
+
+def _expected_log_normal(
+    mean: torch.Tensor, cov: torch.Tensor, q_mean: torch.Tensor, q_cov: torch.Tensor
+) -> torch.Tensor:
+    """``E_{x ~ N(q_mean, q_cov)}[log N(x | mean, cov)]``; shapes ``[..., D]``, ``[..., D, D]``."""
+    L = psd_cholesky(cov, name="prior covariance")
+    r = torch.linalg.solve_triangular(L, (q_mean - mean)[..., None], upper=False)[..., 0]
+    W = torch.linalg.solve_triangular(L, psd_cholesky(q_cov, name="q covariance"), upper=False)
+    quad = r.pow(2).sum(-1) + W.pow(2).sum((-1, -2))
+    logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    return -0.5 * (quad + logdet + cov.shape[-1] * _LOG_2PI)
+
+
+def _gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
+    L = psd_cholesky(cov, name="smoothed covariance")
+    d = cov.shape[-1]
+    return 0.5 * d * (1.0 + _LOG_2PI) + L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+
+
+# ------------------------------------------------------------------------------------------
+# Moment matching of the IDDM transition for K intentions sharing one input Gaussian
+# ------------------------------------------------------------------------------------------
+
+
+class SharedTransition:
+    r"""Moment matching of the IDDM transition GP at one input Gaussian for all K intentions.
+
+    For ``x ~ N(mu, Sigma)`` and each grid value ``g_k`` this gives exactly what
+    :meth:`GPPosterior.predict_gaussian` gives for ``[x, g_k]`` with ``include_noise=True`` (mean,
+    covariance and ``Cov[x, f]``, Eq. 29-31 and ``Q^x``), organised for speed:
+
+    - the kernel must be one RBF term over ``x`` times a factor of ``g`` (the IDDM tensor product
+      ``iddm_continuous`` or the block kernel ``iddm_discrete``); the ``x`` expectations
+      ``psi1, E[grad k], psi2`` come from :mod:`hgpdm_torch.expectations`;
+    - the training points are grouped by their ``g`` (U groups; padded to a common size L, with
+      zero weights on the padding), and ``phi [K, U]`` holds the ``g`` factor of grid value k
+      and group u. Per intention only ``U x U`` group sums of ``psi2`` are contracted:
+      ``O(N^2 Dx + K U^2 Dx^2)`` per stream instead of ``O(K N^2 Dx)``.
+
+    Args:
+        posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``).
+        values: ``[K, Dg]`` intention grid (or codes).
+        dtype: computation dtype (the posterior's weights and ``K^-1`` are cast from it).
+    """
+
+    def __init__(
+        self, posterior: GPPosterior, values: torch.Tensor, dtype: torch.dtype | None = None
+    ) -> None:
+        dtype = dtype or posterior.train_inputs.dtype
+        X = posterior.train_inputs
+        dx = X.shape[1] - values.shape[1]
+        leaves = kernel_leaves(posterior.kernel, X.shape[1])
+        Xg = X[:, dx:]
+        uniq, group = torch.unique(Xg, dim=0, return_inverse=True)
+        terms = split_terms(leaves, torch.cat([uniq.new_zeros(len(uniq), dx), uniq], 1), values, dx)
+        if len(terms) != 1 or terms[0].kind != "rbf" or terms[0].factor is None:
+            raise TypeError(
+                "SharedTransition needs the IDDM transition kernel (one RBF over x times a factor "
+                "of g: 'iddm_continuous' or 'iddm_discrete'); got a kernel with "
+                f"{[t.kind for t in terms]} terms"
+            )
+        (term,) = terms
+        n, u_count = X.shape[0], len(uniq)
+        counts = torch.bincount(group, minlength=u_count)
+        size = int(counts.max())
+        order = torch.argsort(group, stable=True)
+        starts = torch.cumsum(counts, 0) - counts
+        rank = torch.arange(n) - starts[group[order]]
+        pad = torch.full((u_count, size), n, dtype=torch.long)
+        pad[group[order], rank] = order
+        flat = pad.reshape(-1)
+        real = flat < n
+        Xx = torch.cat([X[:, :dx], X.new_zeros(1, dx)])
+        beta = torch.cat([posterior.weights, posterior.weights.new_zeros(1, dx)])
+        kinv = torch.nn.functional.pad(posterior.kinv, (0, 1, 0, 1))
+        self.values = values.to(dtype)
+        self.dx, self.groups, self.group_size = dx, u_count, size
+        self.inputs = Xx[flat].to(dtype)  # [U L, Dx]
+        self.beta = beta[pad].to(dtype)  # [U, L, Dx]
+        self.kinv = kinv[flat[:, None], flat[None, :]].to(dtype)  # [U L, U L]
+        self.real = real
+        self.phi = term.factor.to(dtype)  # [K, U]
+        # phi_k(u_n) beta_n for every grid value k and padded point n: [K, U L, Dx]
+        self.weighted_beta = (self.phi[:, :, None, None] * self.beta).reshape(len(values), -1, dx)
+        self.term = Term("rbf", term.coef.detach().to(dtype), term.weight.detach().to(dtype), None)
+        self.coef = self.term.coef
+        self.noise = posterior.noise.to(dtype)
+
+    @property
+    def num_values(self) -> int:
+        """K."""
+        return self.phi.shape[0]
+
+    def moments(
+        self, mu: torch.Tensor, Sigma: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``.
+
+        Args:
+            mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
+
+        Returns:
+            ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
+        """
+        b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
+        p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
+        q = term_psi2(self.term, self.term, mu, Sigma, self.inputs)  # [B, UL, UL]
+        phi, beta = self.phi, self.beta
+        m_u = torch.einsum("bul,ula->bua", p1.view(b, U, L), beta)
+        mean = torch.einsum("ku,bua->bka", phi, m_u)
+        g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
+        cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
+        # beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv beta_u^T psi2_uv beta_v: contract each
+        # group's weights (block-sparse, O(N^2 Dx)), then phi over groups, then the rows
+        P1 = beta.transpose(1, 2) @ q.view(b, U, L, U * L)  # [B, U, Dx, UL]
+        P2 = (phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
+        second = P2 @ self.weighted_beta  # [B, K, Dx, Dx]
+        T = (q * self.kinv).view(b, U, L, U, L).sum(4).sum(2)  # [B, U, U]
+        trace = ((phi @ T) * phi).sum(-1)
+        var = (self.coef - trace).clamp_min(0.0) + self.noise
+        cov = second - mean[..., :, None] * mean[..., None, :]
+        cov = symmetrize(cov) + torch.diag_embed(var[..., None].expand(b, -1, dx))
+        return mean, cov, cross
+
+
+# ------------------------------------------------------------------------------------------
+# Algorithm 3.2: online inference
+# ------------------------------------------------------------------------------------------
+
+
+def _mix(
+    prob: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, cross: torch.Tensor | None = None
+) -> tuple[torch.Tensor, ...]:
+    """Moment-match the mixture over K of Gaussians sharing one input (Sec. 3.4.2).
+
+    ``prob [B, K]``, ``mean [B, K, D]``, ``cov``/``cross [B, K, D, D]`` -> the mixture's mean,
+    covariance and (with ``cross``) ``Cov[x_{t-1}, x_t] = sum_k p_k C_k`` (the input mean is
+    shared by all k).
+    """
+    m = (prob[..., None] * mean).sum(-2)
+    d = mean - m[..., None, :]
+    w = prob[..., None, None]
+    S = symmetrize((w * (cov + d[..., :, None] * d[..., None, :])).sum(-3))
+    return (m, S) if cross is None else (m, S, (w * cross).sum(-3))
+
+
+class OnlineIntentionFilter:
+    r"""Online intention inference (Algorithm 3.2) for B independent streams at once.
+
+    One Gaussian ``q`` over the latent state is shared by all intention values. Each
+    :meth:`update` with a new observation ``z_t`` per stream predicts ``q(x_{t-1}, x_t)`` for every
+    intention value from the filtered ``q(x_{t-1})`` (:class:`SharedTransition`), then updates the
+    log belief ``B_t = E_t(g) + (1 - eps) B_{t-1}`` (normalised; lines 10-11) with the evidence
+    ``E_t(g)`` of this step:
+
+    - ``evidence="bound"`` (Algorithm 3.2 as printed): mix the K predictions under ``B_{t-1}``,
+      moment matched (``mixing="grid"``), or moment match the transition at ``[x, g]`` with
+      ``g`` Gaussian with the belief's mean and variance (``mixing="gaussian"``, Sec. 3.4.2);
+      filter ``q(x_t)`` (GP-ADF, Eq. 25, 32-35); smooth ``q(x_{t-1} | z_{1:t})`` one step back
+      (GP-RTSS, Eq. 26-27); ``E_t(g) = Q_{t-1}(g)`` (module docstring).
+    - ``evidence="predictive"`` (default): ``E_t(g) = log q(z_t | z_{1:t-1}, g)``, the GP-ADF
+      predictive likelihood of ``z_t`` under each intention from the shared ``q(x_{t-1})``; then
+      ``q(x_t)`` is the moment-matched mixture of the K filtered Gaussians under ``B_t``.
+
+    Why two: with one ``q`` shared by all g, ``Q_{t-1}(g)`` scores g as if the latent states were
+    known exactly, so per step it counts evidence ``~ |f(x, g) - f(x, g')|^2 / alpha_4``; with a
+    small process noise ``alpha_4`` the belief collapses after a step or two and is badly
+    over-confident (``tests/inference/test_intention.py`` measures it). The predictive
+    likelihood weighs the same transition difference against the state and observation
+    uncertainty: it is the exact Bayes recursion of a filter that collapses ``q`` to one
+    Gaussian per step, and its credible sets are calibrated when the model is right. Both
+    reduce to GP-ADF/GP-RTSS for K = 1.
+
+    The first observation of a stream initialises ``q(x_1)`` from the prior ``N(mu0, Sigma0)``
+    and leaves the belief at the prior (lines 1-3). A NaN row is a prediction-only step: ``q``
+    is predicted under the belief and the belief only forgets (``B_t = (1 - eps) B_{t-1}``),
+    since an unobserved step carries no evidence about g.
+
+    Args:
+        model: a fitted :class:`~hgpdm_torch.models.IDDM` (tensor-product transition kernel).
+        intentions: grid of values (continuous g, ``[K]``/``[K, Dg]``) or codes (discrete g);
+            see :func:`intention_grid`.
+        forgetting: ``eps`` in ``[0, 1)``; 0 keeps all evidence (plain Bayes recursion).
+        batch_size: B, the number of independent streams.
+        prior: ``[K]`` prior probabilities (default uniform).
+        evidence: ``"predictive"`` or ``"bound"``.
+        mixing: ``"grid"`` or ``"gaussian"`` (continuous g with ``evidence="bound"`` only).
+        relinearize: (``"bound"``) score ``Q`` with the transition moment matched at the smoothed
+            ``q(x_{t-1} | z_{1:t})`` (exactly DESIGN.md's formula, twice the cost) instead of
+            the filtered ``q(x_{t-1} | z_{1:t-1})``. ``mixing="gaussian"`` always does.
+        mu0, Sigma0: prior of the first state (default: the training latents' mean and
+            covariance).
+        dtype: computation dtype (default the model's; float32 halves memory traffic).
+        chunk_size: streams processed together (bounds the ``[chunk, N, N]`` temporaries);
+            default ``2^22 / N^2``.
+
+    Shapes: ``update(z [B, Dz])`` (or ``[Dz]`` when B = 1) -> :class:`IntentionBelief` with
+    ``prob [B, K]`` (or ``[K]``).
+    """
+
+    def __init__(
+        self,
+        model: HGPDM,
+        intentions: Any = None,
+        *,
+        forgetting: float = 0.2,
+        batch_size: int = 1,
+        prior: Any = None,
+        evidence: str = "predictive",
+        mixing: str = "grid",
+        relinearize: bool = False,
+        mu0: Any = None,
+        Sigma0: Any = None,
+        dtype: torch.dtype | None = None,
+        chunk_size: int | None = None,
+    ) -> None:
+        values = intention_grid(model, intentions)
+        if not (isinstance(forgetting, int | float) and 0.0 <= float(forgetting) < 1.0):
+            raise ValueError(f"forgetting (epsilon) must be in [0, 1), got {forgetting!r}")
+        if not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        check_choice(evidence, "evidence", ("predictive", "bound"))
+        check_choice(mixing, "mixing", ("grid", "gaussian"))
+        if mixing == "gaussian" and (model.intention != "continuous" or evidence != "bound"):
+            raise ValueError("mixing='gaussian' needs a continuous g and evidence='bound'")
+        self.dtype = dtype or model.latent.dtype
+        self.continuous = model.intention == "continuous"
+        trans = model.transition_posterior()
+        self.transition = SharedTransition(trans, values, self.dtype)
+        self.measurement = _posterior_as(model.measurement_posterior(), self.dtype)
+        self.gaussian_transition = (
+            _posterior_as(trans, self.dtype) if mixing == "gaussian" else None
+        )
+        self.values = self.transition.values
+        self.log_prior = _log_prior(prior, len(values), self.dtype)
+        self.mu0, self.Sigma0 = _state_prior(model, mu0, Sigma0, self.dtype)
+        self.forgetting = float(forgetting)
+        self.batch_size = batch_size
+        self.evidence = evidence
+        self.mixing, self.relinearize = mixing, bool(relinearize) or mixing == "gaussian"
+        self.obs_dim = model.obs_dim
+        n = self.transition.inputs.shape[0]
+        self.chunk_size = int(chunk_size) if chunk_size else max(1, 2**22 // (n * n))
+        self.reset()
+
+    @property
+    def num_values(self) -> int:
+        """K, the number of intention values."""
+        return self.values.shape[0]
+
+    def reset(self, streams: Any = None) -> None:
+        """Restart streams (all, or the given indices / boolean mask) at the prior."""
+        idx = slice(None) if streams is None else torch.as_tensor(streams)
+        if streams is None:
+            B, dx, K = self.batch_size, self.mu0.shape[0], self.num_values
+            self.mean = torch.empty(B, dx, dtype=self.dtype)
+            self.cov = torch.empty(B, dx, dx, dtype=self.dtype)
+            self.log_belief = torch.empty(B, K, dtype=self.dtype)
+            self.started = torch.zeros(B, dtype=torch.bool)
+        self.mean[idx] = self.mu0
+        self.cov[idx] = self.Sigma0
+        self.log_belief[idx] = self.log_prior
+        self.started[idx] = False
+
+    def belief(self) -> IntentionBelief:
+        """The current posterior over intentions, ``prob [B, K]``."""
+        return IntentionBelief.from_log(self.log_belief, self.values, self.continuous)
+
+    def update(self, z: Any) -> IntentionBelief:
+        """Process one observation per stream (Algorithm 3.2, lines 5-11).
+
+        Args:
+            z: ``[B, Dz]`` observations (``[Dz]`` when B = 1); a NaN row is a missing
+                observation of that stream.
+
+        Returns:
+            The posterior after this step: ``prob [B, K]`` (``[K]`` for a ``[Dz]`` input), and
+            for a continuous g its ``mean`` and ``std``.
+        """
+        z = _check_observations(z, self.obs_dim, self.dtype, min_ndim=1)
+        single = z.dim() == 1
+        if single:
+            z = z[None]
+        if z.shape != (self.batch_size, self.obs_dim):
+            raise ValueError(
+                f"z must have shape [B, Dz] = [{self.batch_size}, {self.obs_dim}], got "
+                f"{tuple(z.shape)}"
+            )
+        new = ~self.started
+        if bool(new.any()):
+            m, P, _ = gp_adf_update(self.measurement, self.mean[new], self.cov[new], z[new])
+            self.mean[new], self.cov[new] = m, P
+            self.started |= new & ~torch.isnan(z).all(-1)
+        old = torch.nonzero(~new).flatten()
+        for start in range(0, len(old), self.chunk_size):
+            i = old[start : start + self.chunk_size]
+            self.mean[i], self.cov[i], self.log_belief[i] = self._step(
+                self.mean[i], self.cov[i], self.log_belief[i], z[i]
+            )
+        out = self.belief()
+        if single:
+            return IntentionBelief.from_log(out.log_prob[0], self.values, self.continuous)
+        return out
+
+    def _step(
+        self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        observed = ~torch.isnan(z).all(-1)
+        if self.evidence == "predictive":
+            mf, Pf, evidence = self._predictive_step(m, P, z)
+        else:
+            mf, Pf, evidence = self._bound_step(m, P, log_belief, z)
+        new = (1.0 - self.forgetting) * log_belief
+        new = new + torch.where(observed[:, None], evidence, torch.zeros_like(evidence))
+        new = new - torch.logsumexp(new, -1, keepdim=True)
+        if self.evidence == "predictive":
+            mf, Pf = _mix(new.exp(), mf, Pf)
+        return mf, Pf, new
+
+    def _predictive_step(
+        self, m: torch.Tensor, P: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Per-intention GP-ADF update: filtered ``[B, K, Dx(, Dx)]`` and ``log q(z_t | g)``."""
+        mean, cov, _ = self.transition.moments(m, P)
+        K = mean.shape[1]
+        zk = z[:, None, :].expand(-1, K, -1)
+        return gp_adf_update(self.measurement, mean, cov, zk)
+
+    def _bound_step(
+        self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Algorithm 3.2, lines 6-9: shared filtered ``q(x_t)`` and ``Q_{t-1}(g) [B, K]``."""
+        prob = log_belief.exp()
+        if self.gaussian_transition is None:
+            per_k = self.transition.moments(m, P)
+            mp, Pp, C = _mix(prob, *per_k)
+        else:
+            mp, Pp, C = self._gaussian_prediction(prob, m, P)
+        mf, Pf, _ = gp_adf_update(self.measurement, mp, Pp, z)
+        # one-step GP-RTSS: J = Cov[x_{t-1}, x_t] Sigma_{t|t-1}^-1 (Eq. 27)
+        J = torch.cholesky_solve(C.transpose(-1, -2), psd_cholesky(Pp, name="prediction"))
+        J = J.transpose(-1, -2)
+        ms = m + (J @ (mf - mp)[..., None])[..., 0]
+        Ps = symmetrize(P + J @ (Pf - Pp) @ J.transpose(-1, -2))
+        Cs = J @ Pf  # Cov[x_{t-1}, x_t | z_{1:t}]
+        m_lin, P_lin = m, P
+        if self.relinearize:
+            m_lin, P_lin = ms, Ps
+            per_k = self.transition.moments(ms, Ps)
+        Q = expected_log_conditional(
+            m_lin[:, None], P_lin[:, None], *per_k,
+            ms[:, None], Ps[:, None], mf[:, None], Pf[:, None], Cs[:, None],
+        )  # fmt: skip
+        return mf, Pf, Q
+
+    def _gaussian_prediction(
+        self, prob: torch.Tensor, m: torch.Tensor, P: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Transition moment matched at ``[x, g]`` with ``g ~ N(mean, var)`` of the belief."""
+        mg = prob @ self.values
+        d = self.values - mg[:, None, :]
+        Sg = (prob[..., None, None] * d[..., :, None] * d[..., None, :]).sum(-3)
+        dx, dg = m.shape[-1], mg.shape[-1]
+        zero = P.new_zeros(P.shape[0], dx, dg)
+        mu = torch.cat([m, mg], -1)
+        Sigma = torch.cat(
+            [torch.cat([P, zero], -1), torch.cat([zero.transpose(-1, -2), Sg], -1)], -2
+        )
+        mean, cov, io = self.gaussian_transition.predict_gaussian(
+            mu, symmetrize(Sigma), include_noise=True
+        )
+        return mean, cov, io[..., :dx, :]
+
+
+# ------------------------------------------------------------------------------------------
+# Algorithm 3.1: batch inference
+# ------------------------------------------------------------------------------------------
+
+
+def _batch_bound(
+    trans: GPPosterior,
+    meas: GPPosterior,
+    z: torch.Tensor,
+    g: torch.Tensor,
+    mu0: torch.Tensor,
+    Sigma0: torch.Tensor,
+) -> torch.Tensor:
+    """Eq. 22 without ``log p(g)`` for windows ``z [W, T, Dz]`` and values ``g [K, Dg]``.
+
+    Returns ``[K, W]``.
+    """
+    gk = g[:, None, :]  # [K, 1, Dg] broadcasts against the W windows
+    sm = smooth(filter_sequence(trans, meas, z, mu0, Sigma0, g=gk))  # [K, W, T, ...]
+    total = _gaussian_entropy(sm.cov[..., 0, :, :]).expand(len(g), z.shape[0])
+    total = total + _expected_log_normal(mu0, Sigma0, sm.mean[..., 0, :], sm.cov[..., 0, :, :])
+    # E_q[log p(z_t | x_t)] over observed steps
+    zm, zc, zx = meas.predict_gaussian(sm.mean, sm.cov, include_noise=True)
+    observed = ~torch.isnan(z).all(-1)
+    zz = torch.where(observed[..., None], z, zm)
+    lz = expected_log_conditional(sm.mean, sm.cov, zm, zc, zx, sm.mean, sm.cov, zz, None, None)
+    total = total + torch.where(observed, lz, torch.zeros_like(lz)).sum(-1)
+    if z.shape[-2] > 1:
+        m_in, P_in = sm.mean[..., :-1, :], sm.cov[..., :-1, :, :]
+        pm, pc, px = trans.predict_gaussian(m_in, P_in, g=g[:, None, None, :], include_noise=True)
+        Q = expected_log_conditional(
+            m_in, P_in, pm, pc, px, m_in, P_in,
+            sm.mean[..., 1:, :], sm.cov[..., 1:, :, :], sm.cross_cov,
+        )  # fmt: skip
+        # Markov entropy: H = H(x_1) + sum_t [H(x_t, x_{t+1}) - H(x_t)]
+        pair = torch.cat(
+            [
+                torch.cat([P_in, sm.cross_cov], -1),
+                torch.cat([sm.cross_cov.transpose(-1, -2), sm.cov[..., 1:, :, :]], -1),
+            ],
+            -2,
+        )
+        H = _gaussian_entropy(symmetrize(pair)) - _gaussian_entropy(P_in)
+        total = total + Q.sum(-1) + H.sum(-1)
+    return total
+
+
+def infer_intention(
+    model: HGPDM,
+    z: Any,
+    intentions: Any = None,
+    *,
+    window: int | None = None,
+    prior: Any = None,
+    mu0: Any = None,
+    Sigma0: Any = None,
+    chunk_size: int = 64,
+    progress: bool = False,
+) -> IntentionBelief:
+    r"""Batch intention inference (Algorithm 3.1), batched over the K intention values.
+
+    For every value ``g_k`` the GP-ADF/RTSS smoother (:mod:`hgpdm_torch.inference.filtering`)
+    gives ``q_k(x_{1:T}) ~= p(x_{1:T} | z_{1:T}, g_k)`` (Eq. 23-28); the bound of Eq. 22,
+    ``B(g) = log p(g) + E_q[log p(x_1)] + sum_t E_q[log p(z_t | x_t)] + sum_t Q_t(g) + H(q)``
+    (``Q_t`` and the measurement term by statistical linearisation, see
+    :func:`expected_log_conditional`; ``H`` the entropy of the Markov Gaussian ``q``), is
+    normalised over the grid (line 4).
+
+    Args:
+        model: a fitted :class:`~hgpdm_torch.models.HGPDM` / ``IDDM``.
+        z: ``[T, Dz]`` or ``[W, T, Dz]`` observations; NaN rows are missing.
+        intentions: grid or codes, see :func:`intention_grid`.
+        window: if given, a sliding window: the belief at every step ``t`` from
+            ``z_{max(1, t-window+1):t}`` (output ``[..., T, K]``).
+        prior: ``[K]`` prior probabilities (default uniform).
+        mu0, Sigma0: prior of the first state of each window (default: the training latents'
+            empirical mean and covariance, as a window may start anywhere in a movement).
+        chunk_size: windows processed together (memory bound).
+        progress: show a tqdm bar over chunks.
+
+    Returns:
+        :class:`IntentionBelief` with ``prob [..., K]`` (``[..., T, K]`` with ``window``).
+    """
+    values = intention_grid(model, intentions)
+    dtype = values.dtype
+    z = _check_observations(z, model.obs_dim, dtype, min_ndim=2)
+    if z.shape[-2] == 0:
+        raise ValueError("z must hold at least one time step")
+    if window is not None and (not isinstance(window, int) or window < 1):
+        raise ValueError(f"window must be a positive int or None, got {window!r}")
+    log_prior = _log_prior(prior, len(values), dtype)
+    m0, S0 = _state_prior(model, mu0, Sigma0, dtype)
+    trans, meas = model.transition_posterior(), model.measurement_posterior()
+    lead, T = z.shape[:-2], z.shape[-2]
+    flat = z.reshape(-1, T, z.shape[-1])
+    # one batch of equal-length windows per length: w for t >= w, then the shorter first ones
+    if window is None:
+        jobs = [(flat, None)]
+    else:
+        w = min(window, T)
+        full = flat.unfold(1, w, 1).transpose(-1, -2)  # [F, T - w + 1, w, Dz]
+        jobs = [(full.reshape(-1, w, z.shape[-1]), ("full", w))]
+        jobs += [(flat[:, :t], ("start", t)) for t in range(1, w)]
+    out = torch.empty(flat.shape[0], T if window else 1, len(values), dtype=dtype)
+    for batch, tag in tqdm(jobs, disable=not progress, desc="batch intention", leave=False):
+        parts = [
+            _batch_bound(trans, meas, batch[i : i + chunk_size], values, m0, S0).mT
+            for i in range(0, batch.shape[0], chunk_size)
+        ]
+        score = torch.cat(parts, 0) + log_prior  # [windows, K]
+        if tag is None:
+            out[:, 0] = score
+        elif tag[0] == "full":
+            out[:, tag[1] - 1 :] = score.view(flat.shape[0], -1, len(values))
+        else:
+            out[:, tag[1] - 1] = score
+    shape = (*lead, T, len(values)) if window else (*lead, len(values))
+    return IntentionBelief.from_log(out.reshape(shape), values, model.intention == "continuous")
