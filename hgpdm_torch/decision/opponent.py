@@ -114,6 +114,7 @@ def kl_bound(delta: float, n_samples: int, n_actions: int, n_states: int = 1) ->
 
 
 _U_FLOOR = -700.0  # exp(-u) must not overflow
+_PATH_BUDGET = 1.0  # sub-gradient path length, in simplex units, before the target is lowered
 
 
 def _log_expm1(x: float) -> float:
@@ -138,7 +139,12 @@ class _WorstCase:
         self.u = None  # last root, the warm start of the next call
 
     def solve(self, c: Sequence[float]) -> tuple[float, list[float]]:
-        """Returns ``(min value, worst-case q)`` for payoffs ``c`` ``[Aj]``."""
+        """Returns ``(min value, worst-case q)`` for payoffs ``c`` ``[Aj]``.
+
+        The dual variable is parametrised as ``mu = c_s - e^u``; the stationarity condition
+        ``sum_k q_k(mu) = 1`` becomes ``y(u) = 0`` with ``y`` decreasing in ``u``, solved by
+        Newton's method inside a bracket and warm-started from the previous root.
+        """
         n, eps = self.n, self.radius
         k_min = min(range(n), key=c.__getitem__)
         c_all = c[k_min]
@@ -355,7 +361,6 @@ class DeltaSafeResponder:
             raise ValueError(f"max_iter must be a non-negative integer, got {max_iter!r}")
         self.tol = float(tol)
         self.max_iter = max_iter
-        self.path_budget = 1.0
         self._rows = self.reward.tolist()
         self._cols = self.reward.T.tolist()
         spread = float(self.reward.max() - self.reward.min())
@@ -429,7 +434,7 @@ class DeltaSafeResponder:
                 path = 0.0
             if v > best_v:
                 best_v, best_pi, best_q = v, pi, q
-            if path > self.path_budget:  # oscillating: lower the target, restart from the best
+            if path > _PATH_BUDGET:  # oscillating: lower the target, restart from the best
                 level *= 0.5
                 path = 0.0
                 pi, v, q = best_pi, best_v, best_q
