@@ -1,0 +1,1001 @@
+r"""Variational Bayes inference of the exogenous variable and the latent states of a new window
+(thesis Sec. 2.3, Algorithm 2.2, App. 2.A-2.B).
+
+Given a fitted :class:`~hgpdm_torch.models.GPDM` / :class:`~hgpdm_torch.models.HGPDM` (its MAP
+training latents define a measurement GP ``h`` and a transition GP ``f``) and a window of
+observations ``z_{1:T}``, the mean-field family (Eq. 11)
+
+    q(x_{1:T}) = prod_t N(x_t | mu_t, Sigma_t)        [and q(g) = N(mu_g, Sigma_g), Sec. 2.3.3]
+
+is fitted by maximising the negative free energy of Eq. 13 under the FIC factorisation (Eq. 8-9):
+
+    F(q, g) = sum_t E_q[log p(z_t | x_t)] + sum_t E_q[log p(x_{t+1} | x_t, g)]
+              - H(q(x_1), p(x_1)) + H(q)     [+ E_q[log p(g)] + H(q(g)) for a continuous g]
+
+Approximations (Eq. 15-17, kept as in the thesis; DESIGN.md sec. 7): the GP predictive variances
+``sigma_z^2(x_t)`` and ``sigma_x^2(x_t, g)`` are evaluated at the variational mean ``mu_t`` (they
+still depend on ``mu_t`` and carry its gradient). Each expected log likelihood then needs only
+``E_q[||y - m(x)||^2] = ||y - psi1 beta||^2 + sum_d (beta_d^T psi2 beta_d - (psi1 beta_d)^2)``
+(+ ``tr Sigma_{t+1}`` for a Gaussian target ``y = x_{t+1}``), with the kernel expectations
+``psi0, psi1, psi2`` of :mod:`hgpdm_torch.expectations` (App. 2.A's ``l``, ``Q``, ``R``).
+
+Algorithm 2.2 runs for all K values of a discrete g in one batched optimisation: the variational
+parameters carry a ``K`` axis and the objective is the sum over K (the blocks do not interact).
+A discrete g's transition kernel is block-diagonal, so each value touches only its own training
+points (``GPPosterior``'s per-code blocks).
+
+Missing observations (Sec. 2.3.2): a row of NaN in the window drops ``E_q[log p(z_t | x_t)]``.
+A row with some but not all entries NaN is rejected (partial observations are not modelled).
+
+Prediction (Sec. 2.3.2, App. 2.B): :meth:`VariationalInference.observation_joint` builds the
+Gaussian ``q(z_{1:T})`` with cross-time covariances ``scale_d^2 (E[k(x_s, x_t)] - l_s^T K^-1 l_t)``
+and :func:`condition_gaussian` conditions it on the observed rows (forecasting, gap recovery).
+
+Shapes: ``T`` window length, ``K`` candidate values of g, ``Dx`` latent dim, ``Dz`` observation
+dim, ``Dg`` dim of a continuous g; ``...`` leading batch dims (e.g. windows).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import pyro
+import pyro.distributions as dist
+import torch
+from pyro.distributions import constraints
+from pyro.nn import PyroModule, PyroParam
+from tqdm.auto import trange
+
+from ..expectations import kernel_leaves, leaves_psi0, split_terms, term_psi1, term_psi2
+from ..gp import GPPosterior
+from ..linalg import psd_cholesky, symmetrize
+from ..models import GPDM, HGPDM
+from ..validation import as_tensor, check_choice
+from .filtering import filter_sequence, smooth
+
+__all__ = [
+    "MeanFieldGuide",
+    "batched_lbfgs",
+    "VBResult",
+    "VariationalInference",
+    "condition_gaussian",
+    "window_mask",
+]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+# --------------------------------------------------------------------------------------------
+# The variational family (Eq. 11 and Sec. 2.3.3) as a Pyro guide
+# --------------------------------------------------------------------------------------------
+
+
+class MeanFieldGuide(PyroModule):
+    r"""Mean-field Gaussian guide ``q(x_{1:T}) [q(g)]`` (Eq. 11; Sec. 2.3.3).
+
+    Parameters are :class:`pyro.nn.PyroParam` s: ``loc [..., T, Dx]`` and ``scale_tril
+    [..., T, Dx, Dx]`` under ``constraints.lower_cholesky`` (so every ``Sigma_t = L_t L_t^T`` is
+    positive definite), and optionally ``g_loc [..., Dg]``, ``g_scale_tril [..., Dg, Dg]``.
+
+    Calling the guide samples the sites ``"x"`` (event shape ``[T, Dx]``) and ``"g"``, so it can be
+    used with ``pyro.infer`` (e.g. ``Trace_ELBO`` against :meth:`VariationalInference.pyro_model`);
+    :meth:`VariationalInference.free_energy` evaluates the same objective in closed form.
+    With Pyro's global parameter store, clear it (``pyro.clear_param_store()``) before using a new
+    guide in ``pyro.infer``: guides share parameter names.
+
+    Args:
+        loc: ``[..., T, Dx]`` initial means.
+        cov: ``[..., T, Dx, Dx]`` initial covariances.
+        g_loc: ``[..., Dg]`` initial mean of a continuous g, or ``None``.
+        g_cov: ``[..., Dg, Dg]`` its initial covariance.
+    """
+
+    def __init__(
+        self,
+        loc: torch.Tensor,
+        cov: torch.Tensor,
+        g_loc: torch.Tensor | None = None,
+        g_cov: torch.Tensor | None = None,
+    ) -> None:
+        super().__init__()
+        loc = as_tensor(loc, "loc", min_ndim=2)
+        cov = as_tensor(cov, "cov", min_ndim=3, dtype=loc.dtype)
+        if cov.shape != (*loc.shape, loc.shape[-1]):
+            raise ValueError(
+                f"cov must have shape {(*loc.shape, loc.shape[-1])} to match loc, "
+                f"got {tuple(cov.shape)}"
+            )
+        self.loc = PyroParam(loc.detach().clone())
+        self.scale_tril = PyroParam(
+            psd_cholesky(symmetrize(cov.detach()), name="initial covariance of q(x)"),
+            constraint=constraints.lower_cholesky,
+        )
+        self.has_g = g_loc is not None
+        if self.has_g:
+            g_loc = as_tensor(g_loc, "g_loc", min_ndim=1, dtype=loc.dtype)
+            if g_cov is None:
+                raise ValueError("g_cov is required with g_loc")
+            g_cov = as_tensor(g_cov, "g_cov", min_ndim=2, dtype=loc.dtype)
+            self.g_loc = PyroParam(g_loc.detach().clone())
+            self.g_scale_tril = PyroParam(
+                psd_cholesky(symmetrize(g_cov.detach()), name="initial covariance of q(g)"),
+                constraint=constraints.lower_cholesky,
+            )
+
+    @property
+    def cov(self) -> torch.Tensor:
+        """``[..., T, Dx, Dx]`` covariances ``Sigma_t``."""
+        L = self.scale_tril
+        return L @ L.transpose(-1, -2)
+
+    @property
+    def g_cov(self) -> torch.Tensor:
+        """``[..., Dg, Dg]`` covariance of q(g)."""
+        L = self.g_scale_tril
+        return L @ L.transpose(-1, -2)
+
+    def entropy(self) -> torch.Tensor:
+        """``H(q)`` ``[...]``: ``sum_t 1/2 log|2 pi e Sigma_t|`` (+ the entropy of q(g))."""
+        h = _gaussian_entropy(self.scale_tril).sum(-1)
+        return h + _gaussian_entropy(self.g_scale_tril) if self.has_g else h
+
+    def forward(self) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """Sample ``x [..., T, Dx]`` (site ``"x"``) and, with a continuous g, ``g [..., Dg]``."""
+        qx = dist.MultivariateNormal(self.loc, scale_tril=self.scale_tril).to_event(1)
+        x = pyro.sample("x", qx)
+        if not self.has_g:
+            return x
+        g = pyro.sample("g", dist.MultivariateNormal(self.g_loc, scale_tril=self.g_scale_tril))
+        return x, g
+
+
+def _gaussian_entropy(scale_tril: torch.Tensor) -> torch.Tensor:
+    d = scale_tril.shape[-1]
+    logdet = scale_tril.diagonal(dim1=-2, dim2=-1).abs().log().sum(-1)
+    return 0.5 * d * (1.0 + _LOG_2PI) + logdet
+
+
+def _cross_entropy(
+    loc: torch.Tensor, cov: torch.Tensor, prior_mean: torch.Tensor, prior_chol: torch.Tensor
+) -> torch.Tensor:
+    """``H(N(loc, cov), N(prior_mean, L L^T))`` ``[...]``."""
+    d = loc.shape[-1]
+    diff = torch.linalg.solve_triangular(prior_chol, (loc - prior_mean)[..., None], upper=False)
+    a = torch.linalg.solve_triangular(prior_chol, cov, upper=False)
+    tr = torch.linalg.solve_triangular(prior_chol, a.transpose(-1, -2), upper=False)
+    logdet = 2.0 * prior_chol.diagonal().log().sum()
+    quad = diff.pow(2).sum((-1, -2)) + tr.diagonal(dim1=-2, dim2=-1).sum(-1)
+    return 0.5 * (d * _LOG_2PI + logdet + quad)
+
+
+# --------------------------------------------------------------------------------------------
+# Expected squared error of a GP mean under a Gaussian input (App. 2.A terms (a)-(d))
+# --------------------------------------------------------------------------------------------
+
+
+class _GaussianInputGP:
+    """A GP posterior in the form the free energy needs: all input columns Gaussian.
+
+    ``X [..., N, D]``, ``beta [..., N, Dout]``, ``kinv [..., N, N]`` and a 0/1 ``mask [..., N]``
+    (padding of per-code blocks), where ``...`` broadcasts against the inputs' batch dims.
+    """
+
+    def __init__(self, post: GPPosterior, codes: torch.Tensor | None = None) -> None:
+        self.post = post
+        with torch.no_grad():
+            leaves = kernel_leaves(post.kernel, post.input_dim)
+        if codes is None:
+            self.X, self.beta, self.kinv, self.mask = (
+                post.train_inputs,
+                post.weights,
+                post.kinv,
+                None,
+            )
+            self.leaves = leaves
+        else:
+            # Block-diagonal K_x of a discrete g: code c reads only its own block (exact).
+            X, beta, kinv, mask = (b[codes] for b in post._blocks())
+            d = X.shape[-1] - 1
+            self.X, self.beta, self.kinv, self.mask = X[..., :d], beta, kinv, mask
+            self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
+        self.dim = self.X.shape[-1]
+        self.terms = [
+            t if self.mask is None else replace(t, factor=self.mask)
+            for t in split_terms(self.leaves, self.X, None, self.dim)
+        ]
+
+    def expected_kernel(
+        self, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+    ) -> torch.Tensor:
+        """``E[k(x, X_i)]`` ``[..., N]`` at ``x ~ N(mu, Sigma)`` for any points ``X [..., N, D]``.
+
+        Only for a GP without per-point factors (the measurement GP).
+        """
+        return sum(term_psi1(t, mu, Sigma, X) for t in self.terms)
+
+    def predict_point(self, mu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Centred predictive mean ``[..., Dout]`` and variance ``[...]`` at points ``mu``.
+
+        The variance ``k(mu, mu) - k(mu, X) K^-1 k(X, mu) + noise`` is the plug-in of Eq. 15 / 17
+        (unscaled; multiply by ``scale^2`` per output). Unlike ``GPPosterior.predict`` of a
+        detached posterior this is differentiable in ``mu``.
+        """
+        zero = torch.zeros(*mu.shape, mu.shape[-1], dtype=mu.dtype, device=mu.device)
+        k = 0.0
+        for t in self.terms:
+            p = term_psi1(t, mu, zero, self.X)  # Sigma = 0: the kernel itself
+            k = k + (p if t.factor is None else t.factor * p)
+        quad = ((k[..., None, :] @ self.kinv)[..., 0, :] * k).sum(-1)
+        kxx = leaves_psi0(self.leaves, mu, zero, None)
+        mean = (k[..., None, :] @ self.beta)[..., 0, :]
+        return mean, (kxx - quad).clamp_min(0.0) + self.post.noise
+
+    def var_at_mean(self, mu: torch.Tensor) -> torch.Tensor:
+        """Plug-in predictive variance at ``mu`` (Eq. 15 / 17), ``[...]``."""
+        return self.predict_point(mu)[1]
+
+    def mean_moments(
+        self, mu: torch.Tensor, Sigma: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``E[m_d(x)]`` and ``E[m_d(x)^2]`` of the centred GP mean, each ``[..., Dout]``.
+
+        ``E[m] = psi1 beta`` and ``E[m_d^2] = beta_d^T psi2 beta_d`` summed over kernel terms and
+        term pairs (App. 2.A terms (a)-(d)).
+        """
+        fbeta = [
+            self.beta if t.factor is None else t.factor[..., None] * self.beta for t in self.terms
+        ]
+        mean, second = 0.0, 0.0
+        for i, (a, fa) in enumerate(zip(self.terms, fbeta, strict=True)):
+            p1 = term_psi1(a, mu, Sigma, self.X)
+            mean = mean + (p1[..., None, :] @ fa)[..., 0, :]
+            for j in range(i, len(self.terms)):
+                q = term_psi2(a, self.terms[j], mu, Sigma, self.X)
+                s = ((q @ fbeta[j]) * fa).sum(-2)
+                second = second + (2.0 * s if j > i else s)  # pair (j, i) is the transpose
+        return mean, second
+
+
+def _sq_error(
+    y: torch.Tensor, y_var: torch.Tensor | None, mean: torch.Tensor, second: torch.Tensor
+) -> torch.Tensor:
+    """``E[(y_d - m_d)^2]`` per dim for independent ``y`` (mean y, variances y_var) and m."""
+    err = y.pow(2) - 2.0 * y * mean + second
+    return err if y_var is None else err + y_var
+
+
+def _tril_free(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(d, M)`` with ``chol(cov) = diag(e^d) (I + strictly lower M)``."""
+    L = psd_cholesky(symmetrize(cov), name="covariance of q")
+    diag = L.diagonal(dim1=-2, dim2=-1)
+    return diag.log(), torch.tril(L / diag[..., :, None], -1)
+
+
+def _tril_from_free(d: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """Lower Cholesky factor ``diag(e^d) (I + strictly lower M)``: scale-free off-diagonals."""
+    eye = torch.eye(d.shape[-1], dtype=d.dtype, device=d.device)
+    return d.exp()[..., :, None] * (eye + torch.tril(M, -1))
+
+
+# --------------------------------------------------------------------------------------------
+# Results
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class VBResult:
+    """Output of :meth:`VariationalInference.infer` (Algorithm 2.2).
+
+    Attributes:
+        values: ``[K]`` candidate values of g (codes of a discrete g; empty for a GPDM or a
+            continuous g, where ``K = 1``).
+        log_evidence: ``[..., K]`` maximised ``F(q, g)``, the approximate ``log p(z_{1:T} | g)``.
+        posterior: ``[..., K]`` ``p(g | z_{1:T})`` from ``log_evidence`` and the prior over g.
+        g_ml: ``[...]`` index into ``values`` of the largest ``log_evidence`` (the ML value).
+        mean: ``[..., K, T, Dx]`` means of q(x) per candidate g.
+        cov: ``[..., K, T, Dx, Dx]`` covariances of q(x).
+        g_mean: ``[..., Dg]`` mean of q(g) (continuous g), else ``None``.
+        g_cov: ``[..., Dg, Dg]`` covariance of q(g), else ``None``.
+        guide: the fitted :class:`MeanFieldGuide`.
+        history: ``-sum F`` over all windows and candidates after each optimiser iteration.
+    """
+
+    values: torch.Tensor
+    log_evidence: torch.Tensor
+    posterior: torch.Tensor
+    g_ml: torch.Tensor
+    mean: torch.Tensor
+    cov: torch.Tensor
+    g_mean: torch.Tensor | None
+    g_cov: torch.Tensor | None
+    guide: MeanFieldGuide
+    history: list[float]
+
+    def ml_state(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """q(x) of the ML value of g: ``mean [..., T, Dx]`` and ``cov [..., T, Dx, Dx]``."""
+        return self.select(self.g_ml)
+
+    def select(self, index: torch.Tensor | int) -> tuple[torch.Tensor, torch.Tensor]:
+        """q(x) for candidate ``index`` (``[...]`` or an int): mean ``[..., T, Dx]``, cov."""
+        index = torch.as_tensor(index, device=self.mean.device).expand(self.mean.shape[:-3])
+        i = index[..., None, None, None]
+        T, D = self.mean.shape[-2:]
+        mean = self.mean.gather(-3, i.expand(*index.shape, 1, T, D))[..., 0, :, :]
+        cov = self.cov.gather(-4, i[..., None].expand(*index.shape, 1, T, D, D))
+        return mean, cov[..., 0, :, :, :]
+
+
+# --------------------------------------------------------------------------------------------
+# Inference
+# --------------------------------------------------------------------------------------------
+
+
+def window_mask(z: object, obs_dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate a window ``z [..., T, Dz]`` whose NaN rows are missing observations.
+
+    Returns:
+        ``z`` (float) and the ``[..., T]`` boolean mask of observed rows.
+
+    Raises:
+        ValueError: ``T < 2``, wrong ``Dz``, partially missing rows, or a window without any
+            observed row.
+    """
+    z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+    if z.shape[-1] != obs_dim:
+        raise ValueError(f"z must have Dz = {obs_dim} columns (the model's), got {z.shape[-1]}")
+    if z.shape[-2] < 2:
+        raise ValueError(f"z must be a window of at least 2 time steps, got {z.shape[-2]}")
+    nan = torch.isnan(z)
+    missing = nan.all(-1)
+    if bool((nan.any(-1) & ~missing).any()):
+        raise ValueError(
+            "z rows must be fully observed or fully NaN (missing); partially observed rows are "
+            "not supported"
+        )
+    observed = ~missing
+    if bool((~observed.any(-1)).any()):
+        raise ValueError("z has a window in which every row is missing (all NaN)")
+    return z, observed
+
+
+class VariationalInference:
+    """Variational Bayes inference in a fitted GPDM / H-GPDM (Sec. 2.3, Algorithm 2.2).
+
+    Args:
+        model: a fitted :class:`~hgpdm_torch.models.GPDM` (no g), or an
+            :class:`~hgpdm_torch.models.HGPDM` / ``IDDM`` with a discrete or continuous g.
+        x1_prior: ``(mean [Dx], cov [Dx, Dx])`` of ``p(x_1)``, the first state of a window. The
+            default is the Gaussian fitted to all training latents, since a window may start
+            anywhere in a movement (the thesis's ``N(m_1, S_1)``).
+        g_prior: for a discrete g, ``[K]`` prior probabilities (default uniform); for a continuous
+            g, ``(mean [Dg], cov [Dg, Dg])`` (default: fitted to the training intentions).
+
+    Example:
+        >>> vb = VariationalInference(model)                   # doctest: +SKIP
+        >>> res = vb.infer(window)                             # doctest: +SKIP
+        >>> res.posterior, res.g_ml                            # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        model: GPDM,
+        *,
+        x1_prior: tuple[object, object] | None = None,
+        g_prior: object = None,
+    ) -> None:
+        if not isinstance(model, GPDM):
+            raise TypeError(f"model must be a GPDM/HGPDM, got {type(model).__name__}")
+        self.model = model
+        self.kind = model.intention if isinstance(model, HGPDM) else "none"
+        self.measurement = model.measurement_posterior()
+        self.transition = model.transition_posterior()
+        self.latent_dim = model.latent_dim
+        self.obs_dim = model.obs_dim
+        dtype = self.measurement.train_inputs.dtype
+        self._h = _GaussianInputGP(self.measurement)
+        lat = model.latent.detach()
+        if x1_prior is None:
+            m1 = lat.mean(0)
+            S1 = torch.cov(lat.T).reshape(self.latent_dim, self.latent_dim)
+            S1 = S1 + 1e-6 * torch.eye(self.latent_dim, dtype=dtype)
+        else:
+            m1 = as_tensor(x1_prior[0], "x1_prior mean", ndim=1, dtype=dtype)
+            S1 = as_tensor(x1_prior[1], "x1_prior cov", ndim=2, dtype=dtype)
+            if m1.shape != (self.latent_dim,) or S1.shape != (self.latent_dim,) * 2:
+                raise ValueError(
+                    f"x1_prior must be (mean [{self.latent_dim}], cov [{self.latent_dim}, "
+                    f"{self.latent_dim}])"
+                )
+        self.x1_mean, self.x1_cov = m1, symmetrize(S1)
+        self._x1_chol = psd_cholesky(self.x1_cov, name="x1_prior covariance")
+        self.g_dim = 0
+        if self.kind == "discrete":
+            K = model.num_values
+            self.values = torch.arange(K)
+            prior = torch.full((K,), 1.0 / K, dtype=dtype) if g_prior is None else g_prior
+            prior = as_tensor(prior, "g_prior", ndim=1, dtype=dtype)
+            if prior.shape != (K,) or bool((prior < 0).any()) or abs(float(prior.sum()) - 1) > 1e-6:
+                raise ValueError(f"g_prior must be [{K}] probabilities summing to 1")
+            self.log_g_prior = prior.log()
+        else:
+            self.values = torch.zeros(0, dtype=torch.long)
+            self.log_g_prior = torch.zeros(1, dtype=dtype)
+            self._f = _GaussianInputGP(self.transition)
+        if self.kind == "continuous":
+            g = model.intentions
+            self.g_dim = g.shape[1]
+            if g_prior is None:
+                mg = g.mean(0)
+                Sg = torch.cov(g.T).reshape(self.g_dim, self.g_dim) if g.shape[0] > 1 else None
+                if Sg is None or bool((Sg.diagonal() <= 0).any()):
+                    Sg = torch.eye(self.g_dim, dtype=dtype)
+            else:
+                mg = as_tensor(g_prior[0], "g_prior mean", ndim=1, dtype=dtype)
+                Sg = as_tensor(g_prior[1], "g_prior cov", ndim=2, dtype=dtype)
+                if mg.shape != (self.g_dim,) or Sg.shape != (self.g_dim,) * 2:
+                    raise ValueError(
+                        f"g_prior must be (mean [{self.g_dim}], cov [{self.g_dim}, {self.g_dim}])"
+                    )
+            self.g_prior_mean, self.g_prior_cov = mg, symmetrize(Sg)
+            self._g_chol = psd_cholesky(self.g_prior_cov, name="g_prior covariance")
+
+    # ------------------------------------------------------------------ candidates of g
+    def _candidates(self, values: object) -> torch.Tensor:
+        if self.kind != "discrete":
+            if values is not None:
+                raise ValueError(f"values applies to a discrete g only (model has {self.kind!r})")
+            return self.values
+        if values is None:
+            return self.values
+        v = torch.as_tensor(values)
+        if v.is_floating_point():
+            if not bool((v == v.round()).all()):
+                raise ValueError("values must be integer codes of g")
+            v = v.long()
+        if v.dim() == 0:
+            v = v[None]
+        if bool(((v < 0) | (v >= self.model.num_values)).any()):
+            raise ValueError(f"values must be codes in [0, {self.model.num_values - 1}]")
+        return v
+
+    def _transition_gp(self, values: torch.Tensor) -> _GaussianInputGP:
+        if self.kind != "discrete":
+            return self._f
+        # [..., K] codes -> blocks [..., K, 1, N, .] (the 1 is the time axis)
+        return _GaussianInputGP(self.transition, values[..., None])
+
+    # ------------------------------------------------------------------ the free energy
+    def free_energy(
+        self,
+        z: object,
+        loc: torch.Tensor,
+        scale_tril: torch.Tensor,
+        *,
+        values: object = None,
+        g_loc: torch.Tensor | None = None,
+        g_scale_tril: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        r"""Negative free energy ``F(q, g)`` of Eq. 13 with Eq. 15-17, in closed form.
+
+        Args:
+            z: ``[..., T, Dz]`` window; NaN rows are missing (their measurement term is dropped).
+            loc: ``[..., K, T, Dx]`` means of q(x), one set per candidate g.
+            scale_tril: ``[..., K, T, Dx, Dx]`` lower Cholesky factors of the covariances.
+            values: ``[K]`` (or ``[..., K]``) candidate codes of a discrete g (default all K).
+            g_loc, g_scale_tril: ``[..., Dg]``, ``[..., Dg, Dg]``: q(g) of a continuous g.
+
+        Returns:
+            ``[..., K]`` F for each candidate (``K = 1`` without a discrete g).
+        """
+        z, observed = window_mask(z, self.obs_dim)
+        return self._free_energy(
+            z, observed, loc, scale_tril, self._candidates(values), g_loc, g_scale_tril
+        )
+
+    def _free_energy(
+        self,
+        z: torch.Tensor,
+        observed: torch.Tensor,
+        loc: torch.Tensor,
+        scale_tril: torch.Tensor,
+        values: torch.Tensor,
+        g_loc: torch.Tensor | None,
+        g_scale_tril: torch.Tensor | None,
+    ) -> torch.Tensor:
+        if loc.shape[-2:] != (z.shape[-2], self.latent_dim):
+            raise ValueError(
+                f"loc must have trailing shape [K, {z.shape[-2]}, {self.latent_dim}], "
+                f"got {tuple(loc.shape)}"
+            )
+        if (self.kind == "continuous") != (g_loc is not None):
+            raise ValueError("q(g) (g_loc, g_scale_tril) is required exactly for a continuous g")
+        cov = scale_tril @ scale_tril.transpose(-1, -2)
+        h = self.measurement
+        # Eq. 16: measurement terms of the observed rows
+        zc = (torch.nan_to_num(z) - h.offset)[..., None, :, :]  # [..., 1, T, Dz]
+        var = self._h.var_at_mean(loc)[..., None] * h.scale.pow(2)  # [..., K, T, Dz]
+        m, m2 = self._h.mean_moments(loc, cov)
+        ll_z = -0.5 * (torch.log(var) + _LOG_2PI + _sq_error(zc, None, m, m2) / var).sum(-1)
+        ll_z = (ll_z * observed[..., None, :].to(ll_z.dtype)).sum(-1)
+        # Eq. 17: transitions x_t -> x_{t+1} (with q(g) appended to the input if continuous)
+        mu_in, cov_in = loc[..., :-1, :], cov[..., :-1, :, :]
+        if g_loc is not None:
+            mu_in, cov_in = self._append_g(mu_in, cov_in, g_loc, g_scale_tril)
+        f = self._transition_gp(values)
+        s2 = f.var_at_mean(mu_in)  # [..., K, T-1]
+        m, m2 = f.mean_moments(mu_in, cov_in)
+        nxt_var = cov[..., 1:, :, :].diagonal(dim1=-2, dim2=-1)
+        err = _sq_error(loc[..., 1:, :], nxt_var, m, m2).sum(-1)
+        dx = self.latent_dim
+        ll_x = (-0.5 * (dx * (torch.log(s2) + _LOG_2PI) + err / s2)).sum(-1)
+        # first state's cross-entropy and the entropy of q
+        ce1 = _cross_entropy(loc[..., 0, :], cov[..., 0, :, :], self.x1_mean, self._x1_chol)
+        F = ll_z + ll_x - ce1 + _gaussian_entropy(scale_tril).sum(-1)
+        if g_loc is not None:
+            g_cov = g_scale_tril @ g_scale_tril.transpose(-1, -2)
+            ce_g = _cross_entropy(g_loc, g_cov, self.g_prior_mean, self._g_chol)
+            F = F + (_gaussian_entropy(g_scale_tril) - ce_g)[..., None]
+        return F
+
+    @staticmethod
+    def _append_g(
+        mu: torch.Tensor, cov: torch.Tensor, g_loc: torch.Tensor, g_scale_tril: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Input ``[x_t, g]`` under ``q(x_t) q(g)``: means ``[..., K, T, Dx + Dg]``, block cov."""
+        g_cov = g_scale_tril @ g_scale_tril.transpose(-1, -2)
+        lead = mu.shape[:-1]
+        dx, dg = mu.shape[-1], g_loc.shape[-1]
+        mg = g_loc[..., None, None, :].expand(*lead, dg)
+        Sg = g_cov[..., None, None, :, :].expand(*lead, dg, dg)
+        zero = torch.zeros(*lead, dx, dg, dtype=mu.dtype, device=mu.device)
+        top = torch.cat([cov, zero], -1)
+        bottom = torch.cat([zero.transpose(-1, -2), Sg], -1)
+        return torch.cat([mu, mg], -1), torch.cat([top, bottom], -2)
+
+    def guide_free_energy(
+        self, z: object, guide: MeanFieldGuide, *, values: object = None
+    ) -> torch.Tensor:
+        """:meth:`free_energy` of a :class:`MeanFieldGuide` ``[..., K]``."""
+        g_loc = guide.g_loc if guide.has_g else None
+        g_tril = guide.g_scale_tril if guide.has_g else None
+        return self.free_energy(
+            z, guide.loc, guide.scale_tril, values=values, g_loc=g_loc, g_scale_tril=g_tril
+        )
+
+    # ------------------------------------------------------------------ Pyro model of F
+    def pyro_model(self, z: object, guide: MeanFieldGuide, *, values: object = None) -> None:
+        r"""Pyro model whose ELBO against ``guide`` is the objective of :meth:`free_energy`.
+
+        Latent site ``"x"`` ``[..., K, T, Dx]`` (improper flat base, its density added by
+        ``pyro.factor``): ``log N(x_1 | m_1, S_1) + sum_t log N(x_{t+1} | m_x(x_t, g),
+        sigma_x^2(mu_t, g) I)``, and observed site ``"z"`` with ``N(m_z(x_t), sigma_z^2(mu_t))``;
+        the variances are the plug-ins of Eq. 15-17 at the guide's means (read from ``guide``).
+        GP means are evaluated at the sampled states (no kernel expectations), so a Monte-Carlo
+        ELBO of this model is an independent check of the closed form.
+        """
+        z, observed = window_mask(z, self.obs_dim)
+        values = self._candidates(values)
+        loc = guide.loc.detach()  # shapes only; the plug-in variances use guide.loc below
+        lead = loc.shape[:-2]
+        flat = dist.ImproperUniform(constraints.real, lead, loc.shape[-2:])
+        x = pyro.sample("x", flat)
+        mu = guide.loc
+        h, f = self._h, self._transition_gp(values)
+        scale2 = self.measurement.scale.pow(2)
+        var_z = h.var_at_mean(mu)[..., None] * scale2  # plug-ins at the means [..., K, T, Dz]
+        m_z = h.predict_point(x)[0] + self.measurement.offset
+        inputs, plug = x[..., :-1, :], mu[..., :-1, :]
+        if self.kind == "continuous":
+            prior_g = dist.MultivariateNormal(self.g_prior_mean, scale_tril=self._g_chol)
+            g = pyro.sample("g", prior_g.expand(lead[:-1]))
+            gx = g[..., None, None, :].expand(*inputs.shape[:-1], self.g_dim)
+            inputs = torch.cat([inputs, gx], -1)
+            gm = guide.g_loc[..., None, None, :].expand(*plug.shape[:-1], self.g_dim)
+            plug = torch.cat([plug, gm], -1)
+        m_x = f.predict_point(inputs)[0]
+        var_x = f.var_at_mean(plug)[..., None]
+        log_p = dist.Normal(m_x, var_x.sqrt()).log_prob(x[..., 1:, :]).sum((-1, -2))
+        log_p = log_p + dist.MultivariateNormal(self.x1_mean, scale_tril=self._x1_chol).log_prob(
+            x[..., 0, :]
+        )
+        pyro.factor("latent_dynamics", log_p)
+        zc = torch.nan_to_num(z)[..., None, :, :].expand(m_z.shape)
+        mask = observed[..., None, :, None].expand(m_z.shape)
+        lik = dist.Normal(m_z, var_z.sqrt()).mask(mask).to_event(2)
+        pyro.sample("z", lik, obs=zc)
+
+    # ------------------------------------------------------------------ Algorithm 2.2
+    def initial_guess(
+        self, z: torch.Tensor, values: torch.Tensor, init: str = "filter"
+    ) -> tuple[torch.Tensor, ...]:
+        """Initial q(x) [and q(g)] for :meth:`infer` (Algorithm 2.2, step 1).
+
+        ``"filter"``: the forward sweep of Sec. 2.4.2, done by GP-ADF moment matching
+        (:func:`~hgpdm_torch.inference.filtering.filter_sequence`): ``q(x_t)`` from
+        ``z_{1:t}`` only, so a missing row is filled by the learned transition model of each g.
+        ``"smoother"``: the GP-RTSS smoothed marginals. ``"prior"``: ``p(x_1)`` at every step.
+
+        Returns:
+            ``loc [..., K, T, Dx]``, ``cov [..., K, T, Dx, Dx]``, and ``g_loc [..., Dg]``,
+            ``g_cov [..., Dg, Dg]`` (``None`` unless g is continuous).
+        """
+        check_choice(init, "init", ("filter", "smoother", "prior"))
+        T, dx = z.shape[-2], self.latent_dim
+        K = max(int(values.shape[-1]), 1) if self.kind == "discrete" else 1
+        batch = (*z.shape[:-2], K)
+        if init == "prior":
+            loc = self.x1_mean.expand(*batch, T, dx).clone()
+            cov = self.x1_cov.expand(*batch, T, dx, dx).clone()
+            if self.kind != "continuous":
+                return loc, cov, None, None
+            g_loc = self.g_prior_mean.expand(*z.shape[:-2], self.g_dim).clone()
+            return loc, cov, g_loc, self.g_prior_cov.expand(*g_loc.shape, self.g_dim).clone()
+        g = g_cov = None
+        if self.kind == "discrete":
+            g = values.to(z.dtype)[..., None]  # [..., K, 1] codes
+        elif self.kind == "continuous":
+            g, g_cov = self.g_prior_mean, self.g_prior_cov
+        with torch.no_grad():
+            res = filter_sequence(
+                self.transition,
+                self.measurement,
+                z[..., None, :, :],
+                self.x1_mean,
+                self.x1_cov,
+                g=g,
+                g_cov=g_cov,
+            )
+            mean, cov = res.mean, res.cov
+            if init == "smoother":
+                sm = smooth(res)
+                mean, cov = sm.mean, sm.cov
+        mean = mean.expand(*batch, *mean.shape[-2:])
+        cov = cov.expand(*batch, *cov.shape[-3:])
+        loc, xcov = mean[..., :dx], cov[..., :dx, :dx]
+        if self.kind != "continuous":
+            return loc, xcov, None, None
+        return loc, xcov, mean[..., 0, -1, dx:], cov[..., 0, -1, dx:, dx:]
+
+    def _whiten(
+        self,
+        f: _GaussianInputGP,
+        loc: torch.Tensor,
+        cov: torch.Tensor,
+        g_loc: torch.Tensor | None,
+        g_cov: torch.Tensor | None,
+    ) -> list[torch.Tensor]:
+        """Free variables of the optimiser for q (inverse of :meth:`_unwhiten`)."""
+        eps = []
+        for t in range(loc.shape[-2] - 1):
+            m, v = self._step(f, loc[..., t, :], g_loc)
+            eps.append((loc[..., t + 1, :] - m) / v.sqrt())
+        free = [loc[..., 0, :], torch.stack(eps, -2), *_tril_free(cov)]
+        return free if g_loc is None else [*free, g_loc, *_tril_free(g_cov)]
+
+    def _unwhiten(
+        self, f: _GaussianInputGP, free: list[torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """``loc``, ``scale_tril`` (and q(g)) from the optimiser's free variables.
+
+        The means are written as a transition rollout plus whitened innovations,
+        ``mu_{t+1} = m_x(mu_t, g) + sigma_x(mu_t, g) eps_{t+1}``, so the stiff transition term of
+        Eq. 17 (``sigma_x^2 ~ alpha_4``) becomes ``~ ||eps||^2 / 2``: the same F, well scaled
+        for L-BFGS. Cholesky factors are ``diag(e^d) (I + strictly lower M)``.
+        """
+        a1, eps, d, M = free[:4]
+        g_loc = g_tril = None
+        if len(free) > 4:
+            g_loc, g_tril = free[4], _tril_from_free(free[5], free[6])
+        mus = [a1]
+        for t in range(eps.shape[-2]):
+            m, v = self._step(f, mus[-1], g_loc)
+            mus.append(m + v.sqrt() * eps[..., t, :])
+        return torch.stack(mus, -2), _tril_from_free(d, M), g_loc, g_tril
+
+    def _step(
+        self, f: _GaussianInputGP, x: torch.Tensor, g_loc: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Transition mean ``[..., K, Dx]`` and plug-in std variance ``[..., K, 1]`` at ``x``."""
+        inp = x[..., None, :]  # the time axis of the transition blocks
+        if g_loc is not None:
+            inp = torch.cat([inp, g_loc[..., None, None, :].expand(*inp.shape[:-1], -1)], -1)
+        m, v = f.predict_point(inp)
+        return m[..., 0, :], v
+
+    def infer(
+        self,
+        z: object,
+        *,
+        values: object = None,
+        steps: int = 50,
+        init: str = "filter",
+        progress: bool = False,
+    ) -> VBResult:
+        """Algorithm 2.2: maximise F(q, g) for every candidate g in one batched optimisation.
+
+        Args:
+            z: ``[..., T, Dz]`` window (``T >= 2``); NaN rows are missing observations (to be
+                forecast or recovered), at least one row must be observed.
+            values: candidate codes of a discrete g, ``[K]`` or ``[..., K]`` (default all); e.g.
+                the true code ``[..., 1]`` for the oracle H-GPDM.
+            steps: maximum L-BFGS iterations (:func:`batched_lbfgs`: every window and candidate g
+                is its own problem with its own curvature history and line search).
+            init: initialisation of q (see :meth:`initial_guess`).
+            progress: show a progress bar over objective evaluations.
+
+        Returns:
+            :class:`VBResult`.
+        """
+        z, observed = window_mask(z, self.obs_dim)
+        z = z.to(self.x1_mean.dtype)
+        if not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"steps must be a non-negative int, got {steps!r}")
+        values = self._candidates(values)
+        loc, cov, g_loc, g_cov = self.initial_guess(z, values, init)
+        f = self._transition_gp(values)
+        with torch.no_grad():
+            free = self._whiten(f, loc, cov, g_loc, g_cov)
+        shapes = [p.shape for p in free]
+        nb = loc.shape[:-2].numel()  # independent blocks: windows x candidates
+
+        def unflatten(flat: torch.Tensor) -> list[torch.Tensor]:
+            parts = torch.split(flat, [sh.numel() // nb for sh in shapes], dim=-1)
+            return [p.reshape(sh) for p, sh in zip(parts, shapes, strict=True)]
+
+        def objective(flat: torch.Tensor) -> torch.Tensor:
+            loc, tril, g_l, g_t = self._unwhiten(f, unflatten(flat))
+            return -self._free_energy(z, observed, loc, tril, values, g_l, g_t).reshape(nb)
+
+        x0 = torch.cat([p.reshape(nb, -1) for p in free], -1)
+        x, history = batched_lbfgs(objective, x0, max_iter=steps, progress=progress)
+        free = unflatten(x.detach())
+        with torch.no_grad():
+            loc, tril, g_l, g_t = self._unwhiten(f, free)
+            g_c = None if g_l is None else g_t @ g_t.transpose(-1, -2)
+            guide = MeanFieldGuide(loc, tril @ tril.transpose(-1, -2), g_l, g_c)
+        with torch.no_grad():
+            F = self.guide_free_energy(z, guide, values=values)
+            if not bool(torch.isfinite(F).all()):
+                raise FloatingPointError("the free energy is not finite after optimisation")
+            log_prior = self.log_g_prior[values] if self.kind == "discrete" else self.log_g_prior
+            posterior = torch.softmax(F + log_prior, dim=-1)
+            return VBResult(
+                values=values,
+                log_evidence=F,
+                posterior=posterior,
+                g_ml=F.argmax(-1),
+                mean=guide.loc.detach(),
+                cov=guide.cov.detach(),
+                g_mean=guide.g_loc.detach() if guide.has_g else None,
+                g_cov=guide.g_cov.detach() if guide.has_g else None,
+                guide=guide,
+                history=history,
+            )
+
+    # ------------------------------------------------------------------ prediction (Sec. 2.3.2)
+    def observation_marginals(
+        self, mean: torch.Tensor, cov: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Moment-matched ``q(z_t) = int p(z_t | x_t) q(x_t) dx_t`` per time step (FIC).
+
+        Shapes: ``mean [..., T, Dx]``, ``cov [..., T, Dx, Dx]`` -> ``[..., T, Dz]``,
+        ``[..., T, Dz, Dz]`` (observation noise included).
+        """
+        m, S, _ = self.measurement.predict_gaussian(mean, cov, include_noise=True)
+        return m, S
+
+    def observation_joint(
+        self, mean: torch.Tensor, cov: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        r"""Gaussian ``q(z_{1:T})`` with cross-time covariances (Sec. 2.3.2, App. 2.B).
+
+        Diagonal blocks are the moment-matched ``Cov[z_t]``; for ``s != t`` (independent
+        ``x_s, x_t`` under q, so the means do not covary)::
+
+            Cov[z_s,d, z_t,e] = delta_de scale_d^2 (E[k(x_s, x_t)] - l_s^T K^-1 l_t),
+
+        with ``l_t = E[k(X, x_t)]`` and ``E[k(x_s, x_t)]`` the expectation of ``k(x, mu_t)`` at
+        ``x ~ N(mu_s, Sigma_s + Sigma_t)`` (exact for stationary and linear kernels alike).
+
+        Shapes: ``mean [..., T, Dx]``, ``cov [..., T, Dx, Dx]`` -> ``mean [..., T, Dz]`` and
+        ``cov [..., T * Dz, T * Dz]`` (time-major).
+        """
+        m, S = self.observation_marginals(mean, cov)
+        T, dz = m.shape[-2:]
+        gp = self._h
+        lt = gp.expected_kernel(mean, cov, gp.X)  # [..., T, N]
+        ls_kinv_lt = (lt @ gp.kinv) @ lt.transpose(-1, -2)  # [..., T, T]
+        pair = cov[..., :, None, :, :] + cov[..., None, :, :, :]
+        c = gp.expected_kernel(mean[..., :, None, :], pair, mean[..., None, :, None, :])[..., 0]
+        cross = c - ls_kinv_lt  # [..., T, T]
+        scale2 = self.measurement.scale.pow(2)
+        full = cross[..., :, None, :, None] * torch.diag(scale2)[:, None, :]
+        eye_t = torch.eye(T, dtype=m.dtype, device=m.device)
+        full = full * (1.0 - eye_t)[:, None, :, None]
+        full = full + S[..., :, :, None, :].mul(eye_t[:, None, :, None])
+        return m, symmetrize(full.reshape(*full.shape[:-4], T * dz, T * dz))
+
+    def predict_observations(
+        self, z: object, result: VBResult, *, joint: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predict every row of a window from q(x) of the ML value of g (Sec. 2.3.2).
+
+        Missing (NaN) rows are forecast or recovered: with ``joint=True`` from
+        ``q(z_missing | z_observed)`` (the joint of :meth:`observation_joint` conditioned on the
+        observed rows); with ``joint=False`` from the per-step marginals ``q(z_t)`` (FIC).
+
+        Args:
+            z: ``[..., T, Dz]`` the window passed to :meth:`infer`.
+            result: its :class:`VBResult`.
+
+        Returns:
+            ``mean [..., T, Dz]`` (observed rows unchanged when ``joint``) and ``var [..., T, Dz]``.
+        """
+        z, observed = window_mask(z, self.obs_dim)
+        mean, cov = result.ml_state()
+        with torch.no_grad():
+            if not joint:
+                m, S = self.observation_marginals(mean, cov)
+                return m, S.diagonal(dim1=-2, dim2=-1)
+            m, S = self.observation_joint(mean, cov)
+            T, dz = z.shape[-2:]
+            obs = (
+                observed[..., :, None].expand(*observed.shape, dz).reshape(*observed.shape[:-1], -1)
+            )
+            cm, cS = condition_gaussian(
+                m.reshape(*m.shape[:-2], T * dz),
+                S,
+                obs,
+                torch.nan_to_num(z).reshape(*z.shape[:-2], T * dz),
+            )
+            return cm.reshape(*cm.shape[:-1], T, dz), cS.diagonal(dim1=-2, dim2=-1).reshape(
+                *cm.shape[:-1], T, dz
+            )
+
+    def forecast(
+        self, z: object, **infer_kwargs: object
+    ) -> tuple[torch.Tensor, torch.Tensor, VBResult]:
+        """Forecast ``z_{T+1}`` from a window ``z_{1:T}`` (Sec. 2.3.2, Tables 2.1-2.4 protocol).
+
+        Runs :meth:`infer` on ``z_{1:T}`` with a missing row appended, picks the ML value of g
+        and conditions the joint ``q(z_{1:T+1})`` on the observed rows.
+
+        Returns:
+            ``mean [..., Dz]``, ``var [..., Dz]`` of the next observation, and the result.
+        """
+        z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+        nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype)
+        window = torch.cat([z, nan], -2)
+        res = self.infer(window, **infer_kwargs)
+        m, v = self.predict_observations(window, res)
+        return m[..., -1, :], v[..., -1, :], res
+
+
+def condition_gaussian(
+    mean: torch.Tensor, cov: torch.Tensor, observed: torch.Tensor, values: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Condition ``N(mean, cov)`` on the entries where ``observed`` is true.
+
+    The observed set may differ across the batch: the observed block is solved with the
+    unobserved rows and columns replaced by the identity, which leaves them uncoupled.
+
+    Args:
+        mean: ``[..., n]``; cov: ``[..., n, n]``; observed: ``[..., n]`` bool;
+        values: ``[..., n]`` the observed values (other entries ignored).
+
+    Returns:
+        Conditional ``mean [..., n]`` (equal to ``values`` where observed) and ``cov [..., n, n]``
+        (zero in observed rows and columns).
+    """
+    o = observed.to(cov.dtype)
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    masked = cov * o[..., :, None] * o[..., None, :] + eye * (1.0 - o)[..., None, :]
+    L = psd_cholesky(symmetrize(masked), name="covariance of the observed entries")
+    r = (torch.where(observed, values, mean) - mean)[..., None]
+    co = cov * o[..., None, :]  # Cov[all, observed]
+    cond_mean = mean + (co @ torch.cholesky_solve(r, L))[..., 0]
+    cond_cov = cov - co @ torch.cholesky_solve(co.transpose(-1, -2), L)
+    cond_mean = torch.where(observed, values, cond_mean)
+    keep = (1.0 - o)[..., :, None] * (1.0 - o)[..., None, :]
+    return cond_mean, symmetrize(cond_cov * keep)
+
+
+def batched_lbfgs(
+    fun: Callable[[torch.Tensor], torch.Tensor],
+    x0: torch.Tensor,
+    *,
+    max_iter: int = 50,
+    history_size: int = 10,
+    tol_grad: float = 1e-6,
+    tol_change: float = 1e-9,
+    progress: bool = False,
+) -> tuple[torch.Tensor, list[float]]:
+    """Minimise ``B`` independent problems at once by L-BFGS with per-problem state.
+
+    One call of ``fun`` evaluates all problems (one batched free energy), but each problem keeps
+    its own curvature pairs, step length (Armijo backtracking) and stopping test, so an
+    ill-conditioned window does not slow the others, as it would in one L-BFGS over the sum.
+
+    Args:
+        fun: ``x [B, P] -> [B]`` objective values (differentiable).
+        x0: ``[B, P]`` starting points.
+        max_iter: maximum iterations.
+        history_size: curvature pairs kept per problem.
+        tol_grad: a problem stops when its largest gradient entry is below this.
+        tol_change: ... or when its objective changes by less than this (relative) in a step.
+        progress: show a tqdm bar over iterations.
+
+    Returns:
+        The minimisers ``[B, P]`` and ``sum fun`` after each iteration.
+    """
+    if x0.dim() != 2:
+        raise ValueError(f"x0 must have shape [B, P], got {tuple(x0.shape)}")
+    B, P, m = x0.shape[0], x0.shape[1], history_size
+
+    def value_grad(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = x.detach().requires_grad_(True)
+        with torch.enable_grad():
+            v = fun(x)
+            (grad,) = torch.autograd.grad(v.sum(), x)
+        return v.detach(), grad
+
+    x = x0.detach().clone()
+    f, g = value_grad(x)
+    S = x.new_zeros(B, m, P)
+    Y = x.new_zeros(B, m, P)
+    rho = x.new_zeros(B, m)  # 0 marks an empty slot
+    active = g.abs().amax(-1) > tol_grad
+    history = [float(f.sum())]
+    for _ in trange(max_iter, disable=not progress, desc="VB (Alg. 2.2)", leave=False):
+        if not bool(active.any()):
+            break
+        # two-loop recursion, newest pair last; empty slots have rho = 0 and drop out
+        q = -g
+        alphas = []
+        for j in range(m - 1, -1, -1):
+            a = rho[:, j] * (S[:, j] * q).sum(-1)
+            q = q - a[:, None] * Y[:, j]
+            alphas.append(a)
+        sy, yy = (S[:, -1] * Y[:, -1]).sum(-1), Y[:, -1].pow(2).sum(-1)
+        first = 1.0 / g.abs().sum(-1).clamp_min(1.0)  # no pairs yet: a short gradient step
+        gamma = torch.where(rho[:, -1] > 0, sy / yy.clamp_min(1e-300), first)
+        r = gamma[:, None] * q
+        for j, a in zip(range(m), reversed(alphas), strict=True):
+            b = rho[:, j] * (Y[:, j] * r).sum(-1)
+            r = r + (a - b)[:, None] * S[:, j]
+        slope = (g * r).sum(-1)
+        bad = slope >= 0  # not a descent direction: fall back to the gradient
+        r = torch.where(bad[:, None], -first[:, None] * g, r)
+        slope = (g * r).sum(-1)
+        # per-problem Armijo backtracking; finished problems take a zero step
+        step = active.to(x.dtype)
+        accepted = ~active
+        f_new, g_new = f, g
+        for _ in range(30):
+            trial = x + step[:, None] * r
+            f_t, g_t = value_grad(trial)
+            ok = (f_t <= f + 1e-4 * step * slope) & torch.isfinite(f_t)
+            take = ok & ~accepted
+            f_new = torch.where(take, f_t, f_new)
+            g_new = torch.where(take[:, None], g_t, g_new)
+            accepted = accepted | ok
+            if bool(accepted.all()):
+                break
+            step = torch.where(accepted, step, 0.5 * step)
+        step = torch.where(accepted, step, torch.zeros_like(step))
+        s_k = step[:, None] * r
+        y_k = g_new - g
+        sy_k = (s_k * y_k).sum(-1)
+        good = active & accepted & (sy_k > 1e-10 * y_k.pow(2).sum(-1).sqrt() * s_k.norm(dim=-1))
+        S = torch.where(good[:, None, None], torch.cat([S[:, 1:], s_k[:, None]], 1), S)
+        Y = torch.where(good[:, None, None], torch.cat([Y[:, 1:], y_k[:, None]], 1), Y)
+        new_rho = torch.cat([rho[:, 1:], (1.0 / sy_k.clamp_min(1e-300))[:, None]], 1)
+        rho = torch.where(good[:, None], new_rho, rho)
+        x = x + s_k
+        change = (f - f_new).abs() <= tol_change * f.abs().clamp_min(1.0)
+        f, g = f_new, g_new
+        active = active & accepted & ~change & (g.abs().amax(-1) > tol_grad)
+        history.append(float(f.sum()))
+    return x, history
