@@ -15,6 +15,10 @@ __all__ = ["COMMANDS", "main"]
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("hgpdm_torch.experiments.demo", "fit an H-GPDM on synthetic styles and discover them"),
+    "games": (
+        "hgpdm_torch.experiments.repeated_games",
+        "Ch. 5 repeated games: delta-safe play in RPS and table-tennis serves (Fig. 5.1-5.7)",
+    ),
 }
 
 
