@@ -46,6 +46,9 @@ Closed forms (``s = sqrt(w)`` elementwise, ``B = I + diag(s) Sigma diag(s)``, ``
                     + 1/2 (u_i + v_j)^T C (u_i + v_j)
 
   (``Q_ij`` of Sec. 3.3.1 / App. 2.A, evaluated in log space so no factor underflows alone).
+- Two independent Gaussian inputs (App. 2.B ``c12``): ``E[k(x1, x2)]`` is the RBF psi1 of the
+  difference ``x1 - x2 ~ N(mu1 - mu2, Sigma1 + Sigma2)`` at 0, and ``mu1^T W mu2`` for a linear
+  kernel (:func:`psi0_cross`).
 - RBF x Linear: ``E[x k_a(x, X_i)]^T W_b X_j``; Linear x Linear:
   ``X_i^T W_a (Sigma + mu mu^T) W_b X_j``.
 
@@ -72,6 +75,7 @@ __all__ = [
     "kernel_leaves",
     "leaves_psi0",
     "psi0",
+    "psi0_cross",
     "psi1",
     "psi2",
     "split_terms",
@@ -571,4 +575,32 @@ def psi2(
             if b.factor is not None:
                 q = q * b.factor[..., None, :]
             out = out + q
+    return out
+
+
+def psi0_cross(
+    kernel: Kernel, mu1: object, Sigma1: object, mu2: object, Sigma2: object
+) -> torch.Tensor:
+    """``E[k(x1, x2)]`` for independent ``x1 ~ N(mu1, Sigma1)``, ``x2 ~ N(mu2, Sigma2)``.
+
+    The expected prior covariance between GP outputs at two uncertain inputs (App. 2.B ``c12``).
+    Discrete-code kernels are not supported (their codes are never Gaussian).
+
+    Shapes: ``mu1, mu2 [..., D]``, ``Sigma1, Sigma2 [..., D, D]`` -> ``[...]``.
+    """
+    mu1, Sigma1 = check_gaussian(mu1, Sigma1, "first input")
+    mu2, Sigma2 = check_gaussian(mu2, Sigma2, "second input")
+    if mu1.shape[-1] != mu2.shape[-1]:
+        raise ValueError(f"inputs must have the same dim, got {mu1.shape[-1]} and {mu2.shape[-1]}")
+    leaves = kernel_leaves(kernel, mu1.shape[-1])
+    if any(leaf.codes for leaf in leaves):
+        raise ValueError("psi0_cross does not support discrete intention kernels")
+    out = 0.0
+    for leaf in leaves:
+        t = Term(leaf.kind, leaf.coef, leaf.weight, None)
+        if leaf.kind == "rbf":  # the difference x1 - x2 is Gaussian; evaluate at 0
+            p = term_psi1(t, mu1 - mu2, Sigma1 + Sigma2, torch.zeros_like(mu1)[..., None, :])
+        else:
+            p = term_psi1(t, mu1, Sigma1, mu2.to(mu1.dtype)[..., None, :])
+        out = out + p[..., 0]
     return out

@@ -179,6 +179,19 @@ def test_known_intention_columns(kind):
         assert torch.all(ex.psi1(kernel, mu, Sigma, X, g=g)[col[:, 0] != 1] == 0)
 
 
+@pytest.mark.parametrize("name", ["rbf_ard", "gpdm", "active_dims", "intention_uncertain"])
+def test_cross_expectation_of_two_independent_inputs(name):
+    """E[k(x1, x2)] (App. 2.B c12) against quadrature over the joint [x1, x2] (4 dims)."""
+    kernel = KERNELS[name](2)
+    gen = torch.Generator().manual_seed(9)
+    mu1, mu2 = 0.4 * torch.randn(2, generator=gen), 0.4 * torch.randn(2, generator=gen)
+    S1, S2 = random_cov(2, gen, 0.2), random_cov(2, gen, 0.2)
+    joint = torch.block_diag(S1, S2)
+    x, w = gauss_hermite(torch.cat([mu1, mu2]), joint, 20)
+    expected = w @ dense(kernel, x[:, :2], x[:, 2:], diag=True)
+    close(ex.psi0_cross(kernel, mu1, S1, mu2, S2), expected)
+
+
 def test_log_space_where_factors_underflow():
     """Far-away training points: k(mu, X_i)^2 underflows, the expectation does not (scipy quad)."""
     k = RBFKernel()
