@@ -141,14 +141,22 @@ class MeanFieldGuide(PyroModule):
         h = _gaussian_entropy(self.scale_tril).sum(-1)
         return h + _gaussian_entropy(self.g_scale_tril) if self.has_g else h
 
-    def forward(self) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        """Sample ``x [..., T, Dx]`` (site ``"x"``) and, with a continuous g, ``g [..., Dg]``."""
-        qx = dist.MultivariateNormal(self.loc, scale_tril=self.scale_tril).to_event(1)
-        x = pyro.sample("x", qx)
-        if not self.has_g:
-            return x
-        g = pyro.sample("g", dist.MultivariateNormal(self.g_loc, scale_tril=self.g_scale_tril))
-        return x, g
+    def forward(self, *args: object, **kwargs: object) -> torch.Tensor | tuple[torch.Tensor, ...]:
+        """Sample ``x [..., T, Dx]`` (site ``"x"``) and, with a continuous g, ``g [..., 1, Dg]``.
+
+        The arguments of the model (``pyro.infer`` passes them to the guide too) are ignored.
+        """
+        loc, tril = self.loc, self.scale_tril
+        # windows and candidates of g are independent: one plate per batch dim
+        with pyro.plate_stack("vb_batch", loc.shape[:-2]):
+            x = pyro.sample("x", dist.MultivariateNormal(loc, scale_tril=tril).to_event(1))
+            if not self.has_g:
+                return x
+            # batch [..., 1]: g aligned with the candidate axis K (= 1) of "x"
+            qg = dist.MultivariateNormal(
+                self.g_loc[..., None, :], scale_tril=self.g_scale_tril[..., None, :, :]
+            )
+            return x, pyro.sample("g", qg)
 
 
 def _gaussian_entropy(scale_tril: torch.Tensor) -> torch.Tensor:
@@ -579,8 +587,19 @@ class VariationalInference:
         values = self._candidates(values)
         loc = guide.loc.detach()  # shapes only; the plug-in variances use guide.loc below
         lead = loc.shape[:-2]
-        flat = dist.ImproperUniform(constraints.real, lead, loc.shape[-2:])
-        x = pyro.sample("x", flat)
+        with pyro.plate_stack("vb_batch", lead):
+            self._pyro_model_body(z, observed, guide, values, lead)
+
+    def _pyro_model_body(
+        self,
+        z: torch.Tensor,
+        observed: torch.Tensor,
+        guide: MeanFieldGuide,
+        values: torch.Tensor,
+        lead: torch.Size,
+    ) -> None:
+        T, dx = z.shape[-2], self.latent_dim
+        x = pyro.sample("x", dist.ImproperUniform(constraints.real, lead, (T, dx)))
         mu = guide.loc
         h, f = self._h, self._transition_gp(values)
         scale2 = self.measurement.scale.pow(2)
@@ -589,8 +608,8 @@ class VariationalInference:
         inputs, plug = x[..., :-1, :], mu[..., :-1, :]
         if self.kind == "continuous":
             prior_g = dist.MultivariateNormal(self.g_prior_mean, scale_tril=self._g_chol)
-            g = pyro.sample("g", prior_g.expand(lead[:-1]))
-            gx = g[..., None, None, :].expand(*inputs.shape[:-1], self.g_dim)
+            g = pyro.sample("g", prior_g.expand(lead))  # [..., 1, Dg], like the guide's
+            gx = g[..., None, :].expand(*inputs.shape[:-1], self.g_dim)
             inputs = torch.cat([inputs, gx], -1)
             gm = guide.g_loc[..., None, None, :].expand(*plug.shape[:-1], self.g_dim)
             plug = torch.cat([plug, gm], -1)

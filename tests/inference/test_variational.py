@@ -1,0 +1,298 @@
+"""VB inference (Sec. 2.3): closed-form free energy vs Pyro Monte Carlo, gradients, prediction,
+batched L-BFGS, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyro
+import pyro.poutine as poutine
+import pytest
+import torch
+from scipy.optimize import minimize
+
+from hgpdm_torch.datasets import styled_movements, targeted_movements
+from hgpdm_torch.inference.variational import (
+    MeanFieldGuide,
+    VariationalInference,
+    batched_lbfgs,
+    condition_gaussian,
+)
+from hgpdm_torch.models import GPDM, HGPDM
+
+# A nonlinear transition (alpha_2 = 1: length scale 1) and a noise large enough for a sharp
+# Monte-Carlo check; the formulas do not depend on the hyperparameter values.
+ALPHA = (0.9, 1.0, 0.1, 0.01)
+
+
+@pytest.fixture(scope="module")
+def styles():
+    return styled_movements(2, 2, 12, 5, seed=4)
+
+
+@pytest.fixture(scope="module")
+def hgpdm(styles):
+    model = HGPDM(styles.sequences, styles.labels, 2, alpha=ALPHA)
+    model.fit(5)
+    return model
+
+
+@pytest.fixture(scope="module")
+def iddm():
+    data = targeted_movements(4, 10, 4, seed=2)
+    model = HGPDM(
+        data.sequences, data.labels, 2, intention="continuous", measurement="linear", alpha=ALPHA
+    )
+    model.fit(5)
+    return model, data
+
+
+def _window(seq: torch.Tensor, start: int, length: int, missing: tuple[int, ...] = ()):
+    z = seq[start : start + length].clone()
+    for t in missing:
+        z[t] = float("nan")
+    return z
+
+
+def _random_guide(model, T, K, gen, spread=0.05, g_dim=0):
+    lat = model.latent.detach()
+    idx = torch.randint(0, lat.shape[0] - T, (K,), generator=gen)
+    loc = torch.stack([lat[i : i + T] for i in idx]) + 0.1 * torch.randn(
+        K, T, model.latent_dim, generator=gen
+    )
+    a = torch.randn(K, T, model.latent_dim, model.latent_dim, generator=gen)
+    cov = spread * (a @ a.mT / model.latent_dim + 0.5 * torch.eye(model.latent_dim))
+    if not g_dim:
+        return MeanFieldGuide(loc, cov)
+    return MeanFieldGuide(loc, cov, torch.tensor([0.2]), torch.tensor([[0.05]]))
+
+
+def _mc_elbo(vb, z, guide, values, M):
+    """Per-particle ``log p~(x, z) - log q(x)`` drawn through the guide with Pyro."""
+    pyro.clear_param_store()
+    nb = guide.loc.dim() - 2
+    with pyro.plate("particles", M, dim=-(nb + 1)):
+        gtr = poutine.trace(guide).get_trace()
+        mtr = poutine.trace(poutine.replay(vb.pyro_model, trace=gtr)).get_trace(
+            z, guide, values=values
+        )
+    gtr.compute_log_prob()
+    mtr.compute_log_prob()
+    total = 0.0
+    for tr, sign in ((mtr, 1.0), (gtr, -1.0)):
+        for site in tr.nodes.values():
+            if site["type"] == "sample":
+                total = total + sign * site["log_prob"]
+    return total  # [M, K]
+
+
+def _check_mc(F, samples):
+    mean = samples.mean(0)
+    se = samples.std(0) / math.sqrt(samples.shape[0])
+    assert torch.all(se < 0.05 * F.abs().clamp_min(1.0)), "Monte-Carlo error too large to judge"
+    assert torch.all((mean - F).abs() < 4.0 * se + 1e-8), (F, mean, se)
+
+
+def test_free_energy_matches_pyro_monte_carlo_discrete(hgpdm, styles):
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(1)
+    vb = VariationalInference(hgpdm)
+    z = _window(styles.sequences[1], 2, 4, missing=(2,))
+    guide = _random_guide(hgpdm, 4, 2, gen)
+    F = vb.guide_free_energy(z, guide).detach()
+    assert F.shape == (2,)
+    _check_mc(F, _mc_elbo(vb, z, guide, None, 20000).detach())
+
+
+def test_free_energy_matches_pyro_monte_carlo_gpdm_and_continuous(hgpdm, styles, iddm):
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(2)
+    gpdm = GPDM(styles.sequences, 2, alpha=ALPHA, measurement="linear")
+    vb = VariationalInference(gpdm)
+    z = _window(styles.sequences[0], 0, 3)
+    guide = _random_guide(gpdm, 3, 1, gen)
+    F = vb.guide_free_energy(z, guide).detach()
+    _check_mc(F, _mc_elbo(vb, z, guide, None, 20000).detach())
+
+    model, data = iddm
+    vb = VariationalInference(model)
+    z = _window(data.sequences[0], 3, 4, missing=(0,))
+    guide = _random_guide(model, 4, 1, gen, g_dim=1)
+    F = vb.guide_free_energy(z, guide).detach()
+    _check_mc(F, _mc_elbo(vb, z, guide, None, 20000).detach())
+
+
+def test_free_energy_gradcheck(hgpdm, styles, iddm):
+    gen = torch.Generator().manual_seed(3)
+    vb = VariationalInference(hgpdm)
+    z = _window(styles.sequences[2], 1, 3, missing=(1,))
+    guide = _random_guide(hgpdm, 3, 2, gen)
+    loc = guide.loc.detach().requires_grad_(True)
+    tril = guide.scale_tril.detach().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: vb.free_energy(z, a, b), (loc, tril))
+    model, data = iddm
+    vb = VariationalInference(model)
+    z = _window(data.sequences[1], 0, 3)
+    guide = _random_guide(model, 3, 1, gen, g_dim=1)
+    args = [
+        t.detach().requires_grad_(True)
+        for t in (guide.loc, guide.scale_tril, guide.g_loc, guide.g_scale_tril)
+    ]
+    fun = lambda a, b, c, d: vb.free_energy(z, a, b, g_loc=c, g_scale_tril=d)  # noqa: E731
+    assert torch.autograd.gradcheck(fun, tuple(args))
+
+
+def test_point_predictions_equal_gp_posterior(hgpdm, generator):
+    vb = VariationalInference(hgpdm)
+    x = torch.randn(7, 2, generator=generator)
+    m, v = vb._h.predict_point(x)
+    ref_m, ref_v = vb.measurement.predict(x, include_noise=True)
+    torch.testing.assert_close(m + vb.measurement.offset, ref_m)
+    torch.testing.assert_close(v[:, None] * vb.measurement.scale.pow(2), ref_v)
+    codes = torch.tensor([0, 1])
+    f = vb._transition_gp(codes)
+    mf, vf = f.predict_point(x[:, None, None, :].expand(7, 2, 1, 2))
+    ref = vb.transition.predict(
+        torch.cat([x[:, None, :].expand(7, 2, 2), codes[:, None].expand(7, 2, 1).to(x.dtype)], -1),
+        include_noise=True,
+    )
+    torch.testing.assert_close(mf[:, :, 0], ref[0])
+    torch.testing.assert_close(vf[:, :, 0, None].expand(7, 2, 2), ref[1])
+
+
+def test_observation_cross_covariance_matches_monte_carlo(hgpdm, generator):
+    """App. 2.B: Cov[z_s, z_t] = scale^2 E[k(x_s, x_t) - k_s^T K^-1 k_t] for independent x."""
+    vb = VariationalInference(hgpdm)
+    gen = torch.Generator().manual_seed(5)
+    guide = _random_guide(hgpdm, 3, 1, gen, spread=0.1)
+    mean, cov = guide.loc.detach()[0], guide.cov.detach()[0]
+    m, S = vb.observation_joint(mean, cov)
+    dz = hgpdm.obs_dim
+    S = S.reshape(3, dz, 3, dz)
+    M = 200000
+    xs = mean + (torch.linalg.cholesky(cov) @ torch.randn(M, 3, 2, 1, generator=gen))[..., 0]
+    post = vb.measurement
+    k = post.kernel(xs.reshape(-1, 2), post.train_inputs).to_dense().reshape(M, 3, -1)
+    kk = post.kernel(xs[:, 0], xs[:, 2], diag=True)
+    samples = kk - ((k[:, 0] @ post.kinv) * k[:, 2]).sum(-1)  # posterior cov of f(x_1), f(x_3)
+    samples = samples.detach()
+    se = float(samples.std() / math.sqrt(M))
+    expect = samples.mean() * post.scale.pow(2)
+    assert torch.allclose(
+        S[0, :, 2, :].diagonal(), expect, atol=4 * se * float(post.scale.max() ** 2)
+    )
+    assert torch.allclose(S[0, :, 2, :] - torch.diag(S[0, :, 2, :].diagonal()), torch.zeros(dz, dz))
+    # diagonal blocks are the moment-matched marginals; the whole matrix is a covariance
+    _, Sm = vb.observation_marginals(mean, cov)
+    torch.testing.assert_close(S[1, :, 1, :], Sm[1])
+    assert torch.linalg.eigvalsh(S.reshape(3 * dz, 3 * dz)).min() > 0
+
+
+def test_condition_gaussian_matches_dense_reference(generator):
+    n = 6
+    a = torch.randn(2, n, n, generator=generator)
+    cov = a @ a.mT + 0.1 * torch.eye(n)
+    mean = torch.randn(2, n, generator=generator)
+    values = torch.randn(2, n, generator=generator)
+    obs = torch.tensor([[1, 0, 1, 1, 0, 0], [0, 1, 1, 0, 1, 1]], dtype=torch.bool)
+    cm, cS = condition_gaussian(mean, cov, obs, values)
+    for b in range(2):
+        o, u = obs[b].numpy(), ~obs[b].numpy()
+        C, m, v = cov[b].numpy(), mean[b].numpy(), values[b].numpy()
+        gain = C[np.ix_(u, o)] @ np.linalg.inv(C[np.ix_(o, o)])
+        np.testing.assert_allclose(cm[b].numpy()[u], m[u] + gain @ (v[o] - m[o]), rtol=1e-10)
+        np.testing.assert_allclose(cm[b].numpy()[o], v[o])
+        ref = C[np.ix_(u, u)] - gain @ C[np.ix_(o, u)]
+        np.testing.assert_allclose(cS[b].numpy()[np.ix_(u, u)], ref, rtol=1e-9, atol=1e-12)
+        assert np.abs(cS[b].numpy()[o]).max() == 0
+
+
+def test_batched_lbfgs_solves_independent_problems(generator):
+    B, P = 5, 4
+    a = torch.randn(B, P, P, generator=generator)
+    H = a @ a.mT + torch.diag_embed(torch.logspace(-2, 2, P).expand(B, P))
+    b = torch.randn(B, P, generator=generator)
+
+    def fun(x, rows=slice(None)):  # quadratic plus the Rosenbrock valley in two coordinates
+        quad = 0.5 * (x[:, None, :] @ H[rows] @ x[:, :, None])[:, 0, 0] - (b[rows] * x).sum(-1)
+        return quad + (1 - x[:, 0]).pow(2) + 10 * (x[:, 1] - x[:, 0].pow(2)).pow(2)
+
+    x, hist = batched_lbfgs(fun, torch.zeros(B, P), max_iter=200, tol_grad=1e-9)
+    for i in range(B):
+        ref = minimize(
+            lambda v, i=i: float(fun(torch.tensor(v)[None], slice(i, i + 1))[0]),
+            np.zeros(P),
+            method="Nelder-Mead",
+            options={"xatol": 1e-10, "fatol": 1e-14, "maxiter": 20000},
+        )
+        assert float(fun(x[i : i + 1], slice(i, i + 1))[0]) <= ref.fun + 1e-8
+        np.testing.assert_allclose(x[i].numpy(), ref.x, atol=1e-4)
+    assert np.all(np.diff(hist) <= 1e-12)  # monotone (Armijo)
+
+
+def test_infer_increases_free_energy_and_svi_can_fit_the_guide(hgpdm, styles):
+    vb = VariationalInference(hgpdm)
+    z = _window(styles.sequences[3], 4, 5, missing=(4,))
+    res = vb.infer(z, steps=30, init="prior")
+    assert res.history[-1] < res.history[0]
+    assert res.log_evidence.shape == (2,) and res.mean.shape == (2, 5, 2)
+    torch.testing.assert_close(res.posterior.sum(-1), torch.tensor(1.0))
+    # the guide works with pyro.infer: SVI on the same objective raises F from the prior start
+    pyro.clear_param_store()
+    torch.manual_seed(0)
+    loc, cov, _, _ = vb.initial_guess(z, vb.values, "prior")
+    guide = MeanFieldGuide(loc, cov)
+    before = vb.guide_free_energy(z, guide).sum().item()
+    svi = pyro.infer.SVI(
+        vb.pyro_model,
+        guide,
+        pyro.optim.Adam({"lr": 0.02}),
+        pyro.infer.Trace_ELBO(num_particles=8, vectorize_particles=True),
+    )
+    for _ in range(60):
+        svi.step(z, guide)
+    assert vb.guide_free_energy(z, guide).sum().item() > before + 1.0
+
+
+def test_forecast_and_gap_shapes_batched(hgpdm, styles):
+    vb = VariationalInference(hgpdm)
+    z = torch.stack([styles.sequences[j][3:7] for j in range(4)])
+    mean, var, res = vb.forecast(z, steps=20)
+    assert mean.shape == (4, 5) and (var > 0).all()
+    assert res.mean.shape == (4, 2, 5, 2)
+    gap = z.clone()
+    gap[:, 1:3] = float("nan")
+    res = vb.infer(gap, steps=20)
+    rec, rv = vb.predict_observations(gap, res)
+    torch.testing.assert_close(rec[:, 0], z[:, 0])
+    assert (rv[:, 1:3] > 0).all() and torch.all(rv[:, 0] == 0)
+    oracle = vb.infer(gap, values=styles.labels[:4, None], steps=10)
+    assert oracle.log_evidence.shape == (4, 1)
+
+
+def test_bad_input(hgpdm, styles):
+    vb = VariationalInference(hgpdm)
+    z = styles.sequences[0][:4]
+    with pytest.raises(ValueError, match="at least 2 time steps"):
+        vb.infer(z[:1])
+    with pytest.raises(ValueError, match="Dz = 5"):
+        vb.infer(z[:, :3])
+    with pytest.raises(ValueError, match="every row is missing"):
+        vb.infer(torch.full_like(z, float("nan")))
+    part = z.clone()
+    part[1, 0] = float("nan")
+    with pytest.raises(ValueError, match="partially observed"):
+        vb.infer(part)
+    inf = z.clone()
+    inf[0, 0] = float("inf")
+    with pytest.raises(ValueError, match="inf"):
+        vb.infer(inf)
+    with pytest.raises(ValueError, match="codes in"):
+        vb.infer(z, values=[0, 5])
+    with pytest.raises(ValueError, match="init"):
+        vb.infer(z, init="random")
+    with pytest.raises(TypeError, match="GPDM"):
+        VariationalInference("model")
+    with pytest.raises(ValueError, match="g_prior"):
+        VariationalInference(hgpdm, g_prior=[0.2, 0.2])
