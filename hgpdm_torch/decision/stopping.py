@@ -33,6 +33,7 @@ __all__ = [
     "Episodes",
     "StoppingProblem",
     "Transitions",
+    "belief_vector",
 ]
 
 ACTIONS = ("wait", "forehand", "middle", "backhand")
@@ -47,6 +48,35 @@ EXPLORATION = (0.5, 1.0 / 6.0, 1.0 / 6.0, 1.0 / 6.0)
 Policy = Callable[[torch.Tensor, int, torch.Tensor], torch.Tensor]
 """A deterministic policy ``(beliefs [m, F], step t, trial index [m]) -> actions [m]``; at the
 last step it must return a stopping action."""
+
+
+def belief_vector(mean: torch.Tensor, cov: torch.Tensor, prob: torch.Tensor) -> torch.Tensor:
+    """The belief state ``theta`` of Sec. 4.2.5 as one vector.
+
+    Concatenates the latent mean, the upper triangle of the latent covariance (row by row) and
+    the histogram over the intention grid: ``F = Dx + Dx (Dx + 1) / 2 + K``.
+
+    Args:
+        mean: ``[..., Dx]``; cov: ``[..., Dx, Dx]``; prob: ``[..., K]`` (batch dims broadcast).
+
+    Returns:
+        ``[..., F]``.
+    """
+    mean = as_tensor(mean, "mean", min_ndim=1)
+    cov = as_tensor(cov, "cov", min_ndim=2, dtype=mean.dtype)
+    prob = as_tensor(prob, "prob", min_ndim=1, dtype=mean.dtype)
+    dx = mean.shape[-1]
+    if cov.shape[-2:] != (dx, dx):
+        raise ValueError(f"cov must have trailing shape [{dx}, {dx}], got {tuple(cov.shape)}")
+    batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], prob.shape[:-1])
+    return _belief_vector(mean.expand(*batch, dx), cov.expand(*batch, dx, dx), prob)
+
+
+def _belief_vector(mean: torch.Tensor, cov: torch.Tensor, prob: torch.Tensor) -> torch.Tensor:
+    """:func:`belief_vector` without validation, for hot loops (batch shapes already equal)."""
+    rows, cols = torch.triu_indices(mean.shape[-1], mean.shape[-1], device=mean.device)
+    prob = prob.expand(*mean.shape[:-1], prob.shape[-1])
+    return torch.cat([mean, cov[..., rows, cols], prob], -1)
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,13 @@ import pytest
 import torch
 from scipy import stats
 
-from hgpdm_torch.decision.stopping import ACTIONS, EXPLORATION, WAIT, StoppingProblem
+from hgpdm_torch.decision.stopping import (
+    ACTIONS,
+    EXPLORATION,
+    WAIT,
+    StoppingProblem,
+    belief_vector,
+)
 
 
 def _problem(n=6, T=4, F=3, seed=0) -> StoppingProblem:
@@ -139,3 +145,16 @@ def test_bad_input():
         p.transitions("episodes")
     with pytest.raises(ValueError, match="probs must be a tensor"):
         p.expected_reward(torch.ones(2, 2, 2))
+
+
+def test_belief_vector_layout():
+    mean = torch.tensor([1.0, 2.0])
+    cov = torch.tensor([[3.0, 4.0], [4.0, 5.0]])
+    prob = torch.tensor([[0.25, 0.75], [0.5, 0.5]])
+    v = belief_vector(mean, cov, prob)
+    torch.testing.assert_close(
+        v,
+        torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0, 0.25, 0.75], [1.0, 2.0, 3.0, 4.0, 5.0, 0.5, 0.5]]),
+    )
+    with pytest.raises(ValueError, match="cov must have trailing shape"):
+        belief_vector(mean, torch.eye(3), prob)

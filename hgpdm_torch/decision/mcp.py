@@ -1,0 +1,365 @@
+r"""Monte-Carlo planning on IDDM beliefs (thesis Algorithms 4.2 and 4.3, Sec. 4.2.4).
+
+The value of waiting one step is estimated by particle projection (Algorithm 4.2)::
+
+    Q(theta_t, wait) ~= 1/I sum_i max_{a != 0} Q^(theta^i_{t+1}, a; w)
+
+where each particle samples the intention ``g ~ p(g | z_{1:t})``, the next observation
+``z^i_{t+1}`` given ``g`` from the IDDM, and runs the online belief update
+(:class:`~hgpdm_torch.inference.intention.OnlineIntentionFilter`, predictive evidence) on it.
+The stopping values ``Q^(theta, a != 0; w)`` are the linear ones learned by LSPI (stopping is
+absorbing, so they are the same for every policy). Algorithm 4.3 stops sampling as soon as a
+Student-t confidence interval of the mean sampled reward lies entirely above (wait) or below
+(stop) the best stopping value.
+
+Where the speed comes from (DESIGN.md sec. 8): every particle starts from the same belief, so the
+K per-intention predictions ``q(x_{t+1} | g)`` and their moment-matched joints with
+``z_{t+1}`` are computed once per decision. A particle differs only by its observation, and
+conditioning a Gaussian on it is linear: ``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)`` with a
+shared covariance ``P_g - C_g S_g^-1 C_g^T`` and the evidence ``log N(z^i | m^z_g, S_g)``. All
+particles of a chunk are advanced in one batched update of ``[I, K]`` small matrices.
+
+Particles draw ``z^i`` either from the moment-matched ``N(m^z_g, S_g)`` (``sampling="moments"``,
+the fast default, consistent with the filter's own approximation) or literally as Algorithm 4.2
+prints, ``x_t ~ q``, ``x_{t+1} ~ GP(x_t, g)``, ``z ~ GP(x_{t+1})`` at points
+(``sampling="points"``, one ``[I, N]`` kernel per GP).
+
+Shapes: ``I`` particles, ``K`` intention values, ``Dx`` latent, ``Dz`` observed, ``S`` stopping
+actions.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from scipy import stats
+
+from ..gp import GPPosterior
+from ..inference.intention import OnlineIntentionFilter
+from ..linalg import psd_cholesky, symmetrize
+from ..validation import as_tensor, check_choice
+from .lspi import LinearQ
+from .stopping import WAIT, _belief_vector, belief_vector
+
+__all__ = ["Belief", "MCPDecision", "MonteCarloPlanner"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def _check_filter(belief_filter: object) -> None:
+    if not isinstance(belief_filter, OnlineIntentionFilter):
+        name = type(belief_filter).__name__
+        raise TypeError(f"belief_filter must be an OnlineIntentionFilter, got {name}")
+
+
+@dataclass(frozen=True)
+class Belief:
+    """One stream's online IDDM belief ``theta_t``.
+
+    Attributes:
+        mean: ``[Dx]`` mean of ``q(x_t)`` (shared by all intentions).
+        cov: ``[Dx, Dx]`` its covariance.
+        log_prob: ``[K]`` normalised ``log p(g_k | z_{1:t})`` over the filter's grid.
+    """
+
+    mean: torch.Tensor
+    cov: torch.Tensor
+    log_prob: torch.Tensor
+
+    @classmethod
+    def from_filter(cls, belief_filter: OnlineIntentionFilter, stream: int = 0) -> Belief:
+        """The current belief of stream ``stream`` of an online filter (copied)."""
+        _check_filter(belief_filter)
+        return cls(
+            belief_filter.mean[stream].clone(),
+            belief_filter.cov[stream].clone(),
+            belief_filter.log_belief[stream].clone(),
+        )
+
+    def vector(self) -> torch.Tensor:
+        """``[F]`` belief vector (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
+        return belief_vector(self.mean, self.cov, self.log_prob.exp())
+
+
+@dataclass(frozen=True)
+class MCPDecision:
+    """Output of :meth:`MonteCarloPlanner.decide`.
+
+    Attributes:
+        action: 0 (wait) or the stopping action ``1 .. S``.
+        q_stop: ``[S]`` values of the stopping actions at ``theta_t``.
+        q_wait: the Monte-Carlo estimate of ``Q(theta_t, wait)`` (NaN when waiting was not
+            allowed and nothing was sampled).
+        particles: particles used (fewer than the budget after early termination).
+    """
+
+    action: int
+    q_stop: torch.Tensor
+    q_wait: float
+    particles: int
+
+
+@dataclass(frozen=True)
+class _Shared:
+    """Per-decision quantities shared by all particles (``[K, ...]``)."""
+
+    prob: torch.Tensor  # [K]
+    log_prob: torch.Tensor  # [K]
+    pred_mean: torch.Tensor  # [K, Dx]  q(x_{t+1} | g)
+    pred_cov: torch.Tensor  # [K, Dx, Dx]
+    z_mean: torch.Tensor  # [K, Dz]
+    z_chol: torch.Tensor  # [K, Dz, Dz]  chol L of Cov[z_{t+1} | g]
+    z_white: torch.Tensor  # [K, Dz, Dz]  L^-T, so that r^T L^-T is the whitened innovation
+    z_logdet: torch.Tensor  # [K]  log |Cov[z_{t+1} | g]|
+    gain_t: torch.Tensor  # [K, Dz, Dx]  S^-1 C^T
+    post_cov: torch.Tensor  # [K, Dx, Dx]  P - C S^-1 C^T
+    x_chol: torch.Tensor  # [Dx, Dx]  chol of Cov[x_t] (for sampling="points")
+    mean: torch.Tensor  # [Dx]
+
+
+class MonteCarloPlanner:
+    """Anticipatory action selection by Monte-Carlo planning (Algorithms 4.2-4.3).
+
+    Args:
+        belief_filter: the online IDDM filter whose belief update the particles replay (its
+            ``evidence`` must be ``"predictive"``; its grid, forgetting factor, transition and
+            measurement models are used, not its streams).
+        q: stopping values ``Q^(theta, a) = phi'(theta)^T w_a`` (e.g. ``lspi(...).q``); row 0
+            (waiting) is not used.
+        features: state feature map ``phi'`` from belief vectors ``[..., F]`` (e.g. a fitted
+            :class:`~hgpdm_torch.decision.basis.RadialBasis`).
+        transition: the IDDM transition GP (``model.transition_posterior()``); needed only for
+            ``sampling="points"``.
+        num_particles: I, the sampling budget per decision.
+        confidence: level of the two-sided Student-t interval of Algorithm 4.3.
+        min_particles: particles drawn before the interval is first checked.
+        chunk_size: particles advanced per batched update; the interval is checked after each.
+        sampling: ``"moments"`` or ``"points"`` (module docstring).
+    """
+
+    def __init__(
+        self,
+        belief_filter: OnlineIntentionFilter,
+        q: LinearQ,
+        features: Callable[[torch.Tensor], torch.Tensor],
+        *,
+        transition: GPPosterior | None = None,
+        num_particles: int = 500,
+        confidence: float = 0.99,
+        min_particles: int = 50,
+        chunk_size: int = 50,
+        sampling: str = "moments",
+    ) -> None:
+        _check_filter(belief_filter)
+        if belief_filter.evidence != "predictive":
+            raise ValueError(
+                "MonteCarloPlanner replays the filter's predictive-evidence update; got a filter "
+                f"with evidence={belief_filter.evidence!r}"
+            )
+        if not isinstance(q, LinearQ):
+            raise TypeError(f"q must be a LinearQ, got {type(q).__name__}")
+        if not callable(features):
+            raise TypeError("features must be callable (belief vectors -> state features)")
+        for name, value, low in (
+            ("num_particles", num_particles, 2),
+            ("min_particles", min_particles, 2),
+            ("chunk_size", chunk_size, 1),
+        ):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+        if not (isinstance(confidence, float) and 0.0 < confidence < 1.0):
+            raise ValueError(f"confidence must be a float in (0, 1), got {confidence!r}")
+        check_choice(sampling, "sampling", ("moments", "points"))
+        if sampling == "points" and not isinstance(transition, GPPosterior):
+            raise ValueError(
+                "sampling='points' needs transition, the IDDM's transition GPPosterior"
+            )
+        self.filter = belief_filter
+        self.q, self.features = q, features
+        self.transition = transition
+        self.num_particles, self.min_particles = num_particles, min_particles
+        self.chunk_size, self.confidence, self.sampling = chunk_size, confidence, sampling
+        # interval half-width factors c(n) of Algorithm 4.3 for every checkpoint n
+        checks = range(chunk_size, num_particles + chunk_size, chunk_size)
+        self._c = {
+            min(n, num_particles): float(
+                stats.t.ppf(0.5 + confidence / 2, min(n, num_particles) - 1)
+            )
+            for n in checks
+        }
+
+    # ----- Algorithm 4.2: particle projection -------------------------------------------------
+
+    def _check_belief(self, belief: Belief) -> Belief:
+        if not isinstance(belief, Belief):
+            raise TypeError(f"belief must be a Belief, got {type(belief).__name__}")
+        f = self.filter
+        dx, k = f.mu0.shape[0], f.num_values
+        if belief.mean.shape != (dx,) or belief.cov.shape != (dx, dx):
+            raise ValueError(
+                f"belief mean/cov must have shapes [{dx}] and [{dx}, {dx}], got "
+                f"{tuple(belief.mean.shape)} and {tuple(belief.cov.shape)}"
+            )
+        if belief.log_prob.shape != (k,):
+            raise ValueError(
+                f"belief.log_prob must have K = {k} entries, got {belief.log_prob.shape}"
+            )
+        for name in ("mean", "cov", "log_prob"):
+            as_tensor(getattr(belief, name), f"belief.{name}")
+        return belief
+
+    def _shared(self, belief: Belief) -> _Shared:
+        """The K predictions and their joints with ``z_{t+1}``, computed once per decision."""
+        f = self.filter
+        m = belief.mean.to(f.dtype)[None]
+        P = belief.cov.to(f.dtype)[None]
+        mean, cov, _ = f.transition.moments(m, P)  # [1, K, Dx(, Dx)]
+        mean, cov = mean[0], cov[0]
+        mz, Sz, Cxz = f.measurement.predict_gaussian(mean, cov, include_noise=True)
+        L = psd_cholesky(Sz, name="predicted observation covariance")
+        gain_t = torch.cholesky_solve(Cxz.transpose(-1, -2), L)  # S^-1 C^T  [K, Dz, Dx]
+        log_prob = belief.log_prob.to(f.dtype)
+        log_prob = log_prob - torch.logsumexp(log_prob, -1)
+        eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device).expand_as(L)
+        return _Shared(
+            prob=log_prob.exp(),
+            log_prob=log_prob,
+            pred_mean=mean,
+            pred_cov=cov,
+            z_mean=mz,
+            z_chol=L,
+            z_white=torch.linalg.solve_triangular(L, eye, upper=False).transpose(-1, -2),
+            z_logdet=2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1),
+            gain_t=gain_t,
+            post_cov=symmetrize(cov - Cxz @ gain_t),
+            x_chol=psd_cholesky(P[0], name="belief covariance"),
+            mean=m[0],
+        )
+
+    def _sample_observations(
+        self, shared: _Shared, num: int, generator: torch.Generator | None
+    ) -> torch.Tensor:
+        """``z^i_{t+1} [I, Dz]`` (Algorithm 4.2, lines 3-5)."""
+        f = self.filter
+        g = torch.multinomial(shared.prob, num, replacement=True, generator=generator)  # [I]
+        dz = shared.z_mean.shape[-1]
+        dtype = shared.z_mean.dtype
+        if self.sampling == "moments":
+            eps = torch.randn(num, dz, 1, generator=generator, dtype=dtype)
+            return shared.z_mean[g] + (shared.z_chol[g] @ eps)[..., 0]
+        dx = shared.mean.shape[0]
+        x = shared.mean + torch.randn(num, dx, generator=generator, dtype=dtype) @ shared.x_chol.T
+        m, v = self.transition.predict(torch.cat([x, f.values[g]], -1), include_noise=True)
+        x1 = m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=dtype)
+        m, v = f.measurement.predict(x1, include_noise=True)
+        return m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=dtype)
+
+    def step(self, belief: Belief, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The online filter's update of one belief on many observations at once.
+
+        Args:
+            belief: the current belief.
+            z: ``[I, Dz]`` observations.
+
+        Returns:
+            ``mean [I, Dx]``, ``cov [I, Dx, Dx]`` of the mixed ``q(x_{t+1})`` and ``log_prob
+            [I, K]``: what ``OnlineIntentionFilter.update`` gives for I streams in this belief.
+        """
+        shared = self._shared(self._check_belief(belief))
+        z = as_tensor(z, "z", ndim=2, dtype=shared.z_mean.dtype)
+        if z.shape[1] != shared.z_mean.shape[-1]:
+            raise ValueError(
+                f"z must have Dz = {shared.z_mean.shape[-1]} columns, got {z.shape[1]}"
+            )
+        return self._update(shared, z)
+
+    def _update(self, shared: _Shared, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Linear-Gaussian conditioning of the shared predictions on ``z [I, Dz]``."""
+        num, (K, dx) = z.shape[0], shared.pred_mean.shape
+        r = (z[:, None, :] - shared.z_mean).transpose(0, 1)  # [K, I, Dz] innovations
+        mu = (shared.pred_mean[:, None, :] + r @ shared.gain_t).transpose(0, 1)  # [I, K, Dx]
+        w = r @ shared.z_white  # [K, I, Dz] whitened
+        evidence = -0.5 * (w.pow(2).sum(-1).T + shared.z_logdet + r.shape[-1] * _LOG_2PI)
+        log_prob = (1.0 - self.filter.forgetting) * shared.log_prob + evidence
+        log_prob = log_prob - torch.logsumexp(log_prob, -1, keepdim=True)
+        p = log_prob.exp()  # [I, K]
+        mean = (p[:, None, :] @ mu)[:, 0]
+        d = mu - mean[:, None, :]
+        # mixture covariance: sum_k p_k (P_k + d_k d_k^T), with P_k shared by all particles
+        cov = (p @ shared.post_cov.reshape(K, dx * dx)).view(num, dx, dx)
+        cov = cov + (d * p[..., None]).transpose(-1, -2) @ d
+        return mean, symmetrize(cov), log_prob
+
+    def _stop_values(self, vectors: torch.Tensor) -> torch.Tensor:
+        return self.q.values(self.features(vectors))[..., WAIT + 1 :]
+
+    def _project(self, shared: _Shared, num: int, generator: torch.Generator | None):
+        z = self._sample_observations(shared, num, generator)
+        mean, cov, log_prob = self._update(shared, z)
+        return self._stop_values(_belief_vector(mean, cov, log_prob.exp())).max(-1).values
+
+    def project(
+        self, belief: Belief, num: int | None = None, *, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """Algorithm 4.2: the sampled rewards ``r^i = max_{a != 0} Q^(theta^i_{t+1}, a)``.
+
+        Args:
+            belief: the current belief.
+            num: particles (default ``num_particles``), advanced ``chunk_size`` at a time.
+            generator: random generator.
+
+        Returns:
+            ``[I]``; their mean estimates ``Q(theta_t, wait)``.
+        """
+        shared = self._shared(self._check_belief(belief))
+        num = self.num_particles if num is None else num
+        if isinstance(num, bool) or not isinstance(num, int) or num < 1:
+            raise ValueError(f"num must be a positive int, got {num!r}")
+        sizes = [self.chunk_size] * (num // self.chunk_size) + [num % self.chunk_size]
+        return torch.cat([self._project(shared, n, generator) for n in sizes if n])
+
+    # ----- Algorithm 4.3: decision with early termination -------------------------------------
+
+    def decide(
+        self,
+        belief: Belief,
+        *,
+        can_wait: bool = True,
+        early_stop: bool = True,
+        generator: torch.Generator | None = None,
+    ) -> MCPDecision:
+        """Choose wait or a movement for the current belief (Algorithm 4.3).
+
+        Args:
+            belief: the current belief.
+            can_wait: whether waiting is allowed (not at the last decision step).
+            early_stop: stop sampling once the confidence interval of ``Q(theta_t, wait)``
+                excludes the best stopping value (else use all ``num_particles``).
+            generator: random generator.
+        """
+        belief = self._check_belief(belief)
+        q_stop = self._stop_values(belief.vector().to(self.filter.dtype))
+        best_stop, best = q_stop.max(-1)
+        stop = MCPDecision(int(best) + 1, q_stop, math.nan, 0)
+        if not can_wait:
+            return stop
+        shared = self._shared(belief)
+        samples, n = [], 0
+        while n < self.num_particles:
+            size = min(self.chunk_size, self.num_particles - n)
+            samples.append(self._project(shared, size, generator))
+            n += size
+            if early_stop and n >= self.min_particles and n < self.num_particles:
+                r = torch.cat(samples)
+                mean = float(r.mean())
+                half = self._c[n] * float(r.std()) / math.sqrt(n)
+                if mean + half < best_stop:  # waiting is very likely worse
+                    return MCPDecision(stop.action, q_stop, mean, n)
+                if mean - half > best_stop:  # waiting is very likely better
+                    return MCPDecision(WAIT, q_stop, mean, n)
+        q_wait = float(torch.cat(samples).mean())
+        action = WAIT if q_wait > float(best_stop) else stop.action
+        return MCPDecision(action, q_stop, q_wait, n)
