@@ -57,6 +57,7 @@ __all__ = [
     "IntentionBelief",
     "OnlineIntentionFilter",
     "SharedTransition",
+    "batch_bound",
     "expected_log_conditional",
     "infer_intention",
     "intention_grid",
@@ -367,15 +368,18 @@ class SharedTransition:
         mean = torch.einsum("ku,bua->bka", phi, m_u)
         g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
         cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
-        # beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv beta_u^T psi2_uv beta_v: contract each
-        # group's weights (block-sparse, O(N^2 Dx)), then phi over groups, then the rows
-        P1 = beta.transpose(1, 2) @ q.view(b, U, L, U * L)  # [B, U, Dx, UL]
-        P2 = (phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
-        second = P2 @ self.weighted_beta  # [B, K, Dx, Dx]
         T = (q * self.kinv).view(b, U, L, U, L).sum(4).sum(2)  # [B, U, U]
         trace = ((phi @ T) * phi).sum(-1)
+        # Cov[f] = beta_k^T (psi2 - psi1 psi1^T) beta_k: centring the N x N matrix first keeps
+        # float32 usable (beta is large when the noise is small) and gives the covariance
+        # without the cancellation of second moment minus squared mean.
+        q = torch.baddbmm(q, p1[:, :, None], p1[:, None, :], alpha=-1.0)
+        # sum_uv phi_ku phi_kv beta_u^T q_uv beta_v: contract each group's weights
+        # (block-sparse, O(N^2 Dx)), then phi over groups, then the rows
+        P1 = beta.transpose(1, 2) @ q.view(b, U, L, U * L)  # [B, U, Dx, UL]
+        P2 = (phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
+        cov = P2 @ self.weighted_beta  # [B, K, Dx, Dx]
         var = (self.coef - trace).clamp_min(0.0) + self.noise
-        cov = second - mean[..., :, None] * mean[..., None, :]
         cov = symmetrize(cov) + torch.diag_embed(var[..., None].expand(b, -1, dx))
         return mean, cov, cross
 
@@ -634,7 +638,7 @@ class OnlineIntentionFilter:
 # ------------------------------------------------------------------------------------------
 
 
-def _batch_bound(
+def batch_bound(
     trans: GPPosterior,
     meas: GPPosterior,
     z: torch.Tensor,
@@ -642,9 +646,20 @@ def _batch_bound(
     mu0: torch.Tensor,
     Sigma0: torch.Tensor,
 ) -> torch.Tensor:
-    """Eq. 22 without ``log p(g)`` for windows ``z [W, T, Dz]`` and values ``g [K, Dg]``.
+    """The bound of Eq. 22 without ``log p(g)``, for every intention value and window.
 
-    Returns ``[K, W]``.
+    ``B(g) - log p(g) = E_q[log p(x_1)] + sum_t E_q[log p(z_t | x_t)] + sum_t Q_t(g) + H(q)``
+    with ``q = q_g(x_{1:T})`` the GP-RTSS smoother under ``g``. For a linear-Gaussian model the
+    smoother is exact and the bound equals ``log p(z_{1:T} | g)``.
+
+    Args:
+        trans: transition GP ``[x, g] -> x_{t+1}``; meas: measurement GP ``x -> z``.
+        z: ``[W, T, Dz]`` windows (NaN rows missing).
+        g: ``[K, Dg]`` intention values (codes).
+        mu0, Sigma0: ``[Dx]``, ``[Dx, Dx]`` prior of the first state.
+
+    Returns:
+        ``[K, W]``.
     """
     gk = g[:, None, :]  # [K, 1, Dg] broadcasts against the W windows
     sm = smooth(filter_sequence(trans, meas, z, mu0, Sigma0, g=gk))  # [K, W, T, ...]
@@ -735,7 +750,7 @@ def infer_intention(
     out = torch.empty(flat.shape[0], T if window else 1, len(values), dtype=dtype)
     for batch, tag in tqdm(jobs, disable=not progress, desc="batch intention", leave=False):
         parts = [
-            _batch_bound(trans, meas, batch[i : i + chunk_size], values, m0, S0).mT
+            batch_bound(trans, meas, batch[i : i + chunk_size], values, m0, S0).mT
             for i in range(0, batch.shape[0], chunk_size)
         ]
         score = torch.cat(parts, 0) + log_prior  # [windows, K]
