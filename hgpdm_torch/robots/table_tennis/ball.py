@@ -936,7 +936,7 @@ class BounceAim(NamedTuple):
     Attributes:
         vel: initial velocity.
         bounce_x: ``x`` of the bounce on the table.
-        flight_time: time from the start to the bounce [s] (solved when ``plane_z`` is given).
+        flight_time: time from the start to the bounce [s] (as given).
         converged: whether the ball crosses the plane within ``tol`` of the wanted point
             (false where it cannot reach the plane, e.g. because it hits the net).
     """
@@ -955,7 +955,6 @@ def aim_through_bounce(
     params: BallParams = DEFAULT_PARAMS,
     *,
     y_plane: float = geo.HITTING_PLANE_Y,
-    plane_z: object | None = None,
     spin: object | None = None,
     tol: float = 1e-6,
     max_iter: int = 12,
@@ -963,24 +962,21 @@ def aim_through_bounce(
     """Initial velocity for a ball that bounces at ``y = bounce_y`` and crosses ``y_plane`` at x.
 
     The opponent's return (thesis Fig. 4.2): the ball must land on the robot's half and pass the
-    robot's virtual hitting plane at the intended lateral position ``plane_x`` (and, optionally,
-    height ``plane_z``). For a bounce point ``(x_b, bounce_y)`` reached in time ``T``
-    :func:`aim` gives the velocity; Newton's method with a finite-difference Jacobian then
-    adjusts ``x_b`` (and ``T``, when ``plane_z`` is given) until the simulated crossing (bounce
-    and net included) is at the wanted point. Balls that cannot reach the plane are reported,
+    robot's virtual hitting plane at the intended lateral position ``plane_x``. For a bounce
+    point ``(x_b, bounce_y)`` reached in ``flight_time`` :func:`aim` gives the velocity; Newton's
+    method with a finite-difference derivative then adjusts ``x_b`` until the simulated crossing
+    (bounce and net included) is at ``plane_x``. Balls that cannot reach the plane are reported,
     not raised.
 
     Args:
         pos: ``[..., 3]`` start position.
         plane_x: ``[...]`` wanted lateral position on the plane.
         bounce_y: ``[...]`` ``y`` of the bounce on the table.
-        flight_time: ``[...]`` time from ``pos`` to the bounce [s]; the initial guess when
-            ``plane_z`` is given.
+        flight_time: ``[...]`` time from ``pos`` to the bounce [s].
         params: ball constants.
         y_plane: the plane (default: the robot's hitting plane).
-        plane_z: optional ``[...]`` wanted height of the ball centre at the plane.
         spin: ``[..., 3]`` spin right after the hit (default zero).
-        tol: an element has converged when its crossing is within this of the target [m].
+        tol: an element has converged when its crossing is within this of ``plane_x`` [m].
         max_iter: Newton iterations at most.
 
     Returns:
@@ -995,48 +991,29 @@ def aim_through_bounce(
     ft = as_tensor(flight_time, "flight_time", **kw)
     if bool((ft <= 0).any()):
         raise ValueError("flight_time must be positive")
-    pz = px if plane_z is None else as_tensor(plane_z, "plane_z", **kw)
     w = torch.zeros(3, **kw) if spin is None else as_tensor(spin, "spin", min_ndim=1, **kw)
-    shape = torch.broadcast_shapes(
-        p0.shape[:-1], px.shape, by.shape, ft.shape, pz.shape, w.shape[:-1]
-    )
+    shape = torch.broadcast_shapes(p0.shape[:-1], px.shape, by.shape, ft.shape, w.shape[:-1])
     p0, w = p0.expand(*shape, 3), w.expand(*shape, 3)
-    px, by, ft, pz = (x.expand(shape) for x in (px, by, ft, pz))
-    two = plane_z is not None
-    want = torch.stack([px, pz], -1) if two else px[..., None]
+    px, by, ft = (x.expand(shape) for x in (px, by, ft))
 
-    def crossing(u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        t = u[..., 1] if two else ft
-        v0 = aim(p0, torch.stack([u[..., 0], by], -1), t, params, spin=w)
+    def crossing(xb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        v0 = aim(p0, torch.stack([xb, by], -1), ft, params, spin=w)
         _, at, valid = predict_plane_crossing(BallState(p0, v0, w), y_plane, params, dt=0.01)
-        got = at.pos[..., [0, 2]] if two else at.pos[..., :1]
-        return got, v0, valid
+        return at.pos[..., 0], v0, valid
 
     # straight-line guess from the start over the bounce to the plane
     frac = (by - p0[..., 1]) / (y_plane - p0[..., 1])
     xb = p0[..., 0] + frac * (px - p0[..., 0])
-    u = torch.stack([xb, ft], -1) if two else xb[..., None]
-    steps = torch.tensor([1e-5, 1e-5] if two else [1e-5], **kw)
-    limit = torch.tensor([0.2, 0.05] if two else [0.2], **kw)  # trust region per iteration
+    step = 1e-5
     for _ in range(max_iter):
-        got, v0, valid = crossing(u)
-        err = got - want
-        converged = valid & (err.abs() < tol).all(-1)
+        got, v0, valid = crossing(xb)
+        err = got - px
+        converged = valid & (err.abs() < tol)
         if bool((converged | ~valid).all()):
             break
-        cols = []
-        for k in range(u.shape[-1]):
-            du = torch.zeros_like(u)
-            du[..., k] = steps[k]
-            cols.append((crossing(u + du)[0] - got) / steps[k])
-        jac = torch.stack(cols, -1)
-        ok = torch.linalg.det(jac).abs() > 1e-12
-        jac = torch.where(ok[..., None, None], jac, torch.eye(u.shape[-1], **kw))
-        delta = torch.linalg.solve(jac, err.unsqueeze(-1)).squeeze(-1)
-        delta = torch.maximum(torch.minimum(delta, limit), -limit)
-        # converged and unreachable elements stay put
-        u = torch.where((converged | ~valid)[..., None], u, u - delta)
-        if two:
-            u[..., 1] = u[..., 1].clamp(0.15, 1.5)
-    t = u[..., 1] if two else ft
-    return BounceAim(v0, u[..., 0], t.clone(), converged)
+        slope = (crossing(xb + step)[0] - got) / step
+        slope = torch.where(slope.abs() > 1e-3, slope, torch.ones_like(slope))
+        # a trust region of 0.2 m per iteration; converged and unreachable elements stay put
+        delta = (err / slope).clamp(-0.2, 0.2)
+        xb = torch.where(converged | ~valid, xb, xb - delta)
+    return BounceAim(v0, xb, ft.clone(), converged)
