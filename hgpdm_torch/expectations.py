@@ -66,6 +66,7 @@ import torch
 from gpytorch.kernels import AdditiveKernel, Kernel, LinearKernel, RBFKernel, ScaleKernel
 
 from .kernels import DiscreteIntentionKernel, IntentionRBFKernel
+from .linalg import psd_cholesky
 from .validation import as_tensor
 
 __all__ = [
@@ -329,7 +330,7 @@ def _rbf_factor(
     s = _sqrt_weight(w)
     eye = torch.eye(w.shape[-1], dtype=Sigma.dtype, device=Sigma.device)
     B = eye + s[:, None] * Sigma * s[None, :]
-    L = torch.linalg.cholesky(B)  # B >= I: always positive definite
+    L = psd_cholesky(B, name="I + S^1/2 Sigma S^1/2")  # >= I up to roundoff in Sigma
     logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     return s, L, logdet
 
