@@ -111,10 +111,14 @@ class _Shared:
     pred_mean: torch.Tensor  # [K, Dx]  q(x_{t+1} | g)
     pred_cov: torch.Tensor  # [K, Dx, Dx]
     z_mean: torch.Tensor  # [K, Dz]
-    z_chol: torch.Tensor  # [K, Dz, Dz]  chol L of Cov[z_{t+1} | g]
-    z_white: torch.Tensor  # [K, Dz, Dz]  L^-T, so that r^T L^-T is the whitened innovation
-    z_logdet: torch.Tensor  # [K]  log |Cov[z_{t+1} | g]|
-    gain_t: torch.Tensor  # [K, Dz, Dx]  S^-1 C^T
+    z_chol: torch.Tensor  # [K, Dz, Dz]  chol L of S = Cov[z_{t+1} | g]
+    z_logdet: torch.Tensor  # [K]  log |S|
+    # the conditioning as one matrix product over all K for a batch of z [I, Dz]:
+    #   mu = z @ gain - gain_offset  ([I, K Dx]),  w = z @ white - white_offset  ([I, K Dz])
+    gain: torch.Tensor  # [Dz, K Dx]  (S^-1 C^T)_k side by side
+    gain_offset: torch.Tensor  # [K Dx]  m^z_k S^-1 C^T - m_k
+    white: torch.Tensor  # [Dz, K Dz]  (L^-T)_k side by side: w^T w = r^T S^-1 r
+    white_offset: torch.Tensor  # [K Dz]
     post_cov: torch.Tensor  # [K, Dx, Dx]  P - C S^-1 C^T
     x_chol: torch.Tensor  # [Dx, Dx]  chol of Cov[x_t] (for sampling="points")
     mean: torch.Tensor  # [Dx]
@@ -149,8 +153,8 @@ class MonteCarloPlanner:
         transition: GPPosterior | None = None,
         num_particles: int = 500,
         confidence: float = 0.99,
-        min_particles: int = 50,
-        chunk_size: int = 50,
+        min_particles: int = 100,
+        chunk_size: int = 100,
         sampling: str = "moments",
     ) -> None:
         _check_filter(belief_filter)
@@ -224,6 +228,8 @@ class MonteCarloPlanner:
         log_prob = belief.log_prob.to(f.dtype)
         log_prob = log_prob - torch.logsumexp(log_prob, -1)
         eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device).expand_as(L)
+        white = torch.linalg.solve_triangular(L, eye, upper=False).transpose(-1, -2)  # L^-T
+        K, dz = mz.shape
         return _Shared(
             prob=log_prob.exp(),
             log_prob=log_prob,
@@ -231,9 +237,11 @@ class MonteCarloPlanner:
             pred_cov=cov,
             z_mean=mz,
             z_chol=L,
-            z_white=torch.linalg.solve_triangular(L, eye, upper=False).transpose(-1, -2),
             z_logdet=2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1),
-            gain_t=gain_t,
+            gain=gain_t.permute(1, 0, 2).reshape(dz, -1),
+            gain_offset=((mz[:, None, :] @ gain_t)[:, 0] - mean).reshape(-1),
+            white=white.permute(1, 0, 2).reshape(dz, -1),
+            white_offset=(mz[:, None, :] @ white).reshape(-1),
             post_cov=symmetrize(cov - Cxz @ gain_t),
             x_chol=psd_cholesky(P[0], name="belief covariance"),
             mean=m[0],
@@ -278,19 +286,18 @@ class MonteCarloPlanner:
 
     def _update(self, shared: _Shared, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Linear-Gaussian conditioning of the shared predictions on ``z [I, Dz]``."""
-        num, (K, dx) = z.shape[0], shared.pred_mean.shape
-        r = (z[:, None, :] - shared.z_mean).transpose(0, 1)  # [K, I, Dz] innovations
-        mu = (shared.pred_mean[:, None, :] + r @ shared.gain_t).transpose(0, 1)  # [I, K, Dx]
-        w = r @ shared.z_white  # [K, I, Dz] whitened
-        evidence = -0.5 * (w.pow(2).sum(-1).T + shared.z_logdet + r.shape[-1] * _LOG_2PI)
+        num, (K, dx), dz = z.shape[0], shared.pred_mean.shape, z.shape[1]
+        mu = (z @ shared.gain - shared.gain_offset).view(num, K, dx)  # filtered means per g
+        w = (z @ shared.white - shared.white_offset).view(num, K, dz)  # whitened innovations
+        evidence = -0.5 * (w.pow(2).sum(-1) + shared.z_logdet + dz * _LOG_2PI)  # [I, K]
         log_prob = (1.0 - self.filter.forgetting) * shared.log_prob + evidence
         log_prob = log_prob - torch.logsumexp(log_prob, -1, keepdim=True)
         p = log_prob.exp()  # [I, K]
-        mean = (p[:, None, :] @ mu)[:, 0]
+        mean = (p[..., None] * mu).sum(1)
         d = mu - mean[:, None, :]
         # mixture covariance: sum_k p_k (P_k + d_k d_k^T), with P_k shared by all particles
         cov = (p @ shared.post_cov.reshape(K, dx * dx)).view(num, dx, dx)
-        cov = cov + (d * p[..., None]).transpose(-1, -2) @ d
+        cov = cov + (p[..., None, None] * d[..., :, None] * d[..., None, :]).sum(1)
         return mean, symmetrize(cov), log_prob
 
     def _stop_values(self, vectors: torch.Tensor) -> torch.Tensor:

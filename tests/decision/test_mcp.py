@@ -150,7 +150,7 @@ def test_projection_estimates_the_value_of_waiting(pipeline, generator):
 
 def test_early_termination_agrees_with_all_particles(pipeline):
     f, basis, q, states = pipeline
-    planner = MonteCarloPlanner(f, q, basis, num_particles=500)  # confidence 0.99, chunks of 50
+    planner = MonteCarloPlanner(f, q, basis, num_particles=500)  # confidence 0.99, chunks of 100
     mean = states[0]
     n, T = mean.shape[0], mean.shape[1]
     agree, total, used, waits = 0, 0, 0, 0
