@@ -6,7 +6,7 @@ The public API, re-exported. Subpackages: :mod:`hgpdm_torch.models`, :mod:`hgpdm
 extra).
 """
 
-from . import datasets, decision, inference, kernels, models
+from . import datasets, decision, expectations, inference, kernels, models
 from .gp import GPPosterior
 from .kernels import ALPHA_BAR, measurement_kernel, transition_kernel
 from .linalg import CholeskyError
@@ -23,6 +23,7 @@ __all__ = [
     "IDDM",
     "datasets",
     "decision",
+    "expectations",
     "inference",
     "kernels",
     "load_model",
