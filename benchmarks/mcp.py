@@ -69,11 +69,8 @@ def _setup(n_points: int, k: int):
     basis = RadialBasis(min(100, num * T), seed=0).fit(beliefs.reshape(-1, beliefs.shape[-1]))
     q = lspi(problem.transitions(problem.enumerate_episodes(), unique=True), features=basis).q
     states = [Belief(mean[i, t], cov[i, t], log_prob[i, t]) for i in range(num) for t in range(T)]
-    planner = MonteCarloPlanner(f, q, basis, num_particles=PARTICLES)
-    literal = MonteCarloPlanner(
-        f, q, basis, num_particles=PARTICLES, sampling="points",
-        transition=model.transition_posterior(),
-    )  # fmt: skip
+    planner = MonteCarloPlanner(model, f, q, basis, num_particles=PARTICLES)
+    literal = MonteCarloPlanner(model, f, q, basis, num_particles=PARTICLES, sampling="points")
     n_trans = model.transition_posterior().train_inputs.shape[0]
     return n_trans, planner, literal, states
 

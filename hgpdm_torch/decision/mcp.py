@@ -37,9 +37,9 @@ from dataclasses import dataclass
 import torch
 from scipy import stats
 
-from ..gp import GPPosterior
 from ..inference.intention import OnlineIntentionFilter
 from ..linalg import psd_cholesky, symmetrize
+from ..models import HGPDM
 from ..validation import as_tensor, check_choice
 from .lspi import LinearQ
 from .stopping import WAIT, _belief_vector, belief_vector
@@ -128,15 +128,15 @@ class MonteCarloPlanner:
     """Anticipatory action selection by Monte-Carlo planning (Algorithms 4.2-4.3).
 
     Args:
-        belief_filter: the online IDDM filter whose belief update the particles replay (its
-            ``evidence`` must be ``"predictive"``; its grid, forgetting factor, transition and
-            measurement models are used, not its streams).
+        model: the fitted IDDM (its measurement GP, and its transition GP for
+            ``sampling="points"``).
+        belief_filter: the online filter of this model whose belief update the particles replay
+            (its ``evidence`` must be ``"predictive"``; its grid, forgetting factor and shared
+            transition moments are used, not its streams).
         q: stopping values ``Q^(theta, a) = phi'(theta)^T w_a`` (e.g. ``lspi(...).q``); row 0
             (waiting) is not used.
         features: state feature map ``phi'`` from belief vectors ``[..., F]`` (e.g. a fitted
             :class:`~hgpdm_torch.decision.basis.RadialBasis`).
-        transition: the IDDM transition GP (``model.transition_posterior()``); needed only for
-            ``sampling="points"``.
         num_particles: I, the sampling budget per decision.
         confidence: level of the two-sided Student-t interval of Algorithm 4.3.
         min_particles: particles drawn before the interval is first checked.
@@ -146,18 +146,24 @@ class MonteCarloPlanner:
 
     def __init__(
         self,
+        model: HGPDM,
         belief_filter: OnlineIntentionFilter,
         q: LinearQ,
         features: Callable[[torch.Tensor], torch.Tensor],
         *,
-        transition: GPPosterior | None = None,
         num_particles: int = 500,
         confidence: float = 0.99,
         min_particles: int = 100,
         chunk_size: int = 100,
         sampling: str = "moments",
     ) -> None:
+        if not isinstance(model, HGPDM):
+            raise TypeError(f"model must be an IDDM/HGPDM, got {type(model).__name__}")
         _check_filter(belief_filter)
+        if belief_filter.mu0.shape[0] != model.latent_dim or belief_filter.obs_dim != model.obs_dim:
+            raise ValueError(
+                "belief_filter must be a filter of this model (latent/obs dims differ)"
+            )
         if belief_filter.evidence != "predictive":
             raise ValueError(
                 "MonteCarloPlanner replays the filter's predictive-evidence update; got a filter "
@@ -177,13 +183,10 @@ class MonteCarloPlanner:
         if not (isinstance(confidence, float) and 0.0 < confidence < 1.0):
             raise ValueError(f"confidence must be a float in (0, 1), got {confidence!r}")
         check_choice(sampling, "sampling", ("moments", "points"))
-        if sampling == "points" and not isinstance(transition, GPPosterior):
-            raise ValueError(
-                "sampling='points' needs transition, the IDDM's transition GPPosterior"
-            )
         self.filter = belief_filter
         self.q, self.features = q, features
-        self.transition = transition
+        self.measurement = model.measurement_posterior()
+        self.transition = model.transition_posterior() if sampling == "points" else None
         self.num_particles, self.min_particles = num_particles, min_particles
         self.chunk_size, self.confidence, self.sampling = chunk_size, confidence, sampling
         # interval half-width factors c(n) of Algorithm 4.3 for every checkpoint n
@@ -222,7 +225,13 @@ class MonteCarloPlanner:
         P = belief.cov.to(f.dtype)[None]
         mean, cov, _ = f.transition.moments(m, P)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
-        mz, Sz, Cxz = f.measurement.predict_gaussian(mean, cov, include_noise=True)
+        gp_dtype = self.measurement.train_inputs.dtype
+        mz, Sz, Cxz = (
+            v.to(f.dtype)
+            for v in self.measurement.predict_gaussian(
+                mean.to(gp_dtype), cov.to(gp_dtype), include_noise=True
+            )
+        )
         L = psd_cholesky(Sz, name="predicted observation covariance")
         gain_t = torch.cholesky_solve(Cxz.transpose(-1, -2), L)  # S^-1 C^T  [K, Dz, Dx]
         log_prob = belief.log_prob.to(f.dtype)
@@ -260,10 +269,12 @@ class MonteCarloPlanner:
             return shared.z_mean[g] + (shared.z_chol[g] @ eps)[..., 0]
         dx = shared.mean.shape[0]
         x = shared.mean + torch.randn(num, dx, generator=generator, dtype=dtype) @ shared.x_chol.T
-        m, v = self.transition.predict(torch.cat([x, f.values[g]], -1), include_noise=True)
-        x1 = m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=dtype)
-        m, v = f.measurement.predict(x1, include_noise=True)
-        return m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=dtype)
+        gx = torch.cat([x, f.values[g]], -1).to(self.transition.train_inputs.dtype)
+        m, v = self.transition.predict(gx, include_noise=True)
+        x1 = m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=m.dtype)
+        m, v = self.measurement.predict(x1, include_noise=True)
+        z = m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=m.dtype)
+        return z.to(dtype)
 
     def step(self, belief: Belief, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The online filter's update of one belief on many observations at once.

@@ -95,7 +95,7 @@ def _belief(states, i, t):
 
 def test_batched_particle_update_equals_the_online_filter(model, pipeline, generator):
     f, basis, q, states = pipeline
-    planner = MonteCarloPlanner(f, q, basis)
+    planner = MonteCarloPlanner(model, f, q, basis)
     belief = _belief(states, 3, 1)
     z = model.measurement_posterior().predict(belief.mean[None])[0] + 0.2 * torch.randn(
         40, model.obs_dim, generator=generator
@@ -117,10 +117,8 @@ def test_moment_sampling_matches_the_literal_chain(model, pipeline):
     two moments of x_{t+1}, which moment matching gets exactly: both samplers agree in them."""
     f, basis, q, states = pipeline
     belief = _belief(states, 5, 0)
-    fast = MonteCarloPlanner(f, q, basis)
-    slow = MonteCarloPlanner(
-        f, q, basis, transition=model.transition_posterior(), sampling="points"
-    )
+    fast = MonteCarloPlanner(model, f, q, basis)
+    slow = MonteCarloPlanner(model, f, q, basis, sampling="points")
     shared = fast._shared(belief)
     n = 20000
     za = fast._sample_observations(shared, n, torch.Generator().manual_seed(1))
@@ -132,11 +130,11 @@ def test_moment_sampling_matches_the_literal_chain(model, pipeline):
     assert ((ca - cb).abs() / scale).max() < 0.06  # ~ 4 SE of a correlation at n = 20000
 
 
-def test_projection_estimates_the_value_of_waiting(pipeline, generator):
+def test_projection_estimates_the_value_of_waiting(model, pipeline, generator):
     """The projected rewards are the stop values of genuinely updated beliefs, and their mean
     over independent runs agrees within the Monte-Carlo standard error."""
     f, basis, q, states = pipeline
-    planner = MonteCarloPlanner(f, q, basis, chunk_size=64)
+    planner = MonteCarloPlanner(model, f, q, basis, chunk_size=64)
     belief = _belief(states, 2, 1)
     r1 = planner.project(belief, 1000, generator=generator)
     r2 = planner.project(belief, 1000, generator=generator)
@@ -148,9 +146,11 @@ def test_projection_estimates_the_value_of_waiting(pipeline, generator):
     assert float(r1.min()) > float(stop_now.max()) - 10.0
 
 
-def test_early_termination_agrees_with_all_particles(pipeline):
+def test_early_termination_agrees_with_all_particles(model, pipeline):
     f, basis, q, states = pipeline
-    planner = MonteCarloPlanner(f, q, basis, num_particles=500)  # confidence 0.99, chunks of 100
+    planner = MonteCarloPlanner(
+        model, f, q, basis, num_particles=500
+    )  # confidence 0.99, chunks of 100
     mean = states[0]
     n, T = mean.shape[0], mean.shape[1]
     agree, total, used, waits = 0, 0, 0, 0
@@ -172,9 +172,9 @@ def test_early_termination_agrees_with_all_particles(pipeline):
     assert 0.1 < waits / total < 0.9  # both decisions occur: the test is not trivial
 
 
-def test_last_step_stops_without_sampling(pipeline):
+def test_last_step_stops_without_sampling(model, pipeline):
     f, basis, q, states = pipeline
-    planner = MonteCarloPlanner(f, q, basis)
+    planner = MonteCarloPlanner(model, f, q, basis)
     d = planner.decide(_belief(states, 0, 0), can_wait=False)
     assert d.action in (1, 2, 3) and d.particles == 0 and math.isnan(d.q_wait)
     assert d.action == int(d.q_stop.argmax()) + 1
@@ -183,20 +183,20 @@ def test_last_step_stops_without_sampling(pipeline):
 def test_bad_input(model, pipeline):
     f, basis, q, states = pipeline
     with pytest.raises(TypeError, match="OnlineIntentionFilter"):
-        MonteCarloPlanner("filter", q, basis)
+        MonteCarloPlanner(model, "filter", q, basis)
     with pytest.raises(ValueError, match="predictive"):
-        MonteCarloPlanner(OnlineIntentionFilter(model, GRID, evidence="bound"), q, basis)
+        MonteCarloPlanner(model, OnlineIntentionFilter(model, GRID, evidence="bound"), q, basis)
     with pytest.raises(TypeError, match="LinearQ"):
-        MonteCarloPlanner(f, torch.zeros(4, 3), basis)
+        MonteCarloPlanner(model, f, torch.zeros(4, 3), basis)
     with pytest.raises(ValueError, match="num_particles"):
-        MonteCarloPlanner(f, q, basis, num_particles=1)
+        MonteCarloPlanner(model, f, q, basis, num_particles=1)
     with pytest.raises(ValueError, match="confidence"):
-        MonteCarloPlanner(f, q, basis, confidence=1.5)
+        MonteCarloPlanner(model, f, q, basis, confidence=1.5)
     with pytest.raises(ValueError, match="sampling"):
-        MonteCarloPlanner(f, q, basis, sampling="exact")
-    with pytest.raises(ValueError, match="transition"):
-        MonteCarloPlanner(f, q, basis, sampling="points")
-    planner = MonteCarloPlanner(f, q, basis)
+        MonteCarloPlanner(model, f, q, basis, sampling="exact")
+    with pytest.raises(TypeError, match="IDDM"):
+        MonteCarloPlanner("model", f, q, basis)
+    planner = MonteCarloPlanner(model, f, q, basis)
     belief = _belief(states, 0, 0)
     with pytest.raises(TypeError, match="Belief"):
         planner.decide(belief.vector())
