@@ -1,0 +1,172 @@
+"""Latency and throughput of IDDM intention inference on the thesis-sized problem (Sec. 3.5).
+
+``python -m benchmarks online_intention [--quick]``. Writes
+``benchmarks/results/online_intention.json`` (``online_intention_quick.json`` with ``--quick``).
+
+Setting: an IDDM with N = 500 transition pairs (100 movements of 6 frames, a continuous target
+per movement), Dz = 15, Dx = 4, linear measurement kernel, K = 25 grid values, one CPU thread.
+
+- ``online 1 stream``: p50/p99 latency of one :meth:`OnlineIntentionFilter.update` (Algorithm
+  3.2), float64 and float32, default (predictive) and thesis (``evidence="bound"``) evidence;
+  the thesis reports 70 ms per observation, the target here is p50 <= 5 ms in float64;
+- ``online B streams``: time per stream of one batched update of B streams, and the same B
+  updates as a Python loop over B single-stream filters (``x loop`` = loop / batched; target
+  >= 3x at B = 256);
+- ``batch window 4``: :func:`infer_intention` (Algorithm 3.1) on the last 4 observations, the
+  per-observation cost of the sliding-window batch algorithm (thesis: 300 ms).
+
+Times are CPU time of the (single-threaded) process, ``time.process_time``: on a shared machine
+wall-clock latency also counts the time other processes hold the core.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hgpdm_torch.datasets import targeted_movements
+from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
+from hgpdm_torch.models import IDDM
+
+RESULTS = Path(__file__).parent / "results"
+N_SEQ, FRAMES, DZ, DX, K = 100, 6, 15, 4, 25
+
+
+def build_model(fit_steps: int) -> tuple[IDDM, torch.Tensor, torch.Tensor]:
+    """The thesis-sized IDDM, the intention grid and test streams ``[S, T, Dz]``."""
+    data = targeted_movements(N_SEQ + 40, FRAMES + 6, DZ, noise=0.05, seed=0)
+    seqs = [s[:FRAMES] for s in data.sequences[:N_SEQ]]
+    model = IDDM(
+        seqs, data.labels[:N_SEQ], DX, intention="continuous", measurement="linear",
+        alpha=(0.9, 0.3, 0.1, 1e-2), alpha_g=(4.0, 0.1),
+    )  # fmt: skip
+    model.fit(fit_steps)
+    grid = torch.linspace(-1.2, 1.2, K)
+    return model, grid, torch.stack(data.sequences[N_SEQ:])
+
+
+def _percentiles(times: list[float]) -> tuple[float, float]:
+    a = 1e3 * np.asarray(times)
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99))
+
+
+def single_stream(model, grid, streams, dtype, evidence: str, repeats: int):
+    f = OnlineIntentionFilter(model, grid, forgetting=0.2, evidence=evidence, dtype=dtype)
+    times = []
+    for r in range(repeats):
+        f.reset()
+        z = streams[r % len(streams)].to(dtype)
+        f.update(z[0])  # initialisation step (no transition), not timed
+        for t in range(1, z.shape[0]):
+            start = time.process_time()
+            f.update(z[t])
+            times.append(time.process_time() - start)
+    return _percentiles(times)
+
+
+def batched(model, grid, streams, B: int, loop_max: int):
+    """(batched ms/stream, loop ms/stream or None) for one update of B streams."""
+    z = streams[torch.arange(B) % len(streams)]
+    f = OnlineIntentionFilter(model, grid, forgetting=0.2, batch_size=B)
+    f.update(z[:, 0])
+    times = []
+    for t in range(1, 4):
+        start = time.process_time()
+        f.update(z[:, t])
+        times.append(time.process_time() - start)
+    per_stream = 1e3 * min(times) / B
+    if B > loop_max:
+        return per_stream, None
+    singles = [OnlineIntentionFilter(model, grid, forgetting=0.2) for _ in range(B)]
+    for b, s in enumerate(singles):
+        s.update(z[b, 0])
+    loops = []
+    for t in range(1, 4):
+        start = time.process_time()
+        for b, s in enumerate(singles):
+            s.update(z[b, t])
+        loops.append(time.process_time() - start)
+    return per_stream, 1e3 * min(loops) / B
+
+
+def batch_window(model, grid, streams, repeats: int) -> float:
+    times = []
+    for r in range(repeats):
+        z = streams[r % len(streams), :4]
+        start = time.process_time()
+        infer_intention(model, z, grid)
+        times.append(time.process_time() - start)
+    return 1e3 * float(np.median(times))
+
+
+def run(quick: bool) -> ResultTable:
+    torch.set_num_threads(1)
+    model, grid, streams = build_model(2 if quick else 30)
+    n = int(model.src_index.numel())
+    table = ResultTable(
+        f"IDDM intention inference, N={n}, Dz={DZ}, Dx={DX}, K={K}, 1 CPU thread",
+        [
+            "algorithm",
+            "dtype",
+            "B",
+            "p50 [ms/obs/stream]",
+            "p99 [ms]",
+            "loop [ms/stream]",
+            "x loop",
+        ],  # fmt: skip
+        meta={
+            "torch": torch.__version__,
+            "machine": platform.processor() or platform.machine(),
+            "threads": torch.get_num_threads(),
+            "quick": quick,
+            "command": "python -m benchmarks online_intention" + (" --quick" if quick else ""),
+        },
+    )
+    repeats = 3 if quick else 40
+    # float32 only for the default evidence: the Q bound's conditional covariance
+    # S - C^T P^-1 C cancels to the process noise and is not reliable in float32
+    for evidence, dtype in (
+        ("predictive", torch.float64),
+        ("predictive", torch.float32),
+        ("bound", torch.float64),
+    ):
+        p50, p99 = single_stream(model, grid, streams, dtype, evidence, repeats)
+        name = "online" if evidence == "predictive" else "online (Q bound, thesis)"
+        table.add(**{
+            "algorithm": name, "dtype": str(dtype).removeprefix("torch."), "B": 1,
+            "p50 [ms/obs/stream]": p50, "p99 [ms]": p99,
+        })  # fmt: skip
+        print(table.rows[-1], flush=True)
+    sizes = [1, 16, 64] if quick else [1, 4, 16, 64, 256, 1024]
+    for B in sizes:
+        per_stream, loop = batched(model, grid, streams, B, loop_max=256)
+        row = {"algorithm": "online batched", "dtype": "float64", "B": B,
+               "p50 [ms/obs/stream]": per_stream}  # fmt: skip
+        if loop is not None:
+            row.update({"loop [ms/stream]": loop, "x loop": loop / per_stream})
+        table.add(**row)
+        print(table.rows[-1], flush=True)
+    table.add(**{
+        "algorithm": "batch, window 4", "dtype": "float64", "B": 1,
+        "p50 [ms/obs/stream]": batch_window(model, grid, streams, 2 if quick else 5),
+    })  # fmt: skip
+    return table
+
+
+def main(argv: list[str]) -> int:
+    quick = "--quick" in argv
+    table = run(quick)
+    print(table.to_markdown(".3g"))
+    table.to_json(RESULTS / ("online_intention_quick.json" if quick else "online_intention.json"))
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    raise SystemExit(main(sys.argv[1:]))

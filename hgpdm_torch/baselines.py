@@ -1,0 +1,363 @@
+"""Discriminative baselines that map a sliding window of observations to the intention.
+
+Used by the experiments of thesis Sec. 3.5-3.6 to compare with IDDM inference:
+
+- :class:`WindowGPR`: GP regression (gpytorch ``ExactGP``, RBF kernel with automatic relevance
+  determination) from the last ``w`` observations to a continuous target, with ``w`` chosen on a
+  validation split of the training sequences (Sec. 3.5.1: the thesis found ``w = 2`` best);
+- :class:`MedianPredictor`: always predicts the median training target (Sec. 3.5.2);
+- :class:`WindowSVM`: support vector classification (scikit-learn ``SVC``) of a window;
+- :class:`WindowGPC`: multi-class GP classification of a window (gpytorch exact GP on Dirichlet-
+  transformed labels, Milios et al. 2018);
+- :class:`HMMClassifier`: one Gaussian HMM per class (``hmmlearn``, an optional extra), the class
+  of the highest window likelihood.
+
+Every model is fitted on whole training sequences (each step labelled with its sequence's
+intention) and predicts at every step of ``[M, T, Dz]`` test sequences from the window ending
+there (the first steps use the frames available, padded by repeating the first one).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gpytorch
+import numpy as np
+import torch
+from sklearn.preprocessing import StandardScaler
+from sklearn.svm import SVC
+
+from .validation import as_tensor
+
+__all__ = [
+    "HMMClassifier",
+    "MedianPredictor",
+    "WindowGPC",
+    "WindowGPR",
+    "WindowSVM",
+    "window_features",
+]
+
+
+def window_features(z: torch.Tensor, window: int) -> torch.Tensor:
+    """Stack the last ``window`` frames at every step.
+
+    Args:
+        z: ``[..., T, Dz]``.
+        window: ``w >= 1``.
+
+    Returns:
+        ``[..., T, w Dz]``: row ``t`` is ``[z_{t-w+1}, ..., z_t]``, frames before the first
+        repeated from ``z_0``.
+    """
+    if not isinstance(window, int) or window < 1:
+        raise ValueError(f"window must be a positive int, got {window!r}")
+    first = z[..., :1, :].expand(*z.shape[:-2], window - 1, z.shape[-1])
+    padded = torch.cat([first, z], dim=-2)
+    frames = [padded[..., i : i + z.shape[-2], :] for i in range(window)]
+    return torch.cat(frames, dim=-1)
+
+
+def _sequences(sequences: Any, name: str = "sequences") -> list[torch.Tensor]:
+    if isinstance(sequences, torch.Tensor | np.ndarray):
+        sequences = list(as_tensor(sequences, name, ndim=3))
+    if not isinstance(sequences, Sequence) or len(sequences) == 0:
+        raise ValueError(f"{name} must be a non-empty list of [T, Dz] arrays")
+    out = [as_tensor(s, f"{name}[{j}]", ndim=2) for j, s in enumerate(sequences)]
+    if any(s.shape[1] != out[0].shape[1] for s in out):
+        raise ValueError(f"all {name} must have the same number of columns Dz")
+    return out
+
+
+def _labelled_windows(
+    sequences: list[torch.Tensor], labels: torch.Tensor, window: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """All windows of all sequences ``[sum T_j, w Dz]`` with their sequence's label."""
+    if labels.shape[0] != len(sequences):
+        raise ValueError(f"need one label per sequence: {labels.shape[0]} for {len(sequences)}")
+    x = torch.cat([window_features(s, window) for s in sequences])
+    y = torch.cat([labels[j].expand(s.shape[0]) for j, s in enumerate(sequences)])
+    return x, y
+
+
+def _test_windows(z: Any, window: int, dz: int) -> torch.Tensor:
+    z = as_tensor(z, "z", min_ndim=2)
+    if z.shape[-1] != dz:
+        raise ValueError(f"z must have Dz = {dz} columns like the training data, got {z.shape}")
+    return window_features(z, window)
+
+
+# ------------------------------------------------------------------------------------------
+# Regression
+# ------------------------------------------------------------------------------------------
+
+
+class _ExactGP(gpytorch.models.ExactGP):
+    def __init__(
+        self, x: torch.Tensor, y: torch.Tensor, likelihood, batch_shape: torch.Size | None = None
+    ):
+        super().__init__(x, y, likelihood)
+        batch_shape = batch_shape or torch.Size()
+        self.mean_module = gpytorch.means.ConstantMean(batch_shape=batch_shape)
+        self.covar_module = gpytorch.kernels.ScaleKernel(
+            gpytorch.kernels.RBFKernel(ard_num_dims=x.shape[-1], batch_shape=batch_shape),
+            batch_shape=batch_shape,
+        )
+
+    def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+def _fit_marginal_likelihood(model, likelihood, x, y, steps: int, lr: float) -> None:
+    """Maximise the exact marginal likelihood with Adam (the standard gpytorch routine)."""
+    model.train()
+    likelihood.train()
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    mll = gpytorch.mlls.ExactMarginalLogLikelihood(likelihood, model)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss = -mll(model(x), y).sum()
+        loss.backward()
+        opt.step()
+    model.eval()
+    likelihood.eval()
+
+
+class WindowGPR:
+    """GP regression with ARD from a window of observations to a continuous target.
+
+    Args:
+        windows: candidate window sizes; the one with the lowest validation MAE is kept.
+        val_fraction: fraction of training sequences held out to choose the window.
+        steps: Adam steps on the marginal likelihood; lr: its learning rate.
+        seed: seed of the validation split.
+    """
+
+    def __init__(
+        self,
+        windows: Sequence[int] = (1, 2, 3, 4),
+        *,
+        val_fraction: float = 0.25,
+        steps: int = 150,
+        lr: float = 0.05,
+        seed: int = 0,
+    ) -> None:
+        if len(windows) == 0 or any(not isinstance(w, int) or w < 1 for w in windows):
+            raise ValueError(f"windows must be positive ints, got {windows!r}")
+        if not 0 < val_fraction < 1:
+            raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
+        self.windows, self.val_fraction = tuple(windows), float(val_fraction)
+        self.steps, self.lr, self.seed = int(steps), float(lr), int(seed)
+
+    def _train(self, sequences, targets, window):
+        x, y = _labelled_windows(sequences, targets, window)
+        scaler = StandardScaler().fit(x.numpy())
+        x = torch.as_tensor(scaler.transform(x.numpy()))
+        lik = gpytorch.likelihoods.GaussianLikelihood()
+        model = _ExactGP(x, y, lik).double()
+        lik.double()
+        _fit_marginal_likelihood(model, lik, x, y, self.steps, self.lr)
+        return model, lik, scaler
+
+    def fit(self, sequences: Any, targets: Any) -> WindowGPR:
+        """Fit on ``J`` sequences ``[T_j, Dz]`` with one target each ``[J]``."""
+        seqs = _sequences(sequences)
+        y = as_tensor(targets, "targets", ndim=1)
+        self.obs_dim = seqs[0].shape[1]
+        gen = torch.Generator().manual_seed(self.seed)
+        perm = torch.randperm(len(seqs), generator=gen).tolist()
+        n_val = max(1, round(self.val_fraction * len(seqs)))
+        val, train = perm[:n_val], perm[n_val:]
+        if len(self.windows) > 1 and len(train) >= 2:
+            errors = {}
+            for w in self.windows:
+                self.window = w
+                self.model, self.likelihood, self.scaler = self._train(
+                    [seqs[i] for i in train], y[train], w
+                )
+                mean, _ = self.predict(torch.stack([seqs[i] for i in val]))
+                errors[w] = float((mean - y[val, None]).abs().mean())
+            self.validation_mae = errors
+            self.window = min(errors, key=errors.get)
+        else:
+            self.window = self.windows[0]
+        self.model, self.likelihood, self.scaler = self._train(seqs, y, self.window)
+        return self
+
+    @torch.no_grad()
+    def predict(self, z: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predictive mean and std of the target at every step: ``[..., T, Dz]`` -> ``[..., T]``."""
+        x = _test_windows(z, self.window, self.obs_dim)
+        flat = torch.as_tensor(self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy()))
+        out = self.likelihood(self.model(flat))
+        return out.mean.reshape(x.shape[:-1]), out.variance.sqrt().reshape(x.shape[:-1])
+
+
+class MedianPredictor:
+    """The model-free baseline: the median of the training targets, at every step."""
+
+    def fit(self, sequences: Any, targets: Any) -> MedianPredictor:
+        self.median = float(as_tensor(targets, "targets", ndim=1).median())
+        return self
+
+    def predict(self, z: Any) -> torch.Tensor:
+        """``[..., T, Dz]`` -> ``[..., T]``."""
+        z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+        return torch.full(z.shape[:-1], self.median, dtype=z.dtype)
+
+
+# ------------------------------------------------------------------------------------------
+# Classification
+# ------------------------------------------------------------------------------------------
+
+
+def _class_labels(labels: Any, num: int) -> torch.Tensor:
+    y = torch.as_tensor(np.asarray(labels))
+    if y.dim() != 1 or y.shape[0] != num or y.is_floating_point():
+        raise ValueError(f"labels must be [J] integer codes, one per sequence, got {y.shape}")
+    if bool((y < 0).any()):
+        raise ValueError("labels must be non-negative class codes")
+    return y.long()
+
+
+class WindowSVM:
+    """SVM (RBF kernel, scikit-learn ``SVC``) on a standardised window of observations.
+
+    Args:
+        window: window size w.
+        C, gamma: ``SVC`` parameters.
+    """
+
+    def __init__(self, window: int = 5, *, C: float = 10.0, gamma: str | float = "scale") -> None:
+        self.window, self.C, self.gamma = int(window), C, gamma
+
+    def fit(self, sequences: Any, labels: Any) -> WindowSVM:
+        seqs = _sequences(sequences)
+        y = _class_labels(labels, len(seqs))
+        self.obs_dim, self.num_classes = seqs[0].shape[1], int(y.max()) + 1
+        x, yy = _labelled_windows(seqs, y, self.window)
+        self.scaler = StandardScaler().fit(x.numpy())
+        self.svc = SVC(C=self.C, gamma=self.gamma).fit(self.scaler.transform(x.numpy()), yy)
+        return self
+
+    def predict(self, z: Any) -> torch.Tensor:
+        """Class at every step: ``[..., T, Dz]`` -> ``[..., T]`` (long)."""
+        x = _test_windows(z, self.window, self.obs_dim)
+        flat = self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy())
+        return torch.as_tensor(self.svc.predict(flat)).reshape(x.shape[:-1]).long()
+
+
+class WindowGPC:
+    """Multi-class GP classification of a window (gpytorch, Dirichlet-transformed labels).
+
+    One exact GP per class with an ARD RBF kernel regresses the log of Dirichlet-smoothed
+    one-hot labels with per-point heteroscedastic noise (``DirichletClassificationLikelihood``);
+    class probabilities are Monte-Carlo averages of the softmax of the GP samples.
+
+    Args:
+        window: window size w.
+        steps: Adam steps on the marginal likelihood; lr: its learning rate.
+        samples: posterior samples for the class probabilities; seed: their seed.
+    """
+
+    def __init__(
+        self, window: int = 5, *, steps: int = 100, lr: float = 0.1, samples: int = 256,
+        seed: int = 0,
+    ) -> None:  # fmt: skip
+        self.window, self.steps, self.lr = int(window), int(steps), float(lr)
+        self.samples, self.seed = int(samples), int(seed)
+
+    def fit(self, sequences: Any, labels: Any) -> WindowGPC:
+        seqs = _sequences(sequences)
+        y = _class_labels(labels, len(seqs))
+        self.obs_dim = seqs[0].shape[1]
+        x, yy = _labelled_windows(seqs, y, self.window)
+        self.scaler = StandardScaler().fit(x.numpy())
+        x = torch.as_tensor(self.scaler.transform(x.numpy()))
+        lik = gpytorch.likelihoods.DirichletClassificationLikelihood(
+            yy, learn_additional_noise=True, dtype=torch.float64
+        )
+        self.num_classes = lik.num_classes
+        batch = torch.Size((lik.num_classes,))
+        model = _ExactGP(x, lik.transformed_targets, lik, batch_shape=batch).double()
+        _fit_marginal_likelihood(model, lik, x, lik.transformed_targets, self.steps, self.lr)
+        self.model, self.likelihood = model, lik
+        return self
+
+    @torch.no_grad()
+    def predict_proba(self, z: Any) -> torch.Tensor:
+        """Class probabilities at every step: ``[..., T, Dz]`` -> ``[..., T, C]``."""
+        x = _test_windows(z, self.window, self.obs_dim)
+        flat = torch.as_tensor(self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy()))
+        f = self.model(flat)  # batch of C GPs over the M points
+        gen = torch.Generator().manual_seed(self.seed)
+        eps = torch.randn(self.samples, *f.mean.shape, generator=gen, dtype=f.mean.dtype)
+        draws = f.mean + f.variance.sqrt() * eps  # marginal samples [S, C, M]
+        prob = draws.softmax(1).mean(0).T
+        return prob.reshape(*x.shape[:-1], self.num_classes)
+
+    def predict(self, z: Any) -> torch.Tensor:
+        """Most probable class at every step: ``[..., T]`` (long)."""
+        return self.predict_proba(z).argmax(-1)
+
+
+class HMMClassifier:
+    """Per-class Gaussian HMMs (``hmmlearn``): the class whose HMM best explains the window.
+
+    Args:
+        states: hidden states per class HMM.
+        window: frames scored at each step (``None``: all frames so far).
+        iterations: Baum-Welch iterations; seed: initialisation seed.
+
+    Raises:
+        ImportError: when the optional ``hmmlearn`` package is missing.
+    """
+
+    def __init__(
+        self, states: int = 4, *, window: int | None = 5, iterations: int = 50, seed: int = 0
+    ) -> None:
+        try:
+            from hmmlearn.hmm import GaussianHMM
+        except ImportError as err:  # optional extra
+            raise ImportError("HMMClassifier needs the optional package hmmlearn") from err
+        self._hmm = GaussianHMM
+        self.states, self.window = int(states), window
+        self.iterations, self.seed = int(iterations), int(seed)
+
+    def fit(self, sequences: Any, labels: Any) -> HMMClassifier:
+        seqs = _sequences(sequences)
+        y = _class_labels(labels, len(seqs))
+        self.obs_dim, self.num_classes = seqs[0].shape[1], int(y.max()) + 1
+        self.hmms = []
+        for c in range(self.num_classes):
+            data = [seqs[j].numpy() for j in range(len(seqs)) if int(y[j]) == c]
+            hmm = self._hmm(
+                self.states, covariance_type="diag", n_iter=self.iterations,
+                random_state=self.seed,
+            )  # fmt: skip
+            hmm.fit(np.concatenate(data), [len(d) for d in data])
+            self.hmms.append(hmm)
+        return self
+
+    def log_likelihood(self, z: Any) -> torch.Tensor:
+        """Window log-likelihood under each class: ``[..., T, Dz]`` -> ``[..., T, C]``."""
+        z = as_tensor(z, "z", min_ndim=2)
+        if z.shape[-1] != self.obs_dim:
+            raise ValueError(f"z must have Dz = {self.obs_dim} columns, got {z.shape}")
+        flat = z.reshape(-1, *z.shape[-2:]).numpy()
+        T = flat.shape[1]
+        out = np.empty((flat.shape[0], T, self.num_classes))
+        for i, seq in enumerate(flat):
+            for t in range(T):
+                start = 0 if self.window is None else max(0, t - self.window + 1)
+                out[i, t] = [h.score(seq[start : t + 1]) for h in self.hmms]
+        return torch.as_tensor(out).reshape(*z.shape[:-1], self.num_classes)
+
+    def predict_proba(self, z: Any) -> torch.Tensor:
+        """Posterior class probabilities under a uniform prior: ``[..., T, C]``."""
+        return self.log_likelihood(z).softmax(-1)
+
+    def predict(self, z: Any) -> torch.Tensor:
+        """Most likely class at every step: ``[..., T]`` (long)."""
+        return self.log_likelihood(z).argmax(-1)
