@@ -1,0 +1,504 @@
+r"""Anticipatory action selection in simulated table tennis (thesis Sec. 4.3, Fig. 4.6 and 4.7).
+
+Protocol (Sec. 4.3.1-4.3.2, adapted where noted):
+
+1. ``num_trials`` opponent strokes (:func:`~hgpdm_torch.robots.table_tennis.trials.make_trials`)
+   and the reward of every movement (forehand, middle, backhand) started at every decision time
+   (320, 240, 160, 80, 0 ms before the opponent's hit) from the SAPIEN scene
+   (:func:`~hgpdm_torch.robots.table_tennis.trials.reward_table`, +1 return / -1 miss).
+   Trials outside the robot's overall hitting region are excluded; here a trial is inside when
+   some movement started at some time returns the ball.
+2. Ten-fold cross-validation. Per fold an IDDM (continuous target g, linear measurement kernel)
+   is fitted on training strokes, and the online filter (Algorithm 3.2, predictive evidence) gives
+   every trial's belief after the observations available at each decision time: latent mean and
+   covariance plus the histogram over a grid of targets (:func:`~hgpdm_torch.decision.stopping.
+   belief_vector`). Radial basis features (Eq. 37) use K-means centres of the training beliefs.
+3. Methods, scored by the successful returns on the held-out fold, summed over folds:
+   each single movement started 240 ms before the hit; oracle timing (the best movement by the
+   learned stopping values, always chosen at 240/160/80 ms); NAC; LSPI (Algorithm 4.1); MCP
+   (Algorithms 4.2-4.3 with LSPI's stopping values) -- all learned from the enumerated training
+   episodes (Fig. 4.6); and LSPI vs MCP learned from 1, 2, 5, 10 episodes per training trial
+   sampled with the uniform exploration policy (Fig. 4.7).
+4. The whole cross-validation is repeated ``repetitions`` times and reported as mean +- SEM.
+   The thesis repeats it to average over the robot's randomness; the SAPIEN scene here is
+   deterministic, so the folds (and the IDDM of each fold) are fixed and the repetitions average
+   over the learning algorithms' randomness (sampled episodes, NAC, MCP particles).
+   Deterministic methods therefore have zero SEM.
+
+:func:`run_protocol` takes the observations and reward table directly (testable without the
+simulator); :func:`run_experiment` simulates them first; :func:`main` is the CLI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from ..decision.basis import RadialBasis
+from ..decision.lspi import LinearQ, lspi
+from ..decision.mcp import Belief, MonteCarloPlanner
+from ..decision.nac import nac
+from ..decision.stopping import ACTIONS, WAIT, StoppingProblem, belief_vector
+from ..inference.intention import OnlineIntentionFilter
+from ..models import IDDM
+from ..validation import as_tensor
+from .table import ResultTable
+
+__all__ = [
+    "AnticipationConfig",
+    "decision_indices",
+    "main",
+    "plot_results",
+    "run_experiment",
+    "run_protocol",
+    "valid_trials",
+]
+
+MOVEMENTS = ACTIONS[1:]
+ORACLE_TIMES = (-0.24, -0.16, -0.08)
+SINGLE_TIME = -0.24
+
+
+@dataclass(frozen=True)
+class AnticipationConfig:
+    """Sizes and settings of the experiment (defaults: the thesis's, Sec. 4.3).
+
+    Attributes:
+        num_trials: simulated strokes before exclusion (270).
+        folds: cross-validation folds (10); repetitions: repeats of the cross-validation (10).
+        episodes: sampled episodes per training trial for Fig. 4.7.
+        iddm_trials: training strokes the IDDM of a fold is fitted on (all when larger).
+        latent_dim, fit_steps, alpha_g: IDDM latent dimension, optimiser steps, g kernel.
+        grid_size: K, targets in the belief histogram, evenly over +-grid_max.
+        forgetting: the online filter's forgetting factor.
+        centres: RBF centres (100 in the thesis); ridge: LSPI's delta.
+        particles: MCP budget per decision; confidence: its early-termination level.
+        nac_iterations, nac_episodes, nac_step: NAC updates, episodes per trial, step size.
+        seed: seeds the trials and every random choice; workers: SAPIEN processes.
+    """
+
+    num_trials: int = 270
+    folds: int = 10
+    repetitions: int = 10
+    episodes: tuple[int, ...] = (1, 2, 5, 10)
+    iddm_trials: int = 80
+    latent_dim: int = 3
+    fit_steps: int = 60
+    alpha_g: tuple[float, float] = (4.0, 0.1)
+    grid_size: int = 25
+    grid_max: float = 1.2
+    forgetting: float = 0.1
+    centres: int = 100
+    ridge: float = 1e-3
+    particles: int = 500
+    confidence: float = 0.99
+    nac_iterations: int = 100
+    nac_episodes: int = 4
+    nac_step: float = 0.5
+    seed: int = 0
+    workers: int = 1
+
+    @classmethod
+    def smoke(cls, **changes: Any) -> AnticipationConfig:
+        """A few-minute setting for CI (``HGPDM_SMOKE=1``) and the default CLI run."""
+        base = dict(
+            num_trials=24, folds=3, repetitions=2, episodes=(1, 5), iddm_trials=16, fit_steps=15,
+            grid_size=13, centres=20, particles=200, nac_iterations=30,
+        )  # fmt: skip
+        return cls(**{**base, **changes})
+
+    def __post_init__(self) -> None:
+        for name in ("num_trials", "folds", "repetitions", "iddm_trials", "latent_dim"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        if self.folds < 2:
+            raise ValueError(f"folds must be at least 2, got {self.folds}")
+        if not self.episodes or any(
+            isinstance(e, bool) or not isinstance(e, int) or e < 1 for e in self.episodes
+        ):
+            raise ValueError(f"episodes must be positive ints, got {self.episodes!r}")
+
+
+def valid_trials(rewards: torch.Tensor) -> torch.Tensor:
+    """``[n]`` mask of trials inside the overall hitting region: some movement started at some
+    time returns the ball (``rewards [n, S, T]``)."""
+    rewards = as_tensor(rewards, "rewards", ndim=3)
+    return (rewards > 0).flatten(1).any(1)
+
+
+def decision_indices(obs_times: torch.Tensor, start_times: tuple[float, ...]) -> list[int]:
+    """For each decision (start) time, the index of the last observation available by then."""
+    obs_times = as_tensor(obs_times, "obs_times", ndim=1)
+    out = []
+    for s in start_times:
+        seen = torch.nonzero(obs_times <= s + 1e-9).flatten()
+        if seen.numel() == 0:
+            raise ValueError(f"no observation precedes the decision time {s}")
+        out.append(int(seen[-1]))
+    return out
+
+
+@dataclass
+class _Fold:
+    """Beliefs of every trial under one fold's IDDM (``[n, T, ...]``) and the fold's split."""
+
+    model: IDDM
+    belief_filter: OnlineIntentionFilter
+    mean: torch.Tensor
+    cov: torch.Tensor
+    log_prob: torch.Tensor
+    train: torch.Tensor
+    test: torch.Tensor
+
+    def vectors(self) -> torch.Tensor:
+        return belief_vector(self.mean, self.cov, self.log_prob.exp())
+
+    def belief(self, i: int, t: int) -> Belief:
+        return Belief(self.mean[i, t], self.cov[i, t], self.log_prob[i, t])
+
+
+def _fit_fold(
+    obs: torch.Tensor,
+    targets: torch.Tensor,
+    steps_at: list[int],
+    train: torch.Tensor,
+    test: torch.Tensor,
+    config: AnticipationConfig,
+) -> _Fold:
+    gen = torch.Generator().manual_seed(config.seed)
+    chosen = train[torch.randperm(len(train), generator=gen)[: config.iddm_trials]]
+    model = IDDM(
+        [obs[i] for i in chosen.tolist()], targets[chosen], config.latent_dim,
+        intention="continuous", measurement="linear", alpha_g=config.alpha_g,
+    )  # fmt: skip
+    model.fit(config.fit_steps)
+    grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
+    f = OnlineIntentionFilter(model, grid, forgetting=config.forgetting, batch_size=obs.shape[0])
+    means, covs, logs = [], [], []
+    with torch.no_grad():
+        for t in range(max(steps_at) + 1):
+            f.update(obs[:, t])
+            if t in steps_at:
+                means.append(f.mean.clone())
+                covs.append(f.cov.clone())
+                logs.append(f.log_belief.clone())
+    stack = [torch.stack(v, 1) for v in (means, covs, logs)]
+    return _Fold(model, f, *stack, train, test)
+
+
+def _stop_only_q(problem: StoppingProblem, step: int, basis: RadialBasis, ridge: float) -> LinearQ:
+    """Stopping values learned from the rewards at one step only (oracle timing: no waiting)."""
+    n, S = len(problem), problem.num_actions - 1
+    trial = torch.arange(n).repeat_interleave(S)
+    action = torch.arange(1, S + 1).repeat(n)
+    episodes = problem.episodes(trial, torch.full_like(trial, step), action)
+    return lspi(problem.transitions(episodes), features=basis, ridge=ridge).q
+
+
+def _greedy_policy(q: LinearQ, basis: RadialBasis, problem: StoppingProblem):
+    return lambda beliefs, t, idx: q.greedy(basis(beliefs), problem.allowed(t))
+
+
+def _fixed_time_policy(q: LinearQ, basis: RadialBasis, step: int):
+    def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
+        if t < step:
+            return torch.full_like(idx, WAIT)
+        return q.values(basis(beliefs))[:, 1:].argmax(-1) + 1
+
+    return policy
+
+
+def _mcp_policy(planner: MonteCarloPlanner, fold: _Fold, test: torch.Tensor, horizon: int, gen):
+    def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
+        actions = [
+            planner.decide(fold.belief(int(test[i]), t), can_wait=t < horizon - 1, generator=gen)
+            for i in idx.tolist()
+        ]
+        return torch.tensor([d.action for d in actions], dtype=torch.long)
+
+    return policy
+
+
+def _successes(episodes) -> int:
+    return int((episodes.reward > 0).sum())
+
+
+def run_protocol(
+    obs: torch.Tensor,
+    obs_times: torch.Tensor,
+    targets: torch.Tensor,
+    rewards: torch.Tensor,
+    start_times: tuple[float, ...],
+    config: AnticipationConfig | None = None,
+    *,
+    progress: bool = False,
+) -> tuple[ResultTable, ResultTable]:
+    """Cross-validated comparison of Sec. 4.3.2 on given trials.
+
+    Args:
+        obs: ``[n, T_obs, Dz]`` observations of each stroke before the hit.
+        obs_times: ``[T_obs]`` their times relative to the hit [s].
+        targets: ``[n]`` true targets (training labels of the IDDM).
+        rewards: ``[n, 3, T]`` rewards of (forehand, middle, backhand) started at each time.
+        start_times: ``T`` decision times relative to the hit [s], increasing; must include
+            -0.24, -0.16 and -0.08 (single-movement and oracle-timing baselines).
+        config: sizes and settings (default :class:`AnticipationConfig`).
+        progress: tqdm bar over repetitions x folds.
+
+    Returns:
+        The Fig. 4.6 table (successful returns per method, mean and SEM over repetitions, and the
+        rate over the valid trials) and the Fig. 4.7 table (LSPI and MCP vs sampled episodes).
+    """
+    config = config or AnticipationConfig()
+    obs = as_tensor(obs, "obs", ndim=3)
+    targets = as_tensor(targets, "targets", ndim=1, dtype=obs.dtype)
+    rewards = as_tensor(rewards, "rewards", ndim=3, dtype=obs.dtype)
+    start_times = tuple(float(s) for s in start_times)
+    if rewards.shape[1] != len(MOVEMENTS) or rewards.shape[2] != len(start_times):
+        raise ValueError(
+            f"rewards must have shape [n, {len(MOVEMENTS)}, {len(start_times)}], got "
+            f"{tuple(rewards.shape)}"
+        )
+    if not (obs.shape[0] == targets.shape[0] == rewards.shape[0]):
+        raise ValueError("obs, targets and rewards must describe the same n trials")
+    missing = [
+        s for s in (SINGLE_TIME, *ORACLE_TIMES) if not any(abs(s - x) < 1e-9 for x in start_times)
+    ]
+    if missing:
+        raise ValueError(f"start_times must include {missing} for the baselines")
+    steps_at = decision_indices(obs_times, start_times)
+    step_of = {
+        s: min(range(len(start_times)), key=lambda i: abs(start_times[i] - s))
+        for s in (SINGLE_TIME, *ORACLE_TIMES)
+    }
+
+    valid = valid_trials(rewards)
+    idx = torch.nonzero(valid).flatten()
+    n = len(idx)
+    if n < 2 * config.folds:
+        raise ValueError(
+            f"only {n} valid trials; need at least {2 * config.folds} for {config.folds} folds"
+        )
+    obs, targets, rewards = obs[idx], targets[idx], rewards[idx]
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(config.seed))
+    fold_of = torch.empty(n, dtype=torch.long)
+    fold_of[perm] = torch.arange(n) % config.folds
+
+    methods = [f"single {m} @240ms" for m in MOVEMENTS]
+    methods += [f"oracle timing @{int(round(-1000 * s))}ms" for s in ORACLE_TIMES]
+    methods += ["NAC", "LSPI", "MCP"]
+    counts = {m: torch.zeros(config.repetitions) for m in methods}
+    sample_counts = {
+        (a, e): torch.zeros(config.repetitions) for a in ("LSPI", "MCP") for e in config.episodes
+    }
+
+    bar = tqdm(total=config.folds * config.repetitions, disable=not progress, desc="anticipation")
+    start = time.perf_counter()
+    for k in range(config.folds):
+        train = torch.nonzero(fold_of != k).flatten()
+        test = torch.nonzero(fold_of == k).flatten()
+        fold = _fit_fold(obs, targets, steps_at, train, test, config)
+        vectors = fold.vectors()
+        problem = StoppingProblem(vectors, rewards)
+        train_p, test_p = problem.subset(train), problem.subset(test)
+        basis = RadialBasis(config.centres, seed=config.seed, bias=True).fit(
+            train_p.beliefs.reshape(-1, vectors.shape[-1])
+        )
+        # deterministic methods: the same in every repetition
+        fixed = {}
+        for a, name in enumerate(MOVEMENTS):
+            fixed[f"single {name} @240ms"] = int(
+                (test_p.rewards[:, a, step_of[SINGLE_TIME]] > 0).sum()
+            )
+        for s in ORACLE_TIMES:
+            q_t = _stop_only_q(train_p, step_of[s], basis, config.ridge)
+            ep = test_p.run(_fixed_time_policy(q_t, basis, step_of[s]))
+            fixed[f"oracle timing @{int(round(-1000 * s))}ms"] = _successes(ep)
+        enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
+        q = lspi(enumerated, features=basis, ridge=config.ridge).q
+        fixed["LSPI"] = _successes(test_p.run(_greedy_policy(q, basis, test_p)))
+        for r in range(config.repetitions):
+            gen = torch.Generator().manual_seed(config.seed + 1000 * r + k)
+            for name, value in fixed.items():
+                counts[name][r] += value
+            planner = MonteCarloPlanner(
+                fold.model, fold.belief_filter, q, basis,
+                num_particles=config.particles, confidence=config.confidence,
+            )  # fmt: skip
+            counts["MCP"][r] += _successes(
+                test_p.run(_mcp_policy(planner, fold, test, test_p.horizon, gen))
+            )
+            result = nac(
+                train_p, basis(train_p.beliefs), iterations=config.nac_iterations,
+                episodes_per_trial=config.nac_episodes, step_size=config.nac_step, generator=gen,
+            )  # fmt: skip
+            allowed = torch.stack([test_p.allowed(t) for t in range(test_p.horizon)])
+            probs = result.policy.probs(basis(test_p.beliefs), allowed)
+            # expected successes of the stochastic policy: (1 + E[r]) / 2 per trial
+            counts["NAC"][r] += float(((1 + test_p.expected_reward(probs)) / 2).sum())
+            for e in config.episodes:
+                sampled = train_p.sample_episodes(e, generator=gen)
+                q_e = lspi(train_p.transitions(sampled), features=basis, ridge=config.ridge).q
+                sample_counts[("LSPI", e)][r] += _successes(
+                    test_p.run(_greedy_policy(q_e, basis, test_p))
+                )
+                planner_e = MonteCarloPlanner(
+                    fold.model, fold.belief_filter, q_e, basis,
+                    num_particles=config.particles, confidence=config.confidence,
+                )  # fmt: skip
+                sample_counts[("MCP", e)][r] += _successes(
+                    test_p.run(_mcp_policy(planner_e, fold, test, test_p.horizon, gen))
+                )
+            bar.update()
+    bar.close()
+    meta = {**dataclasses.asdict(config), "valid trials": n, "seconds": time.perf_counter() - start}
+
+    def stats(v: torch.Tensor) -> tuple[float, float]:
+        sem = float(v.std() / v.numel() ** 0.5) if v.numel() > 1 else 0.0
+        return float(v.mean()), sem
+
+    fig6 = ResultTable(
+        f"Fig. 4.6: successful returns of {n} valid trials ({config.folds}-fold CV x "
+        f"{config.repetitions})",
+        ["method", "returns", "SEM", "rate"],
+        meta=meta,
+    )
+    for m in methods:
+        mean, sem = stats(counts[m])
+        fig6.add(method=m, returns=mean, SEM=sem, rate=mean / n)
+    fig7 = ResultTable(
+        f"Fig. 4.7: successful returns of {n} valid trials vs sampled episodes per training trial "
+        "(uniform exploration)",
+        ["episodes", "LSPI", "LSPI SEM", "MCP", "MCP SEM"],
+        meta=meta,
+    )
+    for e in config.episodes:
+        (lm, ls), (mm, ms) = stats(sample_counts[("LSPI", e)]), stats(sample_counts[("MCP", e)])
+        fig7.add(**{"episodes": e, "LSPI": lm, "LSPI SEM": ls, "MCP": mm, "MCP SEM": ms})
+    return fig6, fig7
+
+
+def run_experiment(
+    config: AnticipationConfig | None = None,
+    *,
+    cache_dir: str | Path | None = None,
+    progress: bool = False,
+) -> tuple[ResultTable, ResultTable]:
+    """Simulate the trials and their reward table in SAPIEN, then run :func:`run_protocol`.
+
+    The reward table is cached on disk (``cache_dir``, default ``$HGPDM_CACHE`` or
+    ``~/.cache/hgpdm_torch``); ``config.workers`` SAPIEN processes fill it.
+    """
+    from ..robots.table_tennis import strokes
+    from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
+
+    config = config or AnticipationConfig()
+    if tuple(strokes.MOVEMENTS) != MOVEMENTS:
+        raise RuntimeError(f"robot movements {strokes.MOVEMENTS} differ from actions {MOVEMENTS}")
+    with _float64():
+        trials = make_trials(config.num_trials, seed=config.seed, progress=progress)
+        rewards = reward_table(
+            trials, MOVEMENTS, DEFAULT_START_TIMES, workers=config.workers,
+            cache_dir=cache_dir, progress=progress,
+        )  # fmt: skip
+        return run_protocol(
+            trials.obs, trials.obs_times, trials.targets, rewards.to(torch.float64),
+            DEFAULT_START_TIMES, config, progress=progress,
+        )  # fmt: skip
+
+
+class _float64:
+    """Run with float64 as torch's default dtype (the GP code and the opponent model need it)."""
+
+    def __enter__(self) -> None:
+        self.previous = torch.get_default_dtype()
+        torch.set_default_dtype(torch.float64)
+
+    def __exit__(self, *exc: object) -> None:
+        torch.set_default_dtype(self.previous)
+
+
+def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[Path]:
+    """Bar charts in the layout of Fig. 4.6 and Fig. 4.7 (PNG files in ``out``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    n = fig6.meta.get("valid trials")
+    paths = []
+    fig, ax = plt.subplots(figsize=(9, 4))
+    names = fig6.column("method")
+    colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:purple", "tab:orange", "tab:green"]
+    ax.bar(range(len(names)), fig6.column("returns"), yerr=fig6.column("SEM"), color=colours)
+    ax.set_xticks(range(len(names)), [m.replace(" @", "\n@") for m in names], fontsize=8)
+    ax.set_ylabel("successful returns")
+    if n:
+        ax.axhline(n, color="k", lw=0.8, ls="--", label=f"{n} valid trials")
+        ax.legend(loc="lower right")
+    ax.set_title("Fig. 4.6: anticipatory action selection")
+    fig.tight_layout()
+    paths.append(out / "fig4_6_returns.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    episodes = fig7.column("episodes")
+    x = torch.arange(len(episodes), dtype=torch.float64)
+    for shift, name, colour in ((-0.2, "LSPI", "tab:orange"), (0.2, "MCP", "tab:green")):
+        ax.bar(x + shift, fig7.column(name), 0.4, yerr=fig7.column(f"{name} SEM"), label=name,
+               color=colour)  # fmt: skip
+    ax.set_xticks(x, [str(e) for e in episodes])
+    ax.set_xlabel("sampled episodes per training trial")
+    ax.set_ylabel("successful returns")
+    ax.legend()
+    ax.set_title("Fig. 4.7: sample efficiency")
+    fig.tight_layout()
+    paths.append(out / "fig4_7_sample_efficiency.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    return paths
+
+
+def main(argv: list[str]) -> int:
+    """CLI entry: ``hgpdm anticipation [--full] [--trials N] [--folds K] [--repetitions R]
+    [--workers W] [--seed S] [--out DIR] [--cache-dir DIR] [--progress]``."""
+    parser = argparse.ArgumentParser(prog="hgpdm anticipation", description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "--full", action="store_true", help="the thesis's sizes (270 trials, 10x10 CV)"
+    )
+    parser.add_argument("--trials", type=int, help="simulated strokes before exclusion")
+    parser.add_argument("--folds", type=int)
+    parser.add_argument("--repetitions", type=int)
+    parser.add_argument("--workers", type=int, default=1, help="SAPIEN processes for the rewards")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="hgpdm_anticipation_output")
+    parser.add_argument("--cache-dir", default=None)
+    parser.add_argument("--progress", action="store_true")
+    args = parser.parse_args(argv)
+    smoke = os.environ.get("HGPDM_SMOKE") == "1" or not args.full
+    changes = {"seed": args.seed, "workers": args.workers}
+    for key, name in (("num_trials", "trials"), ("folds", "folds"), ("repetitions", "repetitions")):
+        if getattr(args, name) is not None:
+            changes[key] = getattr(args, name)
+    config = AnticipationConfig.smoke(**changes) if smoke else AnticipationConfig(**changes)
+    fig6, fig7 = run_experiment(config, cache_dir=args.cache_dir, progress=args.progress)
+    print(fig6.to_markdown(".4g"))
+    print()
+    print(fig7.to_markdown(".4g"))
+    out = Path(args.out)
+    fig6.to_json(out / "fig4_6.json")
+    fig7.to_json(out / "fig4_7.json")
+    for path in plot_results(fig6, fig7, out):
+        print(f"saved {path}")
+    return 0
