@@ -13,9 +13,10 @@ from torch.distributions import MultivariateNormal, kl_divergence
 
 from hgpdm_torch.datasets import styled_movements, targeted_movements
 from hgpdm_torch.gp import GPPosterior
-from hgpdm_torch.inference.filtering import filter_sequence, smooth
+from hgpdm_torch.inference.filtering import filter_sequence, gp_adf_update, smooth
 from hgpdm_torch.inference.intention import (
     IntentionBelief,
+    LinearMeasurement,
     OnlineIntentionFilter,
     SharedTransition,
     batch_bound,
@@ -116,6 +117,20 @@ def test_shared_transition_needs_the_iddm_kernel(generator):
         SharedTransition(model.transition_posterior(), GRID[:, None])
     with pytest.raises(TypeError, match="IDDM transition kernel"):
         OnlineIntentionFilter(model, GRID)
+
+
+def test_linear_measurement_equals_gp_adf_update(continuous_model, generator):
+    post = continuous_model.measurement_posterior()
+    fast = LinearMeasurement(post)
+    mu, P = random_gaussians(6, 3, generator)
+    z = continuous_model.observations[:6].clone()
+    z[2] = float("nan")
+    got = fast.update(mu, P, z)
+    want = gp_adf_update(post, mu, P, z)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+    with pytest.raises(TypeError, match="linear kernel"):
+        LinearMeasurement(continuous_model.transition_posterior())
 
 
 # ----- Q_t(g): statistical linearisation against DESIGN.md's KL form and Monte Carlo ----------
