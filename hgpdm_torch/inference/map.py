@@ -1,0 +1,166 @@
+r"""MAP inference of the latent states of a new window: the conditional GPDM baseline.
+
+The comparator of Tables 2.1-2.5 (Wang et al. 2008, "conditional GPDM"): the test latents
+``x_{1:T}`` are point estimates maximising the FIC log joint (Eq. 8-9) given the fitted model,
+
+    log p(x_{1:T}, z_{1:T} | g) = log N(x_1 | m_1, S_1)
+        + sum_t log N(x_{t+1} | m_x(x_t, g), sigma_x^2(x_t, g) I)
+        + sum_{t observed} log N(z_t | m_z(x_t), sigma_z^2(x_t) diag(scale^2)),
+
+for every candidate g in one batched optimisation. Its value at the optimum stands in for the
+evidence of g; it ignores the uncertainty of the states (the point of the VB method).
+Forecasts and recovered rows are the GP means ``m_z(x_t)`` at the MAP states.
+
+:class:`MAPInference` has the interface of
+:class:`~hgpdm_torch.inference.variational.VariationalInference` (it shares its GPs, priors,
+initialisation and optimiser) and works for a GPDM (no g) and an H-GPDM alike.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .variational import VariationalInference, batched_lbfgs, window_mask
+
+__all__ = ["MAPInference", "MAPResult"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass
+class MAPResult:
+    """Output of :meth:`MAPInference.infer`.
+
+    Attributes:
+        values: ``[K]`` candidate codes of a discrete g (empty without one).
+        log_joint: ``[..., K]`` maximised log joint per candidate.
+        posterior: ``[..., K]`` softmax of ``log_joint`` plus the log prior of g.
+        g_ml: ``[...]`` index of the largest ``log_joint``.
+        latent: ``[..., K, T, Dx]`` MAP states per candidate.
+        history: summed negative log joint after each iteration.
+    """
+
+    values: torch.Tensor
+    log_joint: torch.Tensor
+    posterior: torch.Tensor
+    g_ml: torch.Tensor
+    latent: torch.Tensor
+    history: list[float]
+
+    def ml_state(self) -> torch.Tensor:
+        """MAP states of the ML candidate, ``[..., T, Dx]``."""
+        T, D = self.latent.shape[-2:]
+        i = self.g_ml[..., None, None, None].expand(*self.g_ml.shape, 1, T, D)
+        return self.latent.gather(-3, i)[..., 0, :, :]
+
+
+class MAPInference(VariationalInference):
+    """MAP estimate of the test latents (conditional GPDM), for a GPDM or an H-GPDM.
+
+    Args: as :class:`~hgpdm_torch.inference.variational.VariationalInference` (a continuous g
+    is not supported: the thesis compares MAP only for known or discrete g).
+    """
+
+    def __init__(self, model, **kwargs) -> None:  # noqa: ANN001 - same as the base class
+        super().__init__(model, **kwargs)
+        if self.kind == "continuous":
+            raise ValueError("MAPInference supports a GPDM or a discrete g, not a continuous g")
+
+    def log_joint(self, z: object, x: torch.Tensor, *, values: object = None) -> torch.Tensor:
+        """FIC log joint ``[..., K]`` of states ``x [..., K, T, Dx]`` and window ``z``."""
+        z, observed = window_mask(z, self.obs_dim)
+        return self._log_joint(z.to(x.dtype), observed, x, self._candidates(values))
+
+    def _log_joint(
+        self, z: torch.Tensor, observed: torch.Tensor, x: torch.Tensor, values: torch.Tensor
+    ) -> torch.Tensor:
+        h = self.measurement
+        m, v = self._h.predict_point(x)
+        var = v[..., None] * h.scale.pow(2)
+        r = (torch.nan_to_num(z) - h.offset)[..., None, :, :] - m
+        lz = -0.5 * (torch.log(var) + _LOG_2PI + r.pow(2) / var).sum(-1)
+        lz = (lz * observed[..., None, :].to(lz.dtype)).sum(-1)
+        mx, vx = self._transition_gp(values).predict_point(x[..., :-1, :])
+        dx = self.latent_dim
+        err = (x[..., 1:, :] - mx).pow(2).sum(-1)
+        lx = (-0.5 * (dx * (torch.log(vx) + _LOG_2PI) + err / vx)).sum(-1)
+        d = torch.linalg.solve_triangular(
+            self._x1_chol, (x[..., 0, :] - self.x1_mean)[..., None], upper=False
+        )
+        l1 = -0.5 * (d.pow(2).sum((-1, -2)) + 2 * self._x1_chol.diagonal().log().sum())
+        return lz + lx + l1 - 0.5 * dx * _LOG_2PI
+
+    def infer(  # type: ignore[override]
+        self,
+        z: object,
+        *,
+        values: object = None,
+        steps: int = 50,
+        init: str = "smoother",
+        progress: bool = False,
+    ) -> MAPResult:
+        """Maximise the log joint over ``x_{1:T}`` for every candidate g (batched).
+
+        Args: as :meth:`VariationalInference.infer`; the initial states are the means of the
+        same initialisation.
+        """
+        z, observed = window_mask(z, self.obs_dim)
+        z = z.to(self.x1_mean.dtype)
+        if not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"steps must be a non-negative int, got {steps!r}")
+        values = self._candidates(values)
+        loc = self.initial_guess(z, values, init)[0]
+        shape = loc.shape
+        nb = shape[:-2].numel()
+
+        def objective(flat: torch.Tensor) -> torch.Tensor:
+            return -self._log_joint(z, observed, flat.reshape(shape), values).reshape(nb)
+
+        x, history = batched_lbfgs(
+            objective, loc.reshape(nb, -1), max_iter=steps, progress=progress
+        )
+        x = x.reshape(shape)
+        with torch.no_grad():
+            lj = self._log_joint(z, observed, x, values)
+            if not bool(torch.isfinite(lj).all()):
+                raise FloatingPointError("the MAP log joint is not finite after optimisation")
+            log_prior = self.log_g_prior[values] if self.kind == "discrete" else self.log_g_prior
+            return MAPResult(
+                values=values,
+                log_joint=lj,
+                posterior=torch.softmax(lj + log_prior, -1),
+                g_ml=lj.argmax(-1),
+                latent=x,
+                history=history,
+            )
+
+    def predict_observations(  # type: ignore[override]
+        self, z: object, result: MAPResult
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """GP predictive mean and variance of every row at the MAP states of the ML g.
+
+        Returns:
+            ``mean [..., T, Dz]`` (observed rows unchanged) and ``var [..., T, Dz]`` (zero on
+            observed rows).
+        """
+        z, observed = window_mask(z, self.obs_dim)
+        with torch.no_grad():
+            m, v = self._h.predict_point(result.ml_state())
+            m = m + self.measurement.offset
+            var = v[..., None] * self.measurement.scale.pow(2)
+            keep = observed[..., None]
+            return torch.where(keep, z, m), torch.where(keep, torch.zeros_like(var), var)
+
+    def forecast(  # type: ignore[override]
+        self, z: object, **infer_kwargs: object
+    ) -> tuple[torch.Tensor, torch.Tensor, MAPResult]:
+        """Forecast ``z_{T+1}`` from ``z_{1:T}``: mean ``[..., Dz]``, var, and the result."""
+        z, _ = window_mask(z, self.obs_dim)
+        nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype)
+        window = torch.cat([z, nan], -2)
+        res = self.infer(window, **infer_kwargs)
+        m, v = self.predict_observations(window, res)
+        return m[..., -1, :], v[..., -1, :], res

@@ -1,0 +1,77 @@
+"""MAP baseline (conditional GPDM): log joint vs a dense reference, optimisation, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from hgpdm_torch.datasets import styled_movements, targeted_movements
+from hgpdm_torch.inference.map import MAPInference
+from hgpdm_torch.models import GPDM, HGPDM
+
+
+@pytest.fixture(scope="module")
+def data():
+    return styled_movements(2, 2, 12, 5, seed=4)
+
+
+@pytest.fixture(scope="module")
+def hgpdm(data):
+    model = HGPDM(data.sequences, data.labels, 2, alpha=(0.9, 1.0, 0.1, 0.01))
+    model.fit(5)
+    return model
+
+
+def _reference_log_joint(model, z, x, code):
+    """Term by term with GPPosterior.predict (gpytorch kernels) and torch.distributions."""
+    h, f = model.measurement_posterior(), model.transition_posterior()
+    lat = model.latent.detach()
+    m1, S1 = lat.mean(0), torch.cov(lat.T) + 1e-6 * torch.eye(2)
+    total = torch.distributions.MultivariateNormal(m1, S1).log_prob(x[0])
+    inp = x[:-1] if code is None else torch.cat([x[:-1], torch.full((len(x) - 1, 1), code)], -1)
+    mx, vx = f.predict(inp, include_noise=True)
+    total = total + torch.distributions.Normal(mx, vx.sqrt()).log_prob(x[1:]).sum()
+    mz, vz = h.predict(x, include_noise=True)
+    obs = ~torch.isnan(z).all(-1)
+    lz = torch.distributions.Normal(mz, vz.sqrt()).log_prob(torch.nan_to_num(z)).sum(-1)
+    return total + lz[obs].sum()
+
+
+def test_log_joint_matches_reference(hgpdm, data, generator):
+    inf = MAPInference(hgpdm)
+    z = data.sequences[1][2:6].clone()
+    z[1] = float("nan")
+    x = torch.randn(2, 4, 2, generator=generator)
+    lj = inf.log_joint(z, x)
+    for k in range(2):
+        torch.testing.assert_close(lj[k], _reference_log_joint(hgpdm, z, x[k], float(k)))
+    gpdm = GPDM(data.sequences, 2, alpha=(0.9, 1.0, 0.1, 0.01))
+    inf = MAPInference(gpdm)
+    lj = inf.log_joint(z, x[:1])
+    torch.testing.assert_close(lj[0], _reference_log_joint(gpdm, z, x[0], None))
+
+
+def test_infer_maximises_and_forecasts(hgpdm, data):
+    inf = MAPInference(hgpdm)
+    z = torch.stack([s[3:7] for s in data.sequences])
+    mean, var, res = inf.forecast(z, steps=30)
+    assert mean.shape == (4, 5) and (var > 0).all()
+    assert res.latent.shape == (4, 2, 5, 2) and res.history[-1] <= res.history[0]
+    window = torch.cat([z, torch.full((4, 1, 5), math.nan)], 1)
+    start = inf.initial_guess(window, inf.values, "smoother")[0]
+    assert torch.all(res.log_joint >= inf.log_joint(window, start) - 1e-9)
+    torch.testing.assert_close(res.posterior.sum(-1), torch.ones(4))
+
+
+def test_bad_input(hgpdm, data):
+    inf = MAPInference(hgpdm)
+    with pytest.raises(ValueError, match="at least 2 time steps"):
+        inf.infer(data.sequences[0][:1])
+    with pytest.raises(ValueError, match="every row is missing"):
+        inf.infer(torch.full((3, 5), math.nan))
+    seqs = targeted_movements(3, 6, 4, seed=0)
+    model = HGPDM(seqs.sequences, seqs.labels, 2, intention="continuous")
+    with pytest.raises(ValueError, match="continuous"):
+        MAPInference(model)
