@@ -229,6 +229,9 @@ class FiniteStageGame:
         children: per state, the indices of its child states.
         transitions: per state, ``[Ai_s, Aj_s, n_children]`` transition probabilities (``None``
             or an array with last dim 0 for leaves).
+
+    Any array-likes (nested lists, tensors) are accepted; the instance stores them validated as
+    float64 arrays, a leaf's ``None`` as ``zeros((Ai_s, Aj_s, 0))``.
     """
 
     rewards: tuple[np.ndarray, ...]
@@ -243,21 +246,35 @@ class FiniteStageGame:
                 f"got {len(self.rewards)}, {len(self.children)}, {len(self.transitions)}"
             )
         parents = np.zeros(n, dtype=int)
+        rewards, children, transitions = [], [], []
         for s in range(n):
             r = check_reward_matrix(self.rewards[s], f"rewards[{s}]")
             kids = tuple(self.children[s])
+            if any(isinstance(k, bool) or not isinstance(k, int | np.integer) for k in kids):
+                raise TypeError(f"children[{s}] must hold integer state indices, got {kids}")
+            kids = tuple(int(k) for k in kids)
             if any(not 0 < k < n for k in kids):
                 raise ValueError(f"children[{s}] must index states 1..{n - 1}, got {kids}")
             parents[list(kids)] += 1
-            t = np.asarray(self.transitions[s], dtype=float)
+            if self.transitions[s] is None and not kids:
+                t = np.zeros((*r.shape, 0))
+            else:
+                t = as_array(self.transitions[s], f"transitions[{s}]", 3)
             if t.shape != (*r.shape, len(kids)):
                 raise ValueError(
                     f"transitions[{s}] must have shape {(*r.shape, len(kids))}, got {t.shape}"
                 )
             if kids and ((t < 0).any() or not np.allclose(t.sum(-1), 1.0)):
                 raise ValueError(f"transitions[{s}] must sum to 1 over the children of state {s}")
+            rewards.append(r)
+            children.append(kids)
+            transitions.append(t)
         if parents[0] != 0 or (parents[1:] != 1).any():
             raise ValueError("children must form a tree rooted at state 0 (one parent per state)")
+        # Keep the validated float arrays, not the caller's lists: the methods rely on them.
+        object.__setattr__(self, "rewards", tuple(rewards))
+        object.__setattr__(self, "children", tuple(children))
+        object.__setattr__(self, "transitions", tuple(transitions))
 
     @property
     def n_states(self) -> int:
@@ -289,48 +306,49 @@ class FiniteStageGame:
                 f"child_values must have one value per child of state {state} "
                 f"({len(self.children[state])}), got shape {v.shape}"
             )
-        r = np.asarray(self.rewards[state], dtype=float)
-        return r + np.asarray(self.transitions[state], dtype=float) @ v if v.size else r.copy()
+        r = self.rewards[state]
+        return r + self.transitions[state] @ v if v.size else r.copy()
 
-    def values(
-        self, strategies_i: Sequence[np.ndarray], strategies_j: Sequence[np.ndarray]
-    ) -> np.ndarray:
+    def values(self, strategies_i: Sequence[object], strategies_j: Sequence[object]) -> np.ndarray:
         """Expected return from every state when both players follow the given local strategies.
 
         Returns:
             ``[|S|]`` expected sum of rewards from each state to a leaf.
         """
-        self._check_profile(strategies_i, 0, "strategies_i")
-        self._check_profile(strategies_j, 1, "strategies_j")
+        pis = self._check_profile(strategies_i, 0, "strategies_i")
+        pjs = self._check_profile(strategies_j, 1, "strategies_j")
         v = np.zeros(self.n_states)
         for s in self.bottom_up():
             m = self.continuation_matrix(s, v[list(self.children[s])])
-            v[s] = strategies_i[s] @ m @ strategies_j[s]
+            v[s] = pis[s] @ m @ pjs[s]
         return v
 
-    def best_response(
-        self, strategies_j: Sequence[np.ndarray]
-    ) -> tuple[list[np.ndarray], np.ndarray]:
+    def best_response(self, strategies_j: Sequence[object]) -> tuple[list[np.ndarray], np.ndarray]:
         """Backward induction against known opponent strategies: the globally optimal return.
 
         Returns:
             ``(strategies_i, values)``: a best-response local strategy per state and ``[|S|]``
             the optimal expected returns.
         """
-        self._check_profile(strategies_j, 1, "strategies_j")
+        pjs = self._check_profile(strategies_j, 1, "strategies_j")
         v = np.zeros(self.n_states)
         pis: list[np.ndarray] = [np.zeros(0)] * self.n_states
         for s in self.bottom_up():
             m = self.continuation_matrix(s, v[list(self.children[s])])
-            pis[s] = best_response(m, strategies_j[s])
-            v[s] = pis[s] @ m @ strategies_j[s]
+            pis[s] = best_response(m, pjs[s])
+            v[s] = pis[s] @ m @ pjs[s]
         return pis, v
 
-    def _check_profile(self, strategies: Sequence[np.ndarray], axis: int, name: str) -> None:
+    def _check_profile(
+        self, strategies: Sequence[object], axis: int, name: str
+    ) -> list[np.ndarray]:
+        """One validated ``[A_s]`` strategy per state for the player on ``axis`` of the rewards."""
         if len(strategies) != self.n_states:
             raise ValueError(f"{name} must hold one strategy per state ({self.n_states})")
-        for s, pi in enumerate(strategies):
+        return [
             check_strategy(pi, self.rewards[s].shape[axis], f"{name}[{s}]")
+            for s, pi in enumerate(strategies)
+        ]
 
 
 def two_stage_rps(stage2_scale: float = 2.0) -> FiniteStageGame:

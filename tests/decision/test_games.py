@@ -7,6 +7,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
+from scipy.optimize import linprog
 
 from hgpdm_torch.decision.games import (
     RPS_REWARD,
@@ -59,9 +60,24 @@ def test_thesis_minimax_numbers() -> None:
     pi, value = minimax_strategy(RPS_REWARD)
     np.testing.assert_allclose(pi, np.full(3, 1 / 3), atol=1e-8)
     assert abs(value) < 1e-9
-    # Sec. 5.4.2: [0.2088 forehand, 0.7912 middle, 0 backhand] from the unrounded matrix; the
-    # two-digit Table 5.3 gives [0.2027, 0.7973, 0].
-    pi, _ = minimax_strategy(TABLE_TENNIS_REWARD)
+    pi, value = minimax_strategy(TABLE_TENNIS_REWARD)
+    # Oracle: the classic reformulation min 1^T x s.t. (R + k)^T x >= 1, x >= 0 (pi = x / 1^T x,
+    # value = 1 / 1^T x - k) solved by scipy's interior-point HiGHS, not the simplex of the code.
+    k = 1.0 - TABLE_TENNIS_REWARD.min()
+    res = linprog(
+        np.ones(3),
+        A_ub=-(TABLE_TENNIS_REWARD + k).T,
+        b_ub=-np.ones(3),
+        bounds=[(0, None)] * 3,
+        method="highs-ipm",
+    )
+    assert res.status == 0
+    np.testing.assert_allclose(pi, res.x / res.x.sum(), atol=1e-6)
+    assert value == pytest.approx(1.0 / res.x.sum() - k, abs=1e-6)
+    # By hand: the forehand and backhand-side columns equalise at p_forehand = 0.15 / 0.74.
+    np.testing.assert_allclose(pi, [15 / 74, 59 / 74, 0.0], atol=1e-6)
+    # Sec. 5.4.2 prints [0.2088, 0.7912, 0]: computed from the unrounded success rates, so the
+    # two-digit Table 5.3 can only match it loosely.
     np.testing.assert_allclose(pi, [0.2088, 0.7912, 0.0], atol=0.01)
 
 
@@ -118,6 +134,29 @@ def test_two_stage_values_against_enumeration() -> None:
     assert order[-1] == 0 and sorted(order) == list(range(10))
 
 
+def test_finite_stage_game_stores_validated_arrays() -> None:
+    # nested lists and None leaves are accepted and stored as float arrays
+    rps = RPS_REWARD.tolist()
+    game = FiniteStageGame(
+        (rps, rps, rps),
+        ([1, 2], [], []),
+        (np.full((3, 3, 2), 0.5).tolist(), None, None),
+    )
+    assert all(isinstance(r, np.ndarray) and r.dtype == np.float64 for r in game.rewards)
+    assert game.transitions[1].shape == (3, 3, 0)
+    assert game.children == ((1, 2), (), ())
+    pi = [1 / 3] * 3
+    # uniform play: every stage has value 0 in RPS
+    np.testing.assert_allclose(game.values([pi] * 3, [pi] * 3), 0.0, atol=1e-15)
+    rock = [1.0, 0.0, 0.0]
+    # R[paper, rock] = 1 at the root and in whichever leaf follows (each with probability 1/2)
+    paper = [0.0, 1.0, 0.0]
+    np.testing.assert_allclose(game.values([paper] * 3, [rock] * 3), [2.0, 1.0, 1.0])
+    br, v = game.best_response([rock] * 3)
+    np.testing.assert_allclose(v, [2.0, 1.0, 1.0])
+    np.testing.assert_allclose(br[0], paper)
+
+
 def test_bad_inputs_raise() -> None:
     with pytest.raises(ValueError, match="strategy_i"):
         expected_reward(RPS_REWARD, [0.5, 0.6, -0.1], [1 / 3] * 3)
@@ -145,5 +184,11 @@ def test_bad_inputs_raise() -> None:
         FiniteStageGame(
             (RPS_REWARD, RPS_REWARD), ((1,), (1,)), (np.ones((3, 3, 1)), np.ones((3, 3, 1)))
         )
+    with pytest.raises(ValueError, match="transitions\\[1\\] must have 3 dimensions"):
+        FiniteStageGame((RPS_REWARD, RPS_REWARD), ((1,), ()), (np.ones((3, 3, 1)), [[1.0]]))
+    with pytest.raises(TypeError, match="transitions\\[0\\]"):
+        FiniteStageGame((RPS_REWARD, RPS_REWARD), ((1,), ()), (None, None))
+    with pytest.raises(TypeError, match="children\\[0\\].*integer"):
+        FiniteStageGame((RPS_REWARD, RPS_REWARD), ((1.0,), ()), (np.ones((3, 3, 1)), None))
     with pytest.raises(ValueError, match="one strategy per state"):
         two_stage_rps().values([np.full(3, 1 / 3)], [np.full(3, 1 / 3)])
