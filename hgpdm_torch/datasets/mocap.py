@@ -1,0 +1,269 @@
+"""Reader for CMU motion-capture files (Acclaim ASF skeletons and AMC motions).
+
+The CMU database (http://mocap.cs.cmu.edu/, used in thesis Sec. 2.4.1) stores a subject's
+skeleton in an ``.asf`` file and each trial's joint angles in an ``.amc`` file:
+
+- ASF: ``:units``, ``:root`` (``order`` of its channels), ``:bonedata`` (one ``begin ... end``
+  block per bone: ``id``, ``name``, ``direction``, ``length``, ``axis``, optional ``dof`` and
+  ``limits``) and ``:hierarchy`` (``parent child child ...`` lines);
+- AMC: header lines (``#`` comments, ``:FULLY-SPECIFIED``, ``:DEGREES``), then for every frame
+  its number on a line of its own followed by one ``bone v1 v2 ...`` line per moving bone, with
+  as many values as the bone has degrees of freedom (the root: its ``order``).
+
+:func:`load_mocap` turns a trial into the ``[T, Dz]`` observation matrix the models take:
+channel selection, down-sampling (the thesis used factors 4 and 10) and per-channel
+normalisation. Channels are named ``"bone.dof"`` (e.g. ``"lfemur.rx"``, ``"root.tx"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["Bone", "MocapTrial", "Skeleton", "load_mocap", "read_amc", "read_asf"]
+
+
+@dataclass
+class Bone:
+    """One ASF bone: ``direction`` ``[3]`` (unit vector), ``length``, ``axis`` ``[3]`` (degrees)
+    with its rotation ``axis_order``, degrees of freedom ``dof`` and their ``limits``."""
+
+    id: int
+    name: str
+    direction: np.ndarray
+    length: float
+    axis: np.ndarray
+    axis_order: str = "XYZ"
+    dof: tuple[str, ...] = ()
+    limits: list[tuple[float, float]] = field(default_factory=list)
+
+
+@dataclass
+class Skeleton:
+    """A parsed ASF file.
+
+    Attributes:
+        name: the ``:name`` entry.
+        units: ``:units`` entries (``mass``, ``length``, ``angle``).
+        root_order: channels of the root, e.g. ``("tx", "ty", "tz", "rx", "ry", "rz")``.
+        bones: bones by name, in file order.
+        parent: parent bone name of every bone (``"root"`` for the root's children).
+    """
+
+    name: str
+    units: dict[str, str]
+    root_order: tuple[str, ...]
+    bones: dict[str, Bone]
+    parent: dict[str, str]
+
+    def channels(self) -> list[str]:
+        """All channels ``"bone.dof"`` in a fixed order: the root's, then bones in file order."""
+        names = [f"root.{d}" for d in self.root_order]
+        for bone in self.bones.values():
+            names += [f"{bone.name}.{d}" for d in bone.dof]
+        return names
+
+
+@dataclass
+class MocapTrial:
+    """A parsed AMC motion: ``values [T, C]`` for ``channels`` (``"bone.dof"``) at frames
+    ``frame_numbers [T]``."""
+
+    values: np.ndarray
+    channels: list[str]
+    frame_numbers: np.ndarray
+
+
+def _open(path: str | Path, kind: str) -> list[str]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{kind} file not found: {path}")
+    return path.read_text().splitlines()
+
+
+def _floats(tokens: list[str], n: int, what: str, lineno: int) -> np.ndarray:
+    if len(tokens) != n:
+        raise ValueError(f"line {lineno}: {what} needs {n} numbers, got {len(tokens)}")
+    try:
+        return np.array([float(t) for t in tokens])
+    except ValueError as err:
+        raise ValueError(f"line {lineno}: {what} must be numbers, got {tokens}") from err
+
+
+def read_asf(path: str | Path) -> Skeleton:
+    """Parse an Acclaim ASF skeleton file.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a malformed entry (the message names the line), a bone without a name, a
+            ``dof`` other than ``rx ry rz tx ty tz l``, or a hierarchy naming an unknown bone.
+    """
+    lines = _open(path, "ASF")
+    section, name, units = "", "", {}
+    root_order: tuple[str, ...] = ()
+    bones: dict[str, Bone] = {}
+    parent: dict[str, str] = {}
+    bone: dict | None = None
+    last_key = ""
+    for lineno, raw in enumerate(lines, 1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        tokens = line.split()
+        if tokens[0].startswith(":"):
+            section = tokens[0][1:].lower()
+            if section == "name" and len(tokens) > 1:
+                name = tokens[1]
+            continue
+        key = tokens[0].lower()
+        if section == "units" and len(tokens) == 2:
+            units[key] = tokens[1]
+        elif section == "root" and key == "order":
+            root_order = tuple(t.lower() for t in tokens[1:])
+        elif section == "bonedata":
+            if key == "begin":
+                bone = {"limits": []}
+            elif key == "end":
+                if bone is None or "name" not in bone:
+                    raise ValueError(f"line {lineno}: bone block without a name")
+                bones[bone["name"]] = Bone(
+                    id=int(bone.get("id", len(bones) + 1)),
+                    name=bone["name"],
+                    direction=bone.get("direction", np.zeros(3)),
+                    length=float(bone.get("length", 0.0)),
+                    axis=bone.get("axis", np.zeros(3)),
+                    axis_order=bone.get("axis_order", "XYZ"),
+                    dof=bone.get("dof", ()),
+                    limits=bone["limits"],
+                )
+                bone = None
+            elif bone is None:
+                raise ValueError(f"line {lineno}: bone entry outside begin/end: {line!r}")
+            elif key == "id":
+                bone["id"] = int(tokens[1])
+            elif key == "name":
+                bone["name"] = tokens[1]
+            elif key == "direction":
+                bone["direction"] = _floats(tokens[1:], 3, "direction", lineno)
+            elif key == "length":
+                bone["length"] = float(_floats(tokens[1:], 1, "length", lineno)[0])
+            elif key == "axis":
+                bone["axis"] = _floats(tokens[1:4], 3, "axis", lineno)
+                bone["axis_order"] = tokens[4] if len(tokens) > 4 else "XYZ"
+            elif key == "dof":
+                dof = tuple(t.lower() for t in tokens[1:])
+                bad = set(dof) - {"rx", "ry", "rz", "tx", "ty", "tz", "l"}
+                if bad:
+                    raise ValueError(f"line {lineno}: unknown dof {sorted(bad)}")
+                bone["dof"] = dof
+            if key in ("limits",) or (key.startswith("(") and last_key == "limits"):
+                text = line[len("limits") :] if key == "limits" else line
+                lo, hi = text.replace("(", " ").replace(")", " ").split()
+                bone["limits"].append((float(lo), float(hi)))
+                last_key = "limits"
+                continue
+            last_key = key
+        elif section == "hierarchy" and key not in ("begin", "end"):
+            for child in tokens[1:]:
+                parent[child] = tokens[0]
+    for child, par in parent.items():
+        for b in (child, par):
+            if b != "root" and b not in bones:
+                raise ValueError(f"ASF hierarchy names an unknown bone {b!r}")
+    return Skeleton(name, units, root_order, bones, parent)
+
+
+def read_amc(path: str | Path, skeleton: Skeleton) -> MocapTrial:
+    """Parse an AMC motion file against its skeleton.
+
+    Bones missing from a frame keep the value of the previous frame (0 in the first).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a bone unknown to the skeleton, a wrong number of values, a non-number,
+            data before the first frame number, or no frames.
+    """
+    lines = _open(path, "AMC")
+    channels = skeleton.channels()
+    index = {c: i for i, c in enumerate(channels)}
+    dofs = {"root": skeleton.root_order} | {b.name: b.dof for b in skeleton.bones.values()}
+    frames: list[np.ndarray] = []
+    numbers: list[int] = []
+    current: np.ndarray | None = None
+    for lineno, raw in enumerate(lines, 1):
+        line = raw.strip()
+        if not line or line.startswith("#") or line.startswith(":"):
+            continue
+        tokens = line.split()
+        if len(tokens) == 1 and tokens[0].isdigit():
+            current = frames[-1].copy() if frames else np.zeros(len(channels))
+            frames.append(current)
+            numbers.append(int(tokens[0]))
+            continue
+        if current is None:
+            raise ValueError(f"line {lineno}: AMC data before the first frame number")
+        bone = tokens[0]
+        if bone not in dofs:
+            raise ValueError(f"line {lineno}: bone {bone!r} is not in the skeleton")
+        values = _floats(tokens[1:], len(dofs[bone]), f"bone {bone!r}", lineno)
+        for d, v in zip(dofs[bone], values, strict=True):
+            current[index[f"{bone}.{d}"]] = v
+    if not frames:
+        raise ValueError(f"AMC file {path} contains no frames")
+    return MocapTrial(np.stack(frames), channels, np.array(numbers))
+
+
+def load_mocap(
+    asf: str | Path,
+    amc: str | Path,
+    *,
+    channels: list[str] | None = None,
+    downsample: int = 1,
+    normalize: bool | tuple[np.ndarray, np.ndarray] = True,
+    dtype: torch.dtype = torch.float64,
+) -> tuple[torch.Tensor, list[str], tuple[np.ndarray, np.ndarray]]:
+    """Load a CMU trial as an observation matrix ``[T, Dz]``.
+
+    Args:
+        asf: skeleton file; amc: motion file.
+        channels: channels to keep: ``"bone.dof"`` names or whole bone names (all its dofs);
+            default all channels that move in the trial (constant channels carry no signal).
+        downsample: keep every ``downsample``-th frame (>= 1).
+        normalize: ``True``: subtract the per-channel mean and divide by the standard deviation
+            of this trial; a ``(mean, std)`` pair: use those (e.g. of the training trials);
+            ``False``: raw values.
+        dtype: tensor dtype.
+
+    Returns:
+        ``z [T, Dz]``, the channel names, and the ``(mean, std)`` used (zeros/ones if none).
+    """
+    if not isinstance(downsample, int) or downsample < 1:
+        raise ValueError(f"downsample must be an int >= 1, got {downsample!r}")
+    trial = read_amc(amc, read_asf(asf))
+    values = trial.values[::downsample]
+    if channels is None:
+        keep = [i for i in range(values.shape[1]) if np.ptp(trial.values[:, i]) > 0]
+    else:
+        keep = []
+        for c in channels:
+            hits = [i for i, n in enumerate(trial.channels) if n == c or n.split(".")[0] == c]
+            if not hits:
+                raise ValueError(f"unknown channel {c!r}; available: {trial.channels}")
+            keep += hits
+    if not keep:
+        raise ValueError("no channel selected (all channels are constant in this trial)")
+    values = values[:, keep]
+    names = [trial.channels[i] for i in keep]
+    if normalize is True:
+        mean, std = values.mean(0), values.std(0)
+        std = np.where(std > 0, std, 1.0)
+    elif normalize is False:
+        mean, std = np.zeros(len(keep)), np.ones(len(keep))
+    else:
+        mean, std = (np.asarray(a, dtype=float) for a in normalize)
+        if mean.shape != (len(keep),) or std.shape != (len(keep),) or np.any(std <= 0):
+            raise ValueError(f"normalize must be (mean, std) of shape [{len(keep)}] with std > 0")
+    return torch.as_tensor((values - mean) / std, dtype=dtype), names, (mean, std)
