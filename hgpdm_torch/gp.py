@@ -17,6 +17,7 @@ expectations of :mod:`hgpdm_torch.expectations`.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 
 import torch
@@ -86,17 +87,40 @@ class GPPosterior:
         dout = y.shape[1]
         self.scale = self._vector(scale, "scale", dout, x, 1.0)
         self.offset = self._vector(offset, "offset", dout, x, 0.0)
-        self.kernel = kernel
-        with torch.set_grad_enabled(torch.is_grad_enabled() and not detach):
-            k = kernel(x).to_dense()
-            eye = torch.eye(x.shape[0], dtype=x.dtype, device=x.device)
-            self.chol = psd_cholesky(k + noise * eye, name="training kernel matrix K + noise I")
-            self.weights = torch.cholesky_solve(y, self.chol)
         if detach:
+            # A frozen snapshot: later changes to the model's kernel (e.g. more fitting) must not
+            # leak into a posterior whose Cholesky factor was computed with the old values.
+            kernel = copy.deepcopy(kernel)
+            kernel.requires_grad_(False)
             x, y, noise = x.detach(), y.detach(), noise.detach()
             self.scale, self.offset = self.scale.detach(), self.offset.detach()
+        self.kernel = kernel
         self.train_inputs, self.train_targets, self.noise = x, y, noise
         self.detach = detach
+        if detach:
+            with torch.no_grad():
+                self._factors = self._factorise()
+
+    def _factorise(self) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.train_inputs
+        k = self.kernel(x).to_dense()
+        eye = torch.eye(x.shape[0], dtype=x.dtype, device=x.device)
+        chol = psd_cholesky(k + self.noise * eye, name="training kernel matrix K + noise I")
+        return chol, torch.cholesky_solve(self.train_targets, chol)
+
+    @property
+    def chol(self) -> torch.Tensor:
+        """``[N, N]`` lower Cholesky factor of ``K + noise I``.
+
+        Cached for a detached posterior; recomputed on each access otherwise, so that every
+        backward pass sees a fresh graph to the hyperparameters.
+        """
+        return self._factors[0] if self.detach else self._factorise()[0]
+
+    @property
+    def weights(self) -> torch.Tensor:
+        """``[N, Dout]`` ``(K + noise I)^-1 Y`` (cached when detached, as :attr:`chol`)."""
+        return self._factors[1] if self.detach else self._factorise()[1]
 
     @staticmethod
     def _vector(
@@ -159,6 +183,8 @@ class GPPosterior:
         Only the expected predictive variance uses it (``tr(K^-1 psi2)`` is an elementwise
         product with an ``N x N`` matrix, which a solve cannot do in ``O(N^2)``).
         """
+        if not self.detach:
+            return torch.cholesky_inverse(self.chol)
         if getattr(self, "_kinv", None) is None:
             self._kinv = torch.cholesky_inverse(self.chol)
         return self._kinv
@@ -248,8 +274,10 @@ class GPPosterior:
         var = (leaves_psi0(leaves, mu, Sigma, g_psi0) - trace).clamp_min(0.0)
         if include_noise:
             var = var + self.noise
-        cov = symmetrize(second - mean[..., :, None] * mean[..., None, :])
-        cov = cov + torch.diag_embed(var[..., None] * self.scale.pow(2))
+        # beta^T psi2 beta and mean mean^T nearly cancel when the GP is almost exact (small
+        # noise), so their difference is projected onto the PSD cone where rounding broke it.
+        diag = torch.diag_embed(var[..., None] * self.scale.pow(2))
+        cov = _psd_part(symmetrize(second - mean[..., :, None] * mean[..., None, :]), diag)
         io = (Sigma if joint_cov is None else joint_cov) @ grad
         return mean + self.offset, cov, io
 
@@ -273,7 +301,7 @@ class GPPosterior:
         kernel = self.kernel
         if not isinstance(kernel, DiscreteIntentionKernel) or kernel.active_dims is not None:
             return None
-        if getattr(self, "_block_cache", None) is None:
+        if not self.detach or getattr(self, "_block_cache", None) is None:
             codes = self.train_inputs[:, -1]
             index = [torch.nonzero(codes == c).flatten() for c in range(kernel.num_values)]
             M = max(1, max(len(i) for i in index))
@@ -286,7 +314,10 @@ class GPPosterior:
             X = torch.cat([self.train_inputs, self.train_inputs.new_zeros(1, self.input_dim)])
             beta = torch.cat([self.weights, self.weights.new_zeros(1, dout)])
             kinv = torch.nn.functional.pad(kinv, (0, 1, 0, 1))
-            self._block_cache = (X[pad], beta[pad], kinv[pad[:, :, None], pad[:, None, :]], mask)
+            blocks = (X[pad], beta[pad], kinv[pad[:, :, None], pad[:, None, :]], mask)
+            if not self.detach:
+                return blocks
+            self._block_cache = blocks
         return self._block_cache
 
     def _gather_blocks(self, g: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -301,6 +332,25 @@ class GPPosterior:
             raise ValueError(f"discrete intention codes g must be integers in [0, {num - 1}]")
         code = code.long()
         return tuple(block[code] for block in self._blocks())
+
+
+def _psd_part(a: torch.Tensor, diag: torch.Tensor) -> torch.Tensor:
+    """``a + diag`` with ``a [..., n, n]`` clipped to PSD (eigenvalues >= 0) where needed.
+
+    A batched Cholesky of ``a + diag`` finds the members that need it; only those pay for an
+    eigendecomposition, so the common case costs one small Cholesky per batch member.
+    """
+    total = a + diag
+    with torch.no_grad():
+        _, info = torch.linalg.cholesky_ex(total)
+        bad = info > 0
+    if not bool(bad.any()):
+        return total
+    w, v = torch.linalg.eigh(a[bad])
+    fixed = (v * w.clamp_min(0.0)[..., None, :]) @ v.transpose(-1, -2)
+    out = total.clone()
+    out[bad] = symmetrize(fixed) + diag.expand_as(total)[bad]
+    return out
 
 
 def _moments(

@@ -111,3 +111,40 @@ def test_predict_rejects_wrong_dims():
         post.predict(torch.randn(4, 3))
     with pytest.raises(TypeError, match="kernel"):
         GPPosterior("rbf", torch.randn(5, 2), torch.randn(5, 1), 0.1)
+
+
+def test_posterior_is_a_frozen_snapshot(generator):
+    kernel = transition_kernel("gpdm", 2, alpha=(0.9, 0.5, 0.1, 1e-3))
+    x, y = torch.randn(15, 2, generator=generator), torch.randn(15, 2, generator=generator)
+    post = GPPosterior(kernel, x, y, 0.01)
+    xs = torch.randn(3, 2, generator=generator)
+    before = post.predict(xs)
+    kernel.kernels[0].outputscale = 5.0  # e.g. the model is fitted further
+    torch.testing.assert_close(post.predict(xs), before, rtol=0, atol=0)
+    mean, _, _ = post.predict_gaussian(xs, torch.zeros(3, 2, 2))
+    torch.testing.assert_close(mean, before[0])
+
+
+def test_undetached_posterior_supports_repeated_backward(generator):
+    kernel = measurement_kernel("rbf")
+    x, y = torch.randn(10, 2, generator=generator), torch.randn(10, 1, generator=generator)
+    post = GPPosterior(kernel, x, y, 0.1, detach=False)
+    for _ in range(2):
+        kernel.zero_grad()
+        mean, cov, _ = post.predict_gaussian(torch.zeros(2), 0.1 * torch.eye(2))
+        (mean.sum() + cov.sum()).backward()
+        assert kernel.raw_lengthscale.grad is not None
+
+
+def test_moment_matched_covariance_stays_psd_for_a_nearly_exact_gp(generator):
+    # alpha-bar's very smooth RBF and tiny noise: K is ill-conditioned and beta^T psi2 beta and
+    # mean mean^T cancel to rounding error, which used to leave negative variances.
+    t = torch.linspace(0, 6, 300)
+    x = torch.stack([t.sin(), t.cos()], -1) + 0.01 * torch.randn(300, 2, generator=generator)
+    post = GPPosterior(transition_kernel("gpdm", 2), x, torch.roll(x, -1, 0), 1e-6)
+    mu = torch.tensor([[0.5, 0.5], [2.0, 2.0]])
+    _, cov, _ = post.predict_gaussian(mu, torch.zeros(2, 2, 2))
+    assert torch.linalg.eigvalsh(cov).min() >= 0
+    # The variance itself is only determined to ~cond(K) * eps here (signal variance ~1).
+    _, var = post.predict(mu)
+    torch.testing.assert_close(cov.diagonal(dim1=-2, dim2=-1), var, atol=1e-4, rtol=0)
