@@ -356,3 +356,15 @@ def test_bad_input_raises() -> None:
         B.aim([0.0, -1.5, 1.0], [0.0, 0.5], 0.0)
     with pytest.raises(ValueError, match="desired_vel_out"):
         B.racket_velocity_for_return([0, 1.0, 0], [0, 1.0, 0])
+
+
+def test_unreachable_aims_raise_or_are_reported_never_nan() -> None:
+    # with a drag 700 times too strong no launch velocity reaches the far court in 0.5 s and
+    # Newton diverges to NaN, which the old NaN-blind check let through; aim raises, and
+    # aim_through_bounce reports the elements and keeps every velocity finite
+    heavy = B.BallParams(drag=100.0)
+    with pytest.raises(ValueError, match="did not converge"):
+        B.aim([0.0, -1.5, 1.0], [0.0, 1.0], 0.5, heavy)
+    res = B.aim_through_bounce(torch.tensor([0.0, 1.65, 1.0]), 0.3, -0.9, 0.47, heavy, max_iter=2)
+    assert not bool(res.converged)
+    assert bool(torch.isfinite(res.vel).all())

@@ -278,12 +278,11 @@ def table_point(x: object, y: object) -> torch.Tensor:
 def flight(state: BallState, params: BallParams = DEFAULT_PARAMS) -> torch.Tensor:
     """Acceleration ``[..., 3]`` in free flight: ``-g e_z - k_d |v| v + k_m (w x v)``."""
     v, w = state.vel, state.spin
-    acc = -params.drag * v.norm(dim=-1, keepdim=True) * v
+    acc = (-params.drag) * torch.linalg.vector_norm(v, dim=-1, keepdim=True) * v
     if params.magnus:
         acc = acc + params.magnus * torch.linalg.cross(w, v, dim=-1)
-    gravity = torch.zeros(3, dtype=v.dtype, device=v.device)
-    gravity[2] = -params.gravity
-    return acc + gravity
+    acc[..., 2] -= params.gravity
+    return acc
 
 
 def _rk4(state: BallState, h: torch.Tensor, params: BallParams) -> BallState:
@@ -401,6 +400,18 @@ def _net_hit(s: BallState, sign: torch.Tensor, params: BallParams) -> BallState:
     return BallState(pos, s.vel * scale, s.spin * params.net_damping)
 
 
+def _subset(state: BallState, mask: torch.Tensor) -> BallState:
+    """The balls where ``mask`` [...] is true, flattened to ``[k]``."""
+    return BallState(state.pos[mask], state.vel[mask], state.spin[mask])
+
+
+def _scatter(full: torch.Tensor, mask: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """A copy of ``full`` [...] with the entries where ``mask`` is true set to ``values`` [k]."""
+    out = full.clone()
+    out[mask] = values
+    return out
+
+
 def _on_table(pos: torch.Tensor) -> torch.Tensor:
     return (pos[..., 0].abs() <= geo.TABLE_HALF_WIDTH) & (
         pos[..., 1].abs() <= geo.TABLE_HALF_LENGTH
@@ -452,13 +463,16 @@ def _advance(
         tau_t = torch.full_like(h, math.inf)
         tau_n = torch.full_like(h, math.inf)
         if bool(table_cand.any()):
-            tau = _find_root(state, remaining, g0_t, g1_t, table_event, fly)
-            table_cand = table_cand & _on_table(fly(state, tau).pos)
-            tau_t = torch.where(table_cand, tau, tau_t)
+            m = table_cand
+            tau = _find_root(_subset(state, m), remaining[m], g0_t[m], g1_t[m], table_event, fly)
+            table_cand = _scatter(table_cand, m, _on_table(fly(_subset(state, m), tau).pos))
+            tau_t = _scatter(tau_t, table_cand, tau[table_cand[m]])
         if bool(net_cand.any()):
-            tau = _find_root(state, remaining, g0_n, g1_n, net_event, fly)
-            net_cand = net_cand & _at_net(fly(state, tau).pos, params)
-            tau_n = torch.where(net_cand, tau, tau_n)
+            m = net_cand
+            sub_event = _PlaneEvent(net_event.y_plane[m], net_event.sign[m], params.radius)
+            tau = _find_root(_subset(state, m), remaining[m], g0_n[m], g1_n[m], sub_event, fly)
+            net_cand = _scatter(net_cand, m, _at_net(fly(_subset(state, m), tau).pos, params))
+            tau_n = _scatter(tau_n, net_cand, tau[net_cand[m]])
         use_t = table_cand & (tau_t <= tau_n)
         use_n = net_cand & ~use_t
         hit = use_t | use_n
@@ -704,12 +718,14 @@ def predict_plane_crossing(
         g_end, _ = event(new)
         crossed = ~done & (g_start > 0) & (g_end <= 0)
         if bool(crossed.any()):
-            tau = _find_root(state, h, g_start, g_end, event, fly)
-            at = fly(state, tau)
-            floor_ok = at.pos[..., 2] > params.radius
-            out = at.where(crossed, out)
-            t_cross = torch.where(crossed, t + tau, t_cross)
-            valid = valid | (crossed & floor_ok)
+            m = crossed
+            sub_event = _PlaneEvent(event.y_plane[m], event.sign[m])
+            sub = _subset(state, m)
+            tau = _find_root(sub, h[m], g_start[m], g_end[m], sub_event, fly)
+            at = fly(sub, tau)
+            out = BallState(*(_scatter(o, m, a) for o, a in zip(out, at, strict=True)))
+            t_cross = _scatter(t_cross, m, t + tau)
+            valid = _scatter(valid, m, at.pos[:, 2] > params.radius)
             done = done | crossed
         fell = ~done & (new.pos[..., 2] <= params.radius)
         out = new.where(fell, out)
@@ -885,6 +901,31 @@ def aim(
     Raises:
         ValueError: for bad shapes/values, or when Newton does not reach ``1e-6`` m.
     """
+    v, resid = _aim(pos, target_pos, flight_time, params, spin=spin, tol=tol, max_iter=max_iter)
+    worst = float(torch.nan_to_num(resid, nan=math.inf).max()) if resid.numel() else 0.0
+    if not worst <= 1e-6:
+        raise ValueError(
+            f"aim did not converge (max residual {worst:.2e} m); "
+            "the target may be unreachable in the given flight_time"
+        )
+    return v
+
+
+def _aim(
+    pos: object,
+    target_pos: object,
+    flight_time: object,
+    params: BallParams,
+    *,
+    spin: object | None,
+    tol: float,
+    max_iter: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`aim` without the convergence check: ``v0 [..., 3]`` and the residual ``[...]`` [m].
+
+    Elements whose Newton iteration diverged (residual NaN/inf or large) keep their drag-free
+    ballistic guess, so that the velocity is always finite; callers judge them by the residual.
+    """
     params = _check_params(params)
     p0 = as_tensor(pos, "pos", min_ndim=1)
     kw = {"dtype": p0.dtype, "device": p0.device}
@@ -905,7 +946,8 @@ def aim(
     t = t.expand(shape[:-1])
     g = torch.zeros(3, **kw)
     g[2] = params.gravity
-    v = (tgt - p0) / t[..., None] + 0.5 * g * t[..., None]  # drag-free ballistic guess
+    guess = (tgt - p0) / t[..., None] + 0.5 * g * t[..., None]  # drag-free ballistic guess
+    v = guess
     eps = 1e-6
     eye = torch.eye(3, **kw)
     pert = torch.cat([torch.zeros(1, 3, **kw), eps * eye, -eps * eye])  # [7, 3]
@@ -915,19 +957,20 @@ def aim(
             p0.unsqueeze(-2), vs, w.unsqueeze(-2), t[..., None].expand(vs.shape[:-1]), params
         )
         resid = end[..., 0, :] - tgt
-        if float(resid.abs().max()) < tol:
+        if float(torch.nan_to_num(resid, nan=math.inf).abs().max()) < tol:
             break
         jac = (end[..., 1:4, :] - end[..., 4:7, :]).transpose(-1, -2) / (2 * eps)  # [..., 3, 3]
-        v = v - torch.linalg.solve(jac, resid.unsqueeze(-1)).squeeze(-1)
+        step, info = torch.linalg.solve_ex(jac, resid.unsqueeze(-1))
+        bad = (info != 0).unsqueeze(-1) | ~torch.isfinite(step.squeeze(-1))
+        # a singular or diverged element restarts from the guess and is judged by its residual
+        v = torch.where(bad, guess, v - step.squeeze(-1))
     else:
         end = _fly_for(p0, v, w, t, params)
         resid = end - tgt
-    if float(resid.abs().max()) > 1e-6:
-        raise ValueError(
-            f"aim did not converge (max residual {float(resid.abs().max()):.2e} m); "
-            "the target may be unreachable in the given flight_time"
-        )
-    return v
+    err = resid.abs().amax(-1)
+    ok = torch.isfinite(v).all(-1) & torch.isfinite(err)
+    v = torch.where(ok.unsqueeze(-1), v, guess)
+    return v, torch.where(ok, err, torch.full_like(err, math.inf))
 
 
 class BounceAim(NamedTuple):
@@ -997,9 +1040,9 @@ def aim_through_bounce(
     px, by, ft = (x.expand(shape) for x in (px, by, ft))
 
     def crossing(xb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        v0 = aim(p0, torch.stack([xb, by], -1), ft, params, spin=w)
+        v0, resid = _aim(p0, torch.stack([xb, by], -1), ft, params, spin=w, tol=1e-9, max_iter=20)
         _, at, valid = predict_plane_crossing(BallState(p0, v0, w), y_plane, params, dt=0.01)
-        return at.pos[..., 0], v0, valid
+        return at.pos[..., 0], v0, valid & (resid < 1e-6)
 
     # straight-line guess from the start over the bounce to the plane
     frac = (by - p0[..., 1]) / (y_plane - p0[..., 1])
