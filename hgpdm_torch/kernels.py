@@ -263,6 +263,12 @@ def transition_kernel(
     if len(alpha) != 4:
         raise ValueError(f"alpha must have 4 entries [a1, a2, a3, a4], got {len(alpha)}")
     a1, a2, a3, _ = (float(a) for a in alpha)
+    if len(alpha_g) != 2:
+        raise ValueError(f"alpha_g must have 2 entries [a2_g, a3_g], got {len(alpha_g)}")
+    if not all(v > 0 for v in (a1, a2, a3, *map(float, alpha_g))):
+        raise ValueError(
+            f"alpha and alpha_g must be positive, got alpha={alpha}, alpha_g={alpha_g}"
+        )
     if kind in ("discrete", "iddm_discrete") and (num_values is None or num_values < 1):
         raise ValueError(f"num_values must be a positive int for kind={kind!r}")
 

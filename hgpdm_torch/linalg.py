@@ -75,18 +75,22 @@ def psd_cholesky(a: torch.Tensor, *, name: str = "matrix") -> torch.Tensor:
     """
     if a.shape[-1] != a.shape[-2]:
         raise ValueError(f"{name} must be square in its last two dims, got shape {tuple(a.shape)}")
-    chol, info = torch.linalg.cholesky_ex(a)
-    if not bool((info > 0).any()):
-        return chol
     if not bool(torch.isfinite(a).all()):
         raise ValueError(f"{name} contains NaN or inf; cannot take its Cholesky factor")
+    chol, info = torch.linalg.cholesky_ex(a)
+    failed = info > 0
+    if not bool(failed.any()):
+        return chol
+    # Only the batch members that failed get jitter; the others keep their exact factor.
     eps = _override[-1] if _override else _JITTER.get(a.dtype, 1e-6)
-    scale = a.diagonal(dim1=-2, dim2=-1).abs().mean(-1, keepdim=True).clamp_min(1e-300)
+    scale = a.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(1e-300)
     eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
     for _ in range(_MAX_TRIES):
-        shifted = a + (eps * scale).unsqueeze(-1) * eye
-        chol, info = torch.linalg.cholesky_ex(shifted)
+        shifted = a[failed] + (eps * scale[failed])[..., None, None] * eye
+        fixed, info = torch.linalg.cholesky_ex(shifted)
         if not bool((info > 0).any()):
+            chol = chol.clone()
+            chol[failed] = fixed
             return chol
         eps *= 10.0
     raise CholeskyError(
@@ -145,6 +149,8 @@ def gaussian_nll(cov: torch.Tensor, y: torch.Tensor, *, name: str = "covariance"
     Returns:
         A scalar tensor. First derivatives only (no double backward).
     """
+    if not bool(torch.isfinite(y).all()):
+        raise ValueError("gaussian_nll: y contains NaN or inf")
     if cov.dim() != 2 or y.dim() != 2 or cov.shape[0] != cov.shape[1] or y.shape[0] != cov.shape[0]:
         raise ValueError(
             f"gaussian_nll expects cov [n, n] and y [n, d], got "

@@ -50,3 +50,16 @@ def test_gaussian_nll_value_and_gradient(generator):
     )
     with pytest.raises(ValueError, match="cov"):
         gaussian_nll(cov, y[:4])
+
+
+def test_only_failed_batch_members_get_jitter(generator):
+    good = torch.eye(3) * 2.0
+    v = torch.randn(3, 1, generator=generator)
+    chol = psd_cholesky(torch.stack([good, v @ v.T]))
+    torch.testing.assert_close(chol[0], torch.linalg.cholesky(good), rtol=0, atol=0)
+    assert torch.isfinite(chol[1]).all()
+
+
+def test_inf_entry_is_rejected_even_if_factorisable():
+    with pytest.raises(ValueError, match="NaN or inf"):
+        psd_cholesky(torch.tensor([[4.0, 1.0], [1.0, float("inf")]]))

@@ -51,6 +51,7 @@ def test_targeted_movements_reveal_target_at_the_end():
         (lambda: styled_movements(2, 2, 1), "length"),
         (lambda: styled_movements(2, 2, 10, 2), "obs_dim"),
         (lambda: styled_movements(noise=-1.0), "noise"),
+        (lambda: targeted_movements(noise=float("nan")), "noise"),
         (lambda: targeted_movements(target_range=(1.0, 0.0)), "target_range"),
         (lambda: targeted_movements(5).split(1.5), "test_fraction"),
     ],

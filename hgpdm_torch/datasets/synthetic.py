@@ -120,7 +120,7 @@ def styled_movements(
     _check("obs_dim", obs_dim, 3)
     if not 0 <= length_jitter < length - 1:
         raise ValueError(f"length_jitter must be in [0, length - 2], got {length_jitter}")
-    if not noise >= 0:
+    if not noise >= 0:  # also rejects NaN
         raise ValueError(f"noise must be >= 0, got {noise}")
     gen = torch.Generator().manual_seed(seed)
     omegas = torch.linspace(0.15, 0.45, num_styles, dtype=torch.float64)
@@ -174,6 +174,8 @@ def targeted_movements(
     _check("num", num, 1)
     _check("length", length, 2)
     _check("obs_dim", obs_dim, 3)
+    if not noise >= 0:
+        raise ValueError(f"noise must be >= 0, got {noise}")
     low, high = (float(v) for v in target_range)
     if not low < high:
         raise ValueError(f"target_range must be (low, high) with low < high, got {target_range}")

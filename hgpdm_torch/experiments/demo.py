@@ -143,7 +143,6 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
     sizes = {"per_style": 3, "length": 25, "steps": 20, "iterations": 3} if quick else {}
-    torch.set_num_threads(max(torch.get_num_threads(), 1))
     table, models = run_demo(seed=args.seed, progress=args.progress, **sizes)
     print(table.to_markdown())
     out = Path(args.out)

@@ -154,7 +154,10 @@ class GPDM(gpytorch.Module):
         self.register_prior(
             "measurement_noise_prior", NormalPrior(0.0, 1.0), lambda m: m.measurement_noise.log()
         )
-        std = z.std(0).clamp_min(1e-8)
+        std = z.std(0)
+        if bool((std <= 1e-12 * z.abs().amax(0).clamp_min(1.0)).any()):
+            cols = torch.nonzero(std <= 1e-12 * z.abs().amax(0).clamp_min(1.0)).flatten().tolist()
+            raise ValueError(f"sequences have constant observed dims {cols}; remove them")
         self.register_parameter("raw_scales", torch.nn.Parameter(torch.zeros_like(std)))
         self.register_constraint("raw_scales", Positive())
         self.scales = 1.0 / std
@@ -446,6 +449,8 @@ class GPDM(gpytorch.Module):
         Returns:
             ``[..., steps + 1, Dx]`` latent trajectory, ``x0`` first.
         """
+        if not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"steps must be a non-negative int, got {steps!r}")
         x = as_tensor(x0, "x0", min_ndim=1, dtype=self.latent.dtype)
         if x.shape[-1] != self.latent_dim:
             raise ValueError(
@@ -453,7 +458,7 @@ class GPDM(gpytorch.Module):
             )
         post = self.transition_posterior()
         out = [x]
-        for _ in range(int(steps)):
+        for _ in range(steps):
             x, _ = post.predict(self._rollout_inputs(x, g))
             out.append(x)
         return torch.stack(out, dim=-2)

@@ -19,7 +19,7 @@ from tqdm.auto import trange
 
 from ..kernels import transition_kernel
 from ..validation import as_tensor, check_choice
-from .gpdm import GPDM, SequencesLike
+from .gpdm import GPDM, SequencesLike, _check_sequences
 
 __all__ = ["HGPDM", "IDDM"]
 
@@ -31,7 +31,17 @@ def _check_intentions(
 ) -> tuple[torch.Tensor, int | None]:
     """Validate g per sequence; returns ``[J, Dg]`` values (codes for discrete) and K."""
     if kind == "discrete":
-        g = torch.as_tensor(np.asarray(intentions))
+        try:
+            g = torch.as_tensor(np.asarray(intentions))
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"intentions must be a [J] vector of ints, got {intentions!r}") from err
+        if not (
+            g.is_floating_point()
+            or g.dtype in (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
+        ):
+            raise TypeError(
+                f"discrete intentions must be integers, got {np.asarray(intentions).dtype}"
+            )
         if g.dim() != 1 or g.is_floating_point() and not bool((g == g.round()).all()):
             raise ValueError(
                 f"discrete intentions must be a [J] vector of ints, got {tuple(g.shape)}"
@@ -95,7 +105,7 @@ class HGPDM(GPDM):
     ) -> None:
         check_choice(intention, "intention", INTENTION_KINDS)
         dtype = kwargs.get("dtype", torch.float64)
-        num_seq = len(sequences)
+        num_seq = len(_check_sequences(sequences, dtype))
         values, k = _check_intentions(intentions, num_seq, intention, num_values, dtype)
         self.intention = intention
         self.num_values = k
@@ -150,11 +160,12 @@ class HGPDM(GPDM):
     def _rollout_inputs(self, x: torch.Tensor, g: Any) -> torch.Tensor:
         if g is None:
             raise ValueError("rollout of an HGPDM needs the exogenous variable g")
-        g = torch.as_tensor(g, dtype=x.dtype, device=x.device).reshape(-1)
+        g = as_tensor(g, "g", dtype=x.dtype, device=x.device).reshape(-1)
         if g.numel() != self.intention_dim:
             raise ValueError(f"g must have {self.intention_dim} values, got {g.numel()}")
-        if self.intention == "discrete" and not (0 <= int(g[0]) < self.num_values):
-            raise ValueError(f"g must be a code in [0, {self.num_values - 1}], got {int(g[0])}")
+        code = float(g[0])
+        if self.intention == "discrete" and not (code.is_integer() and 0 <= code < self.num_values):
+            raise ValueError(f"g must be an integer code in [0, {self.num_values - 1}], got {code}")
         return torch.cat([x, g.expand(*x.shape[:-1], -1)], dim=-1)
 
     def _data_arguments(self) -> dict[str, Any]:

@@ -7,20 +7,13 @@ import pytest
 import torch
 
 from hgpdm_torch.datasets import styled_movements, targeted_movements
+from hgpdm_torch.experiments.demo import style_purity
 from hgpdm_torch.models import GPDM, HGPDM, IDDM, load_model
 
 
 @pytest.fixture(scope="module")
 def styles():
     return styled_movements(3, 3, 30, 10, seed=3)
-
-
-def _purity(truth: torch.Tensor, found: torch.Tensor) -> float:
-    """Fraction of sequences whose found cluster's majority truth label is theirs."""
-    total = 0
-    for k in found.unique():
-        total += int(torch.bincount(truth[found == k]).max())
-    return total / len(truth)
 
 
 def test_fit_lowers_loss_and_posteriors_reconstruct(styles):
@@ -51,7 +44,7 @@ def test_user_loop_over_parameters_matches_fit_api(styles):
 
 def test_discover_recovers_planted_styles(styles):
     model = HGPDM.discover(styles.sequences, 3, iterations=4, steps=20, seed=0)
-    assert _purity(styles.labels, model.intention_codes()) >= 0.9
+    assert style_purity(styles.labels, model.intention_codes()) >= 0.9
     hist = model.discovery_history
     assert len(hist) >= 1 and np.isfinite(hist).all()
 
@@ -129,6 +122,19 @@ SEQS = [torch.randn(5, 3), torch.randn(6, 3)]
         (lambda: GPDM(SEQS, 2, init=torch.randn(3, 2)), ValueError, "init"),
         (lambda: GPDM(SEQS, 2).fit(5, optimizer="sgd"), ValueError, "unknown optimizer"),
         (lambda: HGPDM.discover(SEQS, 3), ValueError, "num_styles"),
+        (lambda: HGPDM(SEQS, ["a", "b"], 2), TypeError, "intentions"),
+        (lambda: HGPDM(SEQS, [0, 1], 2).rollout(torch.zeros(2), 3, g=0.5), ValueError, "integer"),
+        (
+            lambda: HGPDM(SEQS, [0, 1], 2).rollout(torch.zeros(2), 3, g=float("nan")),
+            ValueError,
+            "g",
+        ),
+        (lambda: GPDM(SEQS, 2).rollout(torch.zeros(2), -1), ValueError, "steps"),
+        (
+            lambda: GPDM([torch.ones(4, 2) * torch.tensor([1.0, 2.0])] * 2, 1),
+            ValueError,
+            "constant",
+        ),
     ],
 )
 def test_bad_input_raises(build, error, match):
