@@ -15,6 +15,10 @@ __all__ = ["COMMANDS", "main"]
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("hgpdm_torch.experiments.demo", "fit an H-GPDM on synthetic styles and discover them"),
+    "anticipation": (
+        "hgpdm_torch.experiments.anticipation",
+        "Ch. 4 anticipatory action selection in table tennis: LSPI, MCP, NAC (Fig. 4.6-4.7)",
+    ),
     "games": (
         "hgpdm_torch.experiments.repeated_games",
         "Ch. 5 repeated games: delta-safe play in RPS and table-tennis serves (Fig. 5.1-5.7)",

@@ -1,5 +1,7 @@
-"""Decision making: repeated games and delta-safe opponent modeling (Ch. 5)."""
+"""Decision making: anticipatory action selection as optimal stopping (Ch. 4: LSPI, Monte-Carlo
+planning, NAC) and delta-safe opponent modeling in repeated games (Ch. 5)."""
 
+from .basis import RadialBasis, action_features
 from .games import (
     RPS_REWARD,
     TABLE_TENNIS_REWARD,
@@ -11,6 +13,9 @@ from .games import (
     sample_counts,
     two_stage_rps,
 )
+from .lspi import LinearQ, LSPIResult, lspi, lstdq
+from .mcp import Belief, MCPDecision, MonteCarloPlanner
+from .nac import NACResult, SoftmaxPolicy, nac, natural_gradient
 from .opponent import (
     AdaptiveLearner,
     DeltaSafeResponder,
@@ -23,8 +28,37 @@ from .opponent import (
     solve_delta_safe,
     two_sample_z_test,
 )
+from .stopping import (
+    ACTIONS,
+    EXPLORATION,
+    WAIT,
+    Episodes,
+    StoppingProblem,
+    Transitions,
+    belief_vector,
+)
 
 __all__ = [
+    "ACTIONS",
+    "Belief",
+    "EXPLORATION",
+    "Episodes",
+    "LSPIResult",
+    "LinearQ",
+    "MCPDecision",
+    "MonteCarloPlanner",
+    "NACResult",
+    "RadialBasis",
+    "SoftmaxPolicy",
+    "StoppingProblem",
+    "Transitions",
+    "WAIT",
+    "action_features",
+    "belief_vector",
+    "lspi",
+    "lstdq",
+    "nac",
+    "natural_gradient",
     "AdaptiveLearner",
     "DeltaSafeResponder",
     "FiniteStageGame",
