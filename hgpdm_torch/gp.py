@@ -144,9 +144,8 @@ class GPPosterior:
         return self.train_targets.shape[1]
 
     def _cross(self, x: torch.Tensor) -> torch.Tensor:
-        """``k(x, X)`` for ``x [M, Din]`` -> ``[M, N]``."""
-        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.detach):
-            return self.kernel(x, self.train_inputs).to_dense()
+        """``k(x, X)`` for ``x [M, Din]`` -> ``[M, N]`` (differentiable in x)."""
+        return self.kernel(x, self.train_inputs).to_dense()
 
     def predict(
         self, x: torch.Tensor, *, include_noise: bool = False
@@ -159,7 +158,8 @@ class GPPosterior:
                 predictive distribution of a new noisy observation instead of the latent function.
 
         Returns:
-            ``mean [..., Dout]`` and ``var [..., Dout]`` (the outputs are independent given x).
+            ``mean [..., Dout]`` and ``var [..., Dout]`` (the outputs are independent given x),
+            differentiable with respect to ``x`` (and, when not detached, the hyperparameters).
         """
         x = as_tensor(x, "x", min_ndim=1, dtype=self.train_inputs.dtype)
         check_shape(x, "x", [self.input_dim])
@@ -168,8 +168,7 @@ class GPPosterior:
         kxX = self._cross(flat)
         mean = kxX @ self.weights + self.offset
         v = torch.linalg.solve_triangular(self.chol, kxX.transpose(0, 1), upper=False)
-        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.detach):
-            kxx = self.kernel(flat, diag=True)
+        kxx = self.kernel(flat, diag=True)
         f_var = (kxx - v.pow(2).sum(0)).clamp_min(0.0)
         if include_noise:
             f_var = f_var + self.noise
@@ -260,7 +259,7 @@ class GPPosterior:
             check_shape(joint_cov, "joint_cov", [None, D])
 
         leaves = self._leaves()
-        if g is not None and self._blocks() is not None:
+        if g is not None and self.blocks() is not None:
             # discrete g: each code touches only its own training points (DESIGN.md sec. 8)
             X, beta, kinv, mask = self._gather_blocks(g)
             leaves = [replace(lf, weight=lf.weight[:D], codes=()) for lf in leaves]
@@ -285,13 +284,12 @@ class GPPosterior:
         """Kernel leaves; cached when detached (the posterior is then a frozen snapshot)."""
         if self.detach and getattr(self, "_leaf_cache", None) is not None:
             return self._leaf_cache
-        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.detach):
-            leaves = kernel_leaves(self.kernel, self.input_dim)
+        leaves = kernel_leaves(self.kernel, self.input_dim)
         if self.detach:
             self._leaf_cache = leaves
         return leaves
 
-    def _blocks(self) -> tuple[torch.Tensor, ...] | None:
+    def blocks(self) -> tuple[torch.Tensor, ...] | None:
         """Per-code padded training blocks of a top-level ``DiscreteIntentionKernel``, or None.
 
         ``(X [K, M, Din], beta [K, M, Dout], kinv [K, M, M], mask [K, M])`` with ``M`` the largest
@@ -331,7 +329,7 @@ class GPPosterior:
         if bool((code != g[..., 0]).any()) or bool(((code < 0) | (code >= num)).any()):
             raise ValueError(f"discrete intention codes g must be integers in [0, {num - 1}]")
         code = code.long()
-        return tuple(block[code] for block in self._blocks())
+        return tuple(block[code] for block in self.blocks())
 
 
 def _psd_part(a: torch.Tensor, diag: torch.Tensor) -> torch.Tensor:

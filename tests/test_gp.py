@@ -148,3 +148,15 @@ def test_moment_matched_covariance_stays_psd_for_a_nearly_exact_gp(generator):
     # The variance itself is only determined to ~cond(K) * eps here (signal variance ~1).
     _, var = post.predict(mu)
     torch.testing.assert_close(cov.diagonal(dim1=-2, dim2=-1), var, atol=1e-4, rtol=0)
+
+
+def test_predict_is_differentiable_in_x(generator):
+    post = GPPosterior(
+        measurement_kernel("rbf"),
+        torch.randn(8, 2, generator=generator),
+        torch.randn(8, 1, generator=generator),
+        0.1,
+    )
+    x = torch.randn(3, 2, generator=generator, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: post.predict(x), (x,))
+    assert not any(p.requires_grad for p in post.kernel.parameters())

@@ -240,7 +240,7 @@ def test_discrete_blocks_equal_generic_masking(generator):
         scale=gp.scale,
         offset=gp.offset,
     )
-    assert gp._blocks() is not None and generic._blocks() is None
+    assert gp.blocks() is not None and generic.blocks() is None
     mu = torch.randn(2, 1, DX, generator=generator)
     Sigma = torch.stack([random_cov(DX, generator) for _ in range(2)])[:, None]
     g = torch.tensor([0.0, 1.0, 2.0])[None, :, None]

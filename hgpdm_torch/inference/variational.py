@@ -204,7 +204,7 @@ class _GaussianInputGP:
             self.leaves = leaves
         else:
             # Block-diagonal K_x of a discrete g: code c reads only its own block (exact).
-            X, beta, kinv, mask = (b[codes] for b in post._blocks())
+            X, beta, kinv, mask = (b[codes] for b in post.blocks())
             d = X.shape[-1] - 1
             self.X, self.beta, self.kinv, self.mask = X[..., :d], beta, kinv, mask
             self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
