@@ -10,18 +10,22 @@ values) with a variational bound built from Gaussian (moment-matched) smoothing 
   Algorithm 3.1 (line 3) prints only the transition part; the other terms also depend on ``g``
   through ``q_g``, so they are kept (with a shared ``q`` they are constants, which is why the
   online algorithm can drop them).
-- **online** (:class:`OnlineIntentionFilter`, Algorithm 3.2): one ``q`` shared by all ``g``,
-  from one-step filtering and one-step backward smoothing under the current belief (the K
-  predictions mixed and moment matched, or, Sec. 3.4.2, a Gaussian over ``g``), and the recursion
-  ``B_t(g) = Q_{t-1}(g) + (1 - eps) B_{t-1}(g)`` with the forgetting factor ``eps``.
+- **online** (:class:`OnlineIntentionFilter`, Algorithm 3.2): one Gaussian ``q`` over the
+  latent state shared by all ``g`` and the recursion ``B_t(g) = E_t(g) + (1 - eps) B_{t-1}(g)``
+  with the forgetting factor ``eps``. The evidence ``E_t(g)`` is either the thesis's
+  ``Q_{t-1}(g)`` from one-step filtering and one-step backward smoothing under the current belief
+  (``evidence="bound"``), or (the default) the GP-ADF predictive likelihood
+  ``log q(z_t | z_{1:t-1}, g)`` from the shared ``q``, which is calibrated where the bound with a
+  shared ``q`` is over-confident (see the class docstring).
 
 ``Q_t(g) = E_q[log p(x_{t+1} | x_t, g)]`` (Sec. 3.3.2 and DESIGN.md sec. 7). With
 ``q~ = N(m, S)``, the moment-matched Gaussian of ``p(x_{t+1} | x_t, g) q'(x_t)``, the
 transition is replaced by the conditional of ``q~`` (a statistical linearisation),
 ``q~(x_{t+1} | x_t) = N(A x_t + c, V)``, and the expectation under ``q(x_t, x_{t+1})`` is exact.
 With ``q' = q(x_t)`` this equals ``-KL(q || q~) - H(q(x_t, x_{t+1})) + H(q(x_t))`` of DESIGN.md;
-with ``q'`` the filtered ``q(x_t | z_{1:t})`` (the online default) it differs from that only by
-terms shared by all ``g``, and the K moment matchings of the prediction step are reused.
+with ``q'`` the filtered ``q(x_t | z_{1:t})`` (the online ``"bound"`` default) it differs from
+that only by terms shared by all ``g``, and the K moment matchings of the prediction step are
+reused.
 
 Where the speed comes from (DESIGN.md sec. 8): the transition kernel of the IDDM is
 ``alpha_1 exp(-alpha_2/2 |x - x'|^2) phi(g, g')`` (``phi`` an RBF in g, or ``delta`` for a
@@ -30,7 +34,8 @@ expectation ``psi2`` over ``x`` is computed once per stream and step; and as ``g
 within a training sequence, the N training points form U groups of equal ``g``. All K second
 moments and traces then follow from ``U x U`` group sums of ``psi2``:
 ``beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv (beta_u^T psi2_uv beta_v)`` — no ``N x N`` work
-per intention. See :class:`SharedTransition`.
+per intention. See :class:`SharedTransition`; a linear measurement kernel is updated in closed
+form (:class:`LinearMeasurement`).
 
 Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
 ``Dg`` intention dims, ``N`` transition training points.
