@@ -35,6 +35,7 @@ __all__ = [
     "check_strategy",
     "expected_reward",
     "fictitious_play",
+    "minimax_equilibrium",
     "minimax_strategy",
     "sample_counts",
     "two_stage_rps",
@@ -48,6 +49,11 @@ RPS_REWARD = np.array([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]])
 TABLE_TENNIS_REWARD = np.array([[0.65, 0.52, 0.06], [0.41, 0.74, 0.56], [0.04, 0.12, 0.39]])
 SERVE_ACTIONS = ("forehand", "middle", "backhand")
 SERVE_REGIONS = ("forehand side", "middle", "backhand side")
+
+
+# HiGHS's default feasibility tolerances (1e-7) would limit both strategies, and so the
+# cutting planes' certificate, to about 1e-7; these tiny LPs afford its tightest.
+_LP_TOLERANCES = {"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10}
 
 
 def as_rng(generator: np.random.Generator | torch.Generator | int) -> np.random.Generator:
@@ -176,15 +182,16 @@ def fictitious_play(reward: object, counts: object) -> np.ndarray:
     return best_response(r, empirical)
 
 
-def minimax_strategy(reward: object) -> tuple[np.ndarray, float]:
-    """The maximin strategy ``argmax_pi_i min_pi_j pi_i^T R pi_j`` and its value, by an LP.
+def minimax_equilibrium(reward: object) -> tuple[np.ndarray, np.ndarray]:
+    """Both players' minimax strategies of the zero-sum game ``R`` from one linear program.
 
-    Solves ``max v  s.t.  R^T pi_i >= v 1,  pi_i in simplex`` with scipy's HiGHS ``linprog``. It is
-    Player i's safe strategy without an opponent model and the limit of Problem (38) as the
-    opponent model grows to the whole simplex.
+    Solves ``max v  s.t.  R^T pi_i >= v 1,  pi_i in simplex`` with scipy's HiGHS ``linprog``;
+    ``pi_i`` is its solution and ``pi_j`` its dual (the multipliers of the ``Aj`` constraints,
+    which sum to one). Each bounds the game value independently of the LP's accuracy:
+    ``min(R^T pi_i) <= value <= max(R pi_j)``.
 
     Returns:
-        ``([Ai] strategy, value)``.
+        ``([Ai] pi_i, [Aj] pi_j)``.
     """
     r = check_reward_matrix(reward)
     n_i, n_j = r.shape
@@ -192,11 +199,34 @@ def minimax_strategy(reward: object) -> tuple[np.ndarray, float]:
     a_ub = np.c_[-r.T, np.ones(n_j)]  # v - (R^T pi)_k <= 0
     a_eq = np.r_[np.ones(n_i), 0.0][None]
     bounds = [(0.0, None)] * n_i + [(None, None)]
-    res = linprog(cost, A_ub=a_ub, b_ub=np.zeros(n_j), A_eq=a_eq, b_eq=[1.0], bounds=bounds)
+    res = linprog(
+        cost,
+        A_ub=a_ub,
+        b_ub=np.zeros(n_j),
+        A_eq=a_eq,
+        b_eq=[1.0],
+        bounds=bounds,
+        options=_LP_TOLERANCES,
+    )
     if res.status != 0:
         raise RuntimeError(f"minimax LP failed: {res.message}")
     pi = np.clip(res.x[:n_i], 0.0, None)
-    pi /= pi.sum()
+    q = np.clip(-res.ineqlin.marginals, 0.0, None)  # d(-v)/d b_ub <= 0
+    return pi / pi.sum(), q / q.sum()
+
+
+def minimax_strategy(reward: object) -> tuple[np.ndarray, float]:
+    """The maximin strategy ``argmax_pi_i min_pi_j pi_i^T R pi_j`` and its value, by an LP.
+
+    Player i's half of :func:`minimax_equilibrium`. It is Player i's safe strategy without an
+    opponent model and the limit of Problem (38) as the opponent model grows to the whole
+    simplex.
+
+    Returns:
+        ``([Ai] strategy, value)`` with ``value = min(R^T strategy)``, exact for the strategy.
+    """
+    r = check_reward_matrix(reward)
+    pi, _ = minimax_equilibrium(r)
     return pi, float((r.T @ pi).min())
 
 

@@ -37,7 +37,6 @@ from operator import mul
 
 import numpy as np
 import torch
-from scipy.optimize import linprog
 from scipy.stats import norm
 
 from hgpdm_torch.decision.games import (
@@ -47,6 +46,7 @@ from hgpdm_torch.decision.games import (
     check_counts,
     check_reward_matrix,
     check_strategy,
+    minimax_equilibrium,
     minimax_strategy,
 )
 
@@ -115,6 +115,9 @@ def kl_bound(delta: float, n_samples: int, n_actions: int, n_states: int = 1) ->
 
 _U_FLOOR = -700.0  # exp(-u) must not overflow
 _PATH_BUDGET = 1.0  # sub-gradient path length, in simplex units, before the target is lowered
+_POLISH_STEPS = 6  # Newton steps on the support face before the cutting planes take over
+_FD_STEP = 1e-7  # forward-difference step for the Jacobian of the gains, in simplex units
+_FALLBACK_MAX_ITER = 500  # cutting planes after a stalled sub-gradient run (tens suffice)
 
 
 def _log_expm1(x: float) -> float:
@@ -275,7 +278,10 @@ class SafeResponse:
         upper_bound: ``max_k (R q)_k`` for the best ball member ``q`` found; the optimum of (38)
             lies in ``[value, upper_bound]``.
         opponent: ``[Aj]`` the worst-case opponent in the ball against ``strategy``.
-        iterations: solver iterations used.
+        iterations: solver iterations used (:class:`DeltaSafeResponder`: sub-gradient and
+            Newton steps; :func:`solve_delta_safe`: cutting planes).
+        cutting_planes: cutting planes :class:`DeltaSafeResponder` needed after its own steps
+            to certify the gap (0 when they sufficed).
     """
 
     strategy: np.ndarray
@@ -283,6 +289,7 @@ class SafeResponse:
     upper_bound: float
     opponent: np.ndarray
     iterations: int
+    cutting_planes: int = 0
 
 
 def _kl(p: list[float], q: list[float]) -> float:
@@ -345,12 +352,19 @@ class DeltaSafeResponder:
     strategy, and stops once the certified gap is small. Consecutive games change the ball only
     a little, so starting from the last strategy (as the thesis does) needs few steps.
 
+    Sub-gradient steps reach a near-optimal value long before a certificate, so each response
+    runs, until the certified gap is below tol: Newton steps on the current face of the simplex
+    (enough when the warm start's support is still right), sub-gradient steps, Newton steps
+    again, and last the cutting planes of :func:`solve_delta_safe` seeded with the best
+    strategy (for kinks of phi or when ``max_iter`` runs out). So every response has
+    ``upper_bound - value <= tol * (max R - min R)``: ``value`` is within that of the optimum
+    of (38), and exact for the returned strategy, so the safety guarantee never depends on
+    ``tol``.
+
     Args:
         reward: ``[Ai, Aj]`` Player i's reward matrix.
-        tol: stop when the certified gap ``upper_bound - value`` or the target level falls below
-            ``tol`` times the reward range. The returned ``value`` is exact for the returned
-            strategy either way, so the safety guarantee never depends on ``tol``.
-        max_iter: the most sub-gradient steps per response.
+        tol: the certified gap ``upper_bound - value`` to reach, relative to the reward range.
+        max_iter: the most sub-gradient steps per response before the cutting planes take over.
     """
 
     def __init__(self, reward: object, *, tol: float = 1e-4, max_iter: int = 200) -> None:
@@ -365,9 +379,10 @@ class DeltaSafeResponder:
         self._cols = self.reward.T.tolist()
         spread = float(self.reward.max() - self.reward.min())
         self._abs_tol = self.tol * (spread if spread > 0 else 1.0)
-        self.minimax, self.minimax_value = minimax_strategy(self.reward)
         # The opponent's own minimax strategy: when the ball holds it, nothing beats minimax.
-        self._opponent_minimax = minimax_strategy(-self.reward.T)[0].tolist()
+        self.minimax, opponent_minimax = minimax_equilibrium(self.reward)
+        self.minimax_value = float((self.reward.T @ self.minimax).min())
+        self._opponent_minimax = opponent_minimax.tolist()
         self._pi = self.minimax.tolist()
 
     def reset(self, strategy: object | None = None) -> None:
@@ -404,11 +419,54 @@ class DeltaSafeResponder:
             return self._result(self._pi, v, v, q, 0)
         pi = self._pi
         v, q = worst.solve(self._payoff(pi))
-        best_v, best_pi, best_q = v, pi, q
-        g = self._gain(q)
-        upper = max(g)
+        upper = max(self._gain(q))
         if _kl(center, self._opponent_minimax) <= radius:  # certifies minimax at a kink of phi
             upper = min(upper, max(self._gain(self._opponent_minimax)))
+        q_avg, it = q, 0
+        # Warm start: when the support is unchanged since the last game, Newton steps alone
+        # finish; otherwise sub-gradient steps find the new face first.
+        for phase in ("polish", "ascend", "polish"):
+            if upper - v <= self._abs_tol:
+                break
+            if phase == "polish":
+                pi, v, q, upper, steps = self._polish(worst, pi, v, q, upper)
+            else:
+                pi, v, q, upper, q_avg, steps = self._ascend(worst, pi, v, q, upper)
+            it += steps
+        planes = 0
+        if upper - v > self._abs_tol:
+            # Still no certificate (a kink of phi, or max_iter): finish with the cutting
+            # planes, seeded with the best strategy and the averaged opponent.
+            exact = _cutting_planes(
+                self.reward,
+                worst,
+                np.asarray(pi),
+                self._abs_tol,
+                _FALLBACK_MAX_ITER,
+                opponents=(q, q_avg),
+            )
+            upper, planes = min(upper, exact.upper_bound), exact.iterations
+            if exact.value > v:
+                pi, v, q = exact.strategy.tolist(), exact.value, exact.opponent
+            if upper - v > self._abs_tol:
+                raise RuntimeError(
+                    f"Problem (38) not certified to tol after {_FALLBACK_MAX_ITER} cutting "
+                    f"planes: gap {upper - v:.3g} > {self._abs_tol:.3g}"
+                )
+        self._pi = pi
+        return self._result(pi, v, upper, q, it, planes)
+
+    def _ascend(
+        self, worst: _WorstCase, pi: list[float], v: float, q: list[float], upper: float
+    ) -> tuple[list[float], float, list[float], float, list[float], int]:
+        """Projected sub-gradient ascent with the variable-target Polyak step (class docstring).
+
+        Returns:
+            ``(best pi, its value, its worst opponent, upper_bound, averaged opponent, steps)``;
+            stops at a certificate, when the target level falls below tol, or at ``max_iter``.
+        """
+        best_v, best_pi, best_q = v, pi, q
+        g = self._gain(q)
         level = upper - best_v
         path, it = 0.0, 0
         q_sum, weight = [0.0] * len(q), 0.0  # step-weighted average of the worst opponents
@@ -440,8 +498,49 @@ class DeltaSafeResponder:
                 pi, v, q = best_pi, best_v, best_q
                 g = self._gain(q)
             level = min(level, upper - best_v)
-        self._pi = best_pi
-        return self._result(best_pi, best_v, upper, best_q, it)
+        q_avg = [a / weight for a in q_sum] if weight > 0.0 else best_q
+        return best_pi, best_v, best_q, upper, q_avg, it
+
+    def _polish(
+        self, worst: _WorstCase, pi: list[float], v: float, q: list[float], upper: float
+    ) -> tuple[list[float], float, list[float], float, int]:
+        """Newton steps on the face of the simplex that holds ``pi``.
+
+        Sub-gradient steps reach a near-optimal value long before a certificate: where phi is
+        smooth its certificate ``max_k (R q)_k - phi(pi)`` shrinks only like the distance to the
+        optimum, the value error like its square. At the optimum the gains ``R q*(pi)`` of the
+        actions in the support are equal, so each step solves the linearised equations
+        ``g_S + J_SS d = m 1, sum(d) = 0`` (``J`` by forward differences) for the move ``d``
+        and the common gain ``m``. Stops when a step does not raise the value.
+
+        Returns:
+            ``(pi, value, q, upper_bound, steps)``.
+        """
+        for step in range(1, _POLISH_STEPS + 1):
+            support = [k for k, pk in enumerate(pi) if pk > 0.0]
+            g = np.asarray(self._gain(q))[support]
+            jac = np.empty((len(support), len(support)))
+            for col, k in enumerate(support):
+                shifted = list(pi)
+                shifted[k] += _FD_STEP
+                g_k = self._gain(worst.solve(self._payoff(shifted))[1])
+                upper = min(upper, max(g_k))  # every worst opponent is a ball member
+                jac[:, col] = (np.asarray(g_k)[support] - g) / _FD_STEP
+            n_s = len(support)
+            system = np.block([[jac, -np.ones((n_s, 1))], [np.ones((1, n_s)), np.zeros((1, 1))]])
+            move = np.linalg.lstsq(system, np.r_[-g, 0.0], rcond=None)[0][:n_s]
+            trial = list(pi)
+            for k, dk in zip(support, move, strict=True):
+                trial[k] += float(dk)
+            trial = _project_simplex(trial)
+            v_new, q_new = worst.solve(self._payoff(trial))
+            upper = min(upper, max(self._gain(q_new)))
+            if v_new <= v:
+                return pi, v, q, upper, step
+            pi, v, q = trial, v_new, q_new
+            if upper - v <= self._abs_tol:
+                break
+        return pi, v, q, upper, step
 
     def _payoff(self, pi: list[float]) -> list[float]:
         """``R^T pi`` ``[Aj]``."""
@@ -452,8 +551,10 @@ class DeltaSafeResponder:
         return [sum(map(mul, row, q)) for row in self._rows]
 
     @staticmethod
-    def _result(pi: list[float], v: float, upper: float, q: list[float], it: int) -> SafeResponse:
-        return SafeResponse(np.asarray(pi), v, max(upper, v), np.asarray(q), it)
+    def _result(
+        pi: list[float], v: float, upper: float, q: object, it: int, planes: int = 0
+    ) -> SafeResponse:
+        return SafeResponse(np.asarray(pi), v, max(upper, v), np.asarray(q), it, planes)
 
 
 def solve_delta_safe(
@@ -485,6 +586,10 @@ def solve_delta_safe(
         max_iter: the most cutting planes.
     """
     r = check_reward_matrix(reward)
+    if not tol > 0:
+        raise ValueError(f"tol must be positive, got {tol}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
     if ball is None:
         if counts is None or delta is None:
             raise ValueError("give either counts and delta, or ball")
@@ -492,35 +597,43 @@ def solve_delta_safe(
     elif ball.center.shape[0] != r.shape[1]:
         raise ValueError(f"ball has {ball.center.shape[0]} actions, reward has {r.shape[1]}")
     worst = _WorstCase(ball.center.tolist(), ball.radius)
-    n_i = r.shape[0]
-    pi = minimax_strategy(r)[0]
-    cuts: list[np.ndarray] = []
-    best = (-math.inf, pi, pi)
+    return _cutting_planes(r, worst, minimax_strategy(r)[0], tol, max_iter)
+
+
+def _cutting_planes(
+    reward: np.ndarray,
+    worst: _WorstCase,
+    pi: np.ndarray,
+    tol: float,
+    max_iter: int,
+    opponents: Sequence[Sequence[float]] = (),
+) -> SafeResponse:
+    """Kelley's cutting planes for Problem (38), from strategy ``pi`` ``[Ai]``.
+
+    ``opponents`` are ball members already known. The master problem
+    ``max_{pi, v} v  s.t.  v <= pi^T R q_l`` is the minimax game of the ``[Ai, L]`` cut matrix
+    (on the matrix over the reward range: HiGHS's tolerances are absolute). Its dual mixes the
+    ``q_l`` into one ball member ``q`` (the ball is convex), and ``max_k (R q)_k`` bounds the
+    optimum from above whatever the LP's accuracy.
+    """
+    spread = float(np.ptp(reward))
+    scale = spread if spread > 0 else 1.0
+    members = [np.asarray(q, dtype=float) for q in opponents]
+    best_v, best_pi, best_q = -math.inf, pi, pi
     upper = math.inf
     it = 0
     while it < max_iter:
         it += 1
-        v, q = worst.solve((r.T @ pi).tolist())
-        if v > best[0]:
-            best = (v, pi, np.asarray(q))
-        cuts.append(r @ np.asarray(q))
-        a = np.asarray(cuts)
-        res = linprog(
-            np.r_[np.zeros(n_i), -1.0],
-            A_ub=np.c_[-a, np.ones(len(cuts))],
-            b_ub=np.zeros(len(cuts)),
-            A_eq=np.r_[np.ones(n_i), 0.0][None],
-            b_eq=[1.0],
-            bounds=[(0.0, None)] * n_i + [(None, None)],
-        )
-        if res.status != 0:
-            raise RuntimeError(f"cutting-plane LP failed: {res.message}")
-        upper = min(upper, -res.fun)
-        pi = np.clip(res.x[:n_i], 0.0, None)
-        pi /= pi.sum()
-        if upper - best[0] <= tol:
+        v, q = worst.solve((reward.T @ pi).tolist())
+        if v > best_v:
+            best_v, best_pi, best_q = v, pi, np.asarray(q)
+        members.append(np.asarray(q))
+        q_members = np.stack(members, axis=1)  # [Aj, L]
+        pi, weights = minimax_equilibrium(reward @ q_members / scale)
+        upper = min(upper, float((reward @ (q_members @ weights)).max()))
+        if upper - best_v <= tol:
             break
-    return SafeResponse(best[1], best[0], max(upper, best[0]), best[2], it)
+    return SafeResponse(best_pi, best_v, max(upper, best_v), best_q, it)
 
 
 def two_sample_z_test(
@@ -573,6 +686,9 @@ class AdaptiveLearner:
         alpha: significance level of each two-sample test.
         change_detection: whether to run the tests.
         tol, max_iter: settings of the :class:`DeltaSafeResponder`.
+        generator: randomness of :meth:`act`, taken once so that successive calls draw fresh
+            actions: a NumPy or seeded torch generator, or an int seed. ``None`` (default) for
+            a learner that only computes strategies; :meth:`act` then raises.
         resets: the game indices (0-based, counted over observations) at which a change was
             detected.
     """
@@ -584,6 +700,7 @@ class AdaptiveLearner:
     change_detection: bool = True
     tol: float = 1e-4
     max_iter: int = 200
+    generator: np.random.Generator | torch.Generator | int | None = None
     resets: list[int] = field(default_factory=list, init=False)
 
     def __post_init__(self) -> None:
@@ -601,11 +718,13 @@ class AdaptiveLearner:
         self._games = 0
         self.strategy = self.responder.minimax.copy()
         self.bound = self.responder.minimax_value
+        self._rng = None if self.generator is None else as_rng(self.generator)
 
-    def act(self, generator: np.random.Generator | torch.Generator | int) -> int:
+    def act(self) -> int:
         """Draw Player i's action from the current strategy (Alg. 5.1 line 5)."""
-        rng = as_rng(generator)
-        return int(rng.choice(self.strategy.shape[0], p=self.strategy))
+        if self._rng is None:
+            raise ValueError("act needs randomness: construct the learner with generator=...")
+        return int(self._rng.choice(self.strategy.shape[0], p=self.strategy))
 
     def observe(self, action: int) -> None:
         """Record the opponent's action ``a_j`` and update the strategy (Alg. 5.1 lines 6-17)."""

@@ -18,6 +18,7 @@ from hgpdm_torch.decision.games import (
     check_strategy,
     expected_reward,
     fictitious_play,
+    minimax_equilibrium,
     minimax_strategy,
     sample_counts,
     two_stage_rps,
@@ -54,6 +55,20 @@ def test_minimax_against_brute_force_grid(reward: np.ndarray) -> None:
     q, neg_value = minimax_strategy(-reward.T)
     assert np.isclose((reward @ q).max(), value, atol=1e-7)
     assert np.isclose(-neg_value, value, atol=1e-7)
+
+
+def test_minimax_equilibrium_brackets_the_value() -> None:
+    # primal and dual of one LP: each player's guarantee, equal up to floating point
+    rng = np.random.default_rng(8)
+    for _ in range(30):
+        reward = rng.normal(size=tuple(rng.integers(1, 7, size=2)))
+        pi, q = minimax_equilibrium(reward)
+        assert (pi >= 0).all() and (q >= 0).all()
+        assert np.isclose(pi.sum(), 1.0) and np.isclose(q.sum(), 1.0)
+        lower, upper = (reward.T @ pi).min(), (reward @ q).max()
+        assert -1e-12 <= upper - lower <= 1e-9
+        # the opponent's strategy solves the opponent's own LP
+        assert (reward @ minimax_strategy(-reward.T)[0]).max() == pytest.approx(upper, abs=1e-9)
 
 
 def test_thesis_minimax_numbers() -> None:
