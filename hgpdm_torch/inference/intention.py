@@ -34,8 +34,8 @@ expectation ``psi2`` over ``x`` is computed once per stream and step; and as ``g
 within a training sequence, the N training points form U groups of equal ``g``. All K second
 moments and traces then follow from ``U x U`` group sums of ``psi2``:
 ``beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv (beta_u^T psi2_uv beta_v)`` — no ``N x N`` work
-per intention. See :class:`SharedTransition`; a linear measurement kernel is updated in closed
-form (:class:`LinearMeasurement`).
+per intention. See :class:`SharedTransition` (optionally on M < N pseudo-inputs, Sec. 3.3.3);
+a linear measurement kernel is updated in closed form (:class:`LinearMeasurement`).
 
 Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
 ``Dg`` intention dims, ``N`` transition training points.
@@ -286,6 +286,28 @@ def _gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
 # ------------------------------------------------------------------------------------------
 
 
+def _even_subset(group: torch.Tensor, m: int) -> torch.Tensor:
+    """Indices of about ``m`` points, every ``ceil(N / m)``-th within each group (sorted)."""
+    stride = -(-group.numel() // m)
+    order = torch.argsort(group, stable=True)
+    counts = torch.bincount(group)
+    rank = torch.arange(group.numel()) - (torch.cumsum(counts, 0) - counts)[group[order]]
+    return order[rank % stride == 0].sort().values
+
+
+def _dtc(posterior: GPPosterior, keep: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """DTC weights ``[M, Dout]`` and variance matrix ``[M, M]`` on the points ``keep``."""
+    X, Y, noise = posterior.train_inputs, posterior.train_targets, posterior.noise
+    with torch.no_grad():
+        Kmm = posterior.kernel(X[keep]).to_dense()
+        Kmn = posterior.kernel(X[keep], X).to_dense()
+    Lm = psd_cholesky(Kmm, name="inducing kernel matrix K_MM")
+    LA = psd_cholesky(noise * Kmm + Kmn @ Kmn.T, name="DTC matrix noise K_MM + K_MN K_NM")
+    weights = torch.cholesky_solve(Kmn @ Y, LA)
+    kinv = symmetrize(torch.cholesky_inverse(Lm) - noise * torch.cholesky_inverse(LA))
+    return weights, kinv
+
+
 class SharedTransition:
     r"""Moment matching of the IDDM transition GP at one input Gaussian for all K intentions.
 
@@ -301,21 +323,39 @@ class SharedTransition:
       and group u. Per intention only ``U x U`` group sums of ``psi2`` are contracted:
       ``O(N^2 Dx + K U^2 Dx^2)`` per stream instead of ``O(K N^2 Dx)``.
 
+    With ``inducing = M < N`` the GP is replaced by its sparse pseudo-input approximation (thesis
+    Sec. 3.3.3; the deterministic training conditional, DTC) on M of the training points, taken
+    evenly from each ``g`` group so that the grouping is kept: with ``A = noise K_MM + K_MN K_NM``
+    the mean weights become ``A^-1 K_MN Y`` and ``K^-1`` in the variance becomes
+    ``K_MM^-1 - noise A^-1``; the ``N x N`` work per step falls by ``(N / M)^2``.
+
     Args:
         posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``).
         values: ``[K, Dg]`` intention grid (or codes).
         dtype: computation dtype (the posterior's weights and ``K^-1`` are cast from it).
+        inducing: number of pseudo-inputs M (``None``: the exact GP).
     """
 
     def __init__(
-        self, posterior: GPPosterior, values: torch.Tensor, dtype: torch.dtype | None = None
+        self,
+        posterior: GPPosterior,
+        values: torch.Tensor,
+        dtype: torch.dtype | None = None,
+        *,
+        inducing: int | None = None,
     ) -> None:
         dtype = dtype or posterior.train_inputs.dtype
         X = posterior.train_inputs
         dx = X.shape[1] - values.shape[1]
         leaves = kernel_leaves(posterior.kernel, X.shape[1])
-        Xg = X[:, dx:]
-        uniq, group = torch.unique(Xg, dim=0, return_inverse=True)
+        uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
+        weights, kinv = posterior.weights, posterior.kinv
+        if inducing is not None:
+            if not isinstance(inducing, int) or inducing < 1:
+                raise ValueError(f"inducing must be a positive int or None, got {inducing!r}")
+            keep = _even_subset(group, inducing)
+            weights, kinv = _dtc(posterior, keep)
+            X, group = X[keep], group[keep]
         terms = split_terms(leaves, torch.cat([uniq.new_zeros(len(uniq), dx), uniq], 1), values, dx)
         if len(terms) != 1 or terms[0].kind != "rbf" or terms[0].factor is None:
             raise TypeError(
@@ -335,8 +375,8 @@ class SharedTransition:
         flat = pad.reshape(-1)
         real = flat < n
         Xx = torch.cat([X[:, :dx], X.new_zeros(1, dx)])
-        beta = torch.cat([posterior.weights, posterior.weights.new_zeros(1, dx)])
-        kinv = torch.nn.functional.pad(posterior.kinv, (0, 1, 0, 1))
+        beta = torch.cat([weights, weights.new_zeros(1, dx)])
+        kinv = torch.nn.functional.pad(kinv, (0, 1, 0, 1))
         self.values = values.to(dtype)
         self.dx, self.groups, self.group_size = dx, u_count, size
         self.inputs = Xx[flat].to(dtype)  # [U L, Dx]
@@ -527,6 +567,8 @@ class OnlineIntentionFilter:
         mu0, Sigma0: prior of the first state (default: the training latents' mean and
             covariance).
         dtype: computation dtype (default the model's; float32 halves memory traffic).
+        inducing: pseudo-inputs of a sparse transition GP (Sec. 3.3.3; see
+            :class:`SharedTransition`), or ``None`` for the exact GP.
         chunk_size: streams processed together; the ``[chunk, N, N]`` temporaries are passed
             over several times, so the default ``2^19 / N^2`` keeps them in cache.
 
@@ -548,6 +590,7 @@ class OnlineIntentionFilter:
         mu0: Any = None,
         Sigma0: Any = None,
         dtype: torch.dtype | None = None,
+        inducing: int | None = None,
         chunk_size: int | None = None,
     ) -> None:
         values = intention_grid(model, intentions)
@@ -562,7 +605,7 @@ class OnlineIntentionFilter:
         self.dtype = dtype or model.latent.dtype
         self.continuous = model.intention == "continuous"
         trans = model.transition_posterior()
-        self.transition = SharedTransition(trans, values, self.dtype)
+        self.transition = SharedTransition(trans, values, self.dtype, inducing=inducing)
         self.measure = _measurement_update(model.measurement_posterior(), self.dtype)
         self.gaussian_transition = (
             _posterior_as(trans, self.dtype) if mixing == "gaussian" else None

@@ -495,3 +495,24 @@ def test_float32_filter_tracks_float64(conditioned_model):
         a, b = f64.update(z[:, t]), f32.update(z[:, t])
         assert b.prob.dtype == torch.float32
         torch.testing.assert_close(b.prob.double(), a.prob, rtol=0, atol=2e-2)
+
+
+def test_sparse_transition_is_exact_with_all_points_and_close_with_half(generator):
+    n_seq, per, dx = 10, 6, 2
+    kernel = transition_kernel("iddm_continuous", dx, alpha=(0.9, 0.5, 0.1, 5e-2))
+    X = torch.randn(n_seq * per, dx, generator=generator)
+    G = (torch.rand(n_seq, generator=generator) * 2 - 1).repeat_interleave(per)[:, None]
+    post = GPPosterior(kernel, torch.cat([X, G], 1), torch.sin(X) + 0.3 * G, 5e-2)
+    values = torch.linspace(-1, 1, 5)[:, None]
+    mu, S = random_gaussians(3, dx, generator)
+    exact = SharedTransition(post, values).moments(mu, S)
+    full = SharedTransition(post, values, inducing=n_seq * per).moments(mu, S)
+    for a, b in zip(full, exact, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    half = SharedTransition(post, values, inducing=n_seq * per // 2)
+    assert half.inputs.shape[0] == n_seq * per // 2
+    m, c, _ = half.moments(mu, S)
+    assert float((m - exact[0]).abs().max()) < 0.1
+    assert float((c - exact[1]).abs().max()) < 0.1
+    with pytest.raises(ValueError, match="inducing"):
+        SharedTransition(post, values, inducing=0)
