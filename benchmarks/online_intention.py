@@ -55,8 +55,10 @@ def _percentiles(times: list[float]) -> tuple[float, float]:
     return float(np.percentile(a, 50)), float(np.percentile(a, 99))
 
 
-def single_stream(model, grid, streams, dtype, evidence: str, repeats: int):
-    f = OnlineIntentionFilter(model, grid, forgetting=0.2, evidence=evidence, dtype=dtype)
+def single_stream(model, grid, streams, dtype, evidence: str, repeats: int, inducing=None):
+    f = OnlineIntentionFilter(
+        model, grid, forgetting=0.2, evidence=evidence, dtype=dtype, inducing=inducing
+    )
     times = []
     for r in range(repeats):
         f.reset()
@@ -69,10 +71,10 @@ def single_stream(model, grid, streams, dtype, evidence: str, repeats: int):
     return _percentiles(times)
 
 
-def batched(model, grid, streams, B: int, loop_max: int):
+def batched(model, grid, streams, B: int, loop_max: int, inducing=None):
     """(batched ms/stream, loop ms/stream or None) for one update of B streams."""
     z = streams[torch.arange(B) % len(streams)]
-    f = OnlineIntentionFilter(model, grid, forgetting=0.2, batch_size=B)
+    f = OnlineIntentionFilter(model, grid, forgetting=0.2, batch_size=B, inducing=inducing)
     f.update(z[:, 0])
     times = []
     for t in range(1, 4):
@@ -82,7 +84,9 @@ def batched(model, grid, streams, B: int, loop_max: int):
     per_stream = 1e3 * min(times) / B
     if B > loop_max:
         return per_stream, None
-    singles = [OnlineIntentionFilter(model, grid, forgetting=0.2) for _ in range(B)]
+    singles = [
+        OnlineIntentionFilter(model, grid, forgetting=0.2, inducing=inducing) for _ in range(B)
+    ]
     for b, s in enumerate(singles):
         s.update(z[b, 0])
     loops = []
@@ -92,6 +96,15 @@ def batched(model, grid, streams, B: int, loop_max: int):
             s.update(z[b, t])
         loops.append(time.process_time() - start)
     return per_stream, 1e3 * min(loops) / B
+
+
+def sparse_error(model, grid, streams, inducing: int) -> float:
+    """Mean |posterior mean (sparse) - posterior mean (exact)| [cm] after every step."""
+    out = []
+    for m in (None, inducing):
+        f = OnlineIntentionFilter(model, grid, batch_size=len(streams), inducing=m)
+        out.append(torch.stack([f.update(streams[:, t]).mean[:, 0] for t in range(6)], 1))
+    return 100.0 * float((out[0] - out[1]).abs().mean())
 
 
 def batch_window(model, grid, streams, repeats: int) -> float:
@@ -118,6 +131,7 @@ def run(quick: bool) -> ResultTable:
             "p99 [ms]",
             "loop [ms/stream]",
             "x loop",
+            "|d mean| vs exact [cm]",
         ],  # fmt: skip
         meta={
             "torch": torch.__version__,
@@ -151,6 +165,21 @@ def run(quick: bool) -> ResultTable:
             row.update({"loop [ms/stream]": loop, "x loop": loop / per_stream})
         table.add(**row)
         print(table.rows[-1], flush=True)
+    # the sparse pseudo-input transition (Sec. 3.3.3): latency, throughput and accuracy cost
+    for m in (250, 125):
+        p50, p99 = single_stream(model, grid, streams, torch.float64, "predictive", repeats, m)
+        per_stream, loop = batched(model, grid, streams, 16 if quick else 256, 256, m)
+        table.add(**{
+            "algorithm": f"online sparse M={m}", "dtype": "float64", "B": 1,
+            "p50 [ms/obs/stream]": p50, "p99 [ms]": p99,
+            "|d mean| vs exact [cm]": sparse_error(model, grid, streams, m),
+        })  # fmt: skip
+        table.add(**{
+            "algorithm": f"online sparse M={m} batched", "dtype": "float64",
+            "B": 16 if quick else 256, "p50 [ms/obs/stream]": per_stream,
+            "loop [ms/stream]": loop, "x loop": loop / per_stream,
+        })  # fmt: skip
+        print(table.rows[-2:], flush=True)
     table.add(**{
         "algorithm": "batch, window 4", "dtype": "float64", "B": 1,
         "p50 [ms/obs/stream]": batch_window(model, grid, streams, 2 if quick else 5),

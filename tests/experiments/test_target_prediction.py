@@ -10,14 +10,21 @@ from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
 def test_smoke_run_reports_every_method_and_horizon():
     table = target_prediction(
-        n_train=14, n_test=8, kernels=("linear",), latent_dims=(3,), grid_size=9, fit_steps=5
+        n_train=14,
+        n_test=8,
+        kernels=("linear",),
+        latent_dims=(3,),
+        grid_size=9,
+        fit_steps=5,
+        inducing=(30,),
     )
     methods = table.column("method")
     assert methods[0] == "IDDM online" and table.rows[0]["Dx"] == 3
     assert any(m.startswith("IDDM batch") for m in methods)
     assert any(m.startswith("GPR") for m in methods) and methods[-1] == "median"
     assert table.meta["selected"] == {"kernel": "linear", "Dx": 3}
-    for name in ("online", "batch", "gpr", "median"):
+    assert any("sparse M=30" in m for m in methods)
+    for name in ("online", "online sparse M=30", "batch", "gpr", "median"):
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
     # the median row equals an independent recomputation on the same strokes
     strokes = sample_strokes(22, generator=torch.Generator().manual_seed(0))
