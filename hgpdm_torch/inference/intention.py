@@ -818,7 +818,7 @@ def infer_intention(
     prior: Any = None,
     mu0: Any = None,
     Sigma0: Any = None,
-    chunk_size: int = 64,
+    chunk_size: int | None = None,
     progress: bool = False,
 ) -> IntentionBelief:
     r"""Batch intention inference (Algorithm 3.1), batched over the K intention values.
@@ -839,7 +839,8 @@ def infer_intention(
         prior: ``[K]`` prior probabilities (default uniform).
         mu0, Sigma0: prior of the first state of each window (default: the training latents'
             empirical mean and covariance, as a window may start anywhere in a movement).
-        chunk_size: windows processed together (memory bound).
+        chunk_size: windows processed together; default ``2^24 / (K N^2)`` bounds the
+            ``[K, chunk, N, N]`` moment-matching temporaries to about 128 MB each (float64).
         progress: show a tqdm bar over chunks.
 
     Returns:
@@ -855,6 +856,8 @@ def infer_intention(
     log_prior = _log_prior(prior, len(values), dtype)
     m0, S0 = _state_prior(model, mu0, Sigma0, dtype)
     trans, meas = model.transition_posterior(), model.measurement_posterior()
+    n = trans.train_inputs.shape[0]
+    chunk_size = chunk_size or max(1, 2**24 // (len(values) * n * n))
     lead, T = z.shape[:-2], z.shape[-2]
     flat = z.reshape(-1, T, z.shape[-1])
     # one batch of equal-length windows per length: w for t >= w, then the shorter first ones
