@@ -18,16 +18,13 @@ initialisation and optimiser) and works for a GPDM (no g) and an H-GPDM alike.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
-from .variational import VariationalInference, batched_lbfgs, window_mask
+from .variational import VariationalInference, window_mask
 
 __all__ = ["MAPInference", "MAPResult"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 @dataclass
@@ -74,38 +71,24 @@ class MAPInference(VariationalInference):
         z, observed = window_mask(z, self.obs_dim)
         return self._log_joint(z.to(x.dtype), observed, x, self._candidates(values))
 
-    def _log_joint(
-        self, z: torch.Tensor, observed: torch.Tensor, x: torch.Tensor, values: torch.Tensor
-    ) -> torch.Tensor:
-        h = self.measurement
-        m, v = self._h.predict_point(x)
-        var = v[..., None] * h.scale.pow(2)
-        r = (torch.nan_to_num(z) - h.offset)[..., None, :, :] - m
-        lz = -0.5 * (torch.log(var) + _LOG_2PI + r.pow(2) / var).sum(-1)
-        lz = (lz * observed[..., None, :].to(lz.dtype)).sum(-1)
-        mx, vx = self._transition_gp(values).predict_point(x[..., :-1, :])
-        dx = self.latent_dim
-        err = (x[..., 1:, :] - mx).pow(2).sum(-1)
-        lx = (-0.5 * (dx * (torch.log(vx) + _LOG_2PI) + err / vx)).sum(-1)
-        d = torch.linalg.solve_triangular(
-            self._x1_chol, (x[..., 0, :] - self.x1_mean)[..., None], upper=False
-        )
-        l1 = -0.5 * (d.pow(2).sum((-1, -2)) + 2 * self._x1_chol.diagonal().log().sum())
-        return lz + lx + l1 - 0.5 * dx * _LOG_2PI
-
     def infer(  # type: ignore[override]
         self,
         z: object,
         *,
         values: object = None,
         steps: int = 50,
-        init: str = "smoother",
+        init: str = "nearest",
         progress: bool = False,
     ) -> MAPResult:
         """Maximise the log joint over ``x_{1:T}`` for every candidate g (batched).
 
-        Args: as :meth:`VariationalInference.infer`; the initial states are the means of the
-        same initialisation.
+        The optimiser is the Levenberg-Marquardt of VB's Laplace start (each window and
+        candidate its own problem), from the same initial states.
+
+        Args:
+            z, values, init: as :meth:`VariationalInference.infer`.
+            steps: maximum Levenberg-Marquardt iterations.
+            progress: unused (kept for the interface of :meth:`VariationalInference.infer`).
         """
         z, observed = window_mask(z, self.obs_dim)
         z = z.to(self.x1_mean.dtype)
@@ -113,16 +96,7 @@ class MAPInference(VariationalInference):
             raise ValueError(f"steps must be a non-negative int, got {steps!r}")
         values = self._candidates(values)
         loc = self.initial_guess(z, values, init)[0]
-        shape = loc.shape
-        nb = shape[:-2].numel()
-
-        def objective(flat: torch.Tensor) -> torch.Tensor:
-            return -self._log_joint(z, observed, flat.reshape(shape), values).reshape(nb)
-
-        x, history = batched_lbfgs(
-            objective, loc.reshape(nb, -1), max_iter=steps, progress=progress
-        )
-        x = x.reshape(shape)
+        x, history = self._map_states(z, observed, loc, values, None, max_iter=steps)
         with torch.no_grad():
             lj = self._log_joint(z, observed, x, values)
             if not bool(torch.isfinite(lj).all()):
