@@ -37,10 +37,11 @@ DOF = 7
 JOINT_NAMES = tuple(f"wam_joint{i}" for i in range(1, DOF + 1))
 RACKET_LINK = "racket"
 RACKET_RADIUS = 0.076
-# Shoulder (DH frame 0) of the hanging arm: centred laterally, 0.28 m behind the virtual hitting
-# plane and 0.49 m above the table surface, so that balls crossing the plane at 0.3-1.0 m height
-# (typical returns) lie within reach.
-DEFAULT_BASE_POSITION = (0.0, -2.45, 1.25)
+# Shoulder (DH frame 0) of the hanging arm: centred laterally, 0.23 m behind the virtual hitting
+# plane and 0.29 m above the table surface. The opponent's returns cross the plane at 0.5-1.05 m
+# height; from here the racket (1.2 m from the shoulder at full stretch) reaches them across
+# x = +-1.0 m, the widest the arm's length allows (+-1.2 m would need the shoulder on the plane).
+DEFAULT_BASE_POSITION = (0.0, -2.40, 1.05)
 # Hanging: the base z axis (joint 1) points down; base x stays world x.
 _HANGING_RPY = (math.pi, 0.0, 0.0)
 

@@ -20,8 +20,6 @@ from hgpdm_torch.robots.table_tennis.strokes import (
     min_quintic_duration,
 )
 
-START = torch.tensor([0.0, 1.65, 1.0])
-
 
 def test_quintic_boundaries_and_derivatives() -> None:
     rng = np.random.default_rng(0)
@@ -74,11 +72,11 @@ def sim() -> tuple[TableTennisScene, StrokePlanner]:
     return TableTennisScene(wam=planner.wam), planner
 
 
-def incoming(x: float) -> B.BallState:
-    """A return from the opponent's side crossing the hitting plane at lateral ``x``."""
-    res = B.aim_through_bounce(START, x, -0.9, 0.47)
-    assert bool(res.converged)
-    return B.BallState(START, res.vel, torch.zeros(3))
+@pytest.fixture(scope="module")
+def opponent_balls(opponent_trials) -> dict[str, B.BallState]:
+    """Balls returned by the simulated opponent towards the right, the middle and the left."""
+    sides = ("right", "centre", "left")  # the order of the targets in conftest.py
+    return {k: opponent_trials[i].ball_after_hit for i, k in enumerate(sides)}
 
 
 def test_preparation_poses_put_racket_behind_plane(sim) -> None:
@@ -90,32 +88,35 @@ def test_preparation_poses_put_racket_behind_plane(sim) -> None:
         assert float(pos[1]) < geo.HITTING_PLANE_Y
 
 
-@pytest.mark.parametrize("movement, x", [("forehand", 0.3), ("middle", 0.0), ("backhand", -0.3)])
-def test_movement_returns_ball_in_its_region(sim, movement: str, x: float) -> None:
+@pytest.mark.parametrize(
+    "movement, side", [("forehand", "right"), ("middle", "centre"), ("backhand", "left")]
+)
+def test_movement_returns_opponent_ball_in_its_region(sim, opponent_balls, movement, side) -> None:
     scene, planner = sim
-    out = execute_stroke(scene, planner, incoming(x), movement, -0.24)
-    assert out.hit and out.success, out
+    out = execute_stroke(scene, planner, opponent_balls[side], movement, -0.24)
+    assert out.hit and out.success, out.landing
     assert 0 < out.landing[1] <= geo.TABLE_HALF_LENGTH
     assert abs(out.landing[0]) <= geo.TABLE_HALF_WIDTH
+    assert out.joint_path.shape == (out.racket_path.shape[0], 7)
 
 
-@pytest.mark.parametrize("movement, x", [("forehand", -0.9), ("backhand", 0.6)])
-def test_movement_misses_far_outside_its_region(sim, movement: str, x: float) -> None:
+@pytest.mark.parametrize("movement, side", [("forehand", "left"), ("backhand", "right")])
+def test_movement_misses_far_outside_its_region(sim, opponent_balls, movement, side) -> None:
     scene, planner = sim
-    assert not execute_stroke(scene, planner, incoming(x), movement, -0.24).success
+    assert not execute_stroke(scene, planner, opponent_balls[side], movement, -0.24).success
 
 
-def test_late_start_fails(sim) -> None:
+def test_late_start_fails(sim, opponent_balls) -> None:
     scene, planner = sim
-    ball = incoming(0.3)
+    ball = opponent_balls["right"]
     t_cross, _, _ = B.predict_plane_crossing(ball, geo.HITTING_PLANE_Y)
     out = execute_stroke(scene, planner, ball, "forehand", float(t_cross) - 0.15)
     assert not out.success
 
 
-def test_bad_configuration(sim) -> None:
+def test_bad_configuration(sim, opponent_balls) -> None:
     scene, planner = sim
-    ball = incoming(0.0)
+    ball = opponent_balls["centre"]
     with pytest.raises(ValueError, match="movement"):
         execute_stroke(scene, planner, ball, "smash", -0.2)
     t_cross, _, _ = B.predict_plane_crossing(ball, geo.HITTING_PLANE_Y)

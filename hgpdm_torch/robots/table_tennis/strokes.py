@@ -3,17 +3,27 @@
 A movement follows the stages of a table-tennis stroke (thesis Fig. 3.5): the arm waits in the
 *awaiting* pose; when the movement is initiated it swings to the movement's *preparation* pose
 (a rest-to-rest quintic, as fast as the joint velocity and acceleration limits allow); once the
-incoming ball is predictable from its flight, and no earlier than ``hit_duration`` before the ball
-reaches the virtual hitting plane, the *hitting* stage plans a quintic from the arm's current state
-to the joint state that puts the racket on the ball at the plane with the racket velocity and
-normal that return the ball to the opponent's court (inverting the racket law of :mod:`.ball`);
-a *finishing* quintic brings the arm to rest.
+incoming ball is predictable from its flight (``predict_delay`` after the opponent's hit), and no
+earlier than ``hit_duration`` before the ball reaches the virtual hitting plane, the *hitting*
+stage plans a quintic from the arm's current state - wherever the preparation has brought it - to
+the joint state that puts the racket on the ball at the plane with the racket velocity and normal
+that return the ball to the opponent's court (inverting the racket law of :mod:`.ball`); a
+*finishing* quintic brings the arm to rest.
 
 The reference that drives the simulated arm is the plan passed through a joint-space tracker whose
 acceleration and velocity saturate at the limits, and the PD drives are force-limited at the
 joint torque limits. A plan that needs more than the limits allow is therefore not followed, the
 racket misses the ball, and the hitting region of each movement emerges from its preparation pose,
-the limits and the time left - nothing states where a movement can hit.
+the limits and the time left - nothing states where a movement can hit. With the defaults and a
+start 240 ms before the opponent's hit, the forehand returns balls crossing the plane at about
+x in [0.15, 0.85] m, the middle movement [-0.25, 0.35] m and the backhand [-0.85, -0.2] m; beyond
++-0.85 m the elbow would need more than its acceleration limit, and beyond +-1.0 m the arm is too
+short (see ``benchmarks/table_tennis.py`` and notebook 05 for the measured curves).
+
+The preparation poses are found by IK from several seeds; the one reachable fastest from the
+middle pose wins, and the awaiting pose is the solution whose slowest move to a preparation pose
+is quickest. The joint acceleration limits are our choice (the WAM's data sheet gives torque
+limits, which the drives enforce); the joint velocity limits are the URDF's.
 """
 
 from __future__ import annotations
@@ -59,19 +69,20 @@ class StrokeConfig:
             from the URDF.
         predict_delay: time after the opponent's hit from which the ball's flight is known (s).
         hit_duration: longest hitting stage (s): the swing starts this long before the ball
-            reaches the hitting plane, or later when the ball or the preparation is late.
+            reaches the hitting plane (from wherever the preparation has brought the arm), or
+            later when the ball is predictable only later.
         finish_duration: time to bring the arm to rest after the hit (s).
         return_target: ``(x, y)`` on the opponent's court where returns are aimed (m).
         return_flight_times: candidate flight times of the return (s); the first legal one in
             the simulated model wins.
     """
 
-    awaiting_position: tuple[float, float, float] = (0.0, -2.25, 0.8)
+    awaiting_position: tuple[float, float, float] = (0.0, -2.3, 0.7)
     prep_x: dict[str, float] = field(
-        default_factory=lambda: {"forehand": 0.45, "middle": 0.0, "backhand": -0.45}
+        default_factory=lambda: {"forehand": 0.6, "middle": 0.0, "backhand": -0.6}
     )
-    prep_height: float = 0.7
-    prep_backswing: float = 0.25
+    prep_height: float = 0.75
+    prep_backswing: float = 0.2
     face: dict[str, float] = field(
         default_factory=lambda: {"forehand": 1.0, "middle": 1.0, "backhand": -1.0}
     )
@@ -202,33 +213,66 @@ class StrokePlanner:
         self.acceleration_limit = np.asarray(self.config.acceleration_limit, dtype=np.float64)
         self.effort_limit = self.wam.effort_limit.numpy()
         # An elbow-down hanging posture with the racket face towards the opponent seeds the IK.
-        seed = torch.tensor([0.0, -0.9, -0.4, 1.9, -0.8, -0.5, -0.7], dtype=torch.float64)
+        nominal = np.array([1.57, -1.5, 0.0, 2.6, -1.0, 0.0, -0.7])
         n = torch.tensor([0.0, 1.0, 0.2], dtype=torch.float64)
-        self.awaiting = self._solve(torch.tensor(self.config.awaiting_position), n, seed)
         self.prep: dict[str, np.ndarray] = {}
-        for m in MOVEMENTS:
+        # the middle pose first; the side poses are sought near it (quick to switch between)
+        for m in ("middle", "forehand", "backhand"):
             pos = torch.tensor(
                 [
                     self.config.prep_x[m],
                     geo.HITTING_PLANE_Y - self.config.prep_backswing,
                     self.config.prep_height,
-                ]
+                ],
+                dtype=torch.float64,
             )
-            face = self.config.face[m]
-            q0 = torch.as_tensor(self.awaiting)
-            if face < 0:  # turn the forearm to present the other face
-                q0 = self._solve(pos, -n, q0 + torch.tensor([0, 0, 0, 0, 0, 0, 3.0]).clamp(max=2.9))
-                q0 = torch.as_tensor(q0)
-            self.prep[m] = self._solve(pos, face * n, q0)
+            near = self.prep.get("middle", nominal)
+            seeds = torch.cat([self._seeds(near), self._seeds(nominal)])
+            self.prep[m] = self._solve(pos, self.config.face[m] * n, seeds, [near])
+        self.prep = {m: self.prep[m] for m in MOVEMENTS}
+        # The awaiting pose sits between the preparation poses in joint space: of the solutions
+        # near their mean, the one from which the slowest preparation is quickest.
+        centre = np.mean(list(self.prep.values()), axis=0)
+        pos = torch.tensor(self.config.awaiting_position, dtype=torch.float64)
+        self.awaiting = self._solve(pos, n, self._seeds(centre), list(self.prep.values()), centre)
 
-    def _solve(self, pos: torch.Tensor, normal: torch.Tensor, seed: torch.Tensor) -> np.ndarray:
-        res = self.wam.ik(pos.double(), normal, seed, max_iter=300)
-        if not bool(res.success):
+    def _seeds(self, base: np.ndarray) -> torch.Tensor:
+        """``[15, 7]`` IK seeds: ``base`` ``[7]`` turned about joint 1, forearm roll flipped."""
+        turn = torch.tensor([-0.6, -0.3, 0.0, 0.3, 0.6], dtype=torch.float64)
+        roll = torch.tensor([0.0, 3.0, -3.0], dtype=torch.float64)
+        seeds = torch.as_tensor(base, dtype=torch.float64).repeat(15, 1)
+        seeds[:, 0] += turn.repeat_interleave(3)
+        seeds[:, 6] += roll.repeat(5)
+        return torch.minimum(torch.maximum(seeds, self.wam.lower), self.wam.upper)
+
+    def _solve(
+        self,
+        pos: torch.Tensor,
+        normal: torch.Tensor,
+        seeds: torch.Tensor,
+        others: list[np.ndarray],
+        rest: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """IK from every seed ``[S, 7]``; the solution with the quickest slowest move to ``others``.
+
+        The cost of a solution is the longest rest-to-rest move (within the velocity and
+        acceleration limits) between it and the poses in ``others`` (each ``[7]``); the IK's null
+        space pulls towards ``rest`` (default ``others[0]``).
+        """
+        q_rest = torch.as_tensor(others[0] if rest is None else rest, dtype=torch.float64)
+        res = self.wam.ik(pos.expand(len(seeds), 3), normal, seeds, q_rest=q_rest, max_iter=300)
+        if not bool(res.success.any()):
             raise RuntimeError(
                 f"no IK solution for the pose at {pos.tolist()} (error "
-                f"{float(res.position_error):.3g} m); check StrokeConfig poses against the reach"
+                f"{float(res.position_error.min()):.3g} m); check StrokeConfig poses against "
+                "the reach"
             )
-        return res.q.numpy()
+        vmax, amax = self.velocity_limit, self.acceleration_limit
+        cost = [
+            max(min_quintic_duration(o, q, vmax, amax) for o in others) if ok else math.inf
+            for q, ok in zip(res.q.numpy(), res.success.tolist(), strict=True)
+        ]
+        return res.q[int(np.argmin(cost))].numpy()
 
     def movement(self, name: str) -> str:
         """Validate a movement name."""
@@ -248,7 +292,9 @@ class StrokePlanner:
         """
         name = self.movement(name)
         cfg = self.config
-        t_c, at, valid = B.predict_plane_crossing(ball_now, geo.HITTING_PLANE_Y, self.ball_params)
+        t_c, at, valid = B.predict_plane_crossing(
+            ball_now, geo.HITTING_PLANE_Y, self.ball_params, dt=0.01
+        )
         if not bool(valid):
             return None
         hit_pos = at.pos
@@ -329,7 +375,10 @@ class StrokeOutcome:
         hit: the racket touched the ball.
         landing: ``[2]`` first bounce ``(x, y)`` of the return (NaN where there was none).
         t_hit: planned time of the hit (s, relative to the opponent's hit; NaN if none).
-        racket_path: ``[S, 3]`` racket centre every 10 ms; ``ball_path``: ``[S, 3]`` ball.
+        racket_path: ``[S, 3]`` racket centre every 10 ms; ``ball_path``: ``[S', 3]`` ball at
+            the same times (NaN before the opponent's hit), then the return flight of the ball
+            model every 10 ms.
+        joint_path: ``[S, 7]`` simulated joint angles every 10 ms (to draw the arm).
     """
 
     success: bool
@@ -338,6 +387,7 @@ class StrokeOutcome:
     t_hit: float
     racket_path: np.ndarray
     ball_path: np.ndarray
+    joint_path: np.ndarray
 
 
 _PARKED_BALL = B.BallState(
@@ -365,7 +415,7 @@ def execute_stroke(
     movement = planner.movement(movement)
     cfg = planner.config
     t_cross, _, valid = B.predict_plane_crossing(
-        ball_after_hit, geo.HITTING_PLANE_Y, planner.ball_params
+        ball_after_hit, geo.HITTING_PLANE_Y, planner.ball_params, dt=0.01
     )
     if not bool(valid):
         raise ValueError("ball_after_hit never reaches the robot's hitting plane")
@@ -386,7 +436,7 @@ def execute_stroke(
     finish: Quintic | None = None
     hold = (planner.awaiting, np.zeros(DOF), np.zeros(DOF))
     contact_time = math.nan
-    racket_path, ball_path = [], []
+    racket_path, ball_path, joint_path = [], [], []
     t_end = float(t_cross) + 0.15
     k = 0
     while t < t_end:
@@ -395,12 +445,13 @@ def execute_stroke(
             ball_in_play = True
         if prep is None and t >= start_time:
             prep = planner.preparation(movement, t, tracker.q)
-        prep_end = math.inf if prep is None else prep.t0 + prep.duration
         if plan is None and prep is not None and ball_in_play and t >= cfg.predict_delay:
             plan = planner.plan_hit(movement, scene.ball_state(), t)
             if plan is None:
                 break
-        if plan is not None and swing is None and t >= max(plan.t_start, prep_end):
+        # The hitting stage replans from the arm's current state, also when the preparation is
+        # not finished yet (a late start then leaves the swing too little time).
+        if plan is not None and swing is None and t >= plan.t_start:
             if t < plan.t_hit:
                 swing = planner.swing(plan, t, tracker.q, tracker.v)
                 finish = planner.finish(plan)
@@ -415,23 +466,25 @@ def execute_stroke(
         scene.step()
         t += dt
         k += 1
+        ball_pos, ball_vel, _ = scene.ball_arrays()
         if ball_in_play:
-            state = scene.ball_state()
-            if math.isnan(contact_time) and float(state.vel[1]) > 0 and float(state.pos[1]) < 0:
+            if math.isnan(contact_time) and ball_vel[1] > 0 and ball_pos[1] < 0:
                 contact_time = t
             if not math.isnan(contact_time) and t >= contact_time + 0.01:
                 break
-            if float(state.pos[2]) < 2 * geo.BALL_RADIUS:
+            if ball_pos[2] < 2 * geo.BALL_RADIUS:
                 break
         if k % 10 == 0:
             racket_path.append(scene.racket_pose()[0])
-            ball_path.append(scene.ball_state().pos.numpy())
+            ball_path.append(ball_pos if ball_in_play else np.full(3, np.nan))
+            joint_path.append(scene.robot_state()[0])
     landing = np.full(2, np.nan)
     success = False
     hit = not math.isnan(contact_time)
     if hit:
         after = scene.ball_state()
-        traj = B.simulate(after, 2.0, 0.01, planner.ball_params)
+        # every return lands within 1.2 s (the planned flights take at most ~0.9 s)
+        traj = B.simulate(after, 1.2, 0.01, planner.ball_params)
         land = B.landing(traj)
         if bool(land.landed):
             landing = land.pos[:2].numpy()
@@ -444,4 +497,5 @@ def execute_stroke(
         t_hit=math.nan if plan is None else plan.t_hit,
         racket_path=np.asarray(racket_path).reshape(-1, 3),
         ball_path=np.asarray(ball_path).reshape(-1, 3),
+        joint_path=np.asarray(joint_path).reshape(-1, DOF),
     )

@@ -31,6 +31,7 @@ __all__ = [
     "Trials",
     "default_cache_dir",
     "evaluate",
+    "hitting_regions",
     "make_trials",
     "reward_table",
 ]
@@ -89,13 +90,22 @@ class Trials:
 
 
 def make_trials(
-    n: int, seed: int, *, config: OpponentConfig | None = None, progress: bool = False
+    n: int,
+    seed: int,
+    *,
+    targets: object | None = None,
+    config: OpponentConfig | None = None,
+    progress: bool = False,
 ) -> Trials:
-    """Sample ``n`` trials from the simulated opponent with a seeded generator."""
+    """Sample ``n`` trials from the simulated opponent with a seeded generator.
+
+    ``targets`` ``[n]`` fixes the intended targets (default: uniform over the hitting plane); see
+    :func:`.opponent.sample_strokes`.
+    """
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"seed must be an int, got {type(seed).__name__}")
     gen = torch.Generator().manual_seed(seed)
-    s = sample_strokes(n, config=config, generator=gen, progress=progress)
+    s = sample_strokes(n, config=config, targets=targets, generator=gen, progress=progress)
     return Trials(s.obs, s.obs_times, s.targets, s.hit_time, s.ball_after_hit)
 
 
@@ -248,3 +258,46 @@ def reward_table(
     np.save(tmp, table)
     tmp.replace(path)
     return torch.from_numpy(table)
+
+
+def hitting_regions(
+    trials: Trials,
+    start_time: float = -0.24,
+    bins: object = None,
+    actions: tuple[str, ...] = MOVEMENTS,
+    **reward_kw: object,
+) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    """Success rate of each movement versus the target ``x`` (the thesis's Fig. 3.8 analogue).
+
+    Every trial is played with every movement started at ``start_time`` (240 ms before the
+    opponent's hit by default, the thesis's choice) through :func:`reward_table`, and the legal
+    returns are averaged over bins of the true target.
+
+    Args:
+        trials: the trials.
+        start_time: movement initiation relative to the opponent's hit [s].
+        bins: ``[K + 1]`` bin edges of the target ``x`` [m] (default: 12 bins over +-1.2 m).
+        actions: movements to evaluate.
+        **reward_kw: passed to :func:`reward_table` (``workers``, ``cache_dir``, ``progress``,
+            configurations).
+
+    Returns:
+        ``centers [K]``, ``{movement: rate [K]}`` (NaN in empty bins) and ``counts [K]``.
+    """
+    edges = np.linspace(-geo.TARGET_X_MAX, geo.TARGET_X_MAX, 13) if bins is None else bins
+    edges = np.asarray(edges, dtype=np.float64)
+    if edges.ndim != 1 or edges.size < 2 or not bool(np.all(np.diff(edges) > 0)):
+        raise ValueError("bins must be at least two increasing bin edges")
+    table = reward_table(trials, actions, (float(start_time),), **reward_kw)  # type: ignore[arg-type]
+    targets = trials.targets.numpy()
+    which = np.digitize(targets, edges) - 1  # bin of each trial; outside: -1 or K
+    k = edges.size - 1
+    counts = np.bincount(which[(which >= 0) & (which < k)], minlength=k)
+    rates = {}
+    for a, name in enumerate(actions):
+        won = (table[:, a, 0] > 0).numpy().astype(np.float64)
+        inside = (which >= 0) & (which < k)
+        sums = np.bincount(which[inside], weights=won[inside], minlength=k)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rates[name] = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    return 0.5 * (edges[1:] + edges[:-1]), rates, counts
