@@ -15,9 +15,17 @@ __all__ = ["COMMANDS", "main"]
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("hgpdm_torch.experiments.demo", "fit an H-GPDM on synthetic styles and discover them"),
+    "action-recognition": (
+        "hgpdm_torch.experiments.action_recognition",
+        "action recognition on aeon BasicMotions (Sec. 3.6, Table 3.3)",
+    ),
     "anticipation": (
         "hgpdm_torch.experiments.anticipation",
         "Ch. 4 anticipatory action selection in table tennis: LSPI, MCP, NAC (Fig. 4.6-4.7)",
+    ),
+    "target-prediction": (
+        "hgpdm_torch.experiments.target_prediction",
+        "table-tennis target prediction (Sec. 3.5, Table 3.2, Fig. 3.7)",
     ),
     "games": (
         "hgpdm_torch.experiments.repeated_games",

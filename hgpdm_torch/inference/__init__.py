@@ -1,5 +1,6 @@
 """Inference in the H-GPDM/IDDM: GP-ADF filtering and GP-RTSS smoothing (Ch. 3), variational
-Bayes (Ch. 2.3) and the MAP baseline (conditional GPDM)."""
+Bayes (Ch. 2.3), the MAP baseline (conditional GPDM), and batch and online intention inference
+(Algorithms 3.1-3.2)."""
 
 from .filtering import (
     FilterResult,
@@ -8,6 +9,16 @@ from .filtering import (
     gp_adf_predict,
     gp_adf_update,
     smooth,
+)
+from .intention import (
+    IntentionBelief,
+    LinearMeasurement,
+    OnlineIntentionFilter,
+    SharedTransition,
+    batch_bound,
+    expected_log_conditional,
+    infer_intention,
+    intention_grid,
 )
 from .map import MAPInference, MAPResult
 from .variational import (
@@ -20,6 +31,14 @@ from .variational import (
 
 __all__ = [
     "FilterResult",
+    "IntentionBelief",
+    "LinearMeasurement",
+    "OnlineIntentionFilter",
+    "SharedTransition",
+    "batch_bound",
+    "expected_log_conditional",
+    "infer_intention",
+    "intention_grid",
     "MAPInference",
     "MAPResult",
     "MeanFieldGuide",
