@@ -336,6 +336,8 @@ def _find_root(
     for _ in range(iters):
         s = propagate(start, tau)
         g, gdot = event(s)
+        if bool((g.abs() < 1e-14).all()):  # at the contact to rounding: Newton has converged
+            break
         above = g > 0
         lo = torch.where(above, tau, lo)
         hi = torch.where(above, hi, tau)
