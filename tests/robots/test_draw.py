@@ -48,6 +48,18 @@ def test_arm_follows_forward_kinematics(ax3d) -> None:
     np.testing.assert_allclose((rim - centre) @ normal, 0.0, atol=1e-12)
 
 
+def test_table_top_view() -> None:
+    fig, ax = plt.subplots()
+    draw_table(ax)
+    outline = np.stack(ax.get_lines()[0].get_data(), -1)
+    np.testing.assert_allclose(
+        np.abs(outline).max(0), [geo.TABLE_HALF_WIDTH, geo.TABLE_HALF_LENGTH]
+    )
+    plane = np.stack(ax.get_lines()[-1].get_data(), -1)
+    np.testing.assert_allclose(plane[:, 1], geo.HITTING_PLANE_Y)
+    plt.close(fig)
+
+
 def test_table_and_stroke(ax3d) -> None:
     draw_table(ax3d)
     table = _lines(ax3d)[0]
@@ -83,7 +95,7 @@ def test_hitting_regions_plot() -> None:
 def test_bad_input_raises(ax3d) -> None:
     fig, ax2d = plt.subplots()
     with pytest.raises(TypeError, match="3-D"):
-        draw_table(ax2d)
+        draw_arm(ax2d, WAM(), Q)
     with pytest.raises(ValueError, match="q must"):
         draw_arm(ax3d, WAM(), np.zeros(6))
     with pytest.raises(TypeError, match="outcome"):

@@ -1,7 +1,7 @@
 """The robot table-tennis setup: ball physics, opponent, SAPIEN scene, strokes and trials.
 
-Modules that need SAPIEN (``scene``, ``strokes``, ``trials``) are imported on first use of their
-names, so the ball model and the opponent work without the ``sim`` extra.
+Modules that need SAPIEN (``scene``, ``strokes``, ``trials``) or matplotlib (``draw``) are imported
+on first use of their names, so the ball model and the opponent work without the ``sim`` extra.
 """
 
 from __future__ import annotations
@@ -33,8 +33,13 @@ _LAZY = {
     "Trial": "trials",
     "Trials": "trials",
     "evaluate": "trials",
+    "hitting_regions": "trials",
     "make_trials": "trials",
     "reward_table": "trials",
+    "draw_arm": "draw",
+    "draw_stroke": "draw",
+    "draw_table": "draw",
+    "plot_hitting_regions": "draw",
 }
 
 __all__ = sorted(_LAZY)

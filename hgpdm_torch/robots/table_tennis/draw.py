@@ -31,17 +31,29 @@ def _check_3d(ax: Axes) -> None:
 
 
 def draw_table(ax: Axes, *, hitting_plane: bool = True) -> None:
-    """Table top, net and (optionally) the robot's virtual hitting plane on 3-D axes ``ax``."""
-    _check_3d(ax)
+    """Table top, net and (optionally) the robot's virtual hitting plane.
+
+    On 3-D axes the scene is drawn in the world frame; on 2-D axes as a top view (x, y).
+    """
     w, h, z = geo.TABLE_HALF_WIDTH, geo.TABLE_HALF_LENGTH, geo.TABLE_HEIGHT
     top = np.array([[-w, -h, z], [w, -h, z], [w, h, z], [-w, h, z], [-w, -h, z]])
+    n, nz = geo.NET_HALF_WIDTH, z + geo.NET_HEIGHT
+    y, x = geo.HITTING_PLANE_Y, geo.TARGET_X_MAX
+    if not hasattr(ax, "plot3D"):
+        ax.plot(top[:, 0], top[:, 1], color="tab:brown", lw=1.5)
+        ax.plot([0, 0], [-h, h], color="tab:brown", lw=0.5)
+        ax.plot([-n, n], [0, 0], color="k", lw=1)
+        if hitting_plane:
+            ax.plot([-x, x], [y, y], color="gray", ls="--", lw=0.8)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        return
     ax.plot3D(*top.T, color="tab:brown", lw=1.5)
     ax.plot3D([0, 0], [-h, h], [z, z], color="tab:brown", lw=0.5)  # centre line
-    n, nz = geo.NET_HALF_WIDTH, z + geo.NET_HEIGHT
     net = np.array([[-n, 0, z], [-n, 0, nz], [n, 0, nz], [n, 0, z]])
     ax.plot3D(*net.T, color="k", lw=1)
     if hitting_plane:
-        y, x = geo.HITTING_PLANE_Y, geo.TARGET_X_MAX
         plane = np.array([[-x, y, 0.5], [x, y, 0.5], [x, y, 1.3], [-x, y, 1.3], [-x, y, 0.5]])
         ax.plot3D(*plane.T, color="gray", ls="--", lw=0.8)
     ax.set_xlabel("x [m]")
@@ -132,6 +144,8 @@ def plot_hitting_regions(
         width = float(np.min(np.diff(centers))) if centers.size > 1 else 0.2
         twin.bar(centers, counts, width=0.9 * width, color="gray", alpha=0.15)
         twin.set_ylabel("trials per bin")
+        ax.set_zorder(twin.get_zorder() + 1)  # the curves in front of the bars
+        ax.patch.set_visible(False)
     ax.axvspan(-geo.TABLE_HALF_WIDTH, geo.TABLE_HALF_WIDTH, color="tab:brown", alpha=0.06)
     ax.set_xlim(-geo.TARGET_X_MAX - 0.1, geo.TARGET_X_MAX + 0.1)
     ax.set_ylim(-0.02, 1.02)
