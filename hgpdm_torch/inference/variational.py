@@ -488,8 +488,12 @@ class VariationalInference:
     def _transition_gp(self, values: torch.Tensor) -> _GaussianInputGP:
         if self.kind != "discrete":
             return self._f
-        # [..., K] codes -> blocks [..., K, 1, N, .] (the 1 is the time axis)
-        return _GaussianInputGP(self.transition, values[..., None])
+        # [..., K] codes -> blocks [..., K, 1, N, .] (the 1 is the time axis); the last one is
+        # kept, since the optimisers ask for the same candidates at every step
+        cached = getattr(self, "_f_cache", None)
+        if cached is None or not torch.equal(cached[0], values):
+            self._f_cache = (values, _GaussianInputGP(self.transition, values[..., None]))
+        return self._f_cache[1]
 
     # ------------------------------------------------------------------ the free energy
     def free_energy(
@@ -876,7 +880,7 @@ class VariationalInference:
         g_loc: torch.Tensor | None,
         *,
         max_iter: int,
-        tol: float = 1e-7,
+        tol: float = 1e-3,
     ) -> tuple[torch.Tensor, list[float]]:
         """Maximise the log joint over ``x [..., K, T, Dx]`` by Levenberg-Marquardt.
 
@@ -884,7 +888,7 @@ class VariationalInference:
         diag(J^T J)) s = -grad`` with the exact gradient (autograd, so the ``log sigma^2(x)``
         terms are included) and its own damping ``lambda``, which shrinks after an accepted step
         and grows after a rejected one. A problem stops when an accepted step gains less than
-        ``tol (1 + |log joint|)``.
+        ``tol`` nats (far below the differences between candidates of g that matter).
 
         Returns:
             The maximisers and the summed negative log joint after each iteration.
@@ -918,7 +922,7 @@ class VariationalInference:
             f = torch.where(ok, f_t, f)
             g = torch.where(ok[..., None, None], g_t, g)
             lam = torch.where(ok, 0.2 * lam, 10.0 * lam)
-            done = (ok & (gain < tol * (1.0 + f.abs()))) | (lam > 1e10)
+            done = (ok & (gain < tol)) | (lam > 1e10)
             active = active & ~done
             history.append(float(f.sum()))
         return x, history
@@ -956,12 +960,46 @@ class VariationalInference:
             cov = torch.cholesky_inverse(psd_cholesky(diag, name="precision block of q(x_t)"))
         return x, symmetrize(cov)
 
+    def _polish(
+        self,
+        z: torch.Tensor,
+        observed: torch.Tensor,
+        values: torch.Tensor,
+        loc: torch.Tensor,
+        cov: torch.Tensor,
+        g_loc: torch.Tensor | None,
+        g_cov: torch.Tensor | None,
+        steps: int,
+        progress: bool,
+    ) -> tuple[torch.Tensor | None | list[float], ...]:
+        """L-BFGS on the exact F from q = (loc, cov[, q(g)]); returns the new q and the history."""
+        f = self._transition_gp(values)
+        with torch.no_grad():
+            free = self._whiten(f, loc, cov, g_loc, g_cov)
+        shapes = [p.shape for p in free]
+        nb = loc.shape[:-2].numel()  # independent blocks: windows x candidates
+
+        def unflatten(flat: torch.Tensor) -> list[torch.Tensor]:
+            parts = torch.split(flat, [sh.numel() // nb for sh in shapes], dim=-1)
+            return [p.reshape(sh) for p, sh in zip(parts, shapes, strict=True)]
+
+        def objective(flat: torch.Tensor) -> torch.Tensor:
+            loc, tril, g_l, g_t = self._unwhiten(f, unflatten(flat))
+            return -self._free_energy(z, observed, loc, tril, values, g_l, g_t).reshape(nb)
+
+        x0 = torch.cat([p.reshape(nb, -1) for p in free], -1)
+        x, history = batched_lbfgs(objective, x0, max_iter=steps, progress=progress)
+        with torch.no_grad():
+            loc, tril, g_l, g_t = self._unwhiten(f, unflatten(x.detach()))
+            g_c = None if g_l is None else g_t @ g_t.transpose(-1, -2)
+            return loc, tril @ tril.transpose(-1, -2), g_l, g_c, history
+
     def infer(
         self,
         z: object,
         *,
         values: object = None,
-        steps: int = 10,
+        steps: int = 0,
         newton_steps: int = 30,
         init: str = "nearest",
         progress: bool = False,
@@ -1003,29 +1041,16 @@ class VariationalInference:
         loc, cov, g_loc, g_cov = self.initial_guess(z, values, init)
         if newton_steps:
             loc, cov = self.laplace(z, observed, loc, values, g_loc, max_iter=newton_steps)
-        f = self._transition_gp(values)
+        history: list[float] = []
+        if steps:
+            loc, cov, g_loc, g_cov, history = self._polish(
+                z, observed, values, loc, cov, g_loc, g_cov, steps, progress
+            )
         with torch.no_grad():
-            free = self._whiten(f, loc, cov, g_loc, g_cov)
-        shapes = [p.shape for p in free]
-        nb = loc.shape[:-2].numel()  # independent blocks: windows x candidates
-
-        def unflatten(flat: torch.Tensor) -> list[torch.Tensor]:
-            parts = torch.split(flat, [sh.numel() // nb for sh in shapes], dim=-1)
-            return [p.reshape(sh) for p, sh in zip(parts, shapes, strict=True)]
-
-        def objective(flat: torch.Tensor) -> torch.Tensor:
-            loc, tril, g_l, g_t = self._unwhiten(f, unflatten(flat))
-            return -self._free_energy(z, observed, loc, tril, values, g_l, g_t).reshape(nb)
-
-        x0 = torch.cat([p.reshape(nb, -1) for p in free], -1)
-        x, history = batched_lbfgs(objective, x0, max_iter=steps, progress=progress)
-        free = unflatten(x.detach())
-        with torch.no_grad():
-            loc, tril, g_l, g_t = self._unwhiten(f, free)
-            g_c = None if g_l is None else g_t @ g_t.transpose(-1, -2)
-            guide = MeanFieldGuide(loc, tril @ tril.transpose(-1, -2), g_l, g_c)
-        with torch.no_grad():
-            F = self.guide_free_energy(z, guide, values=values)
+            guide = MeanFieldGuide(loc, cov, g_loc, g_cov)
+            g_tril = guide.g_scale_tril if guide.has_g else None
+            F = self._free_energy(z, observed, guide.loc, guide.scale_tril, values, g_loc, g_tril)
+            history = history or [float(-F.sum())]
             if not bool(torch.isfinite(F).all()):
                 raise FloatingPointError("the free energy is not finite after optimisation")
             log_prior = self.log_g_prior[values] if self.kind == "discrete" else self.log_g_prior
