@@ -70,11 +70,11 @@ def supervised_init(obs: torch.Tensor, targets: torch.Tensor, latent_dim: int) -
     obs = as_tensor(obs, "obs", ndim=3)
     targets = as_tensor(targets, "targets", dtype=obs.dtype)
     n, T, dz = obs.shape
-    g = targets.reshape(n, -1)
-    if g.shape[0] != n:
+    if targets.dim() not in (1, 2) or targets.shape[0] != n:
         raise ValueError(
-            f"targets must have one row per play (n = {n}), got {tuple(targets.shape)}"
+            f"targets must be [n] or [n, Dg] with n = {n} plays, got {tuple(targets.shape)}"
         )
+    g = targets.reshape(n, -1)
     if not isinstance(latent_dim, int) or not 1 <= latent_dim <= dz:
         raise ValueError(f"latent_dim must be an int in [1, Dz = {dz}], got {latent_dim!r}")
     frames = obs.reshape(n * T, dz).numpy()
@@ -215,11 +215,12 @@ def _row(part, method, kernel, dx, val, scores, ms) -> dict[str, Any]:
 
 
 def main(argv: list[str]) -> int:
-    """``hgpdm target-prediction [--quick] [--out results.json] [--seed N]``."""
+    """``hgpdm target-prediction [--quick] [--out results.json] [--seed N] [--init pls|pca]``."""
     parser = argparse.ArgumentParser(prog="hgpdm target-prediction", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="small smoke-test sizes")
     parser.add_argument("--out", help="write the table as JSON")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--init", choices=("pls", "pca"), default="pls", help="latent init")
     args = parser.parse_args(argv)
     quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
     kwargs = (
@@ -234,7 +235,7 @@ def main(argv: list[str]) -> int:
         if quick
         else {}
     )
-    table = target_prediction(seed=args.seed, progress=not quick, **kwargs)
+    table = target_prediction(seed=args.seed, init=args.init, progress=not quick, **kwargs)
     print(table.to_markdown())
     if args.out:
         table.to_json(args.out)
