@@ -13,7 +13,7 @@ Forecasts and recovered rows are the GP means ``m_z(x_t)`` at the MAP states.
 
 :class:`MAPInference` has the interface of
 :class:`~hgpdm_torch.inference.variational.VariationalInference` (it shares its GPs, priors,
-initialisation and optimiser) and works for a GPDM (no g) and an H-GPDM alike.
+initialisation and Levenberg-Marquardt solver) and works for a GPDM (no g) and an H-GPDM alike.
 """
 
 from __future__ import annotations
