@@ -23,6 +23,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "hgpdm_torch.experiments.anticipation",
         "Ch. 4 anticipatory action selection in table tennis: LSPI, MCP, NAC (Fig. 4.6-4.7)",
     ),
+    "style-recognition": (
+        "hgpdm_torch.experiments.style_recognition",
+        "VB style recognition, forecasting and gap recovery (Sec. 2.4, Tables 2.1-2.4, Fig. 2.3)",
+    ),
     "target-prediction": (
         "hgpdm_torch.experiments.target_prediction",
         "table-tennis target prediction (Sec. 3.5, Table 3.2, Fig. 3.7)",
