@@ -150,14 +150,14 @@ def target_prediction(
     ``init`` is the latent initialisation: ``"pls"`` (:func:`supervised_init`) or ``"pca"``.
     """
     check_choice(init, "init", ("pls", "pca"))
+    if not isinstance(cv_folds, int) or not 2 <= cv_folds <= n_train // 2:
+        raise ValueError(f"cv_folds must be an int in [2, n_train / 2], got {cv_folds!r}")
     from ..robots.table_tennis.opponent import sample_strokes
 
     gen = torch.Generator().manual_seed(seed)
     strokes = sample_strokes(n_train + n_test, generator=gen, progress=progress)
     obs, y = strokes.obs, strokes.targets
     train, test = slice(0, n_train), slice(n_train, n_train + n_test)
-    if not isinstance(cv_folds, int) or not 2 <= cv_folds <= n_train // 2:
-        raise ValueError(f"cv_folds must be an int in [2, n_train / 2], got {cv_folds!r}")
     folds = torch.arange(n_train).tensor_split(cv_folds)
     lim = float(strokes_limit(y))
     grid = torch.linspace(-lim, lim, grid_size)

@@ -66,3 +66,5 @@ def test_supervised_init_rejects_bad_input():
         supervised_init(obs, torch.zeros(5), 1)
     with pytest.raises(ValueError, match="init"):
         target_prediction(n_train=4, n_test=2, init="ica")
+    with pytest.raises(ValueError, match="cv_folds"):
+        target_prediction(n_train=4, n_test=2, cv_folds=3)
