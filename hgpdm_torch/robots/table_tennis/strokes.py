@@ -4,11 +4,12 @@ A movement follows the stages of a table-tennis stroke (thesis Fig. 3.5): the ar
 *awaiting* pose; when the movement is initiated it swings to the movement's *preparation* pose
 (a rest-to-rest quintic, as fast as the joint velocity and acceleration limits allow); once the
 incoming ball is predictable from its flight (``predict_delay`` after the opponent's hit), and no
-earlier than ``hit_duration`` before the ball reaches the virtual hitting plane, the *hitting*
-stage plans a quintic from the arm's current state - wherever the preparation has brought it - to
-the joint state that puts the racket on the ball at the plane with the racket velocity and normal
-that return the ball to the opponent's court (inverting the racket law of :mod:`.ball`); a
-*finishing* quintic brings the arm to rest.
+earlier than ``hit_duration`` before the ball reaches the virtual hitting plane and no earlier
+than the arm has reached the preparation pose (the stage order of Fig. 3.5; optional), the
+*hitting* stage plans a quintic from the arm's current state to the joint state that puts the
+racket on the ball at the plane with the racket velocity and normal that return the ball to the
+opponent's court (inverting the racket law of :mod:`.ball`); a *finishing* quintic brings the arm
+to rest.
 
 The reference that drives the simulated arm is the plan passed through a joint-space tracker whose
 acceleration and velocity saturate at the limits, and the PD drives are force-limited at the
@@ -18,7 +19,9 @@ the limits and the time left - nothing states where a movement can hit. With the
 start 240 ms before the opponent's hit, the forehand returns balls crossing the plane at about
 x in [0.15, 0.85] m, the middle movement [-0.25, 0.35] m and the backhand [-0.85, -0.2] m; beyond
 +-0.85 m the elbow would need more than its acceleration limit, and beyond +-1.0 m the arm is too
-short (see ``benchmarks/table_tennis.py`` and notebook 05 for the measured curves).
+short (see ``benchmarks/table_tennis.py`` and notebook 05 for the measured curves). Because the
+preparation to a side pose takes 0.65-0.9 s, the side movements lose balls when started after
+about 160 ms before the opponent's hit, and any movement fails when started too late.
 
 The preparation poses are found by IK from several seeds; the one reachable fastest from the
 middle pose wins, and the awaiting pose is the solution whose slowest move to a preparation pose
@@ -71,6 +74,9 @@ class StrokeConfig:
         hit_duration: longest hitting stage (s): the swing starts this long before the ball
             reaches the hitting plane (from wherever the preparation has brought the arm), or
             later when the ball is predictable only later.
+        hit_from_preparation: whether the hitting stage waits until the preparation pose is
+            reached (the strict stage order of thesis Fig. 3.5) instead of starting from the
+            arm's state on the way there.
         finish_duration: time to bring the arm to rest after the hit (s).
         return_target: ``(x, y)`` on the opponent's court where returns are aimed (m).
         return_flight_times: candidate flight times of the return (s); the first legal one in
@@ -89,6 +95,7 @@ class StrokeConfig:
     acceleration_limit: tuple[float, ...] = (25.0, 25.0, 30.0, 30.0, 50.0, 50.0, 50.0)
     predict_delay: float = 0.16
     hit_duration: float = 0.35
+    hit_from_preparation: bool = True
     finish_duration: float = 0.3
     return_target: tuple[float, float] = (0.0, 0.8)
     return_flight_times: tuple[float, ...] = (0.55, 0.65, 0.75, 0.85)
@@ -449,9 +456,10 @@ def execute_stroke(
             plan = planner.plan_hit(movement, scene.ball_state(), t)
             if plan is None:
                 break
-        # The hitting stage replans from the arm's current state, also when the preparation is
-        # not finished yet (a late start then leaves the swing too little time).
-        if plan is not None and swing is None and t >= plan.t_start:
+        # The hitting stage replans from the arm's current state; unless configured to wait for
+        # the preparation pose, also when the preparation is not finished yet.
+        ready = prep is not None and (not cfg.hit_from_preparation or t >= prep.t0 + prep.duration)
+        if plan is not None and swing is None and ready and t >= plan.t_start:
             if t < plan.t_hit:
                 swing = planner.swing(plan, t, tracker.q, tracker.v)
                 finish = planner.finish(plan)
