@@ -114,6 +114,13 @@ def test_late_start_fails(sim, opponent_balls) -> None:
     assert not out.success
 
 
+def test_side_movement_needs_early_initiation(sim, opponent_balls) -> None:
+    # The forehand's preparation takes ~0.9 s: initiated at the opponent's hit, it is still on
+    # its way when the swing must begin and the ball it returns from -0.24 s is lost.
+    scene, planner = sim
+    assert not execute_stroke(scene, planner, opponent_balls["right"], "forehand", 0.0).success
+
+
 def test_bad_configuration(sim, opponent_balls) -> None:
     scene, planner = sim
     ball = opponent_balls["centre"]
