@@ -548,8 +548,9 @@ def sample_strokes(
     Raises:
         ValueError: for ``n < 1``, targets of the wrong length or out of range, or a bad config.
         RuntimeError: when some strokes still have no legal return after ``config.max_rounds``
-            rounds (the config's ranges are inconsistent; with the defaults about 70% of the
-            candidates are legal and the chance of this is below 1e-12 per stroke).
+            rounds (the config's ranges are inconsistent; with the defaults 65-90% of the
+            candidates are legal, at least a third even for targets near +-1 m, so the 63
+            candidates of 10 rounds all fail with probability below 1e-9 per stroke).
 
     Candidates whose incoming ball is not reached, whose return cannot be aimed at the target,
     or whose noisy return is not legal are redrawn (everything but the intended target), with
