@@ -8,6 +8,7 @@ import torch
 
 from hgpdm_torch.robots.table_tennis import ball as B
 from hgpdm_torch.robots.table_tennis import geometry as geo
+from hgpdm_torch.robots.table_tennis import trials as T
 from hgpdm_torch.robots.table_tennis.trials import (
     evaluate,
     hitting_regions,
@@ -30,7 +31,9 @@ def test_make_trials_wraps_opponent(opponent_trials) -> None:
     assert t.target == float(trials.targets[1]) and t.ball_after_hit.pos.shape == (3,)
 
 
-def test_evaluate_reward_table_and_regions_agree_and_cache(opponent_trials, tmp_path) -> None:
+def test_evaluate_reward_table_and_regions_agree_and_cache(
+    opponent_trials, tmp_path, monkeypatch
+) -> None:
     trials = opponent_trials  # aimed at the robot's right, middle and left
     out = evaluate(trials[0], "forehand", -0.24)
     assert out.success
@@ -53,6 +56,10 @@ def test_evaluate_reward_table_and_regions_agree_and_cache(opponent_trials, tmp_
     np.save(files[0], np.full((3, 1, 1), 7, dtype=np.int8))
     cached = reward_table(trials, ("forehand",), (-0.24,), cache_dir=tmp_path, progress=False)
     assert cached.flatten().tolist() == [7, 7, 7]
+    # A changed simulation (its source hash) does not read the old table.
+    monkeypatch.setattr(T, "_simulation_fingerprint", lambda: "changed")
+    fresh = reward_table(trials, ("forehand",), (-0.24,), cache_dir=tmp_path, progress=False)
+    assert torch.equal(fresh, table)
 
 
 def test_reward_table_in_parallel_matches_serial(opponent_trials, tmp_path) -> None:

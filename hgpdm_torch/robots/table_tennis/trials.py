@@ -154,6 +154,21 @@ def evaluate(
     return _simulator(scene_config, stroke_config).run(trial.ball_after_hit, action, start_time)
 
 
+def _simulation_fingerprint() -> str:
+    """Hash of the simulation's source files (ball, scene, strokes, arm, URDF).
+
+    Part of the cache key, so that a table computed by an older version of the simulation is
+    never returned for the current one.
+    """
+    here = Path(__file__).parent
+    files = [here / f"{m}.py" for m in ("ball", "geometry", "scene", "strokes")]
+    files += [here.parent / "wam.py", here.parent / "assets" / "wam7.urdf"]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def default_cache_dir() -> Path:
     """``$HGPDM_CACHE`` if set, else ``~/.cache/hgpdm_torch``."""
     return Path(os.environ.get("HGPDM_CACHE", Path.home() / ".cache" / "hgpdm_torch"))
@@ -185,7 +200,8 @@ def reward_table(
 
     The thesis enumerates these combinations to learn when and how to act (Sec. 4.3.2). Results
     are cached under ``cache_dir`` (default :func:`default_cache_dir`) keyed by the trials'
-    balls, the actions, the start times and both configurations.
+    balls, the actions, the start times, both configurations and a hash of the simulation's
+    source files (a changed simulation never reads an old table).
 
     Args:
         trials: the trials.
@@ -221,7 +237,16 @@ def reward_table(
             f"{float(t_cross.min()):.3f} s after the opponent's hit), got {max(start_times)}"
         )
     key = hashlib.sha256(
-        repr((trials.fingerprint(), actions, start_times, scene_config, stroke_config)).encode()
+        repr(
+            (
+                trials.fingerprint(),
+                actions,
+                start_times,
+                scene_config,
+                stroke_config,
+                _simulation_fingerprint(),
+            )
+        ).encode()
     ).hexdigest()[:24]
     path = Path(cache_dir if cache_dir is not None else default_cache_dir())
     path = path / "table_tennis" / f"rewards_{key}.npy"
