@@ -7,26 +7,14 @@ same process (the unavoidable core of Eq. 6), so the ratio is comparable across 
 
 from __future__ import annotations
 
-import platform
 import time
-from pathlib import Path
 
 import torch
 
+from benchmarks._common import RESULTS, best_of, environment
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.models import HGPDM
-
-RESULTS = Path(__file__).parent / "results"
-
-
-def _best_of(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def run(sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:
@@ -34,9 +22,7 @@ def run(sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:
         "H-GPDM MAP learning cost (discrete g, K=4, Dx=3, Dz=12, float64, 1 thread)",
         ["N frames", "loss+grad [ms]", "x Cholesky", "fit [s]", "fit steps"],
         meta={
-            "torch": torch.__version__,
-            "machine": platform.processor() or platform.machine(),
-            "threads": torch.get_num_threads(),
+            **environment(),
         },
     )
     for n in sizes:
@@ -51,10 +37,10 @@ def run(sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:
 
         loss_grad()
         reps = 5 if n_frames <= 500 else 2
-        t_eval = _best_of(loss_grad, reps)
+        t_eval = best_of(loss_grad, reps)
         a = torch.randn(n_frames, n_frames, dtype=torch.float64)
         spd = a @ a.T + n_frames * torch.eye(n_frames, dtype=torch.float64)
-        t_chol = _best_of(lambda spd=spd: torch.linalg.cholesky(spd), reps)
+        t_chol = best_of(lambda spd=spd: torch.linalg.cholesky(spd), reps)
         row = {"N frames": n_frames, "loss+grad [ms]": 1e3 * t_eval, "x Cholesky": t_eval / t_chol}
         if n_frames <= fit_max_n:
             start = time.perf_counter()

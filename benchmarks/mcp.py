@@ -24,13 +24,12 @@ machine is closer to what an idle core gives than the wall time:
 from __future__ import annotations
 
 import os
-import platform
 import time
 from functools import partial
-from pathlib import Path
 
 import torch
 
+from benchmarks._common import RESULTS, environment
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import lspi
@@ -40,7 +39,6 @@ from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.intention import OnlineIntentionFilter
 from hgpdm_torch.models import IDDM
 
-RESULTS = Path(__file__).parent / "results"
 DX, DZ, LENGTH, PARTICLES = 3, 15, 6, 500
 
 
@@ -101,9 +99,7 @@ def run(sizes: list[int], k: int, num_states: int, repeats: int) -> ResultTable:
             "points cpu [ms]",
         ],
         meta={
-            "torch": torch.__version__,
-            "machine": platform.processor() or platform.machine(),
-            "threads": torch.get_num_threads(),
+            **environment(),
             "load average": os.getloadavg()[0],
             "states timed": num_states,
             "repeats (best of)": repeats,

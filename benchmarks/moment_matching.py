@@ -18,28 +18,15 @@ float64, one thread. For each (N, B, K):
 
 from __future__ import annotations
 
-import platform
-import time
-from pathlib import Path
-
 import torch
 
+from benchmarks._common import RESULTS, best_of, environment
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.inference.filtering import gp_adf_predict, gp_adf_update
 from hgpdm_torch.kernels import measurement_kernel, transition_kernel
 
-RESULTS = Path(__file__).parent / "results"
 DX, DZ = 3, 4
-
-
-def _best_of(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def _posteriors(kind: str, n: int, k: int, gen: torch.Generator):
@@ -64,9 +51,7 @@ def run(sizes: list[int], configs: list[tuple[int, int]], repeats: int) -> Resul
         "intentions, shared vs a per-intention loop, and one GP-ADF filter step",
         ["kernel", "N", "B", "K", "shared [ms]", "loop [ms]", "x faster", "filter step [ms]"],
         meta={
-            "torch": torch.__version__,
-            "machine": platform.processor() or platform.machine(),
-            "threads": torch.get_num_threads(),
+            **environment(),
             "repeats (best of)": repeats,
         },
     )
@@ -104,9 +89,9 @@ def run(sizes: list[int], configs: list[tuple[int, int]], repeats: int) -> Resul
 
                 with torch.no_grad():
                     shared(), loop(), step()  # warm-up (and kinv cache)
-                    t_shared = _best_of(shared, repeats)
-                    t_loop = _best_of(loop, repeats)
-                    t_step = _best_of(step, repeats)
+                    t_shared = best_of(shared, repeats)
+                    t_loop = best_of(loop, repeats)
+                    t_step = best_of(step, repeats)
                 table.add(
                     **{
                         "kernel": kind,

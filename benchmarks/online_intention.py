@@ -21,19 +21,17 @@ wall-clock latency also counts the time other processes hold the core.
 
 from __future__ import annotations
 
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks._common import RESULTS, environment
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
 from hgpdm_torch.models import IDDM
 
-RESULTS = Path(__file__).parent / "results"
 N_SEQ, FRAMES, DZ, DX, K = 100, 6, 15, 4, 25
 
 
@@ -134,9 +132,7 @@ def run(quick: bool) -> ResultTable:
             "|d mean| vs exact [cm]",
         ],  # fmt: skip
         meta={
-            "torch": torch.__version__,
-            "machine": platform.processor() or platform.machine(),
-            "threads": torch.get_num_threads(),
+            **environment(),
             "quick": quick,
             "command": "python -m benchmarks online_intention" + (" --quick" if quick else ""),
         },

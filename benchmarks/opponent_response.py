@@ -19,15 +19,13 @@ from __future__ import annotations
 import platform
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks._common import RESULTS
 from hgpdm_torch.decision.games import RPS_REWARD, TABLE_TENNIS_REWARD
 from hgpdm_torch.decision.opponent import DeltaSafeResponder, solve_delta_safe
 from hgpdm_torch.experiments.table import ResultTable
-
-RESULTS = Path(__file__).parent / "results"
 
 SCENARIOS = {
     "RPS vs [0.6, 0.2, 0.2]": (RPS_REWARD, (0.6, 0.2, 0.2)),

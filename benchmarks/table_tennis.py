@@ -13,11 +13,10 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-from pathlib import Path
 
+from benchmarks._common import RESULTS
 from hgpdm_torch.experiments.table import ResultTable
 
-RESULTS = Path(__file__).parent / "results"
 N_FULL = 270
 
 

@@ -18,18 +18,15 @@ has another map and cannot be recognised by any model of the first.
 
 from __future__ import annotations
 
-import platform
 import time
-from pathlib import Path
 
 import torch
 
+from benchmarks._common import RESULTS, environment
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.variational import VariationalInference, window_mask
 from hgpdm_torch.models import HGPDM
-
-RESULTS = Path(__file__).parent / "results"
 
 
 def run(per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTable:
@@ -38,9 +35,7 @@ def run(per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTa
         "1 thread; Laplace start (LM) + closed-form F",
         ["N", "T", "single [ms]", "batched [ms]", "old [ms]", "speed-up", "LM iters", "accuracy"],
         meta={
-            "torch": torch.__version__,
-            "machine": platform.processor() or platform.machine(),
-            "threads": torch.get_num_threads(),
+            **environment(),
         },
     )
     data = styled_movements(4, per_style + 1, 38, 12, seed=0)
