@@ -1,0 +1,30 @@
+"""Every benchmark runs in its --quick smoke mode and writes its JSON table."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import pkgutil
+from pathlib import Path
+
+import pytest
+
+import benchmarks
+
+NAMES = sorted(
+    m.name for m in pkgutil.iter_modules(benchmarks.__path__) if not m.name.startswith("_")
+)
+
+
+def test_benchmarks_are_found():
+    assert {"hgpdm_fit", "moment_matching", "online_intention", "mcp"} <= set(NAMES)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_quick_mode_runs_and_writes_results(name, capsys):
+    module = importlib.import_module(f"benchmarks.{name}")
+    assert module.main(["--quick"]) == 0
+    out = Path(benchmarks.__file__).parent / "results" / f"{name}_quick.json"
+    table = json.loads(out.read_text())
+    assert table["rows"] and table["columns"]
+    assert "|" in capsys.readouterr().out  # the printed Markdown table
