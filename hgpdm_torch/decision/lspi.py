@@ -132,8 +132,21 @@ def lstdq(
         ridge: ``delta`` added to the diagonal of ``A`` (Alg. 4.1, line 8).
         discount: ``gamma``.
     """
+    if phi.dim() != 2 or next_phi.shape != phi.shape:
+        raise ValueError(f"phi and next_phi must both be [L, K], got {phi.shape}, {next_phi.shape}")
     L, K = phi.shape
     A = num_actions
+    if not isinstance(A, int) or A < 1:
+        raise ValueError(f"num_actions must be a positive int, got {num_actions!r}")
+    for name, t in (("action", action), ("next_action", next_action), ("reward", reward)):
+        if t.shape != (L,):
+            raise ValueError(f"{name} must have shape [{L}], got {tuple(t.shape)}")
+    if bool(((action < 0) | (action >= A)).any()):
+        raise ValueError(f"action must be in 0 .. {A - 1}")
+    if bool(((next_action < -1) | (next_action >= A)).any()):
+        raise ValueError(f"next_action must be in -1 .. {A - 1} (-1: absorbing)")
+    if not ridge > 0 or not 0 < discount <= 1:
+        raise ValueError(f"need ridge > 0 and discount in (0, 1], got {ridge}, {discount}")
     gram = phi.new_zeros(A, K, A, K)
     for a in range(A):
         rows = action == a

@@ -31,6 +31,7 @@ actions.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -180,7 +181,9 @@ class MonteCarloPlanner:
         ):
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
-        if not (isinstance(confidence, float) and 0.0 < confidence < 1.0):
+        if isinstance(confidence, bool) or not (
+            isinstance(confidence, numbers.Real) and 0.0 < float(confidence) < 1.0
+        ):
             raise ValueError(f"confidence must be a float in (0, 1), got {confidence!r}")
         check_choice(sampling, "sampling", ("moments", "points"))
         self.filter = belief_filter
@@ -215,8 +218,10 @@ class MonteCarloPlanner:
                 f"belief.log_prob must have K = {k} entries, got {belief.log_prob.shape}"
             )
         for name in ("mean", "cov", "log_prob"):
-            as_tensor(getattr(belief, name), f"belief.{name}")
-        return belief
+            as_tensor(getattr(belief, name), f"belief.{name}", allow_nan=False)
+        # Stop values and projected values must read the same histogram: normalise once here.
+        log_prob = belief.log_prob - torch.logsumexp(belief.log_prob, -1)
+        return Belief(belief.mean, belief.cov, log_prob)
 
     def _shared(self, belief: Belief) -> _Shared:
         """The K predictions and their joints with ``z_{t+1}``, computed once per decision."""

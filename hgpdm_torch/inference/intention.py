@@ -100,7 +100,8 @@ class IntentionBelief:
         if not continuous:
             return cls(prob, log_prob, values)
         mean = prob @ values
-        var = (prob @ values.pow(2) - mean.pow(2)).clamp_min(0.0)
+        # centred second moment: E[g^2] - E[g]^2 would cancel for a grid far from 0
+        var = (prob[..., :, None] * (values - mean[..., None, :]).pow(2)).sum(-2)
         return cls(prob, log_prob, values, mean, var.sqrt())
 
     def credible_set(self, level: float = 0.9) -> torch.Tensor:

@@ -185,7 +185,7 @@ def _cross_entropy(
     diff = torch.linalg.solve_triangular(prior_chol, (loc - prior_mean)[..., None], upper=False)
     a = torch.linalg.solve_triangular(prior_chol, cov, upper=False)
     tr = torch.linalg.solve_triangular(prior_chol, a.transpose(-1, -2), upper=False)
-    logdet = 2.0 * prior_chol.diagonal().log().sum()
+    logdet = 2.0 * prior_chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     quad = diff.pow(2).sum((-1, -2)) + tr.diagonal(dim1=-2, dim2=-1).sum(-1)
     return 0.5 * (d * _LOG_2PI + logdet + quad)
 
@@ -446,8 +446,14 @@ class VariationalInference:
             self.values = torch.arange(K)
             prior = torch.full((K,), 1.0 / K, dtype=dtype) if g_prior is None else g_prior
             prior = as_tensor(prior, "g_prior", ndim=1, dtype=dtype)
-            if prior.shape != (K,) or bool((prior < 0).any()) or abs(float(prior.sum()) - 1) > 1e-6:
-                raise ValueError(f"g_prior must be [{K}] probabilities summing to 1")
+            if (
+                prior.shape != (K,)
+                or bool((prior <= 0).any())
+                or abs(float(prior.sum()) - 1) > 1e-6
+            ):
+                # a zero prior would give -inf evidence (and NaN posteriors): drop that value from
+                # the candidates instead
+                raise ValueError(f"g_prior must be [{K}] positive probabilities summing to 1")
             self.log_g_prior = prior.log()
         else:
             self.values = torch.zeros(0, dtype=torch.long)

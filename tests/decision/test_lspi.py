@@ -208,6 +208,12 @@ def test_lstdq_absorbing_stops_fit_mean_rewards():
     next_action = torch.tensor([-1, -1, -1, -1, 1, 1])
     w = lstdq(phi, action, reward, next_phi, next_action, 3, ridge=1e-12)
     torch.testing.assert_close(w[:, 0], torch.tensor([0.5, 0.5, -1.0]), atol=1e-9, rtol=0)
+    with pytest.raises(ValueError, match="next_action"):
+        lstdq(phi, action, reward, next_phi, next_action + 3, 3)
+    with pytest.raises(ValueError, match="action must be"):
+        lstdq(phi, action + 2, reward, next_phi, next_action, 3)
+    with pytest.raises(ValueError, match="ridge"):
+        lstdq(phi, action, reward, next_phi, next_action, 3, ridge=0.0)
 
 
 def test_lspi_iteration_cap_and_discount():

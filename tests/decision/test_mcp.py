@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -178,6 +179,17 @@ def test_last_step_stops_without_sampling(model, pipeline):
     d = planner.decide(_belief(states, 0, 0), can_wait=False)
     assert d.action in (1, 2, 3) and d.particles == 0 and math.isnan(d.q_wait)
     assert d.action == int(d.q_stop.argmax()) + 1
+
+
+def test_unnormalised_belief_is_normalised_once(model, pipeline):
+    f, basis, q, states = pipeline
+    planner = MonteCarloPlanner(model, f, q, basis, confidence=np.float64(0.99))
+    belief = _belief(states, 0, 1)
+    shifted = type(belief)(belief.mean, belief.cov, belief.log_prob + 3.0)
+    a = planner.decide(belief, generator=torch.Generator().manual_seed(0))
+    b = planner.decide(shifted, generator=torch.Generator().manual_seed(0))
+    assert a.action == b.action
+    torch.testing.assert_close(a.q_stop, b.q_stop)
 
 
 def test_bad_input(model, pipeline):

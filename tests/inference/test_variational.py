@@ -297,6 +297,9 @@ def test_bad_input(hgpdm, styles):
         VariationalInference("model")
     with pytest.raises(ValueError, match="g_prior"):
         VariationalInference(hgpdm, g_prior=[0.2, 0.2])
+    k = hgpdm.num_values
+    with pytest.raises(ValueError, match="positive"):  # a zero prior would give -inf evidence
+        VariationalInference(hgpdm, g_prior=[1.0] + [0.0] * (k - 1))
 
 
 def test_precision_blocks_equal_jacobian_of_whitened_residuals(hgpdm, styles):
