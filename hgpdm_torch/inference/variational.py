@@ -390,6 +390,19 @@ def window_mask(z: object, obs_dim: int) -> tuple[torch.Tensor, torch.Tensor]:
     return z, observed
 
 
+def _gaussian_argument(
+    pair: object, name: str, dim: int, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate a ``(mean [dim], cov [dim, dim])`` pair given by the user."""
+    if not isinstance(pair, tuple | list) or len(pair) != 2:
+        raise TypeError(f"{name} must be a (mean, cov) pair, got {type(pair).__name__}")
+    mean = as_tensor(pair[0], f"{name} mean", ndim=1, dtype=dtype)
+    cov = as_tensor(pair[1], f"{name} cov", ndim=2, dtype=dtype)
+    if mean.shape != (dim,) or cov.shape != (dim, dim):
+        raise ValueError(f"{name} must be (mean [{dim}], cov [{dim}, {dim}])")
+    return mean, cov
+
+
 class VariationalInference:
     """Variational Bayes inference in a fitted GPDM / H-GPDM (Sec. 2.3, Algorithm 2.2).
 
@@ -431,13 +444,7 @@ class VariationalInference:
             S1 = torch.cov(lat.T).reshape(self.latent_dim, self.latent_dim)
             S1 = S1 + 1e-6 * torch.eye(self.latent_dim, dtype=dtype)
         else:
-            m1 = as_tensor(x1_prior[0], "x1_prior mean", ndim=1, dtype=dtype)
-            S1 = as_tensor(x1_prior[1], "x1_prior cov", ndim=2, dtype=dtype)
-            if m1.shape != (self.latent_dim,) or S1.shape != (self.latent_dim,) * 2:
-                raise ValueError(
-                    f"x1_prior must be (mean [{self.latent_dim}], cov [{self.latent_dim}, "
-                    f"{self.latent_dim}])"
-                )
+            m1, S1 = _gaussian_argument(x1_prior, "x1_prior", self.latent_dim, dtype)
         self.x1_mean, self.x1_cov = m1, symmetrize(S1)
         self._x1_chol = psd_cholesky(self.x1_cov, name="x1_prior covariance")
         self.g_dim = 0
@@ -468,12 +475,7 @@ class VariationalInference:
                 if Sg is None or bool((Sg.diagonal() <= 0).any()):
                     Sg = torch.eye(self.g_dim, dtype=dtype)
             else:
-                mg = as_tensor(g_prior[0], "g_prior mean", ndim=1, dtype=dtype)
-                Sg = as_tensor(g_prior[1], "g_prior cov", ndim=2, dtype=dtype)
-                if mg.shape != (self.g_dim,) or Sg.shape != (self.g_dim,) * 2:
-                    raise ValueError(
-                        f"g_prior must be (mean [{self.g_dim}], cov [{self.g_dim}, {self.g_dim}])"
-                    )
+                mg, Sg = _gaussian_argument(g_prior, "g_prior", self.g_dim, dtype)
             self.g_prior_mean, self.g_prior_cov = mg, symmetrize(Sg)
             self._g_chol = psd_cholesky(self.g_prior_cov, name="g_prior covariance")
 
