@@ -26,3 +26,20 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 def generator() -> torch.Generator:
     """A seeded CPU generator; tests that draw random numbers take it for reproducibility."""
     return torch.Generator().manual_seed(1234)
+
+
+@pytest.fixture(scope="session")
+def continuous_iddm():
+    """A small IDDM with a continuous target, fitted once and shared by inference and decision
+    tests (read-only: tests must not modify it)."""
+    from hgpdm_torch.datasets import targeted_movements
+    from hgpdm_torch.models import IDDM
+
+    torch.manual_seed(0)
+    data = targeted_movements(18, 10, 6, noise=0.02, seed=3)
+    model = IDDM(
+        data.sequences, data.labels, 3, intention="continuous", measurement="linear",
+        alpha_g=(4.0, 0.1),
+    )  # fmt: skip
+    model.fit(25)
+    return model

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 import torch
 
-from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import LinearQ, lspi
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
@@ -26,15 +25,8 @@ LENGTH, FIRST = 8, 3  # observations per movement; decisions after observations 
 
 
 @pytest.fixture(scope="module")
-def model() -> IDDM:
-    torch.manual_seed(0)
-    data = targeted_movements(18, 10, 6, noise=0.02, seed=3)
-    m = IDDM(
-        data.sequences, data.labels, 3, intention="continuous", measurement="linear",
-        alpha_g=(4.0, 0.1),
-    )  # fmt: skip
-    m.fit(25)
-    return m
+def model(continuous_iddm) -> IDDM:
+    return continuous_iddm
 
 
 def _movements(model, num, gen):

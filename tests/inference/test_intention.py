@@ -31,15 +31,8 @@ GRID = torch.linspace(-1.0, 1.0, 9)
 
 
 @pytest.fixture(scope="module")
-def continuous_model() -> IDDM:
-    torch.manual_seed(0)
-    data = targeted_movements(18, 10, 6, noise=0.02, seed=3)
-    model = IDDM(
-        data.sequences, data.labels, 3, intention="continuous", measurement="linear",
-        alpha_g=(4.0, 0.1),
-    )  # fmt: skip
-    model.fit(25)
-    return model
+def continuous_model(continuous_iddm) -> IDDM:
+    return continuous_iddm
 
 
 @pytest.fixture(scope="module")
