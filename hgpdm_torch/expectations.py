@@ -80,6 +80,7 @@ __all__ = [
     "psi1",
     "psi2",
     "split_terms",
+    "term_k",
     "term_psi1_grad",
     "term_psi1",
     "term_psi2",
@@ -372,6 +373,30 @@ def term_psi1_grad(
     if t.kind == "linear":
         return p1, t.coef * (X * t.weight).transpose(-1, -2)
     return p1, torch.zeros(X.shape[-1], X.shape[-2], dtype=X.dtype, device=X.device)
+
+
+def term_k(
+    t: Term, x: torch.Tensor, X: torch.Tensor, *, grad: bool = False
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``coef base(x, X_i)`` ``[..., N]`` at points ``x [..., D]`` (no factor), and with ``grad``
+    its gradient in ``x`` ``[..., D, N]``.
+
+    The ``Sigma = 0`` limit of :func:`term_psi1_grad` without its Cholesky factor and solves:
+    the fast path for point evaluations (MAP states, Gauss-Newton Jacobians).
+    """
+    if t.kind == "rbf":
+        diff = X - x[..., None, :]  # [..., N, D]
+        k = t.coef * torch.exp(-0.5 * (diff.pow(2) * t.weight).sum(-1))
+        if not grad:
+            return k, None
+        return k, (diff * t.weight).transpose(-1, -2) * k[..., None, :]
+    if t.kind == "linear":
+        k = t.coef * ((X * t.weight) @ x[..., :, None]).squeeze(-1)
+        return k, (t.coef * (X * t.weight).transpose(-1, -2)) if grad else None
+    k = t.coef * torch.ones(X.shape[:-1], dtype=X.dtype, device=X.device)
+    if not grad:
+        return k, None
+    return k, torch.zeros(X.shape[-1], X.shape[-2], dtype=X.dtype, device=X.device)
 
 
 def _x_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -> torch.Tensor:

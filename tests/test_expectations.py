@@ -290,6 +290,27 @@ def test_zero_covariance_is_point_evaluation():
     torch.testing.assert_close(ex.x_psi1(kernel, mu, zero, X).detach(), mu[:, None] * K[None, :])
 
 
+@pytest.mark.parametrize("name", ["rbf_ard", "linear", "transition"])
+def test_point_kernel_matches_gpytorch_and_autograd(name):
+    """term_k (the Sigma = 0 fast path) sums to the gpytorch kernel; its gradient to autograd's."""
+    builders = {
+        "rbf_ard": lambda: ScaleKernel(RBFKernel(ard_num_dims=3)),
+        "linear": lambda: LinearKernel(),
+        "transition": lambda: transition_kernel("gpdm", 3, alpha=(0.9, 0.8, 0.3, 1e-3)),
+    }
+    kernel = builders[name]()
+    gen = torch.Generator().manual_seed(7)
+    x, X = torch.randn(5, 3, generator=gen), torch.randn(9, 3, generator=gen)
+    terms = ex.split_terms(ex.kernel_leaves(kernel, 3), X, None, 3)
+    x_req = x.clone().requires_grad_(True)
+    k = sum(ex.term_k(t, x_req, X)[0] for t in terms)
+    close(k, dense(kernel, x, X), rtol=1e-10)
+    grad = sum(ex.term_k(t, x, X, grad=True)[1] for t in terms).expand(5, 3, 9)
+    for i in range(X.shape[0]):
+        (auto,) = torch.autograd.grad(k[:, i].sum(), x_req, retain_graph=True)
+        close(grad[..., i], auto, rtol=1e-10)
+
+
 @pytest.mark.parametrize("fn", ["psi1", "psi2", "x_psi1", "psi0"])
 def test_gradcheck_inputs(fn):
     kernel = transition_kernel("continuous", 2, g_dim=1, alpha=(0.9, 0.8, 0.3, 1e-3))

@@ -57,8 +57,8 @@ from ..expectations import (
     kernel_leaves,
     leaves_psi0,
     split_terms,
+    term_k,
     term_psi1,
-    term_psi1_grad,
     term_psi2,
 )
 from ..gp import GPPosterior
@@ -243,19 +243,16 @@ class _GaussianInputGP:
         The variance ``k(mu, mu) - k(mu, X) K^-1 k(X, mu) + noise`` is the plug-in of Eq. 15 / 17
         (unscaled; multiply by ``scale^2`` per output). Differentiable in ``mu``. With
         ``jacobian=True`` also returns ``d mean / d mu`` ``[..., Dout, D]``, from the kernel
-        gradients of :func:`~hgpdm_torch.expectations.term_psi1_grad` at ``Sigma = 0``.
+        gradients of :func:`~hgpdm_torch.expectations.term_k`.
         """
-        zero = torch.zeros(*mu.shape, mu.shape[-1], dtype=mu.dtype, device=mu.device)
         k, dk = 0.0, 0.0
         for t in self.terms:
+            p, gr = term_k(t, mu, self.X, grad=jacobian)
             if jacobian:
-                p, gr = term_psi1_grad(t, mu, zero, self.X)  # Sigma = 0: the kernel itself
                 dk = dk + (gr if t.factor is None else t.factor[..., None, :] * gr)
-            else:
-                p = term_psi1(t, mu, zero, self.X)
             k = k + (p if t.factor is None else t.factor * p)
         quad = ((k[..., None, :] @ self.kinv)[..., 0, :] * k).sum(-1)
-        kxx = leaves_psi0(self.leaves, mu, zero, None)
+        kxx = leaves_psi0(self.leaves, mu, torch.zeros_like(mu).diag_embed(), None)
         mean = (k[..., None, :] @ self.beta)[..., 0, :]
         var = (kxx - quad).clamp_min(0.0) + self.post.noise
         if not jacobian:
