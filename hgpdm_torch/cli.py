@@ -14,7 +14,14 @@ __all__ = ["COMMANDS", "main"]
 
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("hgpdm_torch.experiments.demo", "fit an H-GPDM on synthetic styles and discover them"),
+    "demo": (
+        "hgpdm_torch.experiments.demo",
+        "the anticipatory table-tennis player end to end (Ch. 3-4, SAPIEN)",
+    ),
+    "style-discovery": (
+        "hgpdm_torch.experiments.style_discovery",
+        "fit an H-GPDM on synthetic styles and discover them (Sec. 2.2, Algorithm 2.1)",
+    ),
     "action-recognition": (
         "hgpdm_torch.experiments.action_recognition",
         "action recognition on aeon BasicMotions (Sec. 3.6, Table 3.3)",

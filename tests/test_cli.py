@@ -1,4 +1,4 @@
-"""The `hgpdm` command and the demo it runs."""
+"""The `hgpdm` command and the style-discovery experiment."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import pytest
 import torch
 
 from hgpdm_torch import cli
-from hgpdm_torch.experiments.demo import style_purity
+from hgpdm_torch.experiments.style_discovery import style_purity
 
 
-def test_demo_runs_and_discovers_styles(tmp_path, capsys):
-    assert cli.main(["demo", "--quick", "--out", str(tmp_path)]) == 0
-    table = json.loads((tmp_path / "demo_table.json").read_text())
+def test_style_discovery_runs_and_discovers_styles(tmp_path, capsys):
+    assert cli.main(["style-discovery", "--quick", "--out", str(tmp_path)]) == 0
+    table = json.loads((tmp_path / "style_discovery.json").read_text())
     discovered = [r for r in table["rows"] if r["styles"].startswith("discovered")][0]
     assert discovered["style purity"] >= 0.9
     assert (tmp_path / "latent_trajectories.png").stat().st_size > 10_000

@@ -46,19 +46,27 @@ from ..decision.basis import RadialBasis
 from ..decision.lspi import LinearQ, lspi
 from ..decision.mcp import Belief, MonteCarloPlanner
 from ..decision.nac import nac
-from ..decision.stopping import ACTIONS, WAIT, StoppingProblem, belief_vector
+from ..decision.stopping import ACTIONS, WAIT, Episodes, Policy, StoppingProblem, belief_vector
 from ..inference.intention import OnlineIntentionFilter
 from ..models import IDDM
 from ..validation import as_tensor
+from .dtype import float64_default
 from .table import ResultTable
 
 __all__ = [
     "AnticipationConfig",
+    "Beliefs",
     "decision_indices",
+    "fit_beliefs",
+    "fixed_time_policy",
+    "greedy_policy",
     "main",
+    "mcp_policy",
     "plot_results",
     "run_experiment",
     "run_protocol",
+    "stop_only_q",
+    "successes",
     "valid_trials",
 ]
 
@@ -148,8 +156,13 @@ def decision_indices(obs_times: torch.Tensor, start_times: tuple[float, ...]) ->
 
 
 @dataclass
-class _Fold:
-    """Beliefs of every trial under one fold's IDDM (``[n, T, ...]``) and the fold's split."""
+class Beliefs:
+    """Beliefs of every trial under one fold's IDDM and the fold's split.
+
+    ``mean [n, T, Dx]``, ``cov [n, T, Dx, Dx]`` and ``log_prob [n, T, K]`` are the online
+    filter's latent state and target histogram after the observations available at each of the
+    ``T`` decision times; ``train``/``test`` index the trials.
+    """
 
     model: IDDM
     belief_filter: OnlineIntentionFilter
@@ -160,20 +173,30 @@ class _Fold:
     test: torch.Tensor
 
     def vectors(self) -> torch.Tensor:
+        """``[n, T, F]`` belief vectors (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
         return belief_vector(self.mean, self.cov, self.log_prob.exp())
 
     def belief(self, i: int, t: int) -> Belief:
+        """The planner's :class:`~hgpdm_torch.decision.mcp.Belief` of trial ``i`` at step ``t``."""
         return Belief(self.mean[i, t], self.cov[i, t], self.log_prob[i, t])
 
 
-def _fit_fold(
+def fit_beliefs(
     obs: torch.Tensor,
     targets: torch.Tensor,
     steps_at: list[int],
     train: torch.Tensor,
     test: torch.Tensor,
     config: AnticipationConfig,
-) -> _Fold:
+) -> Beliefs:
+    """Fit an IDDM on (at most ``config.iddm_trials`` of) the training strokes and filter all.
+
+    Args:
+        obs: ``[n, T_obs, Dz]`` observations; targets: ``[n]`` true targets.
+        steps_at: observation index of each decision time (:func:`decision_indices`).
+        train, test: trial indices of the split.
+        config: latent size, optimiser steps, target grid and forgetting factor.
+    """
     gen = torch.Generator().manual_seed(config.seed)
     chosen = train[torch.randperm(len(train), generator=gen)[: config.iddm_trials]]
     model = IDDM(
@@ -192,10 +215,10 @@ def _fit_fold(
                 covs.append(f.cov.clone())
                 logs.append(f.log_belief.clone())
     stack = [torch.stack(v, 1) for v in (means, covs, logs)]
-    return _Fold(model, f, *stack, train, test)
+    return Beliefs(model, f, *stack, train, test)
 
 
-def _stop_only_q(problem: StoppingProblem, step: int, basis: RadialBasis, ridge: float) -> LinearQ:
+def stop_only_q(problem: StoppingProblem, step: int, basis: RadialBasis, ridge: float) -> LinearQ:
     """Stopping values learned from the rewards at one step only (oracle timing: no waiting)."""
     n, S = len(problem), problem.num_actions - 1
     trial = torch.arange(n).repeat_interleave(S)
@@ -204,11 +227,14 @@ def _stop_only_q(problem: StoppingProblem, step: int, basis: RadialBasis, ridge:
     return lspi(problem.transitions(episodes), features=basis, ridge=ridge).q
 
 
-def _greedy_policy(q: LinearQ, basis: RadialBasis, problem: StoppingProblem):
+def greedy_policy(q: LinearQ, basis: RadialBasis, problem: StoppingProblem) -> Policy:
+    """The greedy policy of ``q`` on the basis features (waiting only where allowed)."""
     return lambda beliefs, t, idx: q.greedy(basis(beliefs), problem.allowed(t))
 
 
-def _fixed_time_policy(q: LinearQ, basis: RadialBasis, step: int):
+def fixed_time_policy(q: LinearQ, basis: RadialBasis, step: int) -> Policy:
+    """Wait until ``step``, then start the movement with the largest stopping value."""
+
     def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
         if t < step:
             return torch.full_like(idx, WAIT)
@@ -217,7 +243,15 @@ def _fixed_time_policy(q: LinearQ, basis: RadialBasis, step: int):
     return policy
 
 
-def _mcp_policy(planner: MonteCarloPlanner, fold: _Fold, test: torch.Tensor, horizon: int, gen):
+def mcp_policy(
+    planner: MonteCarloPlanner,
+    fold: Beliefs,
+    test: torch.Tensor,
+    horizon: int,
+    gen: torch.Generator | None = None,
+) -> Policy:
+    """Monte-Carlo planning (Algorithm 4.3) on the beliefs of the trials ``test``."""
+
     def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
         actions = [
             planner.decide(fold.belief(int(test[i]), t), can_wait=t < horizon - 1, generator=gen)
@@ -228,7 +262,8 @@ def _mcp_policy(planner: MonteCarloPlanner, fold: _Fold, test: torch.Tensor, hor
     return policy
 
 
-def _successes(episodes) -> int:
+def successes(episodes: Episodes) -> int:
+    """Number of successful returns among ``episodes``."""
     return int((episodes.reward > 0).sum())
 
 
@@ -306,7 +341,7 @@ def run_protocol(
     for k in range(config.folds):
         train = torch.nonzero(fold_of != k).flatten()
         test = torch.nonzero(fold_of == k).flatten()
-        fold = _fit_fold(obs, targets, steps_at, train, test, config)
+        fold = fit_beliefs(obs, targets, steps_at, train, test, config)
         vectors = fold.vectors()
         problem = StoppingProblem(vectors, rewards)
         train_p, test_p = problem.subset(train), problem.subset(test)
@@ -320,12 +355,12 @@ def run_protocol(
                 (test_p.rewards[:, a, step_of[SINGLE_TIME]] > 0).sum()
             )
         for s in ORACLE_TIMES:
-            q_t = _stop_only_q(train_p, step_of[s], basis, config.ridge)
-            ep = test_p.run(_fixed_time_policy(q_t, basis, step_of[s]))
-            fixed[f"oracle timing @{int(round(-1000 * s))}ms"] = _successes(ep)
+            q_t = stop_only_q(train_p, step_of[s], basis, config.ridge)
+            ep = test_p.run(fixed_time_policy(q_t, basis, step_of[s]))
+            fixed[f"oracle timing @{int(round(-1000 * s))}ms"] = successes(ep)
         enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
         q = lspi(enumerated, features=basis, ridge=config.ridge).q
-        fixed["LSPI"] = _successes(test_p.run(_greedy_policy(q, basis, test_p)))
+        fixed["LSPI"] = successes(test_p.run(greedy_policy(q, basis, test_p)))
         for r in range(config.repetitions):
             gen = torch.Generator().manual_seed(config.seed + 1000 * r + k)
             for name, value in fixed.items():
@@ -334,8 +369,8 @@ def run_protocol(
                 fold.model, fold.belief_filter, q, basis,
                 num_particles=config.particles, confidence=config.confidence,
             )  # fmt: skip
-            counts["MCP"][r] += _successes(
-                test_p.run(_mcp_policy(planner, fold, test, test_p.horizon, gen))
+            counts["MCP"][r] += successes(
+                test_p.run(mcp_policy(planner, fold, test, test_p.horizon, gen))
             )
             result = nac(
                 train_p, basis(train_p.beliefs), iterations=config.nac_iterations,
@@ -348,15 +383,15 @@ def run_protocol(
             for e in config.episodes:
                 sampled = train_p.sample_episodes(e, generator=gen)
                 q_e = lspi(train_p.transitions(sampled), features=basis, ridge=config.ridge).q
-                sample_counts[("LSPI", e)][r] += _successes(
-                    test_p.run(_greedy_policy(q_e, basis, test_p))
+                sample_counts[("LSPI", e)][r] += successes(
+                    test_p.run(greedy_policy(q_e, basis, test_p))
                 )
                 planner_e = MonteCarloPlanner(
                     fold.model, fold.belief_filter, q_e, basis,
                     num_particles=config.particles, confidence=config.confidence,
                 )  # fmt: skip
-                sample_counts[("MCP", e)][r] += _successes(
-                    test_p.run(_mcp_policy(planner_e, fold, test, test_p.horizon, gen))
+                sample_counts[("MCP", e)][r] += successes(
+                    test_p.run(mcp_policy(planner_e, fold, test, test_p.horizon, gen))
                 )
             bar.update()
     bar.close()
@@ -404,7 +439,7 @@ def run_experiment(
     config = config or AnticipationConfig()
     if tuple(strokes.MOVEMENTS) != MOVEMENTS:
         raise RuntimeError(f"robot movements {strokes.MOVEMENTS} differ from actions {MOVEMENTS}")
-    with _float64():
+    with float64_default():
         trials = make_trials(config.num_trials, seed=config.seed, progress=progress)
         rewards = reward_table(
             trials, MOVEMENTS, DEFAULT_START_TIMES, workers=config.workers,
@@ -414,17 +449,6 @@ def run_experiment(
             trials.obs, trials.obs_times, trials.targets, rewards.to(torch.float64),
             DEFAULT_START_TIMES, config, progress=progress,
         )  # fmt: skip
-
-
-class _float64:
-    """Run with float64 as torch's default dtype (the GP code and the opponent model need it)."""
-
-    def __enter__(self) -> None:
-        self.previous = torch.get_default_dtype()
-        torch.set_default_dtype(torch.float64)
-
-    def __exit__(self, *exc: object) -> None:
-        torch.set_default_dtype(self.previous)
 
 
 def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[Path]:

@@ -1,8 +1,22 @@
-"""``hgpdm demo``: fit models on synthetic styled movements and discover the styles.
+r"""``hgpdm demo``: the anticipatory table-tennis player, end to end (thesis Ch. 3-4).
 
-Fits a GPDM (no style), a supervised H-GPDM (styles given) and an unsupervised H-GPDM whose styles
-are discovered by Algorithm 2.1; prints style purity, log posterior and fit time of each, and saves
-a figure of the latent trajectories coloured by style.
+1. Simulate opponent strokes and the reward of every movement (forehand, middle, backhand)
+   started at every decision time (320 ... 0 ms before the opponent's hit) in the SAPIEN scene
+   with the Barrett WAM (:func:`~hgpdm_torch.robots.table_tennis.trials.reward_table`, cached on
+   disk).
+2. Split the strokes inside the robot's hitting region into training and test strokes.
+3. Fit the IDDM (continuous target, Ch. 3) on the training strokes; the online filter
+   (Algorithm 3.2) gives every stroke's belief (latent state and target histogram) at every
+   decision time.
+4. Learn when and how to hit (Ch. 4): LSPI (Algorithm 4.1) on the enumerated training episodes,
+   and Monte-Carlo planning (Algorithms 4.2-4.3) on top of LSPI's stopping values.
+5. Play the test rallies: at each decision time the player, with MCP, waits or starts a movement;
+   the chosen movement is executed in SAPIEN and the ball is returned or missed.
+6. Print the return rates against the baselines (each single movement started 240 ms before the
+   hit; the best movement chosen at a fixed time; LSPI) and save figures: return rates, one
+   played rally in 3-D and the belief over the target during that stroke.
+
+``hgpdm demo --full`` runs the whole Sec. 4.3 experiment instead (``hgpdm anticipation --full``).
 """
 
 from __future__ import annotations
@@ -10,143 +24,269 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
-from ..datasets import styled_movements
-from ..models import GPDM, HGPDM
+from ..decision.basis import RadialBasis
+from ..decision.lspi import lspi
+from ..decision.mcp import MonteCarloPlanner
+from ..decision.stopping import StoppingProblem
+from . import anticipation as ant
+from .dtype import float64_default
 from .table import ResultTable
 
-__all__ = ["main", "run_demo", "style_purity"]
+__all__ = ["Rally", "DemoResult", "main", "plot_demo", "run_demo"]
 
 
-def style_purity(truth: torch.Tensor, found: torch.Tensor) -> float:
-    """Fraction of sequences whose cluster's majority true style equals their own.
+@dataclass
+class Rally:
+    """One test stroke played by the MCP player in SAPIEN.
 
-    Args:
-        truth: ``[J]`` true style codes.
-        found: ``[J]`` discovered codes (any labelling).
+    Attributes:
+        trial: index of the stroke among the simulated trials.
+        target: the opponent's true target ``x`` on the hitting plane [m].
+        action: the movement started; start_time: when, relative to the opponent's hit [s].
+        outcome: the :class:`~hgpdm_torch.robots.table_tennis.strokes.StrokeOutcome` of SAPIEN.
     """
-    if truth.shape != found.shape or truth.numel() == 0:
-        raise ValueError(
-            f"truth and found must be equal non-empty [J], got {truth.shape}, {found.shape}"
-        )
-    total = sum(int(torch.bincount(truth[found == k]).max()) for k in found.unique())
-    return total / truth.numel()
+
+    trial: int
+    target: float
+    action: str
+    start_time: float
+    outcome: object
+
+
+@dataclass
+class DemoResult:
+    """What :func:`run_demo` returns: the table, the played rallies and the beliefs to draw.
+
+    ``target_probs [n_test, T, K]`` is the belief over the target grid ``grid [K]`` of each test
+    stroke at the ``T`` decision times ``start_times``.
+    """
+
+    table: ResultTable
+    rallies: list[Rally]
+    grid: torch.Tensor
+    start_times: tuple[float, ...]
+    target_probs: torch.Tensor
+    meta: dict = field(default_factory=dict)
 
 
 def run_demo(
     *,
-    num_styles: int = 3,
-    per_style: int = 4,
-    length: int = 40,
-    obs_dim: int = 12,
-    latent_dim: int = 3,
-    steps: int = 60,
-    iterations: int = 6,
+    num_trials: int = 36,
+    test_fraction: float = 1 / 3,
+    config: ant.AnticipationConfig | None = None,
+    workers: int | None = None,
     seed: int = 0,
+    cache_dir: str | Path | None = None,
     progress: bool = False,
-) -> tuple[ResultTable, dict[str, GPDM]]:
-    """Fit GPDM, supervised H-GPDM and discovered H-GPDM on synthetic styles.
+) -> DemoResult:
+    """Train the anticipatory player on simulated strokes and play the test rallies in SAPIEN.
+
+    Args:
+        num_trials: opponent strokes to simulate (before excluding those outside the robot's
+            hitting region).
+        test_fraction: share of the valid strokes held out as test rallies.
+        config: IDDM, basis, LSPI and MCP settings (default: :meth:`AnticipationConfig.smoke`).
+        workers: SAPIEN processes for the reward table (default: all cores, at most 4).
+        seed: seeds the strokes, the split and the planner.
+        cache_dir: reward-table cache (default ``$HGPDM_CACHE`` or ``~/.cache/hgpdm_torch``).
+        progress: tqdm bars.
 
     Returns:
-        The result table and the fitted models by name.
+        A :class:`DemoResult`.
+
+    Raises:
+        ValueError: ``test_fraction`` outside (0, 1), or too few valid strokes to split.
     """
-    data = styled_movements(num_styles, per_style, length, obs_dim, seed=seed)
-    table = ResultTable(
-        "hgpdm demo: synthetic styled movements",
-        ["model", "styles", "style purity", "log posterior", "fit time [s]"],
-        meta={"num_styles": num_styles, "per_style": per_style, "length": length, "seed": seed},
+    from ..robots.table_tennis import strokes
+    from ..robots.table_tennis.trials import (
+        DEFAULT_START_TIMES,
+        evaluate,
+        make_trials,
+        reward_table,
     )
-    models: dict[str, GPDM] = {}
 
-    start = time.perf_counter()
-    gpdm = GPDM(data.sequences, latent_dim)
-    gpdm.fit(steps, progress=progress)
-    table.add(
-        model="GPDM",
-        styles="none",
-        **{"log posterior": gpdm.log_posterior(), "fit time [s]": time.perf_counter() - start},
-    )
-    models["GPDM"] = gpdm
+    if not 0.0 < test_fraction < 1.0:
+        raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction!r}")
+    config = config or ant.AnticipationConfig.smoke(seed=seed)
+    workers = workers or max(1, min(4, os.cpu_count() or 1))
+    movements = tuple(strokes.MOVEMENTS)
+    start_times = DEFAULT_START_TIMES
+    clock = time.perf_counter()
+    with float64_default():
+        trials = make_trials(num_trials, seed=seed, progress=progress)
+        rewards = reward_table(
+            trials, movements, start_times, workers=workers, cache_dir=cache_dir,
+            progress=progress,
+        ).to(torch.float64)  # fmt: skip
+        t_sim = time.perf_counter() - clock
+        valid = torch.nonzero(ant.valid_trials(rewards)).flatten()
+        n_test = round(test_fraction * len(valid))
+        if n_test < 1 or len(valid) - n_test < 4:
+            raise ValueError(
+                f"only {len(valid)} of {num_trials} strokes are inside the hitting region; "
+                "simulate more (num_trials)"
+            )
+        gen = torch.Generator().manual_seed(seed)
+        perm = valid[torch.randperm(len(valid), generator=gen)]
+        test, train = perm[:n_test].sort().values, perm[n_test:].sort().values
 
-    start = time.perf_counter()
-    sup = HGPDM(data.sequences, data.labels, latent_dim)
-    sup.fit(steps, progress=progress)
-    table.add(
-        model="H-GPDM",
-        styles="given",
-        **{
-            "style purity": 1.0,
-            "log posterior": sup.log_posterior(),
-            "fit time [s]": time.perf_counter() - start,
-        },
-    )
-    models["H-GPDM (given)"] = sup
+        clock = time.perf_counter()
+        steps_at = ant.decision_indices(trials.obs_times, start_times)
+        beliefs = ant.fit_beliefs(trials.obs, trials.targets, steps_at, train, test, config)
+        vectors = beliefs.vectors()
+        problem = StoppingProblem(vectors, rewards)
+        train_p, test_p = problem.subset(train), problem.subset(test)
+        basis = RadialBasis(config.centres, seed=seed, bias=True).fit(
+            train_p.beliefs.reshape(-1, vectors.shape[-1])
+        )
+        enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
+        q = lspi(enumerated, features=basis, ridge=config.ridge).q
+        planner = MonteCarloPlanner(
+            beliefs.model, beliefs.belief_filter, q, basis,
+            num_particles=config.particles, confidence=config.confidence,
+        )  # fmt: skip
+        t_learn = time.perf_counter() - clock
 
-    start = time.perf_counter()
-    found = HGPDM.discover(
-        data.sequences,
-        num_styles,
-        iterations,
-        steps=max(steps // 2, 1),
-        latent_dim=latent_dim,
-        seed=seed,
-        progress=progress,
-    )
-    table.add(
-        model="H-GPDM",
-        styles="discovered (Alg. 2.1)",
-        **{
-            "style purity": style_purity(data.labels, found.intention_codes()),
-            "log posterior": found.log_posterior(),
-            "fit time [s]": time.perf_counter() - start,
-        },
-    )
-    models["H-GPDM (discovered)"] = found
-    return table, models
+        table = ResultTable(
+            f"hgpdm demo: anticipatory table tennis, {len(test)} test rallies "
+            f"({len(train)} training strokes)",
+            ["player", "returns", "rate", "played in"],
+            meta={"num_trials": num_trials, "valid": len(valid), "seed": seed},
+        )
+        single = start_times.index(ant.SINGLE_TIME)
+        for a, name in enumerate(movements):
+            won = int((test_p.rewards[:, a, single] > 0).sum())
+            table.add(player=f"always {name} @240ms", returns=won, rate=won / len(test))
+        for s in ant.ORACLE_TIMES:
+            step = start_times.index(s)
+            q_t = ant.stop_only_q(train_p, step, basis, config.ridge)
+            won = ant.successes(test_p.run(ant.fixed_time_policy(q_t, basis, step)))
+            name = f"best movement @{round(-1000 * s)}ms"
+            table.add(player=name, returns=won, rate=won / len(test))
+        won = ant.successes(test_p.run(ant.greedy_policy(q, basis, test_p)))
+        table.add(player="LSPI", returns=won, rate=won / len(test))
+        for row in table.rows:
+            row["played in"] = "reward table (SAPIEN)"
+
+        # the MCP player's decisions, each executed in SAPIEN
+        clock = time.perf_counter()
+        decided = test_p.run(ant.mcp_policy(planner, beliefs, test, test_p.horizon, gen))
+        t_plan = time.perf_counter() - clock
+        clock = time.perf_counter()
+        rallies = []
+        for j, i in enumerate(test.tolist()):
+            action = movements[int(decided.stop_action[j]) - 1]
+            t0 = start_times[int(decided.stop_step[j])]
+            outcome = evaluate(trials[i], action, t0)
+            rallies.append(Rally(i, float(trials.targets[i]), action, t0, outcome))
+        t_play = time.perf_counter() - clock
+        won = sum(r.outcome.success for r in rallies)
+        table.add(player="MCP", returns=won, rate=won / len(test), **{"played in": "SAPIEN"})
+        # the scene is deterministic: the live rallies must reproduce the reward table
+        agree = sum(
+            r.outcome.success == bool(rewards[r.trial, movements.index(r.action),
+                                              start_times.index(r.start_time)] > 0)
+            for r in rallies
+        )  # fmt: skip
+        probs = beliefs.log_prob[test].exp()
+    meta = {
+        "simulate [s]": t_sim,
+        "learn [s]": t_learn,
+        "MCP per decision [ms]": 1e3 * t_plan / max(1, int((decided.stop_step + 1).sum())),
+        "play [s]": t_play,
+        "live = table": f"{agree}/{len(rallies)}",
+    }
+    table.meta.update(meta)
+    grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
+    return DemoResult(table, rallies, grid, start_times, probs, meta)
 
 
-def plot_latents(models: dict[str, GPDM], path: str | Path) -> Path:
-    """Save the first two latent dims of each model's trajectories, coloured by style."""
+def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
+    """Save the return rates, one played rally in 3-D and its belief over the target (PNGs)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(models), figsize=(4.2 * len(models), 4))
-    for ax, (name, model) in zip(axes, models.items(), strict=True):
-        codes = model.intention_codes() if isinstance(model, HGPDM) else None
-        for j, lat in enumerate(model.latent_sequences()):
-            color = f"C{int(codes[j])}" if codes is not None else "0.3"
-            ax.plot(lat[:, 0], lat[:, 1], color=color, lw=1)
-            ax.plot(lat[0, 0], lat[0, 1], "o", color=color, ms=3)
-        ax.set(title=name, xlabel="$x_1$", ylabel="$x_2$")
+    from ..robots.table_tennis.draw import MOVEMENT_COLORS, draw_stroke, draw_table
+    from ..robots.wam import WAM
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    names, rates = result.table.column("player"), result.table.column("rate")
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:orange", "tab:green"]
+    ax.bar(range(len(names)), rates, color=colours[: len(names)])
+    ax.set_xticks(range(len(names)), [n.replace(" @", "\n@") for n in names], fontsize=8)
+    ax.set_ylabel("successful returns (test rallies)")
+    ax.set_ylim(0, 1)
+    ax.set_title(result.table.title, fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    paths.append(out / "return_rates.png")
+    fig.savefig(paths[-1], dpi=120)
     plt.close(fig)
-    return path
+
+    # the first returned rally (else the first one) and the belief that led to it
+    j = next((k for k, r in enumerate(result.rallies) if r.outcome.success), 0)
+    rally = result.rallies[j]
+    fig = plt.figure(figsize=(11, 4.2))
+    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
+    draw_table(ax3)
+    draw_stroke(ax3, rally.outcome, WAM(), color=MOVEMENT_COLORS[rally.action], label=rally.action)
+    ax3.set_title(
+        f"stroke {rally.trial}: {rally.action} started {round(-1000 * rally.start_time)} ms "
+        f"before the hit -> {'returned' if rally.outcome.success else 'missed'}",
+        fontsize=9,
+    )
+    ax = fig.add_subplot(1, 2, 2)
+    probs = result.target_probs[j]
+    for t, s in enumerate(result.start_times):
+        ax.plot(result.grid, probs[t], label=f"{round(-1000 * s)} ms before the hit")
+    ax.axvline(rally.target, color="k", ls="--", lw=1, label="true target")
+    ax.set(xlabel="target x on the hitting plane [m]", ylabel="belief (online IDDM)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    paths.append(out / "rally.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    return paths
 
 
 def main(argv: list[str]) -> int:
-    """CLI entry: ``hgpdm demo [--out DIR] [--seed N] [--quick]``."""
-    parser = argparse.ArgumentParser(prog="hgpdm demo", description=__doc__)
-    parser.add_argument(
-        "--out", default="hgpdm_demo_output", help="folder for the figure and table"
-    )
+    """CLI entry: ``hgpdm demo [--trials N] [--workers W] [--seed S] [--out DIR] [--full]``."""
+    parser = argparse.ArgumentParser(prog="hgpdm demo", description=__doc__.split("\n")[0])
+    parser.add_argument("--trials", type=int, default=36, help="opponent strokes to simulate")
+    parser.add_argument("--workers", type=int, default=None, help="SAPIEN processes")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--quick", action="store_true", help="smaller problem (also HGPDM_SMOKE=1)")
+    parser.add_argument("--out", default="hgpdm_demo_output")
+    parser.add_argument("--cache-dir", default=None)
+    parser.add_argument(
+        "--full", action="store_true", help="run the full Sec. 4.3 experiment instead"
+    )
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
-    quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
-    sizes = {"per_style": 3, "length": 25, "steps": 20, "iterations": 3} if quick else {}
-    table, models = run_demo(seed=args.seed, progress=args.progress, **sizes)
-    print(table.to_markdown())
+    if args.full:
+        extra = ["--out", args.out, "--seed", str(args.seed)]
+        extra += ["--workers", str(args.workers or max(1, os.cpu_count() or 1))]
+        extra += ["--progress"] if args.progress else []
+        extra += ["--cache-dir", args.cache_dir] if args.cache_dir else []
+        return ant.main(["--full", *extra])
+    result = run_demo(
+        num_trials=args.trials, workers=args.workers, seed=args.seed, cache_dir=args.cache_dir,
+        progress=args.progress,
+    )  # fmt: skip
+    print(result.table.to_markdown(".3g"))
+    print()
+    print(", ".join(f"{k}: {v:.3g}" if isinstance(v, float) else f"{k}: {v}"
+                    for k, v in result.meta.items()))  # fmt: skip
     out = Path(args.out)
-    table.to_json(out / "demo_table.json")
-    fig = plot_latents(models, out / "latent_trajectories.png")
-    print(f"\nsaved {fig} and {out / 'demo_table.json'}")
+    result.table.to_json(out / "demo.json")
+    for path in plot_demo(result, out):
+        print(f"saved {path}")
     return 0

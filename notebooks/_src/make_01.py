@@ -56,7 +56,7 @@ cells = [
         "re-fitting the model."
     ),
     nbf.v4.new_code_cell(
-        "from hgpdm_torch.experiments.demo import style_purity\n"
+        "from hgpdm_torch.experiments.style_discovery import style_purity\n"
         "found = hg.HGPDM.discover(data.sequences, num_styles=3, iterations=3 if SMOKE else 8,\n"
         "                          steps=15 if SMOKE else 40, seed=0)\n"
         "print('discovered', found.intention_codes().tolist())\n"

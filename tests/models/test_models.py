@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from hgpdm_torch.datasets import styled_movements, targeted_movements
-from hgpdm_torch.experiments.demo import style_purity
+from hgpdm_torch.experiments.style_discovery import style_purity
 from hgpdm_torch.models import GPDM, HGPDM, IDDM, load_model
 
 
