@@ -1,3 +1,4 @@
+# ruff: noqa: E501  (cell source lines are kept as they appear in the notebook)
 """Writes notebooks/07_anticipatory_action_selection.ipynb (run from the repository root)."""
 
 import nbformat as nbf
