@@ -19,9 +19,10 @@ Shapes: ``n`` trials, ``T`` decision steps, ``F`` belief features, ``A = S + 1``
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ..validation import as_tensor, check_probability
@@ -77,6 +78,35 @@ def _belief_vector(mean: torch.Tensor, cov: torch.Tensor, prob: torch.Tensor) ->
     rows, cols = torch.triu_indices(mean.shape[-1], mean.shape[-1], device=mean.device)
     prob = prob.expand(*mean.shape[:-1], prob.shape[-1])
     return torch.cat([mean, cov[..., rows, cols], prob], -1)
+
+
+_INT_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
+
+
+def _index_vector(value: object, name: str, low: int, high: int) -> torch.Tensor:
+    """``value`` as a 1-D ``long`` tensor with entries in ``low .. high`` (whole numbers only)."""
+    if isinstance(value, str | bytes):
+        raise TypeError(f"{name} must be a 1-D integer tensor or sequence, got a string")
+    if not isinstance(value, torch.Tensor):
+        try:
+            value = torch.as_tensor(np.asarray(value))
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(
+                f"{name} must be a 1-D integer tensor or sequence, got {type(value).__name__}"
+            ) from err
+    if not (value.is_floating_point() or value.dtype in _INT_DTYPES):
+        raise TypeError(f"{name} must hold integers, got dtype {value.dtype}")
+    if value.dim() != 1:
+        raise ValueError(f"{name} must be 1-D, got shape {tuple(value.shape)}")
+    if value.is_floating_point():
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"{name} must hold finite whole numbers, got NaN or inf")
+        if not bool((value == value.round()).all()):
+            raise ValueError(f"{name} must hold whole numbers, got fractional entries")
+    if value.numel() and bool(((value < low) | (value > high)).any()):
+        bad = value[(value < low) | (value > high)][0].item()
+        raise ValueError(f"{name} must be in {low} .. {high}, got {bad}")
+    return value.to(torch.long)
 
 
 @dataclass(frozen=True)
@@ -188,16 +218,33 @@ class StoppingProblem:
         return mask
 
     def episodes(
-        self, trial: torch.Tensor, stop_step: torch.Tensor, stop_action: torch.Tensor
+        self,
+        trial: torch.Tensor | Sequence[int],
+        stop_step: torch.Tensor | Sequence[int],
+        stop_action: torch.Tensor | Sequence[int],
     ) -> Episodes:
-        """:class:`Episodes` with their rewards looked up in the table (all ``[E]``)."""
-        trial, stop_step, stop_action = (
-            torch.as_tensor(v, dtype=torch.long) for v in (trial, stop_step, stop_action)
-        )
-        if bool(((stop_action < 1) | (stop_action >= self.num_actions)).any()):
-            raise ValueError(f"stop_action must be in 1 .. {self.num_actions - 1}")
-        if bool(((stop_step < 0) | (stop_step >= self.horizon)).any()):
-            raise ValueError(f"stop_step must be in 0 .. {self.horizon - 1}")
+        """:class:`Episodes` with their rewards looked up in the table.
+
+        Args:
+            trial: ``[E]`` trial indices in ``0 .. n-1``.
+            stop_step: ``[E]`` steps in ``0 .. T-1``.
+            stop_action: ``[E]`` stopping actions in ``1 .. S``.
+
+        All three are 1-D integer tensors, arrays or sequences of the same length (floats are
+        accepted only when they hold whole numbers).
+
+        Raises:
+            TypeError: for non-numeric or boolean input.
+            ValueError: for the wrong shape, unequal lengths, fractional or out-of-range entries.
+        """
+        trial = _index_vector(trial, "trial", 0, len(self) - 1)
+        stop_step = _index_vector(stop_step, "stop_step", 0, self.horizon - 1)
+        stop_action = _index_vector(stop_action, "stop_action", 1, self.num_actions - 1)
+        if not trial.shape == stop_step.shape == stop_action.shape:
+            raise ValueError(
+                "trial, stop_step and stop_action must have the same length, got "
+                f"{trial.numel()}, {stop_step.numel()} and {stop_action.numel()}"
+            )
         reward = self.rewards[trial, stop_action - 1, stop_step]
         return Episodes(trial, stop_step, stop_action, reward)
 

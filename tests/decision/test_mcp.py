@@ -1,7 +1,11 @@
 """Monte-Carlo planning (Algorithms 4.2-4.3) on a small fitted IDDM.
 
-Oracles: the online filter itself (the batched particle update must equal it stream by stream),
-the literal sampling chain of Algorithm 4.2 (moments of the sampled observations), and the
+Oracles: the online filter itself (the batched particle update must equal it stream by stream,
+and a per-particle loop of single-stream updates valued by the LinearQ formula must reproduce
+every projected reward), the filter's predictive distribution of the next observation (read
+off its evidence; the sampled observations must follow it), the literal sampling chain of
+Algorithm 4.2 (moments of the sampled observations), a Student-t interval computed with scipy
+(early termination must stop exactly where it excludes the best stopping value), and the
 decision with all particles (early termination must agree in >= 99% of states).
 """
 
@@ -12,6 +16,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from scipy import stats
 
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import LinearQ, lspi
@@ -123,20 +128,162 @@ def test_moment_sampling_matches_the_literal_chain(model, pipeline):
     assert ((ca - cb).abs() / scale).max() < 0.06  # ~ 4 SE of a correlation at n = 20000
 
 
-def test_projection_estimates_the_value_of_waiting(model, pipeline, generator):
-    """The projected rewards are the stop values of genuinely updated beliefs, and their mean
-    over independent runs agrees within the Monte-Carlo standard error."""
+def _record(planner, name):
+    """Wrap ``planner.<name>`` so that every output it returns is appended to the list returned."""
+    calls = []
+    method = getattr(planner, name)
+
+    def wrapper(*args, **kwargs):
+        out = method(*args, **kwargs)
+        calls.append(out)
+        return out
+
+    setattr(planner, name, wrapper)
+    return calls
+
+
+def _stop_value(basis, q, vectors):
+    """``max_{a != 0} phi(theta)^T w_a`` written out from the LinearQ definition."""
+    return (basis(vectors) @ q.weights[1:].T).max(-1).values
+
+
+def test_projection_values_each_particle_with_the_online_filter(model, pipeline):
+    """Algorithm 4.2 particle by particle: each sampled observation, filtered by a single-stream
+    OnlineIntentionFilter and valued by the stopping values, gives that particle's reward, and
+    the mean over the same particles is the planner's Q(theta, wait)."""
     f, basis, q, states = pipeline
-    planner = MonteCarloPlanner(model, f, q, basis, chunk_size=64)
+    planner = MonteCarloPlanner(model, f, q, basis, num_particles=150, chunk_size=64)
     belief = _belief(states, 2, 1)
-    r1 = planner.project(belief, 1000, generator=generator)
-    r2 = planner.project(belief, 1000, generator=generator)
-    assert r1.shape == (1000,) and r1.std() > 0
-    se = math.sqrt(r1.var() / 1000 + r2.var() / 1000)
-    assert abs(float(r1.mean() - r2.mean())) < 4 * se
-    # every projected reward is the best stop value of some reachable belief
-    stop_now = q.values(basis(belief.vector()))[1:]
-    assert float(r1.min()) > float(stop_now.max()) - 10.0
+    drawn = _record(planner, "_sample_observations")
+    r = planner.project(belief, generator=torch.Generator().manual_seed(5))
+    z = torch.cat(drawn)
+    assert [len(c) for c in drawn] == [64, 64, 22] and r.shape == (150,)
+
+    ref = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=1)
+    ref.update(torch.zeros(model.obs_dim))  # start the stream, then set its state per particle
+    expected = []
+    for zi in z:
+        ref.mean[0], ref.cov[0], ref.log_belief[0] = belief.mean, belief.cov, belief.log_prob
+        ref.update(zi)
+        vector = belief_vector(ref.mean[0], ref.cov[0], ref.log_belief[0].exp())
+        expected.append(float(_stop_value(basis, q, vector)))
+    expected = torch.tensor(expected)
+    assert expected.std() > 0.01  # the particles really differ
+    torch.testing.assert_close(r, expected, rtol=1e-9, atol=1e-9)
+
+    # decide() averages the same particles (same generator stream) into Q(theta, wait)
+    drawn.clear()
+    d = planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(5))
+    torch.testing.assert_close(torch.cat(drawn), z, rtol=0, atol=0)
+    assert d.particles == 150
+    assert d.q_wait == pytest.approx(float(expected.mean()), rel=1e-9, abs=1e-12)
+    q_stop = basis(belief.vector()) @ q.weights[1:].T
+    torch.testing.assert_close(d.q_stop, q_stop)
+    assert d.action == (0 if d.q_wait > float(q_stop.max()) else int(q_stop.argmax()) + 1)
+
+
+def _predictive(f, belief):
+    """The filter's predictive distribution of the next observation, p(z | z_1:t) =
+    sum_g p(g | z_1:t) N(z | m_g, S_g), read off the filter's own evidence log q(z | g): it is
+    quadratic in z, so S_g = -H^-1 and m_g = S_g grad at z = 0."""
+    mean, cov, _ = f.transition.moments(belief.mean[None], belief.cov[None])
+    z0 = torch.zeros(f.obs_dim, dtype=mean.dtype)
+    ms, Ss = [], []
+    for k in range(f.num_values):
+
+        def evidence(z, k=k):
+            return f.measure(mean[0, k], cov[0, k], z)[2]
+
+        H = torch.autograd.functional.hessian(evidence, z0)
+        S = -torch.linalg.inv(H)
+        ms.append(S @ torch.autograd.functional.jacobian(evidence, z0))
+        Ss.append((S + S.T) / 2)
+    prob = torch.softmax(belief.log_prob, -1)
+    return prob.numpy(), torch.stack(ms).numpy(), torch.stack(Ss).numpy()
+
+
+def test_projection_estimates_the_value_of_waiting(model, pipeline):
+    """The sampled observations follow the filter's predictive mixture (KS test of the
+    probability integral transform along several directions, and its covariance), and the
+    planner's Q(theta, wait)
+    agrees within Monte-Carlo error with the value of waiting over observations drawn
+    independently from that mixture."""
+    f, basis, q, states = pipeline
+    planner = MonteCarloPlanner(model, f, q, basis, chunk_size=4096)
+    belief = _belief(states, 2, 1)
+    prob, m, S = _predictive(f, belief)
+    n = 20000
+    drawn = _record(planner, "_sample_observations")
+    r = planner.project(belief, n, generator=torch.Generator().manual_seed(7))
+    z = torch.cat(drawn).numpy()
+    rng = np.random.default_rng(3)
+    dz = z.shape[1]
+    directions = np.concatenate([np.eye(dz), rng.standard_normal((2, dz))])
+    for a in directions:
+        loc, scale = m @ a, np.sqrt(np.einsum("i,kij,j->k", a, S, a))
+        u = (prob * stats.norm.cdf((z @ a)[:, None], loc, scale)).sum(1)
+        assert stats.kstest(u, "uniform").pvalue > 1e-3
+    # the mixture's covariance sum_g p_g (S_g + m_g m_g^T) - mbar mbar^T, relative to its scale
+    mbar = prob @ m
+    cov = np.einsum("k,kij->ij", prob, S + m[:, :, None] * m[:, None, :]) - np.outer(mbar, mbar)
+    scale = np.sqrt(np.outer(cov.diagonal(), cov.diagonal()))
+    assert (np.abs(np.cov(z.T) - cov) / scale).max() < 0.045  # over 30 seeds: at most 0.03
+
+    # the value of waiting over independent draws from the mixture, updated and valued
+    g = rng.choice(len(prob), n, p=prob)
+    eps = rng.standard_normal((n, dz))
+    z_ref = m[g] + np.einsum("nij,nj->ni", np.linalg.cholesky(S)[g], eps)
+    mean, cov, log_prob = planner.step(belief, torch.from_numpy(z_ref))
+    r_ref = _stop_value(basis, q, belief_vector(mean, cov, log_prob.exp()))
+    se = math.sqrt(r.var() / n + r_ref.var() / n)
+    assert r.std() > 0.01
+    assert abs(float(r.mean() - r_ref.mean())) < 4 * se
+
+
+def _with_stop_shift(basis, q, current, shift):
+    """Features and Q with one extra feature that is 1 only at the current belief vector, whose
+    weight adds ``shift`` to every stopping value there: it moves max_a Q(theta_t, a) without
+    changing any projected reward (particles sit at other beliefs)."""
+
+    def features(v):
+        at_current = ((v - current).abs().amax(-1) < 1e-9).to(v.dtype)
+        return torch.cat([basis(v), at_current[..., None]], -1)
+
+    column = torch.full((q.weights.shape[0], 1), float(shift), dtype=q.weights.dtype)
+    column[0] = 0.0
+    return features, LinearQ(torch.cat([q.weights, column], 1))
+
+
+@pytest.mark.parametrize("n_check", [60, 150])
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_early_termination_uses_the_student_t_interval(model, pipeline, n_check, side):
+    """Algorithm 4.3: sampling stops at the first checkpoint n whose interval
+    mean +- t_{(1+c)/2, n-1} s / sqrt(n) (s: sample std) excludes the best stopping value. The
+    best stopping value is put at 1 +- 1e-6 half-widths (computed here with scipy) from
+    the mean at checkpoint n: the planner must stop there in the first case only."""
+    f, basis, q, states = pipeline
+    belief = _belief(states, 4, 1)
+    current = belief.vector()
+    confidence = 0.9
+    kwargs = dict(num_particles=300, confidence=confidence, min_particles=n_check, chunk_size=30)
+    planner = MonteCarloPlanner(model, f, q, basis, **kwargs)
+    samples = _record(planner, "_project")
+    planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(3))
+    r = torch.cat(samples)[:n_check].numpy()
+    half = stats.t.ppf((1 + confidence) / 2, n_check - 1) * r.std(ddof=1) / math.sqrt(n_check)
+    best = float(_stop_value(basis, q, current))
+    for factor, stops in ((1 + 1e-6, True), (1 - 1e-6, False)):
+        target = r.mean() - side * factor * half  # side 1: waiting is better, -1: stopping is
+        features, q_shifted = _with_stop_shift(basis, q, current, target - best)
+        shifted = MonteCarloPlanner(model, f, q_shifted, features, **kwargs)
+        d = shifted.decide(belief, generator=torch.Generator().manual_seed(3))
+        assert float(d.q_stop.max()) == pytest.approx(target, abs=1e-12)
+        assert (d.particles == n_check) == stops
+        if stops:
+            assert d.q_wait == pytest.approx(r.mean(), rel=1e-12)
+            assert (d.action == 0) == (side > 0)
+        else:
+            assert d.particles > n_check
 
 
 def test_early_termination_agrees_with_all_particles(model, pipeline):

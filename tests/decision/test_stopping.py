@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 
+import numpy as np
 import pytest
 import torch
 from scipy import stats
@@ -145,6 +146,53 @@ def test_bad_input():
         p.transitions("episodes")
     with pytest.raises(ValueError, match="probs must be a tensor"):
         p.expected_reward(torch.ones(2, 2, 2))
+
+
+def test_episodes_index_checks():
+    """episodes() takes 1-D whole-number indices of equal length and checks every range; before
+    these checks an out-of-range trial raised IndexError, a negative one wrapped around to the
+    last trial and 1.7 was truncated to 1."""
+    p = _problem(n=3, T=4)
+    # accepted: lists, NumPy integer arrays, int32 tensors and whole-number floats
+    for args in (
+        ([2, 0], [3, 1], [1, 3]),
+        (np.array([2, 0]), np.array([3, 1], dtype=np.int32), np.array([1, 3])),
+        (torch.tensor([2, 0], dtype=torch.int32), torch.tensor([3.0, 1.0]), (1.0, 3.0)),
+    ):
+        ep = p.episodes(*args)
+        assert ep.trial.dtype == ep.stop_step.dtype == ep.stop_action.dtype == torch.long
+        assert ep.trial.tolist() == [2, 0] and ep.stop_step.tolist() == [3, 1]
+        assert ep.stop_action.tolist() == [1, 3]
+        assert ep.reward.tolist() == [float(p.rewards[2, 0, 3]), float(p.rewards[0, 2, 1])]
+    empty = p.episodes([], [], [])
+    assert len(empty) == 0 and empty.reward.shape == (0,)
+    ok = torch.tensor([0])
+    for bad, pattern in (
+        (torch.tensor([3]), r"trial must be in 0 \.\. 2, got 3"),
+        (torch.tensor([-1]), r"trial must be in 0 \.\. 2, got -1"),
+        (torch.tensor([1.5]), "trial must hold whole numbers"),
+        (torch.tensor([float("nan")]), "trial must hold finite"),
+        (torch.tensor([[0]]), "trial must be 1-D"),
+        (torch.tensor(0), "trial must be 1-D"),
+    ):
+        with pytest.raises(ValueError, match=pattern):
+            p.episodes(bad, ok, ok + 1)
+    with pytest.raises(ValueError, match="stop_step must hold whole numbers"):
+        p.episodes(ok, [1.7], ok + 1)
+    with pytest.raises(ValueError, match="stop_action must hold whole numbers"):
+        p.episodes(ok, ok, np.array([1.2]))
+    with pytest.raises(ValueError, match=r"stop_step must be in 0 \.\. 3, got -1"):
+        p.episodes(ok, [-1], ok + 1)
+    with pytest.raises(ValueError, match="same length"):
+        p.episodes([0, 1], [0, 1], [1])
+    with pytest.raises(ValueError, match="same length"):
+        p.episodes([0], [0, 1], [1, 1])
+    with pytest.raises(TypeError, match="trial must hold integers"):
+        p.episodes(torch.tensor([True]), ok, ok + 1)
+    with pytest.raises(TypeError, match="stop_action"):
+        p.episodes(ok, ok, "1")
+    with pytest.raises(TypeError, match="stop_step"):
+        p.episodes(ok, object(), ok + 1)
 
 
 def test_belief_vector_layout():
