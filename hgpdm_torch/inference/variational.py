@@ -891,6 +891,7 @@ class VariationalInference:
         *,
         max_iter: int,
         tol: float = 1e-3,
+        prune: float | None = None,
     ) -> tuple[torch.Tensor, list[float]]:
         """Maximise the log joint over ``x [..., K, T, Dx]`` by Levenberg-Marquardt.
 
@@ -898,44 +899,72 @@ class VariationalInference:
         diag(J^T J)) s = -grad`` with the exact gradient (autograd, so the ``log sigma^2(x)``
         terms are included) and its own damping ``lambda``, which shrinks after an accepted step
         and grows after a rejected one. A problem stops when an accepted step gains less than
-        ``tol`` nats (far below the differences between candidates of g that matter).
+        ``tol`` nats (far below the differences between candidates of g that matter), or, with
+        ``prune``, when its log joint trails the best candidate of its window by more than
+        ``prune`` nats. Only the problems still running are computed at each iteration.
 
         Returns:
             The maximisers and the summed negative log joint after each iteration.
         """
         lead, shape = x.shape[:-2], x.shape
-        P = shape[-2] * shape[-1]
+        K, T, dx = shape[-3], shape[-2], shape[-1]
+        batch = lead[:-1]
+        n = lead.numel()
+        # one row per (window, candidate) problem; K = 1 per row so that the log joint's
+        # broadcasting over candidates is unchanged
+        zf = z.expand(*batch, *z.shape[-2:])[..., None, :, :].expand(*lead, *z.shape[-2:])
+        zf = zf.reshape(n, *z.shape[-2:])
+        of = observed.expand(*batch, T)[..., None, :].expand(*lead, T).reshape(n, T)
+        vf = values.expand(*lead).reshape(n, 1) if self.kind == "discrete" else values
+        gf = None
+        if g_loc is not None:
+            gf = g_loc.expand(*batch, g_loc.shape[-1])[..., None, :].expand(*lead, -1)
+            gf = gf.reshape(n, -1)
 
-        def value_grad(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            x = x.detach().requires_grad_(True)
+        def rows(idx: torch.Tensor):
+            v = vf[idx] if self.kind == "discrete" else vf
+            return zf[idx], of[idx], v, None if gf is None else gf[idx]
+
+        def value_grad(idx: torch.Tensor, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            zi, oi, vi, gi = rows(idx)
+            xs = xs.detach().requires_grad_(True)
             with torch.enable_grad():
-                v = -self._log_joint(z, observed, x, values, g_loc)
-                (grad,) = torch.autograd.grad(v.sum(), x)
-            return v.detach(), grad
+                v = -self._log_joint(zi, oi, xs, vi, gi)
+                (grad,) = torch.autograd.grad(v.sum(), xs)
+            return v.detach()[:, 0], grad
 
-        f, g = value_grad(x)
+        x = x.reshape(n, 1, T, dx).detach().clone()
+        every = torch.arange(n, device=x.device)
+        f, g = value_grad(every, x)
         lam = torch.full_like(f, 1e-3)
         active = torch.isfinite(f)
         history = [float(f.sum())]
         for _ in range(max_iter):
-            if not bool(active.any()):
+            if prune is not None:
+                best = f.reshape(-1, K).min(-1, keepdim=True).values
+                active = active & (f.reshape(-1, K) <= best + prune).reshape(n)
+            idx = torch.nonzero(active).flatten()
+            if idx.numel() == 0:
                 break
+            zi, oi, vi, gi = rows(idx)
+            xi = x[idx]
             with torch.no_grad():
-                A = self._dense(*self._precision_blocks(observed, x, values, g_loc))
-                damped = A + lam[..., None, None] * torch.diag_embed(A.diagonal(dim1=-2, dim2=-1))
+                A = self._dense(*self._precision_blocks(oi, xi, vi, gi))[:, 0]
+                damped = A + lam[idx, None, None] * torch.diag_embed(A.diagonal(dim1=-2, dim2=-1))
                 L = psd_cholesky(damped, name="Gauss-Newton matrix of the log joint")
-                step = -torch.cholesky_solve(g.reshape(*lead, P, 1), L).reshape(shape)
-            f_t, g_t = value_grad(x + step)
-            ok = active & torch.isfinite(f_t) & (f_t < f)
-            gain = torch.where(ok, f - f_t, torch.zeros_like(f))
-            x = torch.where(ok[..., None, None], x + step, x).detach()
-            f = torch.where(ok, f_t, f)
-            g = torch.where(ok[..., None, None], g_t, g)
-            lam = torch.where(ok, 0.2 * lam, 10.0 * lam)
-            done = (ok & (gain < tol)) | (lam > 1e10)
-            active = active & ~done
+                step = -torch.cholesky_solve(g[idx].reshape(-1, T * dx, 1), L)
+                step = step.reshape(xi.shape)
+            f_t, g_t = value_grad(idx, xi + step)
+            ok = torch.isfinite(f_t) & (f_t < f[idx])
+            gain = torch.where(ok, f[idx] - f_t, torch.zeros_like(f_t))
+            x[idx] = torch.where(ok[:, None, None, None], xi + step, xi).detach()
+            f[idx] = torch.where(ok, f_t, f[idx])
+            g[idx] = torch.where(ok[:, None, None, None], g_t, g[idx])
+            lam[idx] = torch.where(ok, 0.2 * lam[idx], 10.0 * lam[idx])
+            done = (ok & (gain < tol)) | (lam[idx] > 1e10)
+            active[idx[done]] = False
             history.append(float(f.sum()))
-        return x, history
+        return x.reshape(shape), history
 
     def laplace(
         self,
@@ -946,6 +975,7 @@ class VariationalInference:
         g_loc: torch.Tensor | None = None,
         *,
         max_iter: int = 30,
+        prune: float | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         r"""Mean-field Laplace start of q(x): MAP means and ``Sigma_t = (Lambda_tt)^-1``.
 
@@ -960,11 +990,13 @@ class VariationalInference:
             x: ``[..., K, T, Dx]`` initial states; values: ``[..., K]`` candidate codes.
             g_loc: ``[..., Dg]`` a continuous g, held fixed here.
             max_iter: Levenberg-Marquardt iterations.
+            prune: stop refining a candidate once its log joint trails its window's best by
+                more than this many nats (``None``: refine all to convergence).
 
         Returns:
             ``mean [..., K, T, Dx]`` and ``cov [..., K, T, Dx, Dx]``.
         """
-        x, _ = self._map_states(z, observed, x, values, g_loc, max_iter=max_iter)
+        x, _ = self._map_states(z, observed, x, values, g_loc, max_iter=max_iter, prune=prune)
         with torch.no_grad():
             diag, _ = self._precision_blocks(observed, x, values, g_loc)
             cov = torch.cholesky_inverse(psd_cholesky(diag, name="precision block of q(x_t)"))
@@ -1011,6 +1043,7 @@ class VariationalInference:
         values: object = None,
         steps: int = 0,
         newton_steps: int = 30,
+        prune: float | None = 50.0,
         init: str = "nearest",
         progress: bool = False,
     ) -> VBResult:
@@ -1036,6 +1069,10 @@ class VariationalInference:
             steps: maximum L-BFGS iterations on F after the Laplace start.
             newton_steps: maximum Levenberg-Marquardt iterations of the Laplace start (0: start
                 L-BFGS from ``init`` directly).
+            prune: the Laplace start stops refining a candidate g whose log joint trails the
+                window's best candidate by more than ``prune`` nats: its posterior weight is
+                below ``exp(-prune)`` either way, and its ``log_evidence`` is then a looser (still
+                valid) lower bound. ``None`` refines every candidate to convergence.
             init: initial states (see :meth:`initial_guess`).
             progress: show a progress bar over L-BFGS iterations.
 
@@ -1047,10 +1084,14 @@ class VariationalInference:
         for name, v in (("steps", steps), ("newton_steps", newton_steps)):
             if not isinstance(v, int) or v < 0:
                 raise ValueError(f"{name} must be a non-negative int, got {v!r}")
+        if prune is not None and not (isinstance(prune, int | float) and prune > 0):
+            raise ValueError(f"prune must be a positive number of nats or None, got {prune!r}")
         values = self._candidates(values)
         loc, cov, g_loc, g_cov = self.initial_guess(z, values, init)
         if newton_steps:
-            loc, cov = self.laplace(z, observed, loc, values, g_loc, max_iter=newton_steps)
+            loc, cov = self.laplace(
+                z, observed, loc, values, g_loc, max_iter=newton_steps, prune=prune
+            )
         history: list[float] = []
         if steps:
             loc, cov, g_loc, g_cov, history = self._polish(

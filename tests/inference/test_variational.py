@@ -383,6 +383,38 @@ def test_acceptance_vb_recognises_planted_styles_and_beats_map(planted):
     assert rmse_vb < rmse_map, (rmse_vb, rmse_map)
 
 
+def test_pruning_hopeless_candidates_keeps_the_posterior(planted):
+    """Pruned LM (the default) against LM refining every candidate to convergence: the same ML
+    style, the same F for it (up to LM's stopping tolerance, 1e-3 nats; roundoff in differently
+    composed batches can move a stop by one step) and the same posterior."""
+    _, test, model = planted
+    z, _, _ = _forecast_windows(test, 5, 4)
+    vb = VariationalInference(model)
+    full = vb.infer(z, prune=None)
+    pruned = vb.infer(z)
+    assert torch.equal(pruned.g_ml, full.g_ml)
+    best = full.g_ml[:, None]
+    torch.testing.assert_close(
+        pruned.log_evidence.gather(-1, best), full.log_evidence.gather(-1, best), rtol=0,
+        atol=1e-3,
+    )  # fmt: skip
+    assert float((pruned.posterior - full.posterior).abs().max()) < 1e-3
+    with pytest.raises(ValueError, match="prune"):
+        vb.infer(z[0], prune=-1.0)
+
+
+def test_batched_windows_equal_one_window_at_a_time(planted):
+    """Windows solved in one call (problems compacted as they converge) equal separate calls."""
+    _, test, model = planted
+    z, _, _ = _forecast_windows(test, 5, 7)
+    vb = VariationalInference(model)
+    batched = vb.infer(z[:6])
+    for i in range(6):
+        one = vb.infer(z[i])
+        torch.testing.assert_close(batched.log_evidence[i], one.log_evidence, rtol=0, atol=1e-3)
+        assert torch.equal(batched.g_ml[i], one.g_ml)
+
+
 def test_laplace_start_avoids_the_stall_of_lbfgs_alone(planted):
     """With the thesis's stiff alpha-bar (alpha_4 = 1e-4), L-BFGS on F from the GP-RTSS smoother
     stalls far below the Laplace start for the true style (the cause of the 38% recognition)."""
