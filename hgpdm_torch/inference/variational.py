@@ -76,6 +76,7 @@ __all__ = [
     "window_mask",
 ]
 
+_PRUNE_SAFETY = 3.0  # optimism factor of the LM pruning rule (see _map_states)
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -900,8 +901,10 @@ class VariationalInference:
         terms are included) and its own damping ``lambda``, which shrinks after an accepted step
         and grows after a rejected one. A problem stops when an accepted step gains less than
         ``tol`` nats (far below the differences between candidates of g that matter), or, with
-        ``prune``, when its log joint trails the best candidate of its window by more than
-        ``prune`` nats. Only the problems still running are computed at each iteration.
+        ``prune``, when even an optimistic value (its negative log joint minus three times the
+        next step's first-order gain ``-grad^T s``) trails the best candidate of its window by
+        more than ``prune`` nats: a candidate far from its optimum has a large predicted gain
+        and is kept. Only the problems still running are computed at each iteration.
 
         Returns:
             The maximisers and the summed negative log joint after each iteration.
@@ -940,9 +943,6 @@ class VariationalInference:
         active = torch.isfinite(f)
         history = [float(f.sum())]
         for _ in range(max_iter):
-            if prune is not None:
-                best = f.reshape(-1, K).min(-1, keepdim=True).values
-                active = active & (f.reshape(-1, K) <= best + prune).reshape(n)
             idx = torch.nonzero(active).flatten()
             if idx.numel() == 0:
                 break
@@ -952,8 +952,18 @@ class VariationalInference:
                 A = self._dense(*self._precision_blocks(oi, xi, vi, gi))[:, 0]
                 damped = A + lam[idx, None, None] * torch.diag_embed(A.diagonal(dim1=-2, dim2=-1))
                 L = psd_cholesky(damped, name="Gauss-Newton matrix of the log joint")
-                step = -torch.cholesky_solve(g[idx].reshape(-1, T * dx, 1), L)
-                step = step.reshape(xi.shape)
+                grad = g[idx].reshape(-1, T * dx, 1)
+                step = -torch.cholesky_solve(grad, L)
+            if prune is not None:
+                # optimistic value: what is left after three times the step's first-order gain
+                reach = f[idx] + _PRUNE_SAFETY * (grad * step).sum((-1, -2))
+                best = f.reshape(-1, K).min(-1).values.repeat_interleave(K)[idx]
+                keep = reach <= best + prune
+                active[idx[~keep]] = False
+                idx, xi, step = idx[keep], xi[keep], step[keep]
+                if idx.numel() == 0:
+                    break
+            step = step.reshape(xi.shape)
             f_t, g_t = value_grad(idx, xi + step)
             ok = torch.isfinite(f_t) & (f_t < f[idx])
             gain = torch.where(ok, f[idx] - f_t, torch.zeros_like(f_t))

@@ -19,6 +19,7 @@ from hgpdm_torch.inference.variational import (
     VariationalInference,
     batched_lbfgs,
     condition_gaussian,
+    window_mask,
 )
 from hgpdm_torch.models import GPDM, HGPDM
 
@@ -401,6 +402,24 @@ def test_pruning_hopeless_candidates_keeps_the_posterior(planted):
     assert float((pruned.posterior - full.posterior).abs().max()) < 1e-3
     with pytest.raises(ValueError, match="prune"):
         vb.infer(z[0], prune=-1.0)
+
+
+def test_pruning_keeps_a_candidate_that_starts_far_off(planted):
+    """The best candidate started far from its optimum (thousands of nats behind the others) has
+    a large predicted gain, so it is refined, not pruned, and reaches the unpruned optimum."""
+    _, test, model = planted
+    vb = VariationalInference(model)
+    z, observed = window_mask(test.sequences[0][:8], model.observations.shape[-1])
+    values = vb.values
+    x0 = vb.initial_guess(z, values)[0]
+    k = int(test.labels[0])
+    start, _ = vb.laplace(z, observed, x0, values, prune=None)  # the others start converged
+    start[k] = x0[k] + 2.0  # and the true style far off
+    f0 = -vb._log_joint(z, observed, start, values)
+    assert float(f0[k]) > float(f0.min()) + 1000.0
+    ref, _ = vb.laplace(z, observed, start, values, prune=None)
+    out, _ = vb.laplace(z, observed, start, values, prune=50.0)
+    torch.testing.assert_close(out[k], ref[k], rtol=0, atol=1e-4)
 
 
 def test_batched_windows_equal_one_window_at_a_time(planted):
