@@ -8,8 +8,8 @@ core. Reported per window length T:
 - ``batched [ms]``: all windows in one call, divided by their number;
 - ``old [ms]``: the previous path (GP-RTSS start, L-BFGS on F only, 50 iterations), measured in
   the same process on one window (skipped with ``--quick``), and the ratio to ``single``;
-- ``LM iters``: Levenberg-Marquardt iterations of the Laplace start (the largest over the
-  batch); ``accuracy``: windows whose ML style is the true one.
+- ``LM iters``: Levenberg-Marquardt iterations of the Laplace start with the default pruning
+  (the largest over the batch); ``accuracy``: windows whose ML style is the true one.
 
 Test windows come from the same generated set as the training sequences (a held-out split):
 ``styled_movements`` draws its observation map from the seed, so a set drawn with another seed
@@ -64,7 +64,7 @@ def run(per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTa
         t_batch = (time.perf_counter() - start) / len(zs)
         zz, obs = window_mask(batch, 12)
         x0 = vb.initial_guess(zz, vb.values)[0]
-        _, lm = vb._map_states(zz, obs, x0, vb.values, None, max_iter=30)
+        _, lm = vb._map_states(zz, obs, x0, vb.values, None, max_iter=30, prune=50.0)
         t_old = None
         if old:
             start = time.perf_counter()
