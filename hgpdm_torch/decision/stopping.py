@@ -207,8 +207,12 @@ class StoppingProblem:
         return len(self.actions)
 
     def subset(self, index: torch.Tensor) -> StoppingProblem:
-        """The problem restricted to the trials ``index [m]`` (e.g. one cross-validation fold)."""
-        index = torch.as_tensor(index, dtype=torch.long)
+        """The problem restricted to the trials ``index [m]`` (e.g. one cross-validation fold).
+
+        Raises:
+            ValueError: ``index`` not 1-D, not whole numbers, or outside ``0 .. n - 1``.
+        """
+        index = _index_vector(index, "index", 0, len(self) - 1)
         return StoppingProblem(self.beliefs[index], self.rewards[index], self.actions)
 
     def allowed(self, step: int) -> torch.Tensor:

@@ -206,3 +206,12 @@ def test_belief_vector_layout():
     )
     with pytest.raises(ValueError, match="cov must have trailing shape"):
         belief_vector(mean, torch.eye(3), prob)
+
+
+def test_subset_checks_its_index():
+    problem = StoppingProblem(torch.randn(4, 3, 2), torch.ones(4, 3, 3))
+    assert len(problem.subset([3, 1])) == 2
+    assert len(problem.subset(torch.tensor([0.0, 2.0]))) == 2
+    for bad, match in (([4], "index"), ([-1], "index"), ([0.5], "index"), ([[0, 1]], "index")):
+        with pytest.raises(ValueError, match=match):
+            problem.subset(bad)
