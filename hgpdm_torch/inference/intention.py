@@ -415,7 +415,7 @@ class SharedTransition:
         mean = torch.einsum("ku,bua->bka", phi, m_u)
         g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
         cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
-        T = (q * self.kinv).view(b, U, L, U, L).sum(4).sum(2)  # [B, U, U]
+        T = (q * self.kinv).view(b, U, L, U, L).sum(2).sum(-1)  # [B, U, U]; strided sum first
         trace = ((phi @ T) * phi).sum(-1)
         # Cov[f] = beta_k^T (psi2 - psi1 psi1^T) beta_k: centring the N x N matrix first keeps
         # float32 usable (beta is large when the noise is small) and gives the covariance
