@@ -5,7 +5,9 @@ r"""``hgpdm demo``: the anticipatory table-tennis player, end to end (thesis Ch.
    with the Barrett WAM (:func:`~hgpdm_torch.robots.table_tennis.trials.reward_table`, cached on
    disk).
 2. Split the strokes inside the robot's hitting region into training and test strokes.
-3. Fit the IDDM (continuous target, Ch. 3) on the training strokes; the online filter
+3. Fit the IDDM (continuous target, Ch. 3) on the training strokes and on further opponent
+   strokes that the robot only watched (observations and targets, no SAPIEN: watching the
+   opponent is cheap, trying movements is not); the online filter
    (Algorithm 3.2) gives every stroke's belief (latent state and target histogram) at every
    decision time.
 4. Learn when and how to hit (Ch. 4): LSPI (Algorithm 4.1) on the enumerated training episodes,
@@ -76,7 +78,8 @@ class DemoResult:
 
 def run_demo(
     *,
-    num_trials: int = 36,
+    num_trials: int = 48,
+    watched: int = 150,
     test_fraction: float = 1 / 3,
     config: ant.AnticipationConfig | None = None,
     workers: int | None = None,
@@ -87,10 +90,12 @@ def run_demo(
     """Train the anticipatory player on simulated strokes and play the test rallies in SAPIEN.
 
     Args:
-        num_trials: opponent strokes to simulate (before excluding those outside the robot's
-            hitting region).
+        num_trials: opponent strokes played in SAPIEN (before excluding those outside the
+            robot's hitting region).
+        watched: further opponent strokes the IDDM is trained on (no robot movements).
         test_fraction: share of the valid strokes held out as test rallies.
-        config: IDDM, basis, LSPI and MCP settings (default: :meth:`AnticipationConfig.smoke`).
+        config: IDDM, basis, LSPI and MCP settings (default: the full experiment's with 20
+            RBF centres; learning takes seconds, the SAPIEN simulation minutes).
         workers: SAPIEN processes for the reward table (default: all cores, at most 4).
         seed: seeds the strokes, the split and the planner.
         cache_dir: reward-table cache (default ``$HGPDM_CACHE`` or ``~/.cache/hgpdm_torch``).
@@ -112,7 +117,9 @@ def run_demo(
 
     if not 0.0 < test_fraction < 1.0:
         raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction!r}")
-    config = config or ant.AnticipationConfig.smoke(seed=seed)
+    if isinstance(watched, bool) or not isinstance(watched, int) or watched < 0:
+        raise ValueError(f"watched must be a non-negative int, got {watched!r}")
+    config = config or ant.AnticipationConfig(centres=20, iddm_trials=10_000, seed=seed)
     workers = workers or max(1, min(4, os.cpu_count() or 1))
     movements = tuple(strokes.MOVEMENTS)
     start_times = DEFAULT_START_TIMES
@@ -136,9 +143,14 @@ def run_demo(
         test, train = perm[:n_test].sort().values, perm[n_test:].sort().values
 
         clock = time.perf_counter()
+        obs, targets, iddm_train = trials.obs, trials.targets, train
+        if watched:
+            seen = make_trials(watched, seed=seed + 1, progress=progress)
+            obs, targets = torch.cat([obs, seen.obs]), torch.cat([targets, seen.targets])
+            iddm_train = torch.cat([train, num_trials + torch.arange(watched)])
         steps_at = ant.decision_indices(trials.obs_times, start_times)
-        beliefs = ant.fit_beliefs(trials.obs, trials.targets, steps_at, train, test, config)
-        vectors = beliefs.vectors()
+        beliefs = ant.fit_beliefs(obs, targets, steps_at, iddm_train, test, config)
+        vectors = beliefs.vectors()[:num_trials]
         problem = StoppingProblem(vectors, rewards)
         train_p, test_p = problem.subset(train), problem.subset(test)
         basis = RadialBasis(config.centres, seed=seed, bias=True).fit(
@@ -156,7 +168,7 @@ def run_demo(
             f"hgpdm demo: anticipatory table tennis, {len(test)} test rallies "
             f"({len(train)} training strokes)",
             ["player", "returns", "rate", "played in"],
-            meta={"num_trials": num_trials, "valid": len(valid), "seed": seed},
+            meta={"num_trials": num_trials, "watched": watched, "valid": len(valid), "seed": seed},
         )
         single = start_times.index(ant.SINGLE_TIME)
         for a, name in enumerate(movements):
@@ -261,7 +273,10 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm demo [--trials N] [--workers W] [--seed S] [--out DIR] [--full]``."""
     parser = argparse.ArgumentParser(prog="hgpdm demo", description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=int, default=36, help="opponent strokes to simulate")
+    parser.add_argument("--trials", type=int, default=48, help="strokes played in SAPIEN")
+    parser.add_argument(
+        "--watched", type=int, default=150, help="further strokes the IDDM is trained on"
+    )
     parser.add_argument("--workers", type=int, default=None, help="SAPIEN processes")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="hgpdm_demo_output")
@@ -278,8 +293,8 @@ def main(argv: list[str]) -> int:
         extra += ["--cache-dir", args.cache_dir] if args.cache_dir else []
         return ant.main(["--full", *extra])
     result = run_demo(
-        num_trials=args.trials, workers=args.workers, seed=args.seed, cache_dir=args.cache_dir,
-        progress=args.progress,
+        num_trials=args.trials, watched=args.watched, workers=args.workers, seed=args.seed,
+        cache_dir=args.cache_dir, progress=args.progress,
     )  # fmt: skip
     print(result.table.to_markdown(".3g"))
     print()

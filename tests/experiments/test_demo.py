@@ -14,7 +14,7 @@ from hgpdm_torch.experiments.demo import run_demo  # noqa: E402
 
 def test_demo_plays_rallies_in_sapien(tmp_path, capsys):
     out = tmp_path / "out"
-    args = ["demo", "--trials", "12", "--workers", "1", "--out", str(out)]
+    args = ["demo", "--trials", "12", "--watched", "20", "--workers", "1", "--out", str(out)]
     assert cli.main([*args, "--cache-dir", str(tmp_path / "cache")]) == 0
     table = json.loads((out / "demo.json").read_text())
     players = [r["player"] for r in table["rows"]]
@@ -30,6 +30,8 @@ def test_demo_plays_rallies_in_sapien(tmp_path, capsys):
     assert "MCP" in capsys.readouterr().out
 
 
-def test_demo_rejects_bad_split():
+def test_demo_rejects_bad_arguments():
     with pytest.raises(ValueError, match="test_fraction"):
         run_demo(test_fraction=1.0)
+    with pytest.raises(ValueError, match="watched"):
+        run_demo(watched=-1)
