@@ -235,7 +235,7 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(8, 3.6))
     colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:orange", "tab:green"]
     ax.bar(range(len(names)), rates, color=colours[: len(names)])
-    ax.set_xticks(range(len(names)), [n.replace(" @", "\n@") for n in names], fontsize=8)
+    ax.set_xticks(range(len(names)), [n.replace(" ", "\n") for n in names], fontsize=8)
     ax.set_ylabel("successful returns (test rallies)")
     ax.set_ylim(0, 1)
     ax.set_title(result.table.title, fontsize=9)
