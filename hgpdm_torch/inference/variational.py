@@ -957,7 +957,8 @@ class VariationalInference:
             if prune is not None:
                 # optimistic value: what is left after three times the step's first-order gain
                 reach = f[idx] + _PRUNE_SAFETY * (grad * step).sum((-1, -2))
-                best = f.reshape(-1, K).min(-1).values.repeat_interleave(K)[idx]
+                finite = torch.where(torch.isfinite(f), f, torch.full_like(f, math.inf))
+                best = finite.reshape(-1, K).min(-1).values.repeat_interleave(K)[idx]
                 keep = reach <= best + prune
                 active[idx[~keep]] = False
                 idx, xi, step = idx[keep], xi[keep], step[keep]
