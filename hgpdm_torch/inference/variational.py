@@ -77,6 +77,8 @@ __all__ = [
 ]
 
 _PRUNE_SAFETY = 3.0  # optimism factor of the LM pruning rule (see _map_states)
+_PRUNE_MAX_DAMPING = 1.0  # LM damping up to which the pruning rule trusts the step's gain
+_ROW_BLOCK_BYTES = 2**26  # per-row GP blocks up to this size, else one code at a time
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -499,12 +501,15 @@ class VariationalInference:
     def _transition_gp(self, values: torch.Tensor) -> _GaussianInputGP:
         if self.kind != "discrete":
             return self._f
-        # [..., K] codes -> blocks [..., K, 1, N, .] (the 1 is the time axis); the last one is
-        # kept, since the optimisers ask for the same candidates at every step
-        cached = getattr(self, "_f_cache", None)
-        if cached is None or not torch.equal(cached[0], values):
-            self._f_cache = (values, _GaussianInputGP(self.transition, values[..., None]))
-        return self._f_cache[1]
+        # [..., K] codes -> blocks [..., K, 1, N, .] (the 1 is the time axis); kept per set of
+        # codes, since the optimisers ask for the same candidates (or one code) at every step
+        cache = self.__dict__.setdefault("_f_cache", {})
+        key = (tuple(values.shape), tuple(values.flatten().tolist()), values.device)
+        if key not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            cache[key] = _GaussianInputGP(self.transition, values[..., None])
+        return cache[key]
 
     # ------------------------------------------------------------------ the free energy
     def free_energy(
@@ -901,44 +906,78 @@ class VariationalInference:
         terms are included) and its own damping ``lambda``, which shrinks after an accepted step
         and grows after a rejected one. A problem stops when an accepted step gains less than
         ``tol`` nats (far below the differences between candidates of g that matter), or, with
-        ``prune``, when even an optimistic value (its negative log joint minus three times the
-        next step's first-order gain ``-grad^T s``) trails the best candidate of its window by
-        more than ``prune`` nats: a candidate far from its optimum has a large predicted gain
+        ``prune`` (a heuristic), when even an optimistic value, its negative log joint minus
+        three times the next step's first-order gain ``-grad^T s``, trails the best candidate of
+        its window by more than ``prune`` nats while the damping is moderate (``lambda <= 1``:
+        the damped step's gain is then within about ``1 + lambda`` of the Gauss-Newton step's,
+        which the factor 3 covers): a candidate far from its optimum has a large predicted gain
         and is kept. Only the problems still running are computed at each iteration.
 
         Returns:
             The maximisers and the summed negative log joint after each iteration.
         """
-        lead, shape = x.shape[:-2], x.shape
-        K, T, dx = shape[-3], shape[-2], shape[-1]
-        batch = lead[:-1]
-        n = lead.numel()
+        if prune is not None and not (isinstance(prune, int | float) and prune > 0):
+            raise ValueError(f"prune must be a positive number of nats or None, got {prune!r}")
+        batch = torch.broadcast_shapes(z.shape[:-2], observed.shape[:-1], x.shape[:-3])
+        if g_loc is not None:
+            batch = torch.broadcast_shapes(batch, g_loc.shape[:-1])
+        K, T, dx = x.shape[-3:]
+        lead = (*batch, K)
+        n = math.prod(lead)
         # one row per (window, candidate) problem; K = 1 per row so that the log joint's
         # broadcasting over candidates is unchanged
         zf = z.expand(*batch, *z.shape[-2:])[..., None, :, :].expand(*lead, *z.shape[-2:])
         zf = zf.reshape(n, *z.shape[-2:])
         of = observed.expand(*batch, T)[..., None, :].expand(*lead, T).reshape(n, T)
-        vf = values.expand(*lead).reshape(n, 1) if self.kind == "discrete" else values
+        discrete = self.kind == "discrete"
+        vf = values.to(x.device).expand(*lead).reshape(n) if discrete else values
         gf = None
         if g_loc is not None:
             gf = g_loc.expand(*batch, g_loc.shape[-1])[..., None, :].expand(*lead, -1)
             gf = gf.reshape(n, -1)
 
-        def rows(idx: torch.Tensor):
-            v = vf[idx] if self.kind == "discrete" else vf
-            return zf[idx], of[idx], v, None if gf is None else gf[idx]
+        # per-row codes copy each row's GP block (``M^2`` per row); beyond _ROW_BLOCK_BYTES the
+        # rows of one code are computed together on its shared block instead
+        if discrete:
+            kinv_block = self.transition.blocks()[2]
+            row_bytes = kinv_block[0].numel() * kinv_block.element_size()
 
-        def value_grad(idx: torch.Tensor, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            zi, oi, vi, gi = rows(idx)
-            xs = xs.detach().requires_grad_(True)
-            with torch.enable_grad():
-                v = -self._log_joint(zi, oi, xs, vi, gi)
-                (grad,) = torch.autograd.grad(v.sum(), xs)
-            return v.detach()[:, 0], grad
+        def by_code(idx: torch.Tensor, fn) -> tuple[torch.Tensor, ...]:
+            """``fn(rows, z, observed, values, g)`` on the rows ``idx``, results in their order."""
+            gi = None if gf is None else gf[idx]
+            if not discrete:
+                return fn(idx, zf[idx], of[idx], vf, gi)
+            if len(idx) * row_bytes <= _ROW_BLOCK_BYTES:
+                return fn(idx, zf[idx], of[idx], vf[idx, None], gi)
+            codes, parts, order = vf[idx], [], []
+            for c in torch.unique(codes):
+                sel = idx[codes == c]
+                g_sel = None if gf is None else gf[sel]
+                parts.append(fn(sel, zf[sel], of[sel], c.reshape(1), g_sel))
+                order.append(sel)
+            perm = torch.argsort(torch.cat(order))
+            return tuple(torch.cat(p, 0)[perm] for p in zip(*parts, strict=True))
 
-        x = x.reshape(n, 1, T, dx).detach().clone()
+        def value_grad(xs: torch.Tensor):
+            def fn(sel, zi, oi, vi, gi):
+                xi = xs[sel].detach().requires_grad_(True)
+                with torch.enable_grad():
+                    v = -self._log_joint(zi, oi, xi, vi, gi)
+                    (grad,) = torch.autograd.grad(v.sum(), xi)
+                return v.detach()[:, 0], grad
+
+            return fn
+
+        def precision(xs: torch.Tensor):
+            def fn(sel, zi, oi, vi, gi):
+                with torch.no_grad():
+                    return (self._dense(*self._precision_blocks(oi, xs[sel], vi, gi))[:, 0],)
+
+            return fn
+
+        x = x.expand(*lead, T, dx).reshape(n, 1, T, dx).detach().clone()
         every = torch.arange(n, device=x.device)
-        f, g = value_grad(every, x)
+        f, g = by_code(every, value_grad(x))
         lam = torch.full_like(f, 1e-3)
         active = torch.isfinite(f)
         history = [float(f.sum())]
@@ -946,36 +985,36 @@ class VariationalInference:
             idx = torch.nonzero(active).flatten()
             if idx.numel() == 0:
                 break
-            zi, oi, vi, gi = rows(idx)
-            xi = x[idx]
+            (A,) = by_code(idx, precision(x))
+            grad = g[idx].reshape(-1, T * dx, 1)
             with torch.no_grad():
-                A = self._dense(*self._precision_blocks(oi, xi, vi, gi))[:, 0]
                 damped = A + lam[idx, None, None] * torch.diag_embed(A.diagonal(dim1=-2, dim2=-1))
                 L = psd_cholesky(damped, name="Gauss-Newton matrix of the log joint")
-                grad = g[idx].reshape(-1, T * dx, 1)
                 step = -torch.cholesky_solve(grad, L)
-            if prune is not None:
-                # optimistic value: what is left after three times the step's first-order gain
-                reach = f[idx] + _PRUNE_SAFETY * (grad * step).sum((-1, -2))
-                finite = torch.where(torch.isfinite(f), f, torch.full_like(f, math.inf))
-                best = finite.reshape(-1, K).min(-1).values.repeat_interleave(K)[idx]
-                keep = reach <= best + prune
-                active[idx[~keep]] = False
-                idx, xi, step = idx[keep], xi[keep], step[keep]
-                if idx.numel() == 0:
-                    break
-            step = step.reshape(xi.shape)
-            f_t, g_t = value_grad(idx, xi + step)
+                if prune is not None:
+                    # the step's first-order gain, trusted only while the damping is light
+                    reach = f[idx] + _PRUNE_SAFETY * (grad * step).sum((-1, -2))
+                    finite = torch.where(torch.isfinite(f), f, torch.full_like(f, math.inf))
+                    best = finite.reshape(-1, K).min(-1).values.repeat_interleave(K)[idx]
+                    keep = (reach <= best + prune) | (lam[idx] > _PRUNE_MAX_DAMPING)
+                    active[idx[~keep]] = False
+                    idx, step = idx[keep], step[keep]
+                    if idx.numel() == 0:
+                        break
+                step = step.reshape(-1, 1, T, dx)
+            trial = x.clone()
+            trial[idx] = x[idx] + step
+            f_t, g_t = by_code(idx, value_grad(trial))
             ok = torch.isfinite(f_t) & (f_t < f[idx])
             gain = torch.where(ok, f[idx] - f_t, torch.zeros_like(f_t))
-            x[idx] = torch.where(ok[:, None, None, None], xi + step, xi).detach()
+            x[idx] = torch.where(ok[:, None, None, None], trial[idx], x[idx]).detach()
             f[idx] = torch.where(ok, f_t, f[idx])
             g[idx] = torch.where(ok[:, None, None, None], g_t, g[idx])
             lam[idx] = torch.where(ok, 0.2 * lam[idx], 10.0 * lam[idx])
             done = (ok & (gain < tol)) | (lam[idx] > 1e10)
             active[idx[done]] = False
             history.append(float(f.sum()))
-        return x.reshape(shape), history
+        return x.reshape(*lead, T, dx), history
 
     def laplace(
         self,

@@ -422,6 +422,29 @@ def test_pruning_keeps_a_candidate_that_starts_far_off(planted):
     torch.testing.assert_close(out[k], ref[k], rtol=0, atol=1e-4)
 
 
+def test_lm_by_code_equals_per_row_blocks_and_broadcasts(planted, monkeypatch):
+    """Rows of one code on its shared GP block (the large-block path) give the per-row result;
+    windows broadcast against one set of initial states; a bad prune is refused."""
+    import hgpdm_torch.inference.variational as V
+
+    _, test, model = planted
+    vb = VariationalInference(model)
+    z, observed = window_mask(torch.stack([s[:6] for s in test.sequences[:3]]), 12)
+    x0 = vb.initial_guess(z[0], vb.values)[0]  # [K, T, Dx], broadcast over the 3 windows
+    rows, _ = vb.laplace(z, observed, x0, vb.values, prune=50.0)
+    monkeypatch.setattr(V, "_ROW_BLOCK_BYTES", 0)
+    grouped, _ = vb.laplace(z, observed, x0, vb.values, prune=50.0)
+    assert rows.shape == (3, *x0.shape)
+    # equal up to LM's stopping tolerance (roundoff in other batch shapes can move a stop by a
+    # step below 1e-3 nats)
+    lj = [vb._log_joint(z[:, None], observed[:, None], x[:, :, None], vb.values[:, None])
+          for x in (rows, grouped)]  # fmt: skip
+    torch.testing.assert_close(lj[1], lj[0], rtol=0, atol=1e-3)
+    torch.testing.assert_close(grouped, rows, rtol=0, atol=1e-3)
+    with pytest.raises(ValueError, match="prune"):
+        vb.laplace(z, observed, x0, vb.values, prune=-1.0)
+
+
 def test_batched_windows_equal_one_window_at_a_time(planted):
     """Windows solved in one call (problems compacted as they converge) equal separate calls."""
     _, test, model = planted
