@@ -105,7 +105,8 @@ def run_demo(
         A :class:`DemoResult`.
 
     Raises:
-        ValueError: ``test_fraction`` outside (0, 1), or too few valid strokes to split.
+        ValueError: bad sizes (``num_trials``, ``watched``, ``workers``, ``test_fraction``
+            outside (0, 1)), or too few valid strokes to split.
     """
     from ..robots.table_tennis import strokes
     from ..robots.table_tennis.trials import (
@@ -117,11 +118,18 @@ def run_demo(
 
     if not 0.0 < test_fraction < 1.0:
         raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction!r}")
-    if isinstance(watched, bool) or not isinstance(watched, int) or watched < 0:
-        raise ValueError(f"watched must be a non-negative int, got {watched!r}")
+    for name, value, low in (("num_trials", num_trials, 1), ("watched", watched, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
+    ):
+        raise ValueError(f"workers must be a positive int or None, got {workers!r}")
     config = config or ant.AnticipationConfig(centres=20, iddm_trials=10_000, seed=seed)
     workers = workers or max(1, min(4, os.cpu_count() or 1))
     movements = tuple(strokes.MOVEMENTS)
+    if movements != ant.MOVEMENTS:
+        raise RuntimeError(f"robot movements {movements} differ from actions {ant.MOVEMENTS}")
     start_times = DEFAULT_START_TIMES
     clock = time.perf_counter()
     with float64_default():
@@ -146,6 +154,8 @@ def run_demo(
         obs, targets, iddm_train = trials.obs, trials.targets, train
         if watched:
             seen = make_trials(watched, seed=seed + 1, progress=progress)
+            if not torch.equal(seen.obs_times, trials.obs_times):
+                raise RuntimeError("watched strokes must share the trials' observation times")
             obs, targets = torch.cat([obs, seen.obs]), torch.cat([targets, seen.targets])
             iddm_train = torch.cat([train, num_trials + torch.arange(watched)])
         steps_at = ant.decision_indices(trials.obs_times, start_times)
@@ -199,12 +209,9 @@ def run_demo(
         t_play = time.perf_counter() - clock
         won = sum(r.outcome.success for r in rallies)
         table.add(player="MCP", returns=won, rate=won / len(test), **{"played in": "SAPIEN"})
-        # the scene is deterministic: the live rallies must reproduce the reward table
-        agree = sum(
-            r.outcome.success == bool(rewards[r.trial, movements.index(r.action),
-                                              start_times.index(r.start_time)] > 0)
-            for r in rallies
-        )  # fmt: skip
+        # the scene is deterministic: each live rally must reproduce the reward the stopping
+        # problem gave the planner's (step, action) decision
+        agree = sum(r.outcome.success == bool(decided.reward[j] > 0) for j, r in enumerate(rallies))
         probs = beliefs.log_prob[test].exp()
     meta = {
         "simulate [s]": t_sim,
@@ -271,11 +278,12 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
 
 
 def main(argv: list[str]) -> int:
-    """CLI entry: ``hgpdm demo [--trials N] [--workers W] [--seed S] [--out DIR] [--full]``."""
+    """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--workers W] [--seed S] [--out DIR]
+    [--cache-dir DIR] [--full] [--progress]``."""
     parser = argparse.ArgumentParser(prog="hgpdm demo", description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=int, default=48, help="strokes played in SAPIEN")
+    parser.add_argument("--trials", type=int, default=None, help="strokes played (48)")
     parser.add_argument(
-        "--watched", type=int, default=150, help="further strokes the IDDM is trained on"
+        "--watched", type=int, default=None, help="further strokes the IDDM learns from (150)"
     )
     parser.add_argument("--workers", type=int, default=None, help="SAPIEN processes")
     parser.add_argument("--seed", type=int, default=0)
@@ -286,6 +294,8 @@ def main(argv: list[str]) -> int:
     )
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
+    if args.full and (args.trials is not None or args.watched is not None):
+        parser.error("--trials and --watched set the demo's sizes; --full uses the thesis's")
     if args.full:
         extra = ["--out", args.out, "--seed", str(args.seed)]
         extra += ["--workers", str(args.workers or max(1, os.cpu_count() or 1))]
@@ -293,7 +303,9 @@ def main(argv: list[str]) -> int:
         extra += ["--cache-dir", args.cache_dir] if args.cache_dir else []
         return ant.main(["--full", *extra])
     result = run_demo(
-        num_trials=args.trials, watched=args.watched, workers=args.workers, seed=args.seed,
+        num_trials=48 if args.trials is None else args.trials,
+        watched=150 if args.watched is None else args.watched,
+        workers=args.workers, seed=args.seed,
         cache_dir=args.cache_dir, progress=args.progress,
     )  # fmt: skip
     print(result.table.to_markdown(".3g"))

@@ -35,3 +35,7 @@ def test_demo_rejects_bad_arguments():
         run_demo(test_fraction=1.0)
     with pytest.raises(ValueError, match="watched"):
         run_demo(watched=-1)
+    with pytest.raises(ValueError, match="num_trials"):
+        run_demo(num_trials=0)
+    with pytest.raises(ValueError, match="workers"):
+        run_demo(workers=-2)
