@@ -992,7 +992,7 @@ class VariationalInference:
                 L = psd_cholesky(damped, name="Gauss-Newton matrix of the log joint")
                 step = -torch.cholesky_solve(grad, L)
                 if prune is not None:
-                    # the step's first-order gain, trusted only while the damping is light
+                    # the step's first-order gain, trusted only while the damping is moderate
                     reach = f[idx] + _PRUNE_SAFETY * (grad * step).sum((-1, -2))
                     finite = torch.where(torch.isfinite(f), f, torch.full_like(f, math.inf))
                     best = finite.reshape(-1, K).min(-1).values.repeat_interleave(K)[idx]
