@@ -49,6 +49,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+from sklearn.cluster import KMeans
 from tqdm.auto import tqdm
 
 from ..expectations import Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
@@ -296,17 +297,52 @@ def _even_subset(group: torch.Tensor, m: int) -> torch.Tensor:
     return order[rank % stride == 0].sort().values
 
 
-def _dtc(posterior: GPPosterior, keep: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """DTC weights ``[M, Dout]`` and variance matrix ``[M, M]`` on the points ``keep``."""
+def _dtc(posterior: GPPosterior, Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """DTC weights ``[M, Dout]`` and variance matrix ``[M, M]`` on the pseudo-inputs ``Z``."""
     X, Y, noise = posterior.train_inputs, posterior.train_targets, posterior.noise
     with torch.no_grad():
-        Kmm = posterior.kernel(X[keep]).to_dense()
-        Kmn = posterior.kernel(X[keep], X).to_dense()
+        Kmm = posterior.kernel(Z).to_dense()
+        Kmn = posterior.kernel(Z, X).to_dense()
     Lm = psd_cholesky(Kmm, name="inducing kernel matrix K_MM")
     LA = psd_cholesky(noise * Kmm + Kmn @ Kmn.T, name="DTC matrix noise K_MM + K_MN K_NM")
     weights = torch.cholesky_solve(Kmn @ Y, LA)
     kinv = symmetrize(torch.cholesky_inverse(Lm) - noise * torch.cholesky_inverse(LA))
     return weights, kinv
+
+
+def _pseudo_inputs(
+    X: torch.Tensor, dx: int, m: int, num_values: int | None, discrete: bool
+) -> torch.Tensor:
+    """M pseudo-inputs ``[M, Dx + Dg]`` for the sparse transition GP (Sec. 3.3.3).
+
+    The cost per step grows with the number of distinct intention values among the pseudo-inputs
+    (the groups of :class:`SharedTransition`), so they share ``num_values`` values: the training
+    intentions' K-means centres (weighted by their number of points; a discrete g keeps its
+    codes; default ``num_values = round(sqrt(M))``). Each centre gets ``floor(M / num_values)``
+    training latents of its cluster, evenly spread over the cluster's points (all of them when
+    it has fewer), so there are at most M.
+    """
+    uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
+    u = len(uniq)
+    if num_values is None:
+        num_values = max(1, round(math.sqrt(m)))
+    if discrete or num_values >= u:
+        centres, cluster = uniq, group
+    else:
+        counts = torch.bincount(group, minlength=u).double().numpy()
+        km = KMeans(n_clusters=num_values, n_init=4, random_state=0)
+        km.fit(uniq.double().numpy(), sample_weight=counts)
+        centres = torch.as_tensor(km.cluster_centers_, dtype=X.dtype)
+        cluster = torch.as_tensor(km.labels_, dtype=torch.long)[group]
+    # the same number of points per centre: groups are padded to the largest one
+    per = max(1, m // len(centres))
+    keep = []
+    for c in range(len(centres)):
+        members = torch.nonzero(cluster == c).flatten()
+        pick = torch.linspace(0, len(members) - 1, min(per, len(members))).round().long()
+        keep.append(members[pick])
+    keep = torch.cat(keep)
+    return torch.cat([X[keep, :dx], centres[cluster[keep]]], 1)
 
 
 class SharedTransition:
@@ -324,17 +360,21 @@ class SharedTransition:
       and group u. Per intention only ``U x U`` group sums of ``psi2`` are contracted:
       ``O(N^2 Dx + K U^2 Dx^2)`` per stream instead of ``O(K N^2 Dx)``.
 
-    With ``inducing = M < N`` the GP is replaced by its sparse pseudo-input approximation (thesis
-    Sec. 3.3.3; the deterministic training conditional, DTC) on M of the training points, taken
-    evenly from each ``g`` group so that the grouping is kept: with ``A = noise K_MM + K_MN K_NM``
+    With ``inducing = M`` the GP is replaced by its sparse pseudo-input approximation (thesis
+    Sec. 3.3.3; the deterministic training conditional, DTC): with ``A = noise K_MM + K_MN K_NM``
     the mean weights become ``A^-1 K_MN Y`` and ``K^-1`` in the variance becomes
-    ``K_MM^-1 - noise A^-1``; the ``N x N`` work per step falls by ``(N / M)^2``.
+    ``K_MM^-1 - noise A^-1``. The M pseudo-inputs are training latents paired with
+    ``inducing_values`` intention values (K-means centres of the training g; all codes of a
+    discrete g), so the U groups above become ``inducing_values`` groups: the work per step falls
+    from ``O(N^2 Dx + K U N Dx)`` to ``O(M^2 Dx + K inducing_values M Dx)``.
 
     Args:
         posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``).
         values: ``[K, Dg]`` intention grid (or codes).
         dtype: computation dtype (the posterior's weights and ``K^-1`` are cast from it).
         inducing: number of pseudo-inputs M (``None``: the exact GP).
+        inducing_values: number of distinct intention values among the pseudo-inputs for a
+            continuous g (default ``round(sqrt(M))``).
     """
 
     def __init__(
@@ -344,19 +384,30 @@ class SharedTransition:
         dtype: torch.dtype | None = None,
         *,
         inducing: int | None = None,
+        inducing_values: int | None = None,
     ) -> None:
         dtype = dtype or posterior.train_inputs.dtype
         X = posterior.train_inputs
         dx = X.shape[1] - values.shape[1]
         leaves = kernel_leaves(posterior.kernel, X.shape[1])
-        uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
         weights, kinv = posterior.weights, posterior.kinv
         if inducing is not None:
-            if not isinstance(inducing, int) or inducing < 1:
+            if isinstance(inducing, bool) or not isinstance(inducing, int) or inducing < 1:
                 raise ValueError(f"inducing must be a positive int or None, got {inducing!r}")
-            keep = _even_subset(group, inducing)
-            weights, kinv = _dtc(posterior, keep)
-            X, group = X[keep], group[keep]
+            if inducing_values is not None and (
+                isinstance(inducing_values, bool)
+                or not isinstance(inducing_values, int)
+                or inducing_values < 1
+            ):
+                raise ValueError(
+                    f"inducing_values must be a positive int or None, got {inducing_values!r}"
+                )
+            discrete = any(leaf.codes for leaf in leaves)
+            X = _pseudo_inputs(X, dx, inducing, inducing_values, discrete)
+            weights, kinv = _dtc(posterior, X)
+        elif inducing_values is not None:
+            raise ValueError("inducing_values needs inducing (the number of pseudo-inputs)")
+        uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
         terms = split_terms(leaves, torch.cat([uniq.new_zeros(len(uniq), dx), uniq], 1), values, dx)
         if len(terms) != 1 or terms[0].kind != "rbf" or terms[0].factor is None:
             raise TypeError(
@@ -440,10 +491,19 @@ class LinearMeasurement:
     ``Q = diag(w) - diag(w) X^T (K + noise I)^-1 X diag(w)``. At ``x ~ N(mu, P)``::
 
         mean = W^T mu + offset,   Cov[x, z] = P W,
-        cov  = W^T P W + diag(scale^2 (tr(Q (P + mu mu^T)) + noise)),
+        cov  = W^T P W + v diag(s^2),   v = tr(Q (P + mu mu^T)) + noise,
 
-    exactly the moments :meth:`GPPosterior.predict_gaussian` gives, in ``O(Dx^2 Dz)`` per
-    input instead of ``O(N Dx Dz)``: the filter updates B x K Gaussians per step.
+    exactly the moments :meth:`GPPosterior.predict_gaussian` gives (``s`` the output scale).
+    As the observation noise ``v diag(s^2)`` is one scalar per input times a fixed diagonal,
+    the update is done in the latent space (Woodbury and Sylvester identities): with
+    ``W~ = W diag(1/s)``, ``G = W~ W~^T``, ``P = L L^T`` and ``C = v I + L^T G L`` (``Dx x Dx``),
+
+        posterior mean = mu + L C^-1 L^T W~ r~,     posterior cov = v L C^-1 L^T,
+        log|cov z| = 2 sum log s + (Dz - Dx) log v + log|C|,
+        r^T (cov z)^-1 r = (|r~|^2 - h^T L C^-1 L^T h) / v,   h = W~ r~,
+
+    for the residual ``r = z - mean`` (``r~ = r / s``): ``O(Dx^2 Dz + Dx^3)`` per input, no
+    ``Dz x Dz`` factorisation. The filter updates B x K Gaussians per step.
 
     Args:
         posterior: the measurement GP (``model.measurement_posterior()``).
@@ -460,9 +520,14 @@ class LinearMeasurement:
         dtype = dtype or posterior.train_inputs.dtype
         w = (leaves[0].coef * leaves[0].weight).detach()
         XW = posterior.train_inputs * w
-        self.W = (XW.T @ posterior.weights).to(dtype)  # [Dx, Dz]
+        W = XW.T @ posterior.weights  # [Dx, Dz]
+        scale = posterior.scale.expand(W.shape[1])
+        self.W = W.to(dtype)
+        self.Ws = (W / scale).to(dtype)  # W~
+        self.G = symmetrize(self.Ws @ self.Ws.T)
         self.Q = symmetrize(torch.diag(w) - XW.T @ posterior.kinv @ XW).to(dtype)
-        self.scale2 = posterior.scale.pow(2).to(dtype)
+        self.scale = scale.to(dtype)
+        self.log_scale2 = float(2.0 * scale.log().sum())
         self.offset = posterior.offset.to(dtype)
         self.noise = posterior.noise.to(dtype)
 
@@ -472,22 +537,31 @@ class LinearMeasurement:
         """Like :func:`~hgpdm_torch.inference.filtering.gp_adf_update` (NaN rows of ``z`` leave
         the prediction unchanged, log-likelihood 0). Shapes ``[..., Dx]``, ``[..., Dx, Dx]``,
         ``[..., Dz]`` -> ``[..., Dx]``, ``[..., Dx, Dx]``, ``[...]``."""
-        W = self.W
+        dx, dz = self.W.shape
         second = P + mu[..., :, None] * mu[..., None, :]
-        var = (self.Q * second).sum((-1, -2)) + self.noise
-        PW = P @ W  # Cov[x, z]
-        Sz = W.T @ PW + torch.diag_embed(var[..., None] * self.scale2)
-        L = psd_cholesky(symmetrize(Sz), name="predicted observation covariance")
+        v = (self.Q * second).sum((-1, -2)) + self.noise  # [...]
         missing = torch.isnan(z).all(-1)
-        mz = (mu[..., None, :] @ W)[..., 0, :] + self.offset
-        r = torch.where(missing[..., None], torch.zeros_like(mz), z - mz)
-        gain_t = torch.cholesky_solve(PW.transpose(-1, -2), L)  # Sz^-1 Cov[z, x]
+        mz = (mu[..., None, :] @ self.W)[..., 0, :] + self.offset
+        r = torch.where(missing[..., None], torch.zeros_like(mz), z - mz) / self.scale
+        h = (self.Ws @ r[..., :, None])[..., 0]  # [..., Dx]
+        L = psd_cholesky(P, name="predicted latent covariance")
+        eye = torch.eye(dx, dtype=P.dtype, device=P.device)
+        C = v[..., None, None] * eye + L.transpose(-1, -2) @ self.G @ L
+        Lc = psd_cholesky(symmetrize(C), name="latent-space innovation matrix")
+        # A = L C^-1 L^T = M^T M with M = Lc^-1 L^T
+        M = torch.linalg.solve_triangular(Lc, L.transpose(-1, -2), upper=False)
+        Mh = (M @ h[..., :, None])[..., 0]
+        step = (M.transpose(-1, -2) @ Mh[..., :, None])[..., 0]  # A h
         keep = missing[..., None]
-        mean = torch.where(keep, mu, mu + (r[..., None, :] @ gain_t)[..., 0, :])
-        cov = torch.where(keep[..., None], P, symmetrize(P - PW @ gain_t))
-        w = torch.linalg.solve_triangular(L, r[..., :, None], upper=False)[..., 0]
-        logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        ll = -0.5 * (w.pow(2).sum(-1) + logdet + W.shape[-1] * _LOG_2PI)
+        mean = torch.where(keep, mu, mu + step)
+        cov = torch.where(keep[..., None], P, v[..., None, None] * (M.transpose(-1, -2) @ M))
+        maha = (r.pow(2).sum(-1) - Mh.pow(2).sum(-1)) / v
+        logdet = (
+            self.log_scale2
+            + (dz - dx) * v.log()
+            + 2.0 * Lc.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        )
+        ll = -0.5 * (maha + logdet + dz * _LOG_2PI)
         return mean, cov, torch.where(missing, torch.zeros_like(ll), ll)
 
 
@@ -570,6 +644,8 @@ class OnlineIntentionFilter:
         dtype: computation dtype (default the model's; float32 halves memory traffic).
         inducing: pseudo-inputs of a sparse transition GP (Sec. 3.3.3; see
             :class:`SharedTransition`), or ``None`` for the exact GP.
+        inducing_values: distinct intention values among the pseudo-inputs (continuous g;
+            default ``round(sqrt(inducing))``).
         chunk_size: streams processed together; the ``[chunk, N, N]`` temporaries are passed
             over several times, so the default ``2^19 / N^2`` keeps them in cache.
 
@@ -592,6 +668,7 @@ class OnlineIntentionFilter:
         Sigma0: Any = None,
         dtype: torch.dtype | None = None,
         inducing: int | None = None,
+        inducing_values: int | None = None,
         chunk_size: int | None = None,
     ) -> None:
         values = intention_grid(model, intentions)
@@ -606,7 +683,9 @@ class OnlineIntentionFilter:
         self.dtype = dtype or model.latent.dtype
         self.continuous = model.intention == "continuous"
         trans = model.transition_posterior()
-        self.transition = SharedTransition(trans, values, self.dtype, inducing=inducing)
+        self.transition = SharedTransition(
+            trans, values, self.dtype, inducing=inducing, inducing_values=inducing_values
+        )
         self.measure = _measurement_update(model.measurement_posterior(), self.dtype)
         self.gaussian_transition = (
             _posterior_as(trans, self.dtype) if mixing == "gaussian" else None

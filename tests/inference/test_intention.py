@@ -499,13 +499,20 @@ def test_sparse_transition_is_exact_with_all_points_and_close_with_half(generato
     values = torch.linspace(-1, 1, 5)[:, None]
     mu, S = random_gaussians(3, dx, generator)
     exact = SharedTransition(post, values).moments(mu, S)
-    full = SharedTransition(post, values, inducing=n_seq * per).moments(mu, S)
+    full = SharedTransition(post, values, inducing=n_seq * per, inducing_values=n_seq)
+    full = full.moments(mu, S)
     for a, b in zip(full, exact, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    # half the points on round(sqrt(30)) = 5 K-means centres of g, 6 points each
     half = SharedTransition(post, values, inducing=n_seq * per // 2)
     assert half.inputs.shape[0] == n_seq * per // 2
+    assert (half.groups, half.group_size) == (5, 6)
     m, c, _ = half.moments(mu, S)
     assert float((m - exact[0]).abs().max()) < 0.1
     assert float((c - exact[1]).abs().max()) < 0.1
     with pytest.raises(ValueError, match="inducing"):
         SharedTransition(post, values, inducing=0)
+    with pytest.raises(ValueError, match="inducing_values"):
+        SharedTransition(post, values, inducing=10, inducing_values=0)
+    with pytest.raises(ValueError, match="needs inducing"):
+        SharedTransition(post, values, inducing_values=3)
