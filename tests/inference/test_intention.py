@@ -126,6 +126,27 @@ def test_linear_measurement_equals_gp_adf_update(continuous_model, generator):
         LinearMeasurement(continuous_model.transition_posterior())
 
 
+@pytest.mark.parametrize("dz", [2, 4, 7])
+def test_latent_space_measurement_update_for_any_dz(dz, generator):
+    """The Woodbury form holds for Dz below, equal to and above Dx (the log-det's (Dz - Dx)
+    term changes sign), with a scaled linear kernel, an output scale and an offset."""
+    dx, n = 4, 30
+    kernel = LinearKernel().double()
+    kernel.variance = 0.7
+    X = torch.randn(n, dx, generator=generator, dtype=torch.float64)
+    Y = X @ torch.randn(dx, dz, generator=generator, dtype=torch.float64)
+    scale = torch.rand(dz, generator=generator, dtype=torch.float64) + 0.5
+    offset = torch.randn(dz, generator=generator, dtype=torch.float64)
+    post = GPPosterior(kernel, X, Y, 0.1, scale=scale, offset=offset)
+    mu, P = random_gaussians(5, dx, generator)
+    z = torch.randn(5, dz, generator=generator, dtype=torch.float64)
+    z[3] = float("nan")
+    got = LinearMeasurement(post).update(mu, P, z)
+    want = gp_adf_update(post, mu, P, z)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+
+
 # ----- Q_t(g): statistical linearisation against DESIGN.md's KL form and Monte Carlo ----------
 
 
@@ -265,18 +286,17 @@ def test_bound_step_smooths_one_step_like_gp_rtss(continuous_model, monkeypatch)
 # ----- Batching, missing observations, reset -------------------------------------------------
 
 
-@pytest.mark.parametrize("evidence", ["predictive", "bound"])
-def test_batched_streams_equal_single_streams(continuous_model, evidence):
+@pytest.mark.parametrize(
+    ("evidence", "inducing"), [("predictive", None), ("bound", None), ("predictive", 40)]
+)
+def test_batched_streams_equal_single_streams(continuous_model, evidence, inducing):
     model = continuous_model
     z = torch.stack(model.sequences()[:3])[:, :5].clone()
     z[1, 2] = float("nan")
     z[2, 0] = float("nan")  # a stream whose first observation is missing
-    batched = OnlineIntentionFilter(
-        model, GRID, forgetting=0.2, batch_size=3, evidence=evidence, chunk_size=2
-    )
-    singles = [OnlineIntentionFilter(model, GRID, forgetting=0.2, evidence=evidence)]
-    singles += [OnlineIntentionFilter(model, GRID, forgetting=0.2, evidence=evidence)]
-    singles += [OnlineIntentionFilter(model, GRID, forgetting=0.2, evidence=evidence)]
+    opts = {"forgetting": 0.2, "evidence": evidence, "inducing": inducing}
+    batched = OnlineIntentionFilter(model, GRID, batch_size=3, chunk_size=2, **opts)
+    singles = [OnlineIntentionFilter(model, GRID, **opts) for _ in range(3)]
     for t in range(z.shape[1]):
         out = batched.update(z[:, t])
         for b, f in enumerate(singles):
