@@ -288,15 +288,6 @@ def _gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
 # ------------------------------------------------------------------------------------------
 
 
-def _even_subset(group: torch.Tensor, m: int) -> torch.Tensor:
-    """Indices of about ``m`` points, every ``ceil(N / m)``-th within each group (sorted)."""
-    stride = -(-group.numel() // m)
-    order = torch.argsort(group, stable=True)
-    counts = torch.bincount(group)
-    rank = torch.arange(group.numel()) - (torch.cumsum(counts, 0) - counts)[group[order]]
-    return order[rank % stride == 0].sort().values
-
-
 def _dtc(posterior: GPPosterior, Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """DTC weights ``[M, Dout]`` and variance matrix ``[M, M]`` on the pseudo-inputs ``Z``."""
     X, Y, noise = posterior.train_inputs, posterior.train_targets, posterior.noise
@@ -320,7 +311,7 @@ def _pseudo_inputs(
     intentions' K-means centres (weighted by their number of points; a discrete g keeps its
     codes; default ``num_values = round(sqrt(M))``). Each centre gets ``floor(M / num_values)``
     training latents of its cluster, evenly spread over the cluster's points (all of them when
-    it has fewer), so there are at most M.
+    it has fewer), so there are at most M (one per value when M is below their number).
     """
     uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
     u = len(uniq)
