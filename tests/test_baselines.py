@@ -13,6 +13,7 @@ from hgpdm_torch.baselines import (
     MedianPredictor,
     WindowGPC,
     WindowGPR,
+    WindowRidge,
     WindowSVM,
     window_features,
 )
@@ -61,6 +62,29 @@ def test_gpr_chooses_the_informative_window_and_matches_sklearn(generator):
     ref = GaussianProcessRegressor(kernel, optimizer=None).fit(x_train, y_train)
     x_test = gpr.scaler.transform(window_features(torch.stack(test), 2).reshape(-1, 4).numpy())
     np.testing.assert_allclose(mean.reshape(-1).numpy(), ref.predict(x_test) + c, atol=1e-5)
+
+
+def test_ridge_chooses_the_informative_window_and_solves_the_normal_equations(generator):
+    seqs, y = velocity_sequences(40, generator)
+    ridge = WindowRidge(windows=(1, 2)).fit(seqs, y)
+    assert ridge.window == 2
+    assert ridge.validation_mae[2] < 0.5 * ridge.validation_mae[1]
+    test, y_test = velocity_sequences(10, generator)
+    pred = ridge.predict(torch.stack(test))
+    assert pred.shape == (10, 6)
+    # frames after the first show the speed exactly (up to the noise): a linear read-out
+    assert float((pred[:, 1:] - y_test[:, None]).abs().mean()) < 0.05
+    # the same ridge solution from the normal equations on the standardised windows
+    x = ridge.scaler.transform(torch.cat([window_features(s, 2) for s in seqs]).numpy())
+    t = np.repeat(y.numpy(), 6)
+    xc, tc = x - x.mean(0), t - t.mean()
+    alpha = ridge.model.alpha_
+    coef = np.linalg.solve(xc.T @ xc + alpha * np.eye(x.shape[1]), xc.T @ tc)
+    np.testing.assert_allclose(ridge.model.coef_, coef, rtol=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match="alphas"):
+        WindowRidge(alphas=(0.0,))
+    with pytest.raises(ValueError, match="one target per sequence"):
+        WindowRidge().fit(seqs, y[:-1])
 
 
 def test_median_predictor():

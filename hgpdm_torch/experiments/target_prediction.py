@@ -14,7 +14,8 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   configuration's test MAE (Table 3.2 layout);
 - for the selected model: batch IDDM (Algorithm 3.1, window 4), online IDDM (Algorithm 3.2,
   ``eps = 0.2``), GP regression with ARD on a window chosen by validation, and the median
-  (Fig. 3.7): MAE +- SEM in cm and the CPU time per observation.
+  (Fig. 3.7), plus ridge regression on a window (not in the thesis; a linear read-out of the
+  raw observations): MAE +- SEM in cm and the CPU time per observation.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import torch
 from sklearn.cross_decomposition import PLSRegression
 from tqdm.auto import tqdm
 
-from ..baselines import MedianPredictor, WindowGPR
+from ..baselines import MedianPredictor, WindowGPR, WindowRidge
 from ..inference.intention import OnlineIntentionFilter, infer_intention
 from ..models import IDDM
 from ..validation import as_tensor, check_choice
@@ -145,8 +146,8 @@ def target_prediction(
     the training plays over all horizons (online IDDM) and
     the test MAE at every horizon (Table 3.2 reads the 80 ms column). Rows ``comparison``: the
     selected model's batch and online IDDM (also with a sparse transition GP on each number of
-    pseudo-inputs in ``inducing``, Sec. 3.3.3), GPR and the median (Fig. 3.7). MAE +- SEM in cm;
-    ``meta`` holds the raw numbers, the targets' spread and the selected configuration.
+    pseudo-inputs in ``inducing``, Sec. 3.3.3), GPR, ridge and the median (Fig. 3.7). MAE +- SEM
+    in cm; ``meta`` holds the raw numbers, the targets' spread and the selected configuration.
     ``init`` is the latent initialisation: ``"pls"`` (:func:`supervised_init`) or ``"pca"``.
     """
     check_choice(init, "init", ("pls", "pca"))
@@ -205,6 +206,14 @@ def target_prediction(
     table.meta["mae"]["gpr"] = scores
     table.meta["gpr_window"] = gpr.window
     table.add(**_row("comparison", f"GPR (ARD, window {gpr.window})", None, None, None, scores, ms))
+    ridge = WindowRidge(windows=(1, 2, 3), seed=seed).fit(list(obs[train]), y[train])
+    start = time.process_time()
+    pred = ridge.predict(obs_test)
+    ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
+    scores = [_mae_sem(pred[:, s], y_test) for s in _STEPS]
+    table.meta["mae"]["ridge"] = scores
+    table.meta["ridge_window"] = ridge.window
+    table.add(**_row("comparison", f"ridge (window {ridge.window})", None, None, None, scores, ms))
     med = MedianPredictor().fit(None, y[train]).predict(obs_test)
     scores = [_mae_sem(med[:, s], y_test) for s in _STEPS]
     table.meta["mae"]["median"] = scores

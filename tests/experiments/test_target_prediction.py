@@ -29,7 +29,8 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert any(m.startswith("GPR") for m in methods) and methods[-1] == "median"
     assert table.meta["selected"] == {"kernel": "linear", "Dx": 3}
     assert any("sparse M=30" in m for m in methods)
-    for name in ("online", "online sparse M=30", "batch", "gpr", "median"):
+    assert any(m.startswith("ridge") for m in methods)
+    for name in ("online", "online sparse M=30", "batch", "gpr", "ridge", "median"):
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
     # the median row equals an independent recomputation on the same strokes
     strokes = sample_strokes(22, generator=torch.Generator().manual_seed(0))
