@@ -536,3 +536,25 @@ def test_sparse_transition_is_exact_with_all_points_and_close_with_half(generato
         SharedTransition(post, values, inducing=10, inducing_values=0)
     with pytest.raises(ValueError, match="needs inducing"):
         SharedTransition(post, values, inducing_values=3)
+
+
+def test_sparse_transition_keeps_discrete_codes(generator):
+    n_seq, per, dx, k = 9, 6, 2, 3
+    kernel = transition_kernel("iddm_discrete", dx, num_values=k, alpha=(0.9, 0.5, 0.1, 5e-2))
+    X = torch.randn(n_seq * per, dx, generator=generator)
+    codes = (torch.arange(n_seq) % k).double().repeat_interleave(per)[:, None]
+    post = GPPosterior(kernel, torch.cat([X, codes], 1), torch.sin(X) + 0.3 * codes, 5e-2)
+    values = torch.arange(k, dtype=torch.float64)[:, None]
+    mu, S = random_gaussians(4, dx, generator)
+    exact = SharedTransition(post, values).moments(mu, S)
+    # all points of every code (18 each): the DTC on all training inputs is the exact GP;
+    # inducing_values cannot merge codes
+    full = SharedTransition(post, values, inducing=n_seq * per, inducing_values=1)
+    assert (full.groups, full.group_size) == (k, n_seq * per // k)
+    for a, b in zip(full.moments(mu, S), exact, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    few = SharedTransition(post, values, inducing=9 * k)
+    assert (few.groups, few.group_size) == (k, 9)
+    m, c, _ = few.moments(mu, S)  # half the points of each code: a DTC approximation
+    assert float((m - exact[0]).abs().max()) < 0.25
+    assert float((c - exact[1]).abs().max()) < 0.25
