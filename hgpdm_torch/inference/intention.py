@@ -304,19 +304,20 @@ def _dtc(posterior: GPPosterior, Z: torch.Tensor) -> tuple[torch.Tensor, torch.T
 def _pseudo_inputs(
     X: torch.Tensor, dx: int, m: int, num_values: int | None, discrete: bool
 ) -> torch.Tensor:
-    """M pseudo-inputs ``[M, Dx + Dg]`` for the sparse transition GP (Sec. 3.3.3).
+    """M pseudo-inputs ``[<= M, Dx + Dg]`` for the sparse transition GP (Sec. 3.3.3).
 
     The cost per step grows with the number of distinct intention values among the pseudo-inputs
     (the groups of :class:`SharedTransition`), so they share ``num_values`` values: the training
-    intentions' K-means centres (weighted by their number of points; a discrete g keeps its
-    codes; default ``num_values = round(sqrt(M))``). Each centre gets ``floor(M / num_values)``
+    intentions' K-means centres, weighted by their number of points (default
+    ``round(sqrt(M))``; the training values themselves when ``M >= N``, which gives the exact GP;
+    a discrete g always keeps its codes). Each value gets ``floor(M / values)`` (at least one)
     training latents of its cluster, evenly spread over the cluster's points (all of them when
-    it has fewer), so there are at most M (one per value when M is below their number).
+    it has fewer), so there are at most M unless M is below the number of discrete codes.
     """
     uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
     u = len(uniq)
     if num_values is None:
-        num_values = max(1, round(math.sqrt(m)))
+        num_values = max(1, round(math.sqrt(m))) if m < X.shape[0] else u
     if discrete or num_values >= u:
         centres, cluster = uniq, group
     else:
@@ -325,7 +326,7 @@ def _pseudo_inputs(
         km.fit(uniq.double().numpy(), sample_weight=counts)
         centres = torch.as_tensor(km.cluster_centers_, dtype=X.dtype)
         cluster = torch.as_tensor(km.labels_, dtype=torch.long)[group]
-    # the same number of points per centre: groups are padded to the largest one
+    # the same number of points per value: groups are padded to the largest one
     per = max(1, m // len(centres))
     keep = []
     for c in range(len(centres)):
@@ -348,8 +349,8 @@ class SharedTransition:
       ``psi1, E[grad k], psi2`` come from :mod:`hgpdm_torch.expectations`;
     - the training points are grouped by their ``g`` (U groups; padded to a common size L, with
       zero weights on the padding), and ``phi [K, U]`` holds the ``g`` factor of grid value k
-      and group u. Per intention only ``U x U`` group sums of ``psi2`` are contracted:
-      ``O(N^2 Dx + K U^2 Dx^2)`` per stream instead of ``O(K N^2 Dx)``.
+      and group u. The second moments contract ``psi2`` with each group's weights, then with
+      ``phi``: ``O(N^2 Dx + K U N Dx)`` per stream instead of ``O(K N^2 Dx)``.
 
     With ``inducing = M`` the GP is replaced by its sparse pseudo-input approximation (thesis
     Sec. 3.3.3; the deterministic training conditional, DTC): with ``A = noise K_MM + K_MN K_NM``
@@ -365,7 +366,8 @@ class SharedTransition:
         dtype: computation dtype (the posterior's weights and ``K^-1`` are cast from it).
         inducing: number of pseudo-inputs M (``None``: the exact GP).
         inducing_values: number of distinct intention values among the pseudo-inputs for a
-            continuous g (default ``round(sqrt(M))``).
+            continuous g, at most M (default ``round(sqrt(M))``, or all training values when
+            ``M >= N``).
     """
 
     def __init__(
@@ -392,6 +394,11 @@ class SharedTransition:
             ):
                 raise ValueError(
                     f"inducing_values must be a positive int or None, got {inducing_values!r}"
+                )
+            if inducing_values is not None and inducing_values > inducing:
+                raise ValueError(
+                    f"inducing_values ({inducing_values}) cannot exceed inducing ({inducing}): "
+                    "each intention value needs at least one pseudo-input"
                 )
             discrete = any(leaf.codes for leaf in leaves)
             X = _pseudo_inputs(X, dx, inducing, inducing_values, discrete)
@@ -485,16 +492,20 @@ class LinearMeasurement:
         cov  = W^T P W + v diag(s^2),   v = tr(Q (P + mu mu^T)) + noise,
 
     exactly the moments :meth:`GPPosterior.predict_gaussian` gives (``s`` the output scale).
-    As the observation noise ``v diag(s^2)`` is one scalar per input times a fixed diagonal,
-    the update is done in the latent space (Woodbury and Sylvester identities): with
-    ``W~ = W diag(1/s)``, ``G = W~ W~^T``, ``P = L L^T`` and ``C = v I + L^T G L`` (``Dx x Dx``),
+    The observation noise ``v diag(s^2)`` is one scalar per input times a fixed diagonal, so
+    in scaled units ``z~ = (z - offset) / s`` the innovation covariance is
+    ``W~^T P W~ + v I`` with ``W~ = W diag(1/s)``. With the reduced QR factorisation
+    ``W~^T = U R`` (``U [Dz, k]`` orthonormal, ``R [k, Dx]``, ``k = min(Dx, Dz)``) it splits
+    into ``S = R P R^T + v I`` on the span of ``U`` and ``v I`` on its complement::
 
-        posterior mean = mu + L C^-1 L^T W~ r~,     posterior cov = v L C^-1 L^T,
-        log|cov z| = 2 sum log s + (Dz - Dx) log v + log|C|,
-        r^T (cov z)^-1 r = (|r~|^2 - h^T L C^-1 L^T h) / v,   h = W~ r~,
+        r = U^T z~ - R mu,   r_perp = z~ - U U^T z~   (independent of the latent state),
+        log p(z) = -1/2 (r^T S^-1 r + |r_perp|^2 / v + log|S| + (Dz - k) log v
+                         + 2 sum log s + Dz log 2 pi),
+        posterior mean = mu + P R^T S^-1 r,   posterior cov = P - P R^T S^-1 R P.
 
-    for the residual ``r = z - mean`` (``r~ = r / s``): ``O(Dx^2 Dz + Dx^3)`` per input, no
-    ``Dz x Dz`` factorisation. The filter updates B x K Gaussians per step.
+    Only the ``k x k`` matrix S is factorised (never P, so a singular prediction is fine) and
+    no squared norms are subtracted, which keeps float32 accurate: ``O(Dx^2 Dz)`` per input.
+    The filter updates B x K Gaussians per step.
 
     Args:
         posterior: the measurement GP (``model.measurement_posterior()``).
@@ -509,16 +520,16 @@ class LinearMeasurement:
         if len(leaves) != 1 or leaves[0].kind != "linear" or leaves[0].codes:
             raise TypeError("LinearMeasurement needs a measurement GP with a linear kernel")
         dtype = dtype or posterior.train_inputs.dtype
-        w = (leaves[0].coef * leaves[0].weight).detach()
-        XW = posterior.train_inputs * w
-        W = XW.T @ posterior.weights  # [Dx, Dz]
-        scale = posterior.scale.expand(W.shape[1])
-        self.W = W.to(dtype)
-        self.Ws = (W / scale).to(dtype)  # W~
-        self.G = symmetrize(self.Ws @ self.Ws.T)
-        self.Q = symmetrize(torch.diag(w) - XW.T @ posterior.kinv @ XW).to(dtype)
+        w = (leaves[0].coef * leaves[0].weight).detach().double()
+        XW = posterior.train_inputs.double() * w
+        W = XW.T @ posterior.weights.double()  # [Dx, Dz]
+        scale = posterior.scale.double().expand(W.shape[1])
+        U, R = torch.linalg.qr((W / scale).T)  # reduced: [Dz, k], [k, Dx]
+        kinv = posterior.kinv.double()
+        self.U, self.R = U.to(dtype), R.to(dtype)
+        self.Q = symmetrize(torch.diag(w) - XW.T @ kinv @ XW).to(dtype)
         self.scale = scale.to(dtype)
-        self.log_scale2 = float(2.0 * scale.log().sum())
+        self.log_scale2 = (2.0 * scale.log().sum()).to(dtype)
         self.offset = posterior.offset.to(dtype)
         self.noise = posterior.noise.to(dtype)
 
@@ -528,29 +539,27 @@ class LinearMeasurement:
         """Like :func:`~hgpdm_torch.inference.filtering.gp_adf_update` (NaN rows of ``z`` leave
         the prediction unchanged, log-likelihood 0). Shapes ``[..., Dx]``, ``[..., Dx, Dx]``,
         ``[..., Dz]`` -> ``[..., Dx]``, ``[..., Dx, Dx]``, ``[...]``."""
-        dx, dz = self.W.shape
+        U, R = self.U, self.R
+        dz, k = U.shape
         second = P + mu[..., :, None] * mu[..., None, :]
         v = (self.Q * second).sum((-1, -2)) + self.noise  # [...]
         missing = torch.isnan(z).all(-1)
-        mz = (mu[..., None, :] @ self.W)[..., 0, :] + self.offset
-        r = torch.where(missing[..., None], torch.zeros_like(mz), z - mz) / self.scale
-        h = (self.Ws @ r[..., :, None])[..., 0]  # [..., Dx]
-        L = psd_cholesky(P, name="predicted latent covariance")
-        eye = torch.eye(dx, dtype=P.dtype, device=P.device)
-        C = v[..., None, None] * eye + L.transpose(-1, -2) @ self.G @ L
-        Lc = psd_cholesky(symmetrize(C), name="latent-space innovation matrix")
-        # A = L C^-1 L^T = M^T M with M = Lc^-1 L^T
-        M = torch.linalg.solve_triangular(Lc, L.transpose(-1, -2), upper=False)
-        Mh = (M @ h[..., :, None])[..., 0]
-        step = (M.transpose(-1, -2) @ Mh[..., :, None])[..., 0]  # A h
+        zs = torch.where(missing[..., None], torch.zeros_like(z), (z - self.offset) / self.scale)
+        zu = zs @ U  # [..., k]
+        r_perp = zs - zu @ U.T
+        r = zu - mu @ R.T
+        RP = R @ P  # [..., k, Dx]
+        eye = torch.eye(k, dtype=P.dtype, device=P.device)
+        S = symmetrize(RP @ R.T) + v[..., None, None] * eye
+        L = psd_cholesky(S, name="predicted observation covariance (latent span)")
+        A = torch.linalg.solve_triangular(L, RP, upper=False)  # L^-1 R P
+        a = torch.linalg.solve_triangular(L, r[..., :, None], upper=False)  # L^-1 r
         keep = missing[..., None]
-        mean = torch.where(keep, mu, mu + step)
-        cov = torch.where(keep[..., None], P, v[..., None, None] * (M.transpose(-1, -2) @ M))
-        maha = (r.pow(2).sum(-1) - Mh.pow(2).sum(-1)) / v
+        mean = torch.where(keep, mu, mu + (A.transpose(-1, -2) @ a)[..., 0])
+        cov = torch.where(keep[..., None], P, symmetrize(P - A.transpose(-1, -2) @ A))
+        maha = a[..., 0].pow(2).sum(-1) + r_perp.pow(2).sum(-1) / v
         logdet = (
-            self.log_scale2
-            + (dz - dx) * v.log()
-            + 2.0 * Lc.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+            2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1) + (dz - k) * v.log() + self.log_scale2
         )
         ll = -0.5 * (maha + logdet + dz * _LOG_2PI)
         return mean, cov, torch.where(missing, torch.zeros_like(ll), ll)
@@ -636,7 +645,7 @@ class OnlineIntentionFilter:
         inducing: pseudo-inputs of a sparse transition GP (Sec. 3.3.3; see
             :class:`SharedTransition`), or ``None`` for the exact GP.
         inducing_values: distinct intention values among the pseudo-inputs (continuous g;
-            default ``round(sqrt(inducing))``).
+            default ``round(sqrt(inducing))``, all training values when ``inducing >= N``).
         chunk_size: streams processed together; the ``[chunk, N, N]`` temporaries are passed
             over several times, so the default ``2^19 / N^2`` keeps them in cache.
 
