@@ -30,6 +30,7 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert table.meta["selected"] == {"kernel": "linear", "Dx": 3}
     assert any("sparse M=30" in m for m in methods)
     assert any(m.startswith("ridge") for m in methods)
+    assert len(table.meta["train_mae_online"]) == len(HORIZONS_MS)
     for name in ("online", "online sparse M=30", "batch", "gpr", "ridge", "median"):
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
     # the median row equals an independent recomputation on the same strokes
