@@ -202,22 +202,20 @@ def target_prediction(
     scores = [_mae_sem(batch[:, s], y_test) for s in _STEPS]
     table.meta["mae"]["batch"] = scores
     table.add(**_row("comparison", f"IDDM batch window {window}", *best, None, scores, ms))
-    gpr = WindowGPR(windows=(1, 2, 3), seed=seed).fit(list(obs[train]), y[train])
-    start = time.process_time()
-    pred, _ = gpr.predict(obs_test)
-    ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
-    scores = [_mae_sem(pred[:, s], y_test) for s in _STEPS]
-    table.meta["mae"]["gpr"] = scores
-    table.meta["gpr_window"] = gpr.window
-    table.add(**_row("comparison", f"GPR (ARD, window {gpr.window})", None, None, None, scores, ms))
-    ridge = WindowRidge(windows=(1, 2, 3), seed=seed).fit(list(obs[train]), y[train])
-    start = time.process_time()
-    pred = ridge.predict(obs_test)
-    ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
-    scores = [_mae_sem(pred[:, s], y_test) for s in _STEPS]
-    table.meta["mae"]["ridge"] = scores
-    table.meta["ridge_window"] = ridge.window
-    table.add(**_row("comparison", f"ridge (window {ridge.window})", None, None, None, scores, ms))
+    for key, label, baseline in (
+        ("gpr", "GPR (ARD, window {})", WindowGPR(windows=(1, 2, 3), seed=seed)),
+        ("ridge", "ridge (window {})", WindowRidge(windows=(1, 2, 3), seed=seed)),
+    ):
+        baseline.fit(list(obs[train]), y[train])
+        start = time.process_time()
+        pred = baseline.predict(obs_test)
+        pred = pred[0] if isinstance(pred, tuple) else pred  # GPR also returns its std
+        ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
+        scores = [_mae_sem(pred[:, s], y_test) for s in _STEPS]
+        table.meta["mae"][key] = scores
+        table.meta[f"{key}_window"] = baseline.window
+        name = label.format(baseline.window)
+        table.add(**_row("comparison", name, None, None, None, scores, ms))
     med = MedianPredictor().fit(None, y[train]).predict(obs_test)
     scores = [_mae_sem(med[:, s], y_test) for s in _STEPS]
     table.meta["mae"]["median"] = scores
