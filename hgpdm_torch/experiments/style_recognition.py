@@ -28,6 +28,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -43,7 +44,14 @@ from ..models import GPDM, HGPDM  # noqa: E402
 from ..validation import check_choice  # noqa: E402
 from .table import ResultTable  # noqa: E402
 
-__all__ = ["StyleData", "gap_recovery_figure", "load_data", "main", "style_recognition"]
+__all__ = [
+    "StyleData",
+    "forecast_windows",
+    "gap_recovery_figure",
+    "load_data",
+    "main",
+    "style_recognition",
+]
 
 SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 DATASETS = ("synthetic", "basic_motions")
@@ -103,10 +111,13 @@ def load_data(name: str, *, seed: int = 0, smoke: bool = SMOKE) -> StyleData:
     return StyleData(name, list((ztr - mean) / std), ytr, list((zte - mean) / std), yte)
 
 
-def _windows(data: StyleData, length: int, stride: int) -> tuple[torch.Tensor, ...]:
-    """Windows ``[W, T, Dz]``, next frames ``[W, Dz]`` and style codes ``[W]``."""
+def forecast_windows(
+    sequences: list[torch.Tensor], labels: Any, length: int, stride: int
+) -> tuple[torch.Tensor, ...]:
+    """Windows ``[W, T, Dz]`` of ``length`` frames every ``stride`` frames, each window's next
+    frame ``[W, Dz]`` and its sequence's style code ``[W]``."""
     z, nxt, y = [], [], []
-    for seq, label in zip(data.test, data.test_labels, strict=True):
+    for seq, label in zip(sequences, labels, strict=True):
         for i in range(0, seq.shape[0] - length, stride):
             z.append(seq[i : i + length])
             nxt.append(seq[i + length])
@@ -186,7 +197,7 @@ def style_recognition(
             continue
         data, hg, gp = models[name]
         n = hg.observations.shape[0]
-        z, nxt, y = _windows(data, T, stride)
+        z, nxt, y = forecast_windows(data.test, data.test_labels, T, stride)
 
         def rmse(mean: torch.Tensor, nxt: torch.Tensor = nxt) -> float:
             return float((mean - nxt).pow(2).mean().sqrt())

@@ -13,6 +13,7 @@ import torch
 from scipy.optimize import minimize
 
 from hgpdm_torch.datasets import styled_movements, targeted_movements
+from hgpdm_torch.experiments.style_recognition import forecast_windows
 from hgpdm_torch.inference.map import MAPInference
 from hgpdm_torch.inference.variational import (
     MeanFieldGuide,
@@ -364,13 +365,7 @@ def planted():
 
 
 def _forecast_windows(test, length, stride):
-    z, nxt, y = [], [], []
-    for seq, label in zip(test.sequences, test.labels, strict=True):
-        for i in range(0, seq.shape[0] - length, stride):
-            z.append(seq[i : i + length])
-            nxt.append(seq[i + length])
-            y.append(int(label))
-    return torch.stack(z), torch.stack(nxt), torch.tensor(y)
+    return forecast_windows(test.sequences, test.labels, length, stride)
 
 
 def test_acceptance_vb_recognises_planted_styles_and_beats_map(planted):
