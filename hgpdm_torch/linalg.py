@@ -56,7 +56,7 @@ def symmetrize(a: torch.Tensor) -> torch.Tensor:
     return 0.5 * (a + a.transpose(-1, -2))
 
 
-def psd_cholesky(a: torch.Tensor, *, name: str = "matrix") -> torch.Tensor:
+def psd_cholesky(a: torch.Tensor, *, name: str = "matrix", escalate: bool = True) -> torch.Tensor:
     """Lower Cholesky factor of a batch of symmetric positive-definite matrices.
 
     Tries the plain factorisation first; where it fails, adds ``eps * mean(diag)`` to the
@@ -65,6 +65,8 @@ def psd_cholesky(a: torch.Tensor, *, name: str = "matrix") -> torch.Tensor:
     Args:
         a: ``[..., n, n]`` symmetric matrices.
         name: what the matrix is, for the error message.
+        escalate: add jitter where the plain factorisation fails; ``False`` raises at once
+            (training objectives: jitter that depends on success would make them discontinuous).
 
     Returns:
         ``[..., n, n]`` lower-triangular factors L with ``L L^T ~= a``.
@@ -81,6 +83,12 @@ def psd_cholesky(a: torch.Tensor, *, name: str = "matrix") -> torch.Tensor:
     failed = info > 0
     if not bool(failed.any()):
         return chol
+    if not escalate:
+        raise CholeskyError(
+            f"{name} of shape {tuple(a.shape)} is not positive definite (no jitter is added to "
+            "training objectives). Raise the noise lower bound, standardise the data, remove "
+            "duplicated frames, or compute in float64."
+        )
     # Only the batch members that failed get jitter; the others keep their exact factor.
     eps = _override[-1] if _override else _JITTER.get(a.dtype, 1e-6)
     scale = a.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(1e-300)
@@ -110,7 +118,7 @@ class _GaussianNLL(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, cov: torch.Tensor, y: torch.Tensor, name: str) -> torch.Tensor:  # type: ignore[override]
-        chol = psd_cholesky(cov, name=name)
+        chol = psd_cholesky(cov, name=name, escalate=False)
         alpha = torch.cholesky_solve(y, chol)
         n, d = y.shape
         ctx.save_for_backward(chol, alpha)
@@ -141,8 +149,9 @@ def gaussian_nll(cov: torch.Tensor, y: torch.Tensor, *, name: str = "covariance"
     inverse, several times cheaper than differentiating through the factorisation.
 
     Args:
-        cov: ``[n, n]`` symmetric positive-definite covariance (factorised by
-            :func:`psd_cholesky`, with its jitter policy).
+        cov: ``[n, n]`` symmetric positive-definite covariance. No jitter is added (the
+            objective must stay smooth): a matrix that is not positive definite raises
+            :class:`CholeskyError`.
         y: ``[n, d]`` observations, one independent Gaussian vector per column.
         name: what ``cov`` is, for error messages.
 

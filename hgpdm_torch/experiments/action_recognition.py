@@ -102,12 +102,13 @@ def action_recognition(
         list(z_train), y_train, latent_dim, intention="discrete", measurement="linear",
         alpha=(0.9, 0.3, 0.1, 1e-2),
     )  # fmt: skip
-    model.fit(fit_steps, progress=progress)
+    fit = model.fit(fit_steps, progress=progress)
     table = ResultTable(
         "Table 3.3: action recognition on BasicMotions, accuracy over all decisions",
         ["method", "accuracy [%]", "CPU ms/decision"],
         meta={"classes": names, "n_test": len(y_test), "frames": z_test.shape[1],
-              "subsample": subsample, "Dx": latent_dim, "seed": seed, "confusion": {}},
+              "subsample": subsample, "Dx": latent_dim, "seed": seed, "confusion": {},
+              "fit": fit.summary()},
     )  # fmt: skip
     decisions = z_test.shape[0] * z_test.shape[1]
 

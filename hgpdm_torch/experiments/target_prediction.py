@@ -91,7 +91,7 @@ def _fit_iddm(obs, targets, kernel: str, dx: int, steps: int, seed: int, init: s
         list(obs), targets, dx, intention="continuous", measurement=kernel,
         alpha=(0.9, 0.3, 0.1, 1e-2), alpha_g=(4.0, 0.1), init=x0,
     )  # fmt: skip
-    model.fit(steps)
+    model.fit(steps)  # its FitResult stays on the model (model.fit_result)
     return model
 
 
@@ -183,6 +183,7 @@ def target_prediction(
         if val_mae < best_val:
             best, best_val, best_model, best_online = (kernel, dx), val_mae, model, (mean, ms)
     table.meta["selected"] = {"kernel": best[0], "Dx": best[1]}
+    table.meta["fit"] = best_model.fit_result.summary()
     # the same filter on the selected model's own training plays: the gap to the test MAE is
     # how much of the dynamics' dependence on g is memorised rather than generalised
     own, _ = _online(best_model, obs[train][:, : _STEPS[-1] + 1], grid, forgetting)

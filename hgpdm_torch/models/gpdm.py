@@ -4,8 +4,11 @@ A GPDM explains J observed sequences ``Z^j [T_j, Dz]`` by latent trajectories ``
 with a GP measurement map ``h: x -> z`` and a GP transition map ``f: x_t -> x_{t+1}``, both
 marginalised out (thesis Sec. 2.2). The latent states X, the measurement hyperparameters beta and
 the output scales W are learned by minimising the negative log posterior of Eq. 6 with any torch
-optimizer; the transition hyperparameters alpha are fixed to alpha-bar (Sec. 2.4.1) unless
-``learn_alpha=True``.
+optimizer. The transition kernel's hyperparameters alpha_1..3 are fixed to alpha-bar (Sec. 2.4.1)
+unless ``learn_alpha=True``; the process noise alpha_4 can be learned under a weak log-normal prior
+centred on alpha-bar (``learn_noise=True``). It is fixed by default, as in the thesis: on real
+walks the MAP estimate collapses towards the noise floor and forecasts get worse (README, Walkers);
+choose it by cross-validation (:func:`hgpdm_torch.model_selection.cross_validate`) instead.
 
 Subclasses change the transition inputs and kernel (:class:`~hgpdm_torch.models.HGPDM` appends
 the exogenous variable g), or override :meth:`GPDM.initial_latents` and
@@ -16,8 +19,7 @@ from __future__ import annotations
 
 import importlib
 import math
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +28,8 @@ import torch
 from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.kernels import Kernel
 from gpytorch.priors import NormalPrior
-from tqdm.auto import trange
 
+from ..fitting import FitResult, OptimizerLike, fit_map
 from ..gp import GPPosterior
 from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
 from ..linalg import gaussian_nll
@@ -36,6 +38,11 @@ from ..validation import as_tensor, check_choice
 __all__ = ["GPDM", "load_model"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
+_FIT_OPTIONS = {"ftol", "gtol", "patience", "max_eval", "restarts", "restart_scale", "seed", "warn"}
+#: Lower bound of both noise variances. It is the fixed jitter of the objective: it keeps the
+#: kernel matrices of Eq. 4-5 positive definite in float64, so the loss is a smooth function of
+#: the parameters and never needs jitter escalation (which would make it discontinuous).
+NOISE_FLOOR = 1e-6
 SequencesLike = Sequence[Any] | torch.Tensor
 
 
@@ -81,7 +88,11 @@ class GPDM(gpytorch.Module):
         measurement: measurement kernel, ``"rbf"`` (Eq. 1) or ``"linear"`` (Eq. 2).
         alpha: transition hyperparameters ``[alpha_1, alpha_2, alpha_3, alpha_4]``
             (default alpha-bar of Sec. 2.4.1).
-        learn_alpha: learn alpha with the other parameters instead of keeping it fixed.
+        learn_alpha: learn the transition kernel's alpha_1..3 (and alpha_4) with the other
+            parameters instead of keeping them at ``alpha``.
+        learn_noise: learn the process noise alpha_4 with a weak log-normal prior centred on
+            ``alpha[3]`` (log-space standard deviation :attr:`NOISE_PRIOR_SD`); default
+            ``False`` keeps it fixed (the thesis's setting, better on real data so far).
         init: ``"pca"`` (default) or a ``[M, Dx]`` tensor of initial latent states, M the total
             number of frames.
         dtype: floating dtype of data and parameters (float64 recommended for GP algebra).
@@ -93,6 +104,8 @@ class GPDM(gpytorch.Module):
     """
 
     transition_kind = "gpdm"
+    #: Standard deviation of the log-normal prior of a learned process noise alpha_4.
+    NOISE_PRIOR_SD = 2.0
 
     def __init__(
         self,
@@ -102,6 +115,7 @@ class GPDM(gpytorch.Module):
         measurement: str = "rbf",
         alpha: Sequence[float] = ALPHA_BAR,
         learn_alpha: bool = False,
+        learn_noise: bool = False,
         init: str | torch.Tensor = "pca",
         dtype: torch.dtype = torch.float64,
     ) -> None:
@@ -121,6 +135,7 @@ class GPDM(gpytorch.Module):
             "measurement": measurement,
             "alpha": list(alpha),
             "learn_alpha": bool(learn_alpha),
+            "learn_noise": bool(learn_noise),
         }
 
         z = torch.cat(seqs, dim=0)
@@ -149,27 +164,39 @@ class GPDM(gpytorch.Module):
         self.register_parameter(
             "raw_measurement_noise", torch.nn.Parameter(torch.zeros((), dtype=dtype))
         )
-        self.register_constraint("raw_measurement_noise", GreaterThan(1e-6))
+        self.register_constraint("raw_measurement_noise", GreaterThan(NOISE_FLOOR))
         self.measurement_noise = 0.01 if measurement == "rbf" else 0.1
         self.register_prior(
             "measurement_noise_prior", NormalPrior(0.0, 1.0), lambda m: m.measurement_noise.log()
         )
+        # Constant channels (e.g. fixed joints) carry no information about x: the measurement GP
+        # models the others and predicts a constant channel's value exactly. "Constant" is
+        # relative to the channel's magnitude, so data in small units are not mistaken for it.
         std = z.std(0)
-        if bool((std <= 1e-12 * z.abs().amax(0).clamp_min(1.0)).any()):
-            cols = torch.nonzero(std <= 1e-12 * z.abs().amax(0).clamp_min(1.0)).flatten().tolist()
-            raise ValueError(f"sequences have constant observed dims {cols}; remove them")
+        varying = std > 1e-10 * z.abs().amax(0)
+        if not bool(varying.any()):
+            raise ValueError("every observed dim of sequences is constant; nothing to model")
+        self.register_buffer("varying", varying)
         self.register_parameter("raw_scales", torch.nn.Parameter(torch.zeros_like(std)))
         self.register_constraint("raw_scales", Positive())
-        self.scales = 1.0 / std
-        self.register_prior("scales_prior", NormalPrior(0.0, 1.0), lambda m: m.scales.log())
+        self.scales = torch.where(varying, 1.0 / std.clamp_min(1e-300), torch.ones_like(std))
+        self.register_prior(
+            "scales_prior", NormalPrior(0.0, 1.0), lambda m: m.scales[m.varying].log()
+        )
 
         self.transition_kernel = self.build_transition_kernel()
         self.register_parameter(
             "raw_transition_noise", torch.nn.Parameter(torch.zeros((), dtype=dtype))
         )
-        self.register_constraint("raw_transition_noise", GreaterThan(1e-8))
+        self.register_constraint("raw_transition_noise", GreaterThan(NOISE_FLOOR))
         self.transition_noise = alpha[3]
+        self.register_prior(
+            "transition_noise_prior",
+            NormalPrior(math.log(alpha[3]), self.NOISE_PRIOR_SD),
+            lambda m: m.transition_noise.log(),
+        )
         self.learn_alpha = learn_alpha
+        self.learn_noise = learn_noise or learn_alpha
         self.to(dtype)
 
     # ----------------------------------------------------------------- construction hooks
@@ -246,14 +273,25 @@ class GPDM(gpytorch.Module):
 
     @property
     def learn_alpha(self) -> bool:
-        """Whether the transition hyperparameters alpha are learned (default: fixed)."""
-        return self.raw_transition_noise.requires_grad
+        """Whether the transition kernel's alpha_1..3 are learned (default: fixed)."""
+        return bool(self._config["learn_alpha"])
 
     @learn_alpha.setter
     def learn_alpha(self, flag: bool) -> None:
         set_requires_grad(self.transition_kernel, bool(flag))
-        self.raw_transition_noise.requires_grad_(bool(flag))
         self._config["learn_alpha"] = bool(flag)
+        if flag:
+            self.learn_noise = True
+
+    @property
+    def learn_noise(self) -> bool:
+        """Whether the process noise alpha_4 is learned (its prior enters the loss only then)."""
+        return self.raw_transition_noise.requires_grad
+
+    @learn_noise.setter
+    def learn_noise(self, flag: bool) -> None:
+        self.raw_transition_noise.requires_grad_(bool(flag))
+        self._config["learn_noise"] = bool(flag)
 
     # ----------------------------------------------------------------- data views
     @property
@@ -289,9 +327,9 @@ class GPDM(gpytorch.Module):
         m, dz = self.observations.shape
         k = self.measurement_kernel(x).to_dense()
         k = k + self.measurement_noise * torch.eye(m, dtype=x.dtype, device=x.device)
-        y = (self.observations - self.obs_mean) * self.scales
+        y = ((self.observations - self.obs_mean) * self.scales)[:, self.varying]
         nll = gaussian_nll(k, y, name="measurement kernel matrix K_z")
-        return nll - m * self.scales.log().sum()
+        return nll - m * self.scales[self.varying].log().sum()
 
     def _gaussian_sequence_nll(self, inputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """``-log N(targets; 0, K_x(inputs) + alpha_4 I)`` per output column, summed (Eq. 5)."""
@@ -321,7 +359,9 @@ class GPDM(gpytorch.Module):
     def prior_nll(self) -> torch.Tensor:
         """``-sum log p(theta)`` over every registered gpytorch prior (log-normal on beta, W)."""
         total = torch.zeros((), dtype=self.latent.dtype, device=self.latent.device)
-        for _, module, prior, closure, _ in self.named_priors():
+        for name, module, prior, closure, _ in self.named_priors():
+            if name == "transition_noise_prior" and not self.learn_noise:
+                continue  # a fixed alpha_4 is not a parameter of the posterior
             total = total - prior.log_prob(closure(module)).sum()
         return total
 
@@ -349,61 +389,41 @@ class GPDM(gpytorch.Module):
         self,
         steps: int = 100,
         *,
-        optimizer: str | torch.optim.Optimizer | Callable[..., torch.optim.Optimizer] = "lbfgs",
+        optimizer: OptimizerLike = "lbfgs",
         lr: float | None = None,
         progress: bool = False,
-    ) -> list[float]:
+        **options: Any,
+    ) -> FitResult:
         """MAP fit (Eq. 3): minimise :meth:`loss` over X, beta, W (and alpha if learned).
 
+        Runs :func:`hgpdm_torch.fitting.fit_map`: L-BFGS with a strong-Wolfe line search (or
+        any torch optimizer), explicit convergence criteria, recovery from failed steps and
+        rollback to the best state on divergence. A fit that does not converge emits a
+        :class:`~hgpdm_torch.fitting.ConvergenceWarning` (``warn=False`` silences it).
+
         Args:
-            steps: optimizer iterations (for L-BFGS: iterations, each with a line search).
-            optimizer: ``"lbfgs"`` (default; strong-Wolfe line search), ``"adam"``, an optimizer
-                over this model's parameters, or a callable ``params -> optimizer``.
+            steps: maximum optimizer steps (for L-BFGS each has a line search).
+            optimizer: ``"lbfgs"`` (default), ``"adam"``, an optimizer over this model's
+                parameters, or a callable ``params -> optimizer``.
             lr: learning rate for ``"lbfgs"`` (default 1) or ``"adam"`` (default 0.01).
             progress: show a tqdm progress bar.
+            **options: ``ftol``, ``gtol``, ``patience``, ``max_eval``, ``restarts``,
+                ``restart_scale``, ``seed``, ``warn`` of :func:`~hgpdm_torch.fitting.fit_map`.
 
         Returns:
-            The loss after every step.
+            A :class:`~hgpdm_torch.fitting.FitResult` (loss history, converged flag, reason).
         """
-        if not isinstance(steps, int) or steps < 0:
-            raise ValueError(f"steps must be a non-negative int, got {steps!r}")
-        params = [p for p in self.parameters() if p.requires_grad]
-        if isinstance(optimizer, str):
-            check_choice(optimizer, "optimizer", ("lbfgs", "adam"))
-            if optimizer == "lbfgs":
-                opt: torch.optim.Optimizer = torch.optim.LBFGS(
-                    params,
-                    lr=lr or 1.0,
-                    max_iter=1,
-                    history_size=50,
-                    line_search_fn="strong_wolfe",
-                )
-            else:
-                opt = torch.optim.Adam(params, lr=lr or 0.01)
-        elif isinstance(optimizer, torch.optim.Optimizer):
-            opt = optimizer
-        elif callable(optimizer):
-            opt = optimizer(params)
-        else:
-            raise TypeError(
-                f"optimizer must be a name, an Optimizer or a factory, got {optimizer!r}"
+        unknown = set(options) - _FIT_OPTIONS
+        if unknown:
+            raise ValueError(
+                f"unknown fit option(s) {sorted(unknown)}; expected some of {sorted(_FIT_OPTIONS)}"
             )
-
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            value = self.loss()
-            value.backward()
-            return value
-
-        self.train()
-        history: list[float] = []
-        start = time.perf_counter()
-        for _ in trange(steps, disable=not progress, desc=f"fit {type(self).__name__}"):
-            value = opt.step(closure)
-            history.append(float(value.detach() if value is not None else self.loss().detach()))
-        self.fit_seconds = time.perf_counter() - start
+        options.setdefault("warn", True)
+        result = fit_map(self, steps, optimizer=optimizer, lr=lr, progress=progress, **options)
+        self.fit_seconds = result.seconds
+        self.fit_result = result
         self.eval()
-        return history
+        return result
 
     # ----------------------------------------------------------------- posteriors
     def measurement_posterior(self) -> GPPosterior:

@@ -242,7 +242,9 @@ class HGPDM(GPDM):
         model.discovery_history = []
         for _ in trange(iterations, disable=not progress, desc="discover styles"):
             changed = model._assign_styles()
-            model.fit(steps)
+            # Each alternation is a partial MAP fit by design (Algorithm 2.1): no warning here;
+            # model.fit_result holds the last one.
+            model.fit(steps, warn=False)
             model.discovery_history.append(float(model.loss().detach()))
             if not changed:
                 break

@@ -34,8 +34,9 @@ cells = [
     ),
     nbf.v4.new_code_cell(
         "model = hg.HGPDM(data.sequences, data.labels, latent_dim=3, measurement='rbf')\n"
-        "history = model.fit(steps=20 if SMOKE else 80)\n"
-        "plt.plot(history); plt.xlabel('L-BFGS step'); plt.ylabel('negative log posterior (Eq. 6)');"
+        "fit = model.fit(steps=20 if SMOKE else 80)\n"
+        "print(fit)  # FitResult: converged or not, and why\n"
+        "plt.plot(fit.history); plt.xlabel('L-BFGS step'); plt.ylabel('negative log posterior (Eq. 6)');"
     ),
     nbf.v4.new_markdown_cell(
         "The model is an ordinary torch module: any optimizer over `model.parameters()` works."

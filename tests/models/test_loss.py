@@ -94,6 +94,9 @@ def dense_negative_log_posterior(model: GPDM) -> float:
     )
     log_px += norm.logpdf(x[starts]).sum()
     log_prior += norm.logpdf(np.log(noise)) + norm.logpdf(np.log(w)).sum()
+    if model.learn_noise:  # weak log-normal prior of a learned alpha_4, centred on alpha-bar
+        a4 = _alphas(model)[3]
+        log_prior += norm.logpdf(np.log(a4), np.log(model.alpha_init[3]), model.NOISE_PRIOR_SD)
     return -(log_pz + log_px + log_prior)
 
 
@@ -155,9 +158,42 @@ def test_gradcheck_latents_and_hyperparameters(name, build):
 
 def test_alpha_is_fixed_by_default_and_learnable():
     model = HGPDM(_data(), [0, 1, 0, 1], 2)
-    assert not model.learn_alpha
+    assert not model.learn_alpha and not model.learn_noise
     fixed = [p for n, p in model.named_parameters() if n.startswith("transition_kernel")]
     assert fixed and not any(p.requires_grad for p in fixed)
+    assert not model.raw_transition_noise.requires_grad
+    assert HGPDM(_data(), [0, 1, 0, 1], 2, learn_noise=True).raw_transition_noise.requires_grad
     assert float(model.transition_noise) == pytest.approx(1e-4)
     model.learn_alpha = True
     assert all(p.requires_grad for p in fixed)
+
+
+def test_fixed_noise_has_no_prior_term():
+    data = _data()
+    learned = HGPDM(data, [0, 1, 0, 1], 2, learn_noise=True)
+    fixed = HGPDM(data, [0, 1, 0, 1], 2)
+    assert not fixed.raw_transition_noise.requires_grad
+    a4 = float(fixed.transition_noise)
+    prior = norm.logpdf(np.log(a4), np.log(a4), HGPDM.NOISE_PRIOR_SD)
+    got = float(learned.loss() - fixed.loss())
+    assert got == pytest.approx(-prior, rel=1e-10)
+
+
+def test_constant_channels_are_carried_not_modelled():
+    data = _data(dz=3)
+    padded = [torch.cat([s, torch.full((s.shape[0], 1), 2.5)], dim=1) for s in data]
+    base, model = GPDM(data, 2), GPDM(padded, 2)
+    assert model.varying.tolist() == [True, True, True, False]
+    # The constant channel adds nothing to Eq. 4 (and its scale no prior term).
+    assert float(model.loss()) == pytest.approx(float(base.loss()), rel=1e-12)
+    mean, var = model.measurement_posterior().predict(torch.randn(5, 2))
+    assert torch.allclose(mean[:, 3], torch.full((5,), 2.5), atol=1e-12)
+    assert torch.isfinite(var).all()
+
+
+def test_small_units_are_not_constant():
+    data = [s * 1e-13 for s in _data()]
+    model = GPDM(data, 2)
+    assert bool(model.varying.all())
+    with pytest.raises(ValueError, match="every observed dim"):
+        GPDM([torch.ones(5, 3), torch.ones(4, 3)], 2)
