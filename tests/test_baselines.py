@@ -1,4 +1,5 @@
-"""Window baselines: features, GPR against scikit-learn, classifiers on separable styles."""
+"""Window baselines: features, GPR against scikit-learn, classifiers on separable styles;
+next-frame forecasters against a simulated VAR(2) and the ridge normal equations."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
 from hgpdm_torch.baselines import (
     HMMClassifier,
+    LastFrameForecaster,
     MedianPredictor,
+    RidgeAR,
     WindowGPC,
     WindowGPR,
     WindowRidge,
@@ -132,3 +135,130 @@ def test_bad_inputs_raise(styles):
         clf.predict(torch.zeros(1, 5, 3))
     with pytest.raises(ValueError, match="sequences"):
         WindowSVM().fit([], [])
+
+
+# ------------------------------------------------------------------------------------------
+# Next-frame forecasters
+# ------------------------------------------------------------------------------------------
+
+A1 = np.array([[0.6, 0.2, 0.0], [-0.1, 0.5, 0.1], [0.0, 0.3, 0.4]])
+A2 = np.array([[-0.3, 0.0, 0.1], [0.0, -0.2, 0.0], [0.1, 0.0, -0.25]])
+C = np.array([0.1, -0.2, 0.05])
+NOISE = 0.1
+
+
+def var2(num: int, length: int, rng: np.random.Generator) -> np.ndarray:
+    """``[num, length, 3]`` draws of z_t = A1 z_{t-1} + A2 z_{t-2} + c + noise (after burn-in)."""
+    z = np.zeros((num, length + 50, 3))
+    for t in range(2, length + 50):
+        z[:, t] = z[:, t - 1] @ A1.T + z[:, t - 2] @ A2.T + C
+        z[:, t] += NOISE * rng.standard_normal((num, 3))
+    return z[:, 50:]
+
+
+def ridge_normal_equations(x: np.ndarray, y: np.ndarray, alpha: float):
+    """Ridge with an unpenalised intercept: centre, then solve (Xc'Xc + alpha I) W = Xc'Yc."""
+    xm, ym = x.mean(0), y.mean(0)
+    w = np.linalg.solve((x - xm).T @ (x - xm) + alpha * np.eye(x.shape[1]), (x - xm).T @ (y - ym))
+    return w, ym - xm @ w
+
+
+def lag_rows(seqs, order: int, start: int):
+    """Rows [z_{t-order}, ..., z_{t-1}] -> z_t for t >= start, written out with a loop."""
+    xs, ys = [], []
+    for s in seqs:
+        for t in range(start, len(s)):
+            xs.append(np.concatenate([s[t - order + i] for i in range(order)]))
+            ys.append(s[t])
+    return np.array(xs), np.array(ys)
+
+
+def test_last_frame_forecaster():
+    windows = torch.randn(4, 6, 3)
+    f = LastFrameForecaster().fit([torch.randn(10, 3), torch.randn(7, 3)])
+    torch.testing.assert_close(f.predict(windows), windows[:, -1])
+    assert f.predict(windows[:, :1]).shape == (4, 3)
+    with pytest.raises(ValueError, match="windows"):
+        f.predict(torch.zeros(4, 6, 2))
+    with pytest.raises(ValueError, match="windows"):
+        f.predict(torch.zeros(4, 0, 3))
+
+
+def test_ridge_ar_recovers_a_var2_process():
+    rng = np.random.default_rng(0)
+    train = var2(20, 250, rng)
+    ar = RidgeAR().fit(list(torch.as_tensor(train)))
+    assert ar.order_ == 2 and ar.cv_mse_.shape == (5, 13)
+    # coefficient blocks: oldest frame first
+    np.testing.assert_allclose(ar.coef_[:, 3:].numpy(), A1, atol=0.03)
+    np.testing.assert_allclose(ar.coef_[:, :3].numpy(), A2, atol=0.03)
+    test = var2(200, 6, rng)
+    windows, target = torch.as_tensor(test[:, :5]), test[:, 5]
+    pred = ar.predict(windows).numpy()
+    mean = test[:, 4] @ A1.T + test[:, 3] @ A2.T + C  # the true conditional mean
+    assert np.sqrt(np.mean((pred - mean) ** 2)) < 0.1 * NOISE
+    mse = np.mean((pred - target) ** 2)
+    assert 0.8 * NOISE**2 < mse < 1.2 * NOISE**2
+    assert mse < 0.8 * np.mean((LastFrameForecaster().predict(windows).numpy() - target) ** 2)
+    # any leading batch dims
+    assert ar.predict(windows.reshape(4, 50, 5, 3)).shape == (4, 50, 3)
+
+
+def test_ridge_ar_solves_the_normal_equations():
+    rng = np.random.default_rng(1)
+    seqs = [np.cumsum(rng.standard_normal((n, 2)), 0) for n in (12, 9, 15)]
+    ar = RidgeAR().fit([torch.as_tensor(s) for s in seqs], orders=(2,), alphas=(0.7,))
+    assert ar.order_ == 2 and ar.alpha_ == 0.7 and ar.cv_mse_ is None
+    w, b = ridge_normal_equations(*lag_rows(seqs, 2, 2), 0.7)
+    np.testing.assert_allclose(ar.coef_.numpy(), w.T, rtol=1e-8, atol=1e-10)
+    windows = rng.standard_normal((4, 5, 2))
+    expected = np.concatenate([windows[:, -2], windows[:, -1]], 1) @ w + b
+    np.testing.assert_allclose(ar.predict(torch.as_tensor(windows)).numpy(), expected, rtol=1e-8)
+    with pytest.raises(ValueError, match="windows"):
+        ar.predict(torch.as_tensor(windows[:, :1]))
+
+
+def test_ridge_ar_cross_validation_is_leave_one_sequence_out():
+    """With folds >= sequences the validation errors are those of leaving each sequence out,
+    every candidate scored on the targets t >= max(orders)."""
+    rng = np.random.default_rng(2)
+    seqs = [np.cumsum(rng.standard_normal((n, 2)), 0) * 0.3 for n in (15, 11, 14, 18)]
+    orders, alphas = (1, 3), (0.1, 10.0)
+    ar = RidgeAR().fit(
+        [torch.as_tensor(s) for s in seqs], orders, alphas, folds=10, one_standard_error=False
+    )
+    expected = np.zeros((2, 2))
+    for i, k in enumerate(orders):
+        for j, alpha in enumerate(alphas):
+            for held in range(len(seqs)):
+                rest = [s for h, s in enumerate(seqs) if h != held]
+                w, b = ridge_normal_equations(*lag_rows(rest, k, 3), alpha)
+                x, y = lag_rows([seqs[held]], k, 3)
+                expected[i, j] += np.mean((x @ w + b - y) ** 2) / len(seqs)
+    np.testing.assert_allclose(ar.cv_mse_, expected, rtol=1e-8)
+    assert ar.cv_se_ is None
+    i, j = np.unravel_index(np.argmin(expected), expected.shape)
+    assert (ar.order_, ar.alpha_) == (orders[i], alphas[j])
+
+
+def test_ridge_ar_bad_inputs():
+    seqs = [torch.randn(20, 2), torch.randn(15, 2)]
+    for orders in [(), (0,), (1.5,), (True,)]:
+        with pytest.raises(ValueError, match="orders"):
+            RidgeAR().fit(seqs, orders=orders)
+    for alphas in [(), (0.0,), (-1.0,), (np.nan,)]:
+        with pytest.raises(ValueError, match="alphas"):
+            RidgeAR().fit(seqs, alphas=alphas)
+    with pytest.raises(ValueError, match="folds"):
+        RidgeAR().fit(seqs, folds=1)
+    with pytest.raises(ValueError, match="sequences"):
+        RidgeAR().fit(seqs[:1])  # nothing to cross-validate over
+    with pytest.raises(ValueError, match="sequences"):
+        RidgeAR().fit([torch.randn(3, 2)], orders=(3,), alphas=(1.0,))
+    with pytest.raises(ValueError, match="sequences"):
+        RidgeAR().fit([torch.randn(20, 2), torch.randn(20, 3)])
+    ar = RidgeAR().fit(seqs, orders=(2,), alphas=(1.0,))
+    with pytest.raises(ValueError, match="Dz = 2"):
+        ar.predict(torch.zeros(3, 4, 3))
+    with pytest.raises(ValueError, match="windows"):
+        ar.predict(torch.zeros(4))

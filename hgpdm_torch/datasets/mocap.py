@@ -48,9 +48,15 @@ class Skeleton:
     Attributes:
         name: the ``:name`` entry.
         units: ``:units`` entries (``mass``, ``length``, ``angle``).
-        root_order: channels of the root, e.g. ``("tx", "ty", "tz", "rx", "ry", "rz")``.
+        root_order: channels of the root, e.g. ``("tx", "ty", "tz", "rx", "ry", "rz")``: the
+            order of its values in the AMC file and, for ``rx ry rz``, the sequence of the root's
+            rotations about the fixed global axes.
         bones: bones by name, in file order.
         parent: parent bone name of every bone (``"root"`` for the root's children).
+        root_axis: the root's ``axis`` entry, e.g. ``"XYZ"``: the rotation sequence of its
+            pre-set ``root_orientation``.
+        root_orientation: the root's pre-set ``orientation`` ``[3]`` (in ``units["angle"]``;
+            zero in VICON/CMU files).
     """
 
     name: str
@@ -58,6 +64,8 @@ class Skeleton:
     root_order: tuple[str, ...]
     bones: dict[str, Bone]
     parent: dict[str, str]
+    root_axis: str = "XYZ"
+    root_orientation: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def channels(self) -> list[str]:
         """All channels ``"bone.dof"`` in a fixed order: the root's, then bones in file order."""
@@ -104,6 +112,7 @@ def read_asf(path: str | Path) -> Skeleton:
     lines = _open(path, "ASF")
     section, name, units = "", "", {}
     root_order: tuple[str, ...] = ()
+    root_axis, root_orientation = "XYZ", np.zeros(3)
     bones: dict[str, Bone] = {}
     parent: dict[str, str] = {}
     bone: dict | None = None
@@ -123,6 +132,12 @@ def read_asf(path: str | Path) -> Skeleton:
             units[key] = tokens[1]
         elif section == "root" and key == "order":
             root_order = tuple(t.lower() for t in tokens[1:])
+        elif section == "root" and key == "axis":
+            if len(tokens) != 2 or sorted(tokens[1].upper()) != ["X", "Y", "Z"]:
+                raise ValueError(f"line {lineno}: root axis must be an order of XYZ: {line!r}")
+            root_axis = tokens[1].upper()
+        elif section == "root" and key == "orientation":
+            root_orientation = _floats(tokens[1:], 3, "orientation", lineno)
         elif section == "bonedata":
             if key == "begin":
                 bone = {"limits": []}
@@ -173,7 +188,7 @@ def read_asf(path: str | Path) -> Skeleton:
         for b in (child, par):
             if b != "root" and b not in bones:
                 raise ValueError(f"ASF hierarchy names an unknown bone {b!r}")
-    return Skeleton(name, units, root_order, bones, parent)
+    return Skeleton(name, units, root_order, bones, parent, root_axis, root_orientation)
 
 
 def read_amc(path: str | Path, skeleton: Skeleton) -> MocapTrial:

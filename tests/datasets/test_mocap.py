@@ -80,6 +80,7 @@ def test_read_asf(files):
     sk = read_asf(files[0])
     assert sk.name == "VICON" and sk.units["angle"] == "deg"
     assert sk.root_order == ("tx", "ty", "tz", "rx", "ry", "rz")
+    assert sk.root_axis == "XYZ" and sk.root_orientation.tolist() == [0, 0, 0]
     assert list(sk.bones) == ["lhipjoint", "lfemur", "ltibia"]
     fem = sk.bones["lfemur"]
     assert fem.dof == ("rx", "ry", "rz") and fem.limits == [(-160, 20), (-70, 70), (-60, 70)]
@@ -133,6 +134,14 @@ def test_bad_files(files, tmp_path):
         load_mocap(asf, amc, channels=["rfemur"])
     with pytest.raises(ValueError, match="downsample"):
         load_mocap(asf, amc, downsample=0)
+    tilted = tmp_path / "tilted.asf"
+    root = ASF.replace("axis XYZ\n   position", "axis zyx\n   position")
+    tilted.write_text(root.replace("orientation 0 0 0", "orientation 0 90 0"))
+    assert read_asf(tilted).root_axis == "ZYX"
+    assert read_asf(tilted).root_orientation.tolist() == [0, 90, 0]
+    tilted.write_text(ASF.replace("axis XYZ\n   position", "axis XXZ\n   position"))
+    with pytest.raises(ValueError, match="root axis"):
+        read_asf(tilted)
     broken = tmp_path / "broken.asf"
     broken.write_text(ASF.replace("lfemur ltibia", "lfemur rtibia"))
     with pytest.raises(ValueError, match="unknown bone 'rtibia'"):

@@ -1,0 +1,382 @@
+"""The *Walkers* data of thesis Sec. 2.4.1: CMU walks of two subjects, preprocessed as in Taylor
+et al. (2007, 2011).
+
+- :func:`motion_features`: one trial's raw ASF/AMC channels ``[T, C]`` -> features ``[T', F]``:
+  root velocity in the heading frame, root height, yaw rate, pitch and roll, and joint angles in
+  radians wrapped to ``[-pi, pi)``, after resampling to a common frame rate.
+- :func:`load_walkers`: subject 07's two walks (ASF/AMC at 120 frames/s) and subject 35's
+  fifteen walks (a NumPy archive at 30 frames/s) as :class:`Walkers`, both at ``target_fps``.
+- :class:`Standardizer`: drops the channels that are constant in the training trials and
+  standardises the rest with training statistics; maps back to the full channel layout.
+
+Conventions of the CMU (VICON) data, checked on the files: ``y`` is up; the root's ``rx ry rz``
+are rotations about the fixed global axes in the sequence of the ASF ``order`` line (``RX RY RZ``:
+``R = Rz(rz) Ry(ry) Rx(rx)`` acting on column vectors); in the root's own frame the body faces
+``+z`` and its left is ``+x`` (the left hip lies at ``+x``, and the walks advance along the
+direction ``R e_z``). Lengths are in the ASF's units: CMU uses ``length 0.45``, i.e.
+``0.0254 / 0.45`` m per unit (root height ~17 units ~ 0.96 m).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..validation import as_tensor
+from .mocap import Skeleton, read_amc, read_asf
+
+__all__ = ["Standardizer", "Walkers", "load_walkers", "motion_features"]
+
+ROOT_FEATURES = (
+    "root.vx_heading",
+    "root.vz_heading",
+    "root.ty",
+    "root.yaw_rate",
+    "root.pitch",
+    "root.roll",
+)
+_ROOT_CHANNELS = ("tx", "ty", "tz", "rx", "ry", "rz")
+_ROTATIONS = ("rx", "ry", "rz")
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles in radians wrapped to ``[-pi, pi)``."""
+    out = np.mod(angle + np.pi, 2 * np.pi) - np.pi
+    return np.where(out >= np.pi, out - 2 * np.pi, out)  # mod may round up to 2 pi
+
+
+def _axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
+    """Right-handed rotations about the coordinate ``axis`` (``"x"``, ``"y"``, ``"z"``) by
+    ``angle [T]`` radians: ``[T, 3, 3]``, acting on column vectors."""
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    r = np.zeros((len(angle), 3, 3))
+    r[:, "xyz".index(axis), "xyz".index(axis)] = 1.0
+    r[:, i, i], r[:, i, j], r[:, j, i], r[:, j, j] = c, -s, s, c
+    return r
+
+
+def _fixed_axis_rotation(angles: dict[str, np.ndarray], sequence: Sequence[str]) -> np.ndarray:
+    """Rotations about the fixed axes in ``sequence`` (first applied first): for ``x, y, z``,
+    ``R = Rz Ry Rx`` ``[T, 3, 3]``."""
+    rot = np.broadcast_to(np.eye(3), (len(angles[sequence[0]]), 3, 3))
+    for axis in sequence:
+        rot = _axis_rotation(axis, angles[axis]) @ rot
+    return rot
+
+
+def _heading_pitch_roll(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split root rotations ``[T, 3, 3]`` as ``R = Ry(yaw) Rx(pitch) Rz(roll)``.
+
+    ``yaw`` is the heading of the forward axis ``R e_z`` on the ground (``atan2(x, z)``);
+    ``pitch > 0`` tilts the forward axis down, ``roll > 0`` lifts the left side (``+x``).
+    Undefined when the forward axis is vertical (``|pitch| = pi/2``).
+    """
+    yaw = np.arctan2(rot[:, 0, 2], rot[:, 2, 2])
+    rest = _axis_rotation("y", -yaw) @ rot  # Rx(pitch) Rz(roll)
+    pitch = np.arctan2(-rest[:, 1, 2], rest[:, 2, 2])
+    tilt = _axis_rotation("x", -pitch) @ rest  # Rz(roll)
+    roll = np.arctan2(tilt[:, 1, 0], tilt[:, 0, 0])
+    return yaw, pitch, roll
+
+
+def _is_real(value: object) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _stride(fps: float, target_fps: float | None) -> int:
+    for name, value in (("fps", fps), ("target_fps", target_fps)):
+        if value is not None and not (_is_real(value) and 0 < value < math.inf):
+            raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    if target_fps is None:
+        return 1
+    ratio = fps / target_fps
+    stride = round(ratio)
+    if stride < 1 or abs(ratio - stride) > 1e-9 * ratio:
+        raise ValueError(
+            f"target_fps must divide fps = {fps} by an integer (frames are subsampled, not "
+            f"interpolated), got target_fps = {target_fps}"
+        )
+    return stride
+
+
+def motion_features(
+    values: Any,
+    channels: Sequence[str],
+    skeleton: Skeleton,
+    fps: float,
+    target_fps: float | None = None,
+) -> tuple[np.ndarray, list[str]]:
+    """Taylor et al.'s features of one trial.
+
+    1. Resampling: every ``fps / target_fps``-th frame from the first, which must be an integer
+       stride (no interpolation: the CMU rates 120 and 30 frames/s reach 15 by strides 8 and 2).
+    2. Root: the ground-plane translation ``(tx, tz)`` becomes the displacement between
+       consecutive resampled frames, expressed in the heading frame of the earlier one
+       (``root.vz_heading``: forward, ``root.vx_heading``: towards the body's left); the height
+       ``root.ty`` is kept; the orientation ``R`` (from ``rx ry rz`` in the sequence of the ASF
+       ``order`` line, about fixed axes) is split as ``R = Ry(yaw) Rx(pitch) Rz(roll)``: the
+       heading ``yaw`` enters as its wrapped change between frames (``root.yaw_rate``, radians
+       per resampled frame, > 0 turning left), ``root.pitch`` (> 0 leaning forward) and
+       ``root.roll`` (> 0 left side up) are kept as angles, relative to the heading frame.
+    3. Every other rotation channel: radians (from the ASF ``units`` angle, degrees by default),
+       wrapped to ``[-pi, pi)``; other channels (bone ``tx``/``l`` dofs) are kept as they are.
+
+    Velocities are backward differences, so row ``i`` describes resampled frame ``i + 1`` from
+    it and the frame before: the output has one frame fewer than the resampled input, and every
+    row depends only on the present and past. Constant channels are kept (drop them with
+    training statistics, see :class:`Standardizer`). Lengths stay in the ASF's units.
+
+    Args:
+        values: ``[T, C]`` raw channel values of a trial, as :func:`~.mocap.read_amc` gives them.
+        channels: the ``C`` channel names ``"bone.dof"``; must include the six root channels
+            ``root.tx ty tz rx ry rz``, and every name must be a channel of ``skeleton``.
+        skeleton: the trial's ASF skeleton (root ``order``, angle units).
+        fps: frame rate of ``values``.
+        target_fps: frame rate of the output; ``None`` keeps ``fps``.
+
+    Returns:
+        ``features [T', F]`` with ``T' = ceil(T / stride) - 1`` and ``F = C``, and their names:
+        ``ROOT_FEATURES`` (``root.vx_heading``, ``root.vz_heading``, ``root.ty``,
+        ``root.yaw_rate``, ``root.pitch``, ``root.roll``), then the non-root channels in the
+        order of ``channels``.
+
+    Raises:
+        ValueError: ``values`` not a finite ``[T, C]`` array matching ``channels``, unknown or
+            missing channels, a non-zero pre-set root orientation, fewer than two resampled
+            frames, or a bad ``fps``/``target_fps``.
+    """
+    stride = _stride(fps, target_fps)
+    x = as_tensor(values, "values", dtype=torch.float64, ndim=2).cpu().numpy()
+    channels = list(channels)
+    if x.shape[1] != len(channels):
+        raise ValueError(
+            f"channels must name the {x.shape[1]} columns of values, got {len(channels)} names"
+        )
+    known = set(skeleton.channels())
+    unknown = [c for c in channels if c not in known]
+    missing = [f"root.{d}" for d in _ROOT_CHANNELS if f"root.{d}" not in channels]
+    if unknown or missing or len(set(channels)) != len(channels):
+        raise ValueError(
+            f"channels must be distinct channels of the skeleton including all six root "
+            f"channels; unknown {unknown}, missing {missing}"
+        )
+    if np.any(np.asarray(skeleton.root_orientation) != 0):
+        raise ValueError(
+            f"skeleton has a pre-set root orientation {skeleton.root_orientation}: only zero "
+            f"(as in CMU/VICON files) is supported"
+        )
+    x = x[::stride]
+    if x.shape[0] < 2:
+        raise ValueError(f"values must have at least 2 frames after resampling, got {len(x)}")
+    col = {c: i for i, c in enumerate(channels)}
+    degrees = skeleton.units.get("angle", "deg").lower().startswith("deg")
+    to_rad = math.pi / 180 if degrees else 1.0
+
+    sequence = [d[1] for d in skeleton.root_order if d in _ROTATIONS]
+    angles = {d[1]: to_rad * x[:, col[f"root.{d}"]] for d in _ROTATIONS}
+    yaw, pitch, roll = _heading_pitch_roll(_fixed_axis_rotation(angles, sequence))
+    dx = np.diff(x[:, col["root.tx"]])
+    dz = np.diff(x[:, col["root.tz"]])
+    c, s = np.cos(yaw[:-1]), np.sin(yaw[:-1])
+    columns = [
+        c * dx - s * dz,  # towards the body's left, Ry(yaw) e_x
+        s * dx + c * dz,  # forward, Ry(yaw) e_z
+        x[1:, col["root.ty"]],
+        _wrap(np.diff(yaw)),
+        _wrap(pitch[1:]),
+        _wrap(roll[1:]),
+    ]
+    names = list(ROOT_FEATURES)
+    for name in channels:
+        if name.startswith("root."):
+            continue
+        v = x[1:, col[name]]
+        columns.append(_wrap(to_rad * v) if name.split(".")[1] in _ROTATIONS else v)
+        names.append(name)
+    return np.stack(columns, axis=1), names
+
+
+# ------------------------------------------------------------------------------------------
+# The Walkers data
+# ------------------------------------------------------------------------------------------
+
+SUBJECT_IDS = ("07", "35")
+_WALKS_07 = ("07_01", "07_02")
+_WALKS_35 = (1, 2, 3, 11, 12, 13, 14, 15, 16, 26, 27, 28, 29, 30, 31)  # col17-25: jog/run
+_ARCHIVE_35 = "cmu35_walk_jog_dev.npz"
+
+
+@dataclass
+class Walkers:
+    """Walks of several subjects as feature sequences (thesis Sec. 2.4.1).
+
+    Attributes:
+        sequences: J trials ``[T_j, F]`` (float64) of :func:`motion_features`.
+        subject: ``[J]`` (long) index of each trial's subject in ``subject_ids``.
+        subject_ids: the CMU subject numbers, ``("07", "35")``.
+        trials: CMU trial names, e.g. ``"07_01"``, ``"35_26"``.
+        features: the ``F`` feature names.
+        fps: the common frame rate.
+    """
+
+    sequences: list[torch.Tensor]
+    subject: torch.Tensor
+    subject_ids: tuple[str, ...]
+    trials: list[str]
+    features: list[str]
+    fps: float
+
+    def __len__(self) -> int:
+        return len(self.sequences)
+
+
+def load_walkers(folder: str | Path = "../shared/data/cmu", target_fps: float = 15.0) -> Walkers:
+    """Load the CMU walks of subjects 07 and 35 at one frame rate.
+
+    Reads ``07.asf`` with ``07_01.amc`` and ``07_02.amc`` (120 frames/s), and ``35.asf`` with
+    the walks of ``cmu35_walk_jog_dev.npz`` (30 frames/s, keys ``col01``-``col03``,
+    ``col11``-``col16``, ``col26``-``col31``; the jog/run trials ``col17``-``col25`` are left
+    out): 2 + 15 trials, features as :func:`motion_features` makes them.
+
+    Args:
+        folder: the folder holding those files.
+        target_fps: common frame rate; must divide 120 and 30 by integers (15, 30, 10, ...).
+
+    Returns:
+        :class:`Walkers`, trials ordered as listed above.
+
+    Raises:
+        FileNotFoundError: the folder or one of the files is missing.
+        ValueError: the two skeletons have different channels, the archive lacks a walk or its
+            arrays do not match ``35.asf``, or a bad ``target_fps``.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"CMU data folder not found: {folder}")
+    files = ["07.asf", *(f"{t}.amc" for t in _WALKS_07), "35.asf", _ARCHIVE_35]
+    for name in files:
+        if not (folder / name).is_file():
+            raise FileNotFoundError(f"{name} is missing from the CMU data folder {folder}")
+    sk07, sk35 = read_asf(folder / "07.asf"), read_asf(folder / "35.asf")
+    if sk07.channels() != sk35.channels():
+        raise ValueError(
+            f"07.asf and 35.asf in {folder} have different channels: "
+            f"{sorted(set(sk07.channels()) ^ set(sk35.channels()))}"
+        )
+    raw: list[tuple[str, int, np.ndarray, list[str], Skeleton, float]] = []
+    for name in _WALKS_07:
+        trial = read_amc(folder / f"{name}.amc", sk07)
+        raw.append((name, 0, trial.values, trial.channels, sk07, 120.0))
+    with np.load(folder / _ARCHIVE_35) as archive:
+        for number in _WALKS_35:
+            key = f"col{number:02d}"
+            if key not in archive:
+                raise ValueError(f"{folder / _ARCHIVE_35} has no array {key!r}")
+            values = archive[key]
+            if values.ndim != 2 or values.shape[1] != len(sk35.channels()):
+                raise ValueError(
+                    f"{folder / _ARCHIVE_35}[{key!r}] must be [T, {len(sk35.channels())}] "
+                    f"channels of 35.asf, got shape {values.shape}"
+                )
+            raw.append((f"35_{number:02d}", 1, values, sk35.channels(), sk35, 30.0))
+    sequences, names = [], None
+    for _, _, values, channels, skeleton, fps in raw:
+        features, names = motion_features(values, channels, skeleton, fps, target_fps)
+        sequences.append(torch.as_tensor(features, dtype=torch.float64))
+    return Walkers(
+        sequences=sequences,
+        subject=torch.tensor([r[1] for r in raw], dtype=torch.long),
+        subject_ids=SUBJECT_IDS,
+        trials=[r[0] for r in raw],
+        features=names,
+        fps=float(target_fps),
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Standardisation with training statistics
+# ------------------------------------------------------------------------------------------
+
+
+class Standardizer:
+    """Drop the channels that are constant in training, standardise the others.
+
+    A channel counts as constant when its standard deviation over all training frames is at most
+    ``rtol * (1 + max |x|)`` (relative to its magnitude, so that rounding noise of a large
+    constant value is no signal). Statistics are population ones (``ddof = 0``).
+
+    Args:
+        rtol: the relative threshold.
+
+    Attributes (after :meth:`fit`):
+        mean_: ``[F]`` training mean of every channel (the value of a constant one).
+        scale_: ``[F]`` training standard deviation (1 for constant channels).
+        keep_: ``[F]`` bool, the channels that vary in training (``F_kept`` of them).
+    """
+
+    def __init__(self, rtol: float = 1e-8) -> None:
+        if not (_is_real(rtol) and 0 <= rtol < math.inf):
+            raise ValueError(f"rtol must be a finite number >= 0, got {rtol!r}")
+        self.rtol = float(rtol)
+
+    def fit(self, sequences: Sequence[Any] | torch.Tensor) -> Standardizer:
+        """Training statistics of ``J`` sequences ``[T_j, F]`` (or one array ``[..., F]``)."""
+        if isinstance(sequences, torch.Tensor | np.ndarray):
+            x = as_tensor(sequences, "sequences", min_ndim=1)
+            x = x.reshape(-1, x.shape[-1])
+        else:
+            if len(sequences) == 0:
+                raise ValueError("sequences must be a non-empty list of [T_j, F] arrays")
+            parts = [as_tensor(s, f"sequences[{j}]", ndim=2) for j, s in enumerate(sequences)]
+            if any(p.shape[1] != parts[0].shape[1] for p in parts):
+                raise ValueError("all sequences must have the same number of channels F")
+            x = torch.cat([p.to(parts[0]) for p in parts])
+        if x.shape[0] == 0:
+            raise ValueError("sequences must contain at least one frame")
+        self.mean_ = x.mean(0)
+        std = x.std(0, correction=0)
+        self.keep_ = std > self.rtol * (1 + x.abs().amax(0))
+        self.scale_ = torch.where(self.keep_, std, torch.ones_like(std))
+        return self
+
+    def _check(self, z: Any, kept: bool, name: str) -> torch.Tensor:
+        if not hasattr(self, "keep_"):
+            raise RuntimeError("call fit before transform or inverse_transform")
+        width = int(self.keep_.sum()) if kept else self.keep_.numel()
+        z = as_tensor(z, name, min_ndim=1)
+        if z.shape[-1] != width:
+            raise ValueError(f"{name} must have {width} channels in its last dim, got {z.shape}")
+        return z
+
+    def transform(self, z: Any) -> torch.Tensor:
+        """``[..., F]`` -> ``[..., F_kept]``: the varying channels, standardised."""
+        z = self._check(z, False, "z")
+        keep = self.keep_.to(z.device)
+        mean, scale = (a.to(z)[keep] for a in (self.mean_, self.scale_))
+        return (z[..., keep] - mean) / scale
+
+    def inverse_transform(self, u: Any) -> torch.Tensor:
+        """``[..., F_kept]`` -> ``[..., F]``: original units, constant channels re-inserted at
+        their training value."""
+        u = self._check(u, True, "u")
+        keep = self.keep_.to(u.device)
+        mean, scale = self.mean_.to(u), self.scale_.to(u)
+        out = mean.expand(*u.shape[:-1], mean.numel()).clone()
+        out[..., keep] = u * scale[keep] + mean[keep]
+        return out
+
+    def kept(self, names: Sequence[str]) -> list[str]:
+        """The names of the kept channels, given the ``F`` names of all of them."""
+        if not hasattr(self, "keep_"):
+            raise RuntimeError("call fit before kept")
+        if len(names) != self.keep_.numel():
+            raise ValueError(f"names must list the {self.keep_.numel()} channels, got {len(names)}")
+        return [n for n, k in zip(names, self.keep_.tolist(), strict=True) if k]

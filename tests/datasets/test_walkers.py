@@ -1,0 +1,309 @@
+"""Walkers preprocessing: synthetic trajectories with known answers, scipy's rotations as the
+oracle for the Euler split, and the real CMU walks when ../shared/data/cmu is present."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+from sklearn.preprocessing import StandardScaler
+
+from hgpdm_torch.datasets import Standardizer, load_walkers, motion_features
+from hgpdm_torch.datasets.mocap import Bone, Skeleton
+
+CMU = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "cmu"
+UNIT_METRES = 0.0254 / 0.45  # CMU ASF "length 0.45": inches / 0.45
+
+
+def skeleton(root_order=("tx", "ty", "tz", "rx", "ry", "rz"), angle="deg") -> Skeleton:
+    bones = {
+        "lfemur": Bone(1, "lfemur", np.zeros(3), 1.0, np.zeros(3), "XYZ", ("rx", "ry", "rz")),
+        "ltibia": Bone(2, "ltibia", np.zeros(3), 1.0, np.zeros(3), "XYZ", ("rx",)),
+    }
+    parent = {"lfemur": "root", "ltibia": "lfemur"}
+    return Skeleton("test", {"angle": angle}, tuple(root_order), bones, parent)
+
+
+def trial(sk: Skeleton, T: int, **columns) -> tuple[np.ndarray, list[str]]:
+    """``[T, C]`` values with the given ``root_tx=...`` style columns, zeros elsewhere."""
+    channels = sk.channels()
+    values = np.zeros((T, len(channels)))
+    for key, col in columns.items():
+        values[:, channels.index(key.replace("_", "."))] = col
+    return values, channels
+
+
+def column(features, names, name):
+    return features[:, names.index(name)]
+
+
+@pytest.mark.parametrize("heading", [0.0, 90.0, 200.0, -45.0])
+def test_straight_walk_has_known_heading_frame_velocity(heading):
+    sk = skeleton()
+    frames = np.arange(81)
+    th = math.radians(heading)
+    forward, left = 0.2, 0.05  # per 120 frames/s frame
+    x = 3.0 + frames * (forward * math.sin(th) + left * math.cos(th))
+    z = -7.0 + frames * (forward * math.cos(th) - left * math.sin(th))
+    ty = 17 + np.sin(frames / 5)
+    values, channels = trial(sk, 81, root_tx=x, root_ty=ty, root_tz=z, root_ry=heading)
+    f, names = motion_features(values, channels, sk, fps=120, target_fps=15)
+    assert f.shape == (10, len(channels)) and names[:2] == ["root.vx_heading", "root.vz_heading"]
+    np.testing.assert_allclose(column(f, names, "root.vz_heading"), 8 * forward, atol=1e-12)
+    np.testing.assert_allclose(column(f, names, "root.vx_heading"), 8 * left, atol=1e-12)
+    np.testing.assert_allclose(column(f, names, "root.ty"), ty[::8][1:])
+    for name in ("root.yaw_rate", "root.pitch", "root.roll"):
+        np.testing.assert_allclose(column(f, names, name), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("rate", [3.0, -2.5])
+def test_turning_gives_the_yaw_rate_across_the_wrap(rate):
+    sk = skeleton()
+    ry = 150.0 + rate * np.arange(60)  # crosses +-180 degrees either way
+    values, channels = trial(sk, 60, root_ry=ry, root_rx=4.0)
+    f, names = motion_features(values, channels, sk, fps=30, target_fps=15)
+    np.testing.assert_allclose(column(f, names, "root.yaw_rate"), math.radians(2 * rate))
+    np.testing.assert_allclose(column(f, names, "root.pitch"), math.radians(4.0), atol=1e-12)
+
+
+def test_pure_pitch_and_pure_roll():
+    sk = skeleton()
+    for rx, ry, rz, pitch, roll in [(10, 0, 0, 10, 0), (0, 0, 15, 0, 15), (-20, 120, 0, -20, 0)]:
+        values, channels = trial(sk, 3, root_rx=rx, root_ry=ry, root_rz=rz)
+        f, names = motion_features(values, channels, sk, fps=30)
+        np.testing.assert_allclose(column(f, names, "root.pitch"), math.radians(pitch), atol=1e-12)
+        np.testing.assert_allclose(column(f, names, "root.roll"), math.radians(roll), atol=1e-12)
+        np.testing.assert_allclose(column(f, names, "root.yaw_rate"), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("order", [("rx", "ry", "rz"), ("rz", "ry", "rx"), ("ry", "rz", "rx")])
+def test_orientation_split_matches_scipy(order):
+    """Root angles about fixed axes in the ASF order; scipy composes and decomposes them."""
+    rng = np.random.default_rng(0)
+    T = 40
+    yaw = rng.uniform(-np.pi, np.pi, T)
+    pitch = rng.uniform(-1.3, 1.3, T)
+    roll = rng.uniform(-np.pi, np.pi, T)
+    rot = Rotation.from_euler("YXZ", np.stack([yaw, pitch, roll], 1))  # Ry Rx Rz, intrinsic
+    seq = "".join(d[1] for d in order)  # lower case: scipy's fixed (extrinsic) axes
+    angles = rot.as_euler(seq, degrees=True)
+    sk = skeleton(root_order=("tx", "ty", "tz", *order))
+    cols = {f"root_{d}": angles[:, i] for i, d in enumerate(order)}
+    values, channels = trial(sk, T, **cols)
+    f, names = motion_features(values, channels, sk, fps=30)
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    np.testing.assert_allclose(column(f, names, "root.pitch"), pitch[1:], atol=1e-9)
+    np.testing.assert_allclose(wrap(column(f, names, "root.roll") - roll[1:]), 0.0, atol=1e-9)
+    np.testing.assert_allclose(
+        wrap(column(f, names, "root.yaw_rate") - np.diff(yaw)), 0.0, atol=1e-9
+    )
+
+
+def test_joint_angles_are_wrapped_radians():
+    deg = np.array([0.0, 179.0, 180.0, 181.0, 359.0, -181.0, 540.0, -180.0])
+    expected = np.radians([179.0, -180.0, -179.0, -1.0, 179.0, -180.0, -180.0])
+    sk = skeleton()
+    values, channels = trial(sk, len(deg), lfemur_ry=deg, ltibia_rx=deg / 100)
+    f, names = motion_features(values, channels, sk, fps=10)
+    np.testing.assert_allclose(column(f, names, "lfemur.ry"), expected, atol=1e-12)
+    assert np.all(f[:, 6:] >= -np.pi) and np.all(f[:, 6:] < np.pi)
+    assert names[6:] == ["lfemur.rx", "lfemur.ry", "lfemur.rz", "ltibia.rx"]
+    # radians in the file: no conversion, still wrapped
+    sk = skeleton(angle="rad")
+    values, channels = trial(sk, 3, ltibia_rx=np.array([0.5, 4.0, -0.5]))
+    f, names = motion_features(values, channels, sk, fps=10)
+    np.testing.assert_allclose(column(f, names, "ltibia.rx"), [4.0 - 2 * np.pi, -0.5])
+
+
+def test_resampling_stride_and_channel_order():
+    sk = skeleton()
+    ty = np.arange(50.0)
+    values, channels = trial(sk, 50, root_ty=ty, ltibia_rx=ty)
+    f, names = motion_features(values, channels, sk, fps=120, target_fps=30)
+    assert f.shape == (12, 10)  # ceil(50 / 4) - 1
+    np.testing.assert_allclose(column(f, names, "root.ty"), ty[::4][1:])
+    f, _ = motion_features(values, channels, sk, fps=120)
+    assert f.shape == (49, 10)
+    # channels may come in any order; root channels become the six root features
+    perm = np.random.default_rng(1).permutation(len(channels))
+    g, gnames = motion_features(values[:, perm], [channels[i] for i in perm], sk, fps=120)
+    assert gnames[:6] == names[:6] and sorted(gnames) == sorted(names)
+    for name in names:
+        np.testing.assert_allclose(column(g, gnames, name), column(f, names, name))
+
+
+def test_bad_inputs_raise():
+    sk = skeleton()
+    values, channels = trial(sk, 8)
+    with pytest.raises(ValueError, match="channels"):
+        motion_features(values, channels[:-1], sk, fps=30)
+    with pytest.raises(ValueError, match="channels"):
+        motion_features(values[:, 1:], channels[1:], sk, fps=30)  # root.tx missing
+    with pytest.raises(ValueError, match="channels"):
+        motion_features(values, [*channels[:-1], "rfemur.rx"], sk, fps=30)
+    for fps in (0, -30.0, float("nan"), math.inf):
+        with pytest.raises(ValueError, match="fps"):
+            motion_features(values, channels, sk, fps=fps)
+    with pytest.raises(ValueError, match="target_fps"):
+        motion_features(values, channels, sk, fps=30, target_fps=0)
+    with pytest.raises(ValueError, match="target_fps"):
+        motion_features(values, channels, sk, fps=120, target_fps=50)  # stride 2.4
+    with pytest.raises(ValueError, match="target_fps"):
+        motion_features(values, channels, sk, fps=15, target_fps=30)
+    with pytest.raises(ValueError, match="values"):
+        motion_features(values[:1], channels, sk, fps=30)
+    with pytest.raises(ValueError, match="values"):
+        motion_features(np.full_like(values, np.nan), channels, sk, fps=30)
+    with pytest.raises(ValueError, match="values"):
+        motion_features(values[0], channels, sk, fps=30)
+    tilted = skeleton()
+    tilted.root_orientation = np.array([0.0, 90.0, 0.0])
+    with pytest.raises(ValueError, match="skeleton"):
+        motion_features(values, channels, tilted, fps=30)
+
+
+# ------------------------------------------------------------------------------------------
+# Standardizer
+# ------------------------------------------------------------------------------------------
+
+
+def test_standardizer_drops_constant_channels_and_maps_back(generator):
+    train = [torch.randn(20, 4, generator=generator) * torch.tensor([1.0, 3.0, 1.0, 0.1])]
+    train.append(torch.randn(15, 4, generator=generator))
+    for s in train:
+        s[:, 2] = 1e6 * (1 + 1e-16 * torch.randn(s.shape[0], generator=generator))  # constant
+    st = Standardizer().fit(train)
+    assert st.keep_.tolist() == [True, True, False, True]
+    assert st.kept(["a", "b", "c", "d"]) == ["a", "b", "d"]
+    flat = torch.cat(train)
+    ref = StandardScaler().fit(flat[:, [0, 1, 3]].numpy())
+    test = torch.randn(3, 7, 4, generator=generator)
+    u = st.transform(test)
+    assert u.shape == (3, 7, 3)
+    np.testing.assert_allclose(
+        u.reshape(-1, 3).numpy(), ref.transform(test.reshape(-1, 4)[:, [0, 1, 3]].numpy())
+    )
+    back = st.inverse_transform(u)
+    torch.testing.assert_close(back[..., [0, 1, 3]], test[..., [0, 1, 3]])
+    torch.testing.assert_close(back[..., 2], torch.full((3, 7), 1e6))
+    # an array of frames works too, and float32 inputs stay float32
+    st2 = Standardizer().fit(flat.numpy())
+    torch.testing.assert_close(st2.mean_, st.mean_)
+    assert st.transform(test.float()).dtype == torch.float32
+
+
+def test_standardizer_bad_inputs():
+    with pytest.raises(ValueError, match="rtol"):
+        Standardizer(rtol=-1.0)
+    with pytest.raises(ValueError, match="sequences"):
+        Standardizer().fit([])
+    with pytest.raises(ValueError, match="channels"):
+        Standardizer().fit([torch.zeros(3, 2), torch.zeros(3, 4)])
+    st = Standardizer().fit([torch.randn(5, 3)])
+    with pytest.raises(ValueError, match="z"):
+        st.transform(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match="u"):
+        st.inverse_transform(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match="names"):
+        st.kept(["a"])
+    with pytest.raises(RuntimeError, match="fit"):
+        Standardizer().transform(torch.zeros(2, 3))
+
+
+# ------------------------------------------------------------------------------------------
+# The loader
+# ------------------------------------------------------------------------------------------
+
+SMALL_ASF = """:version 1.10
+:name VICON
+:units
+  length 0.45
+  angle deg
+:root
+   order TX TY TZ RX RY RZ
+   axis XYZ
+   position 0 0 0
+   orientation 0 0 0
+:bonedata
+  begin
+     id 1
+     name {bone}
+     direction 0 -1 0
+     length 7
+     axis 0 0 20  XYZ
+    dof rx
+  end
+:hierarchy
+  begin
+    root {bone}
+  end
+"""
+
+
+def test_loader_missing_files_and_mismatched_skeletons(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        load_walkers(tmp_path / "nowhere")
+    for name in ("07.asf", "07_01.amc", "07_02.amc", "35.asf"):
+        (tmp_path / name).write_text("")
+    with pytest.raises(FileNotFoundError, match=r"cmu35_walk_jog_dev\.npz.*" + tmp_path.name):
+        load_walkers(tmp_path)
+    np.savez(tmp_path / "cmu35_walk_jog_dev.npz", col01=np.zeros((4, 7)))
+    (tmp_path / "07.asf").write_text(SMALL_ASF.format(bone="lfemur"))
+    (tmp_path / "35.asf").write_text(SMALL_ASF.format(bone="rfemur"))
+    with pytest.raises(ValueError, match="different channels"):
+        load_walkers(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def walkers():
+    if not CMU.is_dir():
+        pytest.skip(f"../shared/data/cmu absent: no real CMU walks at {CMU}")
+    return load_walkers(CMU)
+
+
+def test_walkers_trials_and_frame_rate(walkers):
+    assert len(walkers) == 17 and walkers.fps == 15.0
+    assert walkers.trials[:3] == ["07_01", "07_02", "35_01"] and walkers.trials[-1] == "35_31"
+    assert not any(f"35_{k}" in walkers.trials for k in range(17, 26))  # jog/run left out
+    assert walkers.subject.tolist() == [0, 0] + [1] * 15
+    assert walkers.subject_ids == ("07", "35")
+    assert all(s.shape[1] == len(walkers.features) == 62 for s in walkers.sequences)
+    assert all(
+        s.dtype == torch.float64 and bool(torch.isfinite(s).all()) for s in walkers.sequences
+    )
+    # 07_01: 316 frames at 120 frames/s -> 40 at 15 -> 39 rows; 35_01: 90 at 30 -> 45 -> 44
+    assert walkers.sequences[0].shape[0] == 39 and walkers.sequences[2].shape[0] == 44
+    angles = torch.cat(walkers.sequences)[:, 3:]
+    assert bool((angles >= -math.pi).all()) and bool((angles < math.pi).all())
+
+
+def test_walkers_walk_forward_at_a_plausible_speed(walkers):
+    """Both subjects advance along their heading (+z of the root frame) at 1-1.6 m/s; the
+    pelvis sways sideways with the steps but does not drift."""
+    fwd = walkers.features.index("root.vz_heading")
+    side = walkers.features.index("root.vx_heading")
+    for subject in (0, 1):
+        seqs = [s for s, g in zip(walkers.sequences, walkers.subject, strict=True) if g == subject]
+        v = torch.cat(seqs)
+        speed = float(v[:, fwd].mean()) * walkers.fps * UNIT_METRES
+        assert 1.0 < speed < 1.6
+        assert bool((v[:, fwd] > 0).all())
+        assert abs(float(v[:, side].mean())) < 0.1 * float(v[:, fwd].mean())
+    height = torch.cat(walkers.sequences)[:, walkers.features.index("root.ty")] * UNIT_METRES
+    assert 0.8 < float(height.mean()) < 1.1
+
+
+def test_walkers_standardised_with_training_statistics(walkers):
+    train = [s for s, t in zip(walkers.sequences, walkers.trials, strict=True) if t != "35_31"]
+    st = Standardizer().fit(train)
+    dropped = [n for n, k in zip(walkers.features, st.keep_.tolist(), strict=True) if not k]
+    assert "root.vz_heading" not in dropped and 0 < len(dropped) < 10
+    u = st.transform(walkers.sequences[-1])
+    assert u.shape[1] == int(st.keep_.sum()) and bool(torch.isfinite(u).all())
+    torch.testing.assert_close(
+        st.inverse_transform(u)[:, st.keep_], walkers.sequences[-1][:, st.keep_]
+    )
