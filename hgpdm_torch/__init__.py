@@ -10,17 +10,20 @@ from . import datasets, decision, expectations, inference, kernels, models
 from .gp import GPPosterior
 from .kernels import ALPHA_BAR, measurement_kernel, transition_kernel
 from .linalg import CholeskyError
+from .model_selection import CVResult, cross_validate
 from .models import GPDM, HGPDM, IDDM, load_model
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ALPHA_BAR",
+    "CVResult",
     "CholeskyError",
     "GPDM",
     "GPPosterior",
     "HGPDM",
     "IDDM",
+    "cross_validate",
     "datasets",
     "decision",
     "expectations",
