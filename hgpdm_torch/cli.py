@@ -34,6 +34,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "hgpdm_torch.experiments.style_recognition",
         "VB style recognition, forecasting and gap recovery (Sec. 2.4, Tables 2.1-2.4, Fig. 2.3)",
     ),
+    "walkers": (
+        "hgpdm_torch.experiments.walkers",
+        "real CMU walks: VB style recognition and pose forecasts vs baselines (Sec. 2.4.1)",
+    ),
     "target-prediction": (
         "hgpdm_torch.experiments.target_prediction",
         "table-tennis target prediction (Sec. 3.5, Table 3.2, Fig. 3.7)",

@@ -46,6 +46,7 @@ from .table import ResultTable  # noqa: E402
 
 __all__ = [
     "StyleData",
+    "chunked_forecast",
     "forecast_windows",
     "gap_recovery_figure",
     "load_data",
@@ -135,14 +136,24 @@ def _chunked(fn: Callable[..., tuple], z: torch.Tensor, per_window: float, **kw:
     return outs
 
 
-def _forecast(inf: VariationalInference, z: torch.Tensor, values: torch.Tensor | None, n: int):
+def chunked_forecast(
+    inf: VariationalInference, z: torch.Tensor, values: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:meth:`VariationalInference.forecast` over windows ``z [W, T, Dz]`` in memory-bounded
+    chunks. ``values``: ``[W, 1]`` given g per window (oracle), or ``None`` to infer it.
+
+    Returns:
+        ``mean [W, Dz]`` of the next frame, ``g_ml [W]`` (index into ``inf.values``) and the
+        posterior over g ``[W, K]``.
+    """
+    n = inf.model.observations.shape[0]
     K = 1 if values is not None or inf.kind != "discrete" else int(inf.values.numel())
     per_window = K * (z.shape[-2] + 1) * n * n
     kw = {} if values is None else {"values": values}
     outs = _chunked(lambda w, **k: inf.forecast(w, **k), z, per_window, **kw)
     mean = torch.cat([o[0] for o in outs])
     g_ml = torch.cat([o[2].g_ml for o in outs])
-    return mean, g_ml
+    return mean, g_ml, torch.cat([o[2].posterior for o in outs])
 
 
 def style_recognition(
@@ -189,14 +200,14 @@ def style_recognition(
                 models[name] = None
                 continue
             hg = HGPDM(data.train, data.train_labels, latent_dim)
-            hg.fit(fit_steps)
             gp = GPDM(data.train, latent_dim)
-            gp.fit(fit_steps)
+            for label, model in (("H-GPDM", hg), ("GPDM", gp)):
+                fits = table.meta.setdefault("fits", {})
+                fits[f"{name} {label}"] = model.fit(fit_steps).summary()
             models[name] = (data, hg, gp)
         if models[name] is None:
             continue
         data, hg, gp = models[name]
-        n = hg.observations.shape[0]
         z, nxt, y = forecast_windows(data.test, data.test_labels, T, stride)
 
         def rmse(mean: torch.Tensor, nxt: torch.Tensor = nxt) -> float:
@@ -204,7 +215,7 @@ def style_recognition(
 
         vb = VariationalInference(hg)
         start = time.perf_counter()
-        mean, g_ml = _forecast(vb, z, None, n)
+        mean, g_ml, _ = chunked_forecast(vb, z)
         ms = 1e3 * (time.perf_counter() - start) / z.shape[0]
         oracle = y[:, None]
         table.add(
@@ -214,10 +225,10 @@ def style_recognition(
                 "windows": int(z.shape[0]),
                 "VB H-GPDM RMSE": rmse(mean),
                 "VB H-GPDM accuracy": float((vb.values[g_ml] == y).double().mean()),
-                "oracle VB RMSE": rmse(_forecast(vb, z, oracle, n)[0]),
-                "oracle MAP RMSE": rmse(_forecast(MAPInference(hg), z, oracle, n)[0]),
-                "GPDM VB RMSE": rmse(_forecast(VariationalInference(gp), z, None, n)[0]),
-                "GPDM MAP RMSE": rmse(_forecast(MAPInference(gp), z, None, n)[0]),
+                "oracle VB RMSE": rmse(chunked_forecast(vb, z, oracle)[0]),
+                "oracle MAP RMSE": rmse(chunked_forecast(MAPInference(hg), z, oracle)[0]),
+                "GPDM VB RMSE": rmse(chunked_forecast(VariationalInference(gp), z)[0]),
+                "GPDM MAP RMSE": rmse(chunked_forecast(MAPInference(gp), z)[0]),
                 "VB ms/window": ms,
             }
         )
