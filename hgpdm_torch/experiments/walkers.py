@@ -140,6 +140,7 @@ def walkers(
     folds: int = 5,
     train_per_subject: int = 3,
     stride: int = 2,
+    model_options: dict[str, Any] | None = None,
     progress: bool = False,
 ) -> ResultTable:
     """Tables 2.1-2.2 on the real Walkers trials, with baselines (see the module docstring).
@@ -152,6 +153,8 @@ def walkers(
         fit_steps: maximum MAP steps per fit.
         folds, train_per_subject: see :func:`walker_folds`.
         stride: step between windows.
+        model_options: further constructor arguments of both models (e.g.
+            ``{"back_constraint": "kernel"}``, ``{"learn_noise": True}``).
         progress: progress bar over folds.
 
     Returns:
@@ -161,9 +164,11 @@ def walkers(
     if data is None:
         data = load_walkers(folder)
     splits = walker_folds(data.subject, folds, train_per_subject)
+    options = dict(model_options or {})
     per: dict[tuple[int, str], list[dict[str, float]]] = {}
     meta: dict[str, Any] = {
         "latent_dim": latent_dim,
+        "model_options": {k: str(v) for k, v in options.items()},
         "fit_steps": fit_steps,
         "stride": stride,
         "fps": data.fps,
@@ -181,8 +186,8 @@ def walkers(
         te = [std.transform(data.sequences[i]) for i in test]
         y_tr, y_te = data.subject[train], data.subject[test]
         start = time.perf_counter()
-        hg = HGPDM(tr, y_tr, latent_dim)
-        gp = GPDM(tr, latent_dim)
+        hg = HGPDM(tr, y_tr, latent_dim, **options)
+        gp = GPDM(tr, latent_dim, **options)
         fits = {name: m.fit(fit_steps).summary() for name, m in (("H-GPDM", hg), ("GPDM", gp))}
         meta["fits"].append({**fits, "seconds": time.perf_counter() - start})
         last, ridge = LastFrameForecaster().fit(tr), RidgeAR().fit(tr)
@@ -248,9 +253,14 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--folds", type=_positive, default=2 if SMOKE else 5)
     parser.add_argument("--train-per-subject", type=_positive, default=1 if SMOKE else 3)
     parser.add_argument("--stride", type=_positive, default=4 if SMOKE else 2)
+    parser.add_argument("--back-constraint", choices=("kernel", "mlp"), default=None)
+    parser.add_argument("--learn-noise", action="store_true", help="learn alpha_4 (MAP)")
     parser.add_argument("--out", type=Path, default=None, help="write the table as JSON")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
+    options: dict[str, Any] = {"learn_noise": args.learn_noise}
+    if args.back_constraint is not None:
+        options["back_constraint"] = args.back_constraint
     if not args.data.is_dir():
         parser.error(f"--data {args.data} is not a folder (it needs the CMU files, see README)")
     torch.set_default_dtype(torch.float64)
@@ -262,6 +272,7 @@ def main(argv: list[str]) -> int:
         folds=args.folds,
         train_per_subject=args.train_per_subject,
         stride=args.stride,
+        model_options=options,
         progress=args.progress,
     )
     print(table.to_markdown(".3f"))

@@ -34,6 +34,7 @@ from ..gp import GPPosterior
 from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
 from ..linalg import gaussian_nll
 from ..validation import as_tensor, check_choice
+from .back_constraints import make_back_constraint
 
 __all__ = ["GPDM", "load_model"]
 
@@ -93,12 +94,18 @@ class GPDM(gpytorch.Module):
         learn_noise: learn the process noise alpha_4 with a weak log-normal prior centred on
             ``alpha[3]`` (log-space standard deviation :attr:`NOISE_PRIOR_SD`); default
             ``False`` keeps it fixed (the thesis's setting, better on real data so far).
+        back_constraint: ``None`` (free latent states, the default), ``"kernel"`` or ``"mlp"``:
+            latent states ``X = f(Z)`` of the standardised observations, with the map's
+            parameters learned instead of X (:mod:`~hgpdm_torch.models.back_constraints`); or a
+            module of your own with ``forward([..., Dz]) -> [..., Dx]`` and
+            ``initialise(inputs, latent)``.
         init: ``"pca"`` (default) or a ``[M, Dx]`` tensor of initial latent states, M the total
             number of frames.
         dtype: floating dtype of data and parameters (float64 recommended for GP algebra).
 
     Attributes:
-        latent: ``[M, Dx]`` parameter, the latent states of all frames, sequences concatenated.
+        latent: ``[M, Dx]`` latent states of all frames, sequences concatenated: a parameter, or
+            the back-constraint map of the observations (``latent_map``).
         observations: ``[M, Dz]`` buffer; ``obs_mean`` ``[Dz]`` its column means.
         measurement_kernel, transition_kernel: gpytorch kernels (noise terms excluded).
     """
@@ -116,6 +123,7 @@ class GPDM(gpytorch.Module):
         alpha: Sequence[float] = ALPHA_BAR,
         learn_alpha: bool = False,
         learn_noise: bool = False,
+        back_constraint: str | torch.nn.Module | None = None,
         init: str | torch.Tensor = "pca",
         dtype: torch.dtype = torch.float64,
     ) -> None:
@@ -136,6 +144,7 @@ class GPDM(gpytorch.Module):
             "alpha": list(alpha),
             "learn_alpha": bool(learn_alpha),
             "learn_noise": bool(learn_noise),
+            "back_constraint": back_constraint if isinstance(back_constraint, str) else None,
         }
 
         z = torch.cat(seqs, dim=0)
@@ -152,7 +161,16 @@ class GPDM(gpytorch.Module):
         )
 
         latent = self._initial(init, z - z.mean(0))
-        self.latent = torch.nn.Parameter(latent)
+        self.latent_map: torch.nn.Module | None = None
+        if back_constraint is None:
+            self.register_parameter("latent", torch.nn.Parameter(latent))
+        else:
+            # The map sees standardised frames (training statistics, fixed): channel units and
+            # the learned output scales W do not move the latent positions.
+            std = z.std(0)
+            inputs = (z - z.mean(0)) / torch.where(std > 0, std, torch.ones_like(std))
+            self.register_buffer("map_inputs", inputs)
+            self.latent_map = make_back_constraint(back_constraint, inputs, latent)
 
         # Measurement: beta (kernel width for "rbf", and noise) and the output scales W carry
         # log-normal priors, i.e. 1/2 ||log beta||^2 + 1/2 ||log w||^2 in Eq. 6.
@@ -235,6 +253,15 @@ class GPDM(gpytorch.Module):
         return x.clone()
 
     # ----------------------------------------------------------------- parameters
+    @property
+    def latent(self) -> torch.Tensor:
+        """``[M, Dx]`` latent states: the free parameter, or ``latent_map(map_inputs)``."""
+        if self.latent_map is not None:
+            return self.latent_map(self.map_inputs)
+        if "latent" not in self._parameters:
+            raise AttributeError("latent")
+        return self._parameters["latent"]
+
     def _constrained(self, name: str) -> torch.Tensor:
         return getattr(self, f"raw_{name}_constraint").transform(getattr(self, f"raw_{name}"))
 
@@ -493,6 +520,11 @@ class GPDM(gpytorch.Module):
 
     def save(self, path: str | Path) -> None:
         """Save configuration, training data and state (parameters, buffers) to ``path``."""
+        if self.latent_map is not None and self._config["back_constraint"] is None:
+            raise ValueError(
+                "save() rebuilds the model from its configuration, which cannot hold a custom "
+                "back-constraint module; save model.state_dict() with torch.save instead"
+            )
         cls = type(self)
         torch.save(
             {
