@@ -137,10 +137,14 @@ def _chunked(fn: Callable[..., tuple], z: torch.Tensor, per_window: float, **kw:
 
 
 def chunked_forecast(
-    inf: VariationalInference, z: torch.Tensor, values: torch.Tensor | None = None
+    inf: VariationalInference,
+    z: torch.Tensor,
+    values: torch.Tensor | None = None,
+    residual: str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:meth:`VariationalInference.forecast` over windows ``z [W, T, Dz]`` in memory-bounded
-    chunks. ``values``: ``[W, 1]`` given g per window (oracle), or ``None`` to infer it.
+    chunks. ``values``: ``[W, 1]`` given g per window (oracle), or ``None`` to infer it;
+    ``residual``: see :meth:`VariationalInference.forecast`.
 
     Returns:
         ``mean [W, Dz]`` of the next frame, ``g_ml [W]`` (index into ``inf.values``) and the
@@ -150,7 +154,7 @@ def chunked_forecast(
     K = 1 if values is not None or inf.kind != "discrete" else int(inf.values.numel())
     per_window = K * (z.shape[-2] + 1) * n * n
     kw = {} if values is None else {"values": values}
-    outs = _chunked(lambda w, **k: inf.forecast(w, **k), z, per_window, **kw)
+    outs = _chunked(lambda w, **k: inf.forecast(w, residual=residual, **k), z, per_window, **kw)
     mean = torch.cat([o[0] for o in outs])
     g_ml = torch.cat([o[2].g_ml for o in outs])
     return mean, g_ml, torch.cat([o[2].posterior for o in outs])

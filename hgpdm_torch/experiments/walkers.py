@@ -14,6 +14,9 @@ trial is cut into sliding windows of T frames and each method forecasts the next
 - VB H-GPDM: Algorithm 2.2 over both subjects, the ML subject's forecast; its recognition
   accuracy, the 90%-set coverage of the subject posterior and its expected calibration error;
 - oracle H-GPDM (true subject given): VB and MAP; GPDM: VB and MAP;
+- the VB forecasts again with the window's deviation from the model's reconstruction carried
+  forward as an AR(1) process (``forecast(..., residual="ar1")``, coefficient estimated from
+  each window alone; not in the thesis);
 - baselines: repeat the last frame; ridge AR(k) with k and the ridge strength chosen by
   cross-validation grouped by training trial (:class:`~hgpdm_torch.baselines.RidgeAR`).
 
@@ -51,6 +54,9 @@ METHODS = (
     "oracle MAP",
     "GPDM VB",
     "GPDM MAP",
+    "VB H-GPDM + AR(1) residual",
+    "oracle VB + AR(1) residual",
+    "GPDM VB + AR(1) residual",
     "repeat last frame",
     "ridge AR (CV)",
 )
@@ -201,6 +207,11 @@ def walkers(
                 "oracle MAP": chunked_forecast(MAPInference(hg), z, y[:, None])[0],
                 "GPDM VB": chunked_forecast(vb_gp, z)[0],
                 "GPDM MAP": chunked_forecast(MAPInference(gp), z)[0],
+                "VB H-GPDM + AR(1) residual": chunked_forecast(vb_hg, z, residual="ar1")[0],
+                "oracle VB + AR(1) residual": chunked_forecast(
+                    vb_hg, z, y[:, None], residual="ar1"
+                )[0],
+                "GPDM VB + AR(1) residual": chunked_forecast(vb_gp, z, residual="ar1")[0],
                 "repeat last frame": last.predict(z),
                 "ridge AR (CV)": ridge.predict(z),
             }

@@ -111,6 +111,12 @@ class MAPInference(VariationalInference):
                 history=history,
             )
 
+    def reconstruct(self, result: MAPResult) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]
+        """GP predictive mean ``[..., T, Dz]`` and variance of every row at the MAP states."""
+        with torch.no_grad():
+            m, v = self._h.predict_point(result.ml_state())
+            return m + self.measurement.offset, v[..., None] * self.measurement.scale.pow(2)
+
     def predict_observations(  # type: ignore[override]
         self, z: object, result: MAPResult
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -121,20 +127,6 @@ class MAPInference(VariationalInference):
             observed rows).
         """
         z, observed = window_mask(z, self.obs_dim)
-        with torch.no_grad():
-            m, v = self._h.predict_point(result.ml_state())
-            m = m + self.measurement.offset
-            var = v[..., None] * self.measurement.scale.pow(2)
-            keep = observed[..., None]
-            return torch.where(keep, z, m), torch.where(keep, torch.zeros_like(var), var)
-
-    def forecast(  # type: ignore[override]
-        self, z: object, **infer_kwargs: object
-    ) -> tuple[torch.Tensor, torch.Tensor, MAPResult]:
-        """Forecast ``z_{T+1}`` from ``z_{1:T}``: mean ``[..., Dz]``, var, and the result."""
-        z, _ = window_mask(z, self.obs_dim)
-        nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype)
-        window = torch.cat([z, nan], -2)
-        res = self.infer(window, **infer_kwargs)
-        m, v = self.predict_observations(window, res)
-        return m[..., -1, :], v[..., -1, :], res
+        m, var = self.reconstruct(result)
+        keep = observed[..., None]
+        return torch.where(keep, z, m), torch.where(keep, torch.zeros_like(var), var)

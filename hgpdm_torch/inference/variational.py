@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import pyro
 import pyro.distributions as dist
@@ -66,6 +67,7 @@ from ..linalg import CholeskyError, psd_cholesky, symmetrize
 from ..models import GPDM, HGPDM
 from ..validation import as_tensor, check_choice
 from .filtering import filter_sequence, smooth
+from .residual import ar1_residual_forecast
 
 __all__ = [
     "MeanFieldGuide",
@@ -1249,23 +1251,45 @@ class VariationalInference:
                 *cm.shape[:-1], T, dz
             )
 
+    def reconstruct(self, result: VBResult) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unconditioned predictions of every row from q(x) of the ML g: the moment-matched
+        ``q(z_t)`` means ``[..., T, Dz]`` and variances ``[..., T, Dz]`` (noise included)."""
+        mean, cov = result.ml_state()
+        with torch.no_grad():
+            m, S = self.observation_marginals(mean, cov)
+        return m, S.diagonal(dim1=-2, dim2=-1)
+
     def forecast(
-        self, z: object, **infer_kwargs: object
-    ) -> tuple[torch.Tensor, torch.Tensor, VBResult]:
+        self, z: object, *, residual: str | None = None, **infer_kwargs: object
+    ) -> tuple[torch.Tensor, torch.Tensor, Any]:
         """Forecast ``z_{T+1}`` from a window ``z_{1:T}`` (Sec. 2.3.2, Tables 2.1-2.4 protocol).
 
         Runs :meth:`infer` on ``z_{1:T}`` with a missing row appended, picks the ML value of g
         and conditions the joint ``q(z_{1:T+1})`` on the observed rows.
 
+        Args:
+            z: ``[..., T, Dz]`` windows (NaN marks missing values).
+            residual: ``None`` (the thesis's forecast) or ``"ar1"``: the window's deviation from
+                the model's reconstruction continues as an AR(1) process whose coefficient is
+                estimated from the window (:func:`~hgpdm_torch.inference.residual.
+                ar1_residual_forecast`); for new recordings that sit off the training manifold.
+            **infer_kwargs: passed to :meth:`infer`.
+
         Returns:
             ``mean [..., Dz]``, ``var [..., Dz]`` of the next observation, and the result.
         """
+        if residual is not None:
+            check_choice(residual, "residual", ("ar1",))
         z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
         nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype)
         window = torch.cat([z, nan], -2)
         res = self.infer(window, **infer_kwargs)
-        m, v = self.predict_observations(window, res)
-        return m[..., -1, :], v[..., -1, :], res
+        if residual is None:
+            m, v = self.predict_observations(window, res)
+            return m[..., -1, :], v[..., -1, :], res
+        rec, var = self.reconstruct(res)
+        mean, var, _ = ar1_residual_forecast(z, rec[..., :-1, :], rec[..., -1, :], var[..., -1, :])
+        return mean, var, res
 
 
 def condition_gaussian(
