@@ -261,29 +261,29 @@ def _run(
             raise FloatingPointError("trial point failed")
         return torch.as_tensor(value)
 
+    def attempt() -> float | None:
+        """One optimizer step; the loss after it, or ``None`` if a trial point failed."""
+        nonlocal cached
+        try:
+            opt.step(closure)
+            value = obj.evaluate()
+        except FloatingPointError:
+            value = None
+        cached = True
+        return value
+
     bar = tqdm(total=steps, disable=not progress, desc=desc)
     try:
         for taken in range(1, steps + 1):
             before = obj.snapshot()
-            new: float | None
-            try:
-                opt.step(closure)
-                new = obj.evaluate()
-            except FloatingPointError:
-                new = None
-            cached = True
+            new = attempt()
             if is_lbfgs and (new is None or not new < loss):
                 # A failed or zero step: undo it, forget the curvature history, retry once.
                 obj.restore(before)
                 _clear_history(opt)
                 resets += 1
                 obj.evaluate()
-                try:
-                    opt.step(closure)
-                    new = obj.evaluate()
-                except FloatingPointError:
-                    new = None
-                cached = True
+                new = attempt()
                 if new is None or not new < loss:
                     obj.restore(before)
                     _clear_history(opt)
