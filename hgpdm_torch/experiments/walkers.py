@@ -266,10 +266,18 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--stride", type=_positive, default=4 if SMOKE else 2)
     parser.add_argument("--back-constraint", choices=("kernel", "mlp"), default=None)
     parser.add_argument("--learn-noise", action="store_true", help="learn alpha_4 (MAP)")
+    parser.add_argument(
+        "--fixed-measurement-width",
+        action="store_true",
+        help="keep the RBF measurement width at its initial value (no length-scale collapse)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="write the table as JSON")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
-    options: dict[str, Any] = {"learn_noise": args.learn_noise}
+    options: dict[str, Any] = {
+        "learn_noise": args.learn_noise,
+        "learn_measurement_width": not args.fixed_measurement_width,
+    }
     if args.back_constraint is not None:
         options["back_constraint"] = args.back_constraint
     if not args.data.is_dir():

@@ -94,6 +94,10 @@ class GPDM(gpytorch.Module):
         learn_noise: learn the process noise alpha_4 with a weak log-normal prior centred on
             ``alpha[3]`` (log-space standard deviation :attr:`NOISE_PRIOR_SD`); default
             ``False`` keeps it fixed (the thesis's setting, better on real data so far).
+        learn_measurement_width: learn the RBF measurement kernel's width beta_1 (default);
+            ``False`` keeps it at its initial value. With free latents the MAP width shrinks as
+            the fit proceeds until the measurement GP interpolates single training frames,
+            which hurts predictions for new recordings (README, Walkers).
         back_constraint: ``None`` (free latent states, the default), ``"kernel"`` or ``"mlp"``:
             latent states ``X = f(Z)`` of the standardised observations, with the map's
             parameters learned instead of X (:mod:`~hgpdm_torch.models.back_constraints`); or a
@@ -123,6 +127,7 @@ class GPDM(gpytorch.Module):
         alpha: Sequence[float] = ALPHA_BAR,
         learn_alpha: bool = False,
         learn_noise: bool = False,
+        learn_measurement_width: bool = True,
         back_constraint: str | torch.nn.Module | None = None,
         init: str | torch.Tensor = "pca",
         dtype: torch.dtype = torch.float64,
@@ -144,6 +149,7 @@ class GPDM(gpytorch.Module):
             "alpha": list(alpha),
             "learn_alpha": bool(learn_alpha),
             "learn_noise": bool(learn_noise),
+            "learn_measurement_width": bool(learn_measurement_width),
             "back_constraint": back_constraint if isinstance(back_constraint, str) else None,
         }
 
@@ -176,6 +182,7 @@ class GPDM(gpytorch.Module):
         # log-normal priors, i.e. 1/2 ||log beta||^2 + 1/2 ||log w||^2 in Eq. 6.
         self.measurement_kernel = measurement_kernel(measurement)
         if measurement == "rbf":
+            self.measurement_kernel.raw_lengthscale.requires_grad_(bool(learn_measurement_width))
             self.measurement_kernel.register_prior(
                 "beta1_prior", NormalPrior(0.0, 1.0), lambda k: k.lengthscale.pow(-2).log()
             )

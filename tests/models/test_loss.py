@@ -197,3 +197,16 @@ def test_small_units_are_not_constant():
     assert bool(model.varying.all())
     with pytest.raises(ValueError, match="every observed dim"):
         GPDM([torch.ones(5, 3), torch.ones(4, 3)], 2)
+
+
+def test_measurement_width_can_be_kept_fixed(tmp_path):
+    from hgpdm_torch.models import load_model
+
+    model = GPDM(_data(), 2, learn_measurement_width=False)
+    before = float(model.measurement_kernel.lengthscale)
+    assert not model.measurement_kernel.raw_lengthscale.requires_grad
+    model.fit(5, warn=False)
+    assert float(model.measurement_kernel.lengthscale) == before
+    assert float(GPDM(_data(), 2).latent.sub(model.latent).abs().max()) > 0  # latents moved
+    model.save(tmp_path / "m.pt")
+    assert not load_model(tmp_path / "m.pt").measurement_kernel.raw_lengthscale.requires_grad
