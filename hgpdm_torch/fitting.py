@@ -275,17 +275,18 @@ def _run(
     bar = tqdm(total=steps, disable=not progress, desc=desc)
     try:
         for taken in range(1, steps + 1):
-            before = obj.snapshot()
             new = attempt()
             if is_lbfgs and (new is None or not new < loss):
                 # A failed or zero step: undo it, forget the curvature history, retry once.
-                obj.restore(before)
+                # (Accepted L-BFGS steps always lower the loss: each step starts from the best
+                # state.)
+                obj.restore(best_state)
                 _clear_history(opt)
                 resets += 1
                 obj.evaluate()
                 new = attempt()
                 if new is None or not new < loss:
-                    obj.restore(before)
+                    obj.restore(best_state)
                     _clear_history(opt)
                     obj.evaluate()
                     new = _gradient_step(obj, loss)

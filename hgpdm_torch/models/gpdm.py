@@ -355,9 +355,10 @@ class GPDM(gpytorch.Module):
         return latent[self.src_index + 1]
 
     # ----------------------------------------------------------------- objective
-    def measurement_nll(self) -> torch.Tensor:
-        """``-log p(Z | X, beta, W)`` of Eq. 4, constants included."""
-        x = self.latent
+    def measurement_nll(self, latent: torch.Tensor | None = None) -> torch.Tensor:
+        """``-log p(Z | X, beta, W)`` of Eq. 4, constants included (X: ``latent`` or the
+        model's, ``[M, Dx]``)."""
+        x = self.latent if latent is None else latent
         m, dz = self.observations.shape
         k = self.measurement_kernel(x).to_dense()
         k = k + self.measurement_noise * torch.eye(m, dtype=x.dtype, device=x.device)
@@ -371,9 +372,10 @@ class GPDM(gpytorch.Module):
         k = k + self.transition_noise * torch.eye(k.shape[0], dtype=k.dtype, device=k.device)
         return gaussian_nll(k, targets, name="transition kernel matrix K_x")
 
-    def transition_nll(self) -> torch.Tensor:
-        """``-log p(X | g)`` of Eq. 5: GP transitions plus the unit Gaussian on first states."""
-        x = self.latent
+    def transition_nll(self, latent: torch.Tensor | None = None) -> torch.Tensor:
+        """``-log p(X | g)`` of Eq. 5: GP transitions plus the unit Gaussian on first states
+        (X: ``latent`` or the model's, ``[M, Dx]``)."""
+        x = self.latent if latent is None else latent
         first = x[self.first_index]
         inputs, targets = self.transition_inputs(x), self.transition_targets(x)
         nll = sum(
@@ -401,7 +403,8 @@ class GPDM(gpytorch.Module):
 
     def loss(self) -> torch.Tensor:
         """The negative log posterior ``L`` of Eq. 6 (with all normalising constants)."""
-        value = self.measurement_nll() + self.transition_nll() + self.prior_nll()
+        x = self.latent  # one evaluation of a back-constraint map serves both terms
+        value = self.measurement_nll(x) + self.transition_nll(x) + self.prior_nll()
         if not bool(torch.isfinite(value)):
             raise FloatingPointError(
                 "the negative log posterior is not finite; lower the learning rate or check "
