@@ -7,7 +7,9 @@ into sliding windows ``z_{i:i+T}`` (T = 5 and 10) and each method forecasts ``z_
 - VB H-GPDM: Algorithm 2.2 over all styles (forecast RMSE, and recognition accuracy of the ML
   style);
 - oracle H-GPDM: the true style given, VB and MAP (conditional GPDM) inference;
-- GPDM: one model without g, VB and MAP.
+- GPDM: one model without g, VB and MAP;
+- baselines: repeat the last frame; ridge AR(k), k and ridge strength by CV grouped by training
+  sequence.
 
 Data sets: (a) synthetic styled movements (:func:`~hgpdm_torch.datasets.styled_movements`, a
 held-out split of one generated set) and (b) aeon's BasicMotions (smartwatch accelerometer and
@@ -37,6 +39,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
+from ..baselines import LastFrameForecaster, RidgeAR  # noqa: E402
 from ..datasets import styled_movements  # noqa: E402
 from ..inference.map import MAPInference  # noqa: E402
 from ..inference.variational import VariationalInference  # noqa: E402
@@ -66,6 +69,8 @@ COLUMNS = [
     "oracle MAP RMSE",
     "GPDM VB RMSE",
     "GPDM MAP RMSE",
+    "repeat last frame RMSE",
+    "ridge AR (CV) RMSE",
     "VB ms/window",
 ]
 # psi2 of the measurement GP holds windows x K x T x N^2 numbers: chunk the windows to this
@@ -233,6 +238,8 @@ def style_recognition(
                 "oracle MAP RMSE": rmse(chunked_forecast(MAPInference(hg), z, oracle)[0]),
                 "GPDM VB RMSE": rmse(chunked_forecast(VariationalInference(gp), z)[0]),
                 "GPDM MAP RMSE": rmse(chunked_forecast(MAPInference(gp), z)[0]),
+                "repeat last frame RMSE": rmse(LastFrameForecaster().fit(data.train).predict(z)),
+                "ridge AR (CV) RMSE": rmse(RidgeAR().fit(data.train).predict(z)),
                 "VB ms/window": ms,
             }
         )
