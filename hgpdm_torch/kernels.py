@@ -234,6 +234,7 @@ def transition_kernel(
     num_values: int | None = None,
     alpha: Sequence[float] = ALPHA_BAR,
     alpha_g: Sequence[float] = (1.0, 0.1),
+    sharing: float = 0.0,
 ) -> Kernel:
     """Transition kernel ``k_x`` without its white-noise term ``alpha_4``.
 
@@ -255,6 +256,12 @@ def transition_kernel(
             here.
         alpha_g: ``[alpha_2^g, alpha_3^g]`` for continuous g: inverse squared width and linear
             variance of the intention dims.
+        sharing: for the discrete kinds, the share ``rho`` in ``[0, 1)`` of the dynamics common to
+            all values of g: ``k = rho k_0(x, x') + (1 - rho) delta(g, g') k_0(x, x')`` with
+            ``k_0`` the kind's base kernel (an intrinsic coregionalisation model whose
+            correlation between different values of g is ``rho``; not in the thesis). ``0``, the
+            default, is the thesis's block kernel. Each part has its own hyperparameters, so a
+            fit with learned alpha can move them apart.
 
     Returns:
         A gpytorch kernel over ``[..., N, Dx + Dg]`` inputs (``[..., N, Dx]`` for ``"gpdm"``).
@@ -271,10 +278,14 @@ def transition_kernel(
         )
     if kind in ("discrete", "iddm_discrete") and (num_values is None or num_values < 1):
         raise ValueError(f"num_values must be a positive int for kind={kind!r}")
+    if not 0.0 <= float(sharing) < 1.0:
+        raise ValueError(f"sharing must lie in [0, 1), got {sharing!r}")
+    if sharing and kind not in ("discrete", "iddm_discrete"):
+        raise ValueError(f"sharing applies to the discrete kinds only, got kind={kind!r}")
 
-    def scaled(base: Kernel) -> ScaleKernel:
-        k = ScaleKernel(base)
-        k.outputscale = a1
+    def scaled(base: Kernel, share: float = 1.0, active: Sequence[int] | None = None) -> Kernel:
+        k = ScaleKernel(base, active_dims=None if active is None else torch.as_tensor(list(active)))
+        k.outputscale = a1 * share
         return k
 
     def linear(active: Sequence[int] | None, variance: float) -> LinearKernel:
@@ -289,12 +300,17 @@ def transition_kernel(
 
     if kind == "gpdm":
         return AdditiveKernel(scaled(rbf_x()), linear(None, a3))
-    if kind == "discrete":
-        return DiscreteIntentionKernel(
-            AdditiveKernel(scaled(rbf_x()), linear(None, a3)), num_values
-        )
-    if kind == "iddm_discrete":
-        return DiscreteIntentionKernel(scaled(rbf_x()), num_values)
+    if kind in ("discrete", "iddm_discrete"):
+        rho, cols = float(sharing), range(x_dim)
+
+        def base(share: float, active: Sequence[int] | None) -> Kernel:
+            rbf = scaled(rbf_x(), share, active)
+            if kind == "iddm_discrete":
+                return rbf
+            return AdditiveKernel(rbf, linear(active, a3 * share))
+
+        style = DiscreteIntentionKernel(base(1.0 - rho, None), num_values)
+        return style if rho == 0.0 else AdditiveKernel(base(rho, cols), style)
     if g_dim < 1:
         raise ValueError(f"g_dim must be >= 1, got {g_dim}")
     rbf = IntentionRBFKernel(x_dim, g_dim)

@@ -11,13 +11,20 @@ from hgpdm_torch.gp import GPPosterior, _shared_matmul
 from hgpdm_torch.kernels import measurement_kernel, transition_kernel
 
 DX = 2
-KINDS = ["gpdm", "continuous", "iddm_continuous", "discrete", "iddm_discrete"]
+# "_shared": the discrete kernel with a share of common dynamics (not block-diagonal)
+KINDS = ["gpdm", "continuous", "iddm_continuous", "discrete", "iddm_discrete", "discrete_shared"]
 
 
 def make_posterior(kind: str, gen: torch.Generator, N: int = 25) -> GPPosterior:
     """A transition-style GP on ``[x, g]`` with nonlinear targets, output scale and offset."""
     kernel = transition_kernel(
-        kind, DX, g_dim=1, num_values=3, alpha=(0.9, 0.7, 0.2, 1e-2), alpha_g=(1.5, 0.3)
+        kind.removesuffix("_shared"),
+        DX,
+        g_dim=1,
+        num_values=3,
+        alpha=(0.9, 0.7, 0.2, 1e-2),
+        alpha_g=(1.5, 0.3),
+        sharing=0.4 if kind.endswith("_shared") else 0.0,
     )
     x = torch.randn(N, DX, generator=gen)
     if kind == "gpdm":

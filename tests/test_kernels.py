@@ -50,6 +50,24 @@ def test_discrete_kernel_is_block_diagonal(generator):
     torch.testing.assert_close(gram, base(x).to_dense() * same)
 
 
+@pytest.mark.parametrize("kind", ["discrete", "iddm_discrete"])
+def test_shared_discrete_kernel_mixes_common_and_per_value_dynamics(kind, generator):
+    x = torch.randn(7, 2, generator=generator)
+    codes = torch.tensor([0.0, 1, 2, 0, 1, 2, 2])[:, None]
+    xg = torch.cat([x, codes], -1)
+    alpha = (0.8, 0.5, 0.3, 1e-3)
+    block = transition_kernel(kind, 2, num_values=3, alpha=alpha)
+    base = block.base_kernel(x).to_dense()  # k_0 at the thesis's alpha
+    shared = transition_kernel(kind, 2, num_values=3, alpha=alpha, sharing=0.3)
+    same = (codes == codes.T).double()
+    want = 0.3 * base + 0.7 * same * base
+    torch.testing.assert_close(shared(xg).to_dense(), want)
+    torch.testing.assert_close(shared(xg, diag=True), want.diagonal())
+    # sharing = 0 is the thesis's block kernel itself
+    thesis = transition_kernel(kind, 2, num_values=3, sharing=0.0)
+    assert isinstance(thesis, DiscreteIntentionKernel)
+
+
 def test_dense_linear_kernel_equals_gpytorch_linear(generator):
     x1, x2 = torch.randn(5, 3, generator=generator), torch.randn(4, 3, generator=generator)
     ours, ref = DenseLinearKernel(ard_num_dims=3), gpytorch.kernels.LinearKernel(ard_num_dims=3)
@@ -80,6 +98,9 @@ def test_transition_kernel_hyperparameters_follow_the_thesis():
         (lambda: IntentionRBFKernel(0, 1), "x_dim"),
         (lambda: transition_kernel("gpdm", 2, alpha=(-1.0, 1.0, 1.0, 1.0)), "positive"),
         (lambda: transition_kernel("continuous", 2, alpha_g=(1.0,)), "alpha_g"),
+        (lambda: transition_kernel("discrete", 2, num_values=2, sharing=1.0), r"\[0, 1\)"),
+        (lambda: transition_kernel("discrete", 2, num_values=2, sharing=-0.1), "sharing"),
+        (lambda: transition_kernel("gpdm", 2, sharing=0.5), "discrete kinds only"),
         (lambda: DiscreteIntentionKernel(measurement_kernel("rbf"), 0), "num_values"),
         (lambda: IntentionRBFKernel(2, 1)(torch.randn(3, 2)).to_dense(), "3 columns"),
     ],

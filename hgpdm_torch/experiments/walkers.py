@@ -147,6 +147,7 @@ def walkers(
     train_per_subject: int = 3,
     stride: int = 2,
     model_options: dict[str, Any] | None = None,
+    sharing: float = 0.0,
     progress: bool = False,
 ) -> ResultTable:
     """Tables 2.1-2.2 on the real Walkers trials, with baselines (see the module docstring).
@@ -161,6 +162,8 @@ def walkers(
         stride: step between windows.
         model_options: further constructor arguments of both models (e.g.
             ``{"back_constraint": "kernel"}``, ``{"learn_noise": True}``).
+        sharing: the H-GPDM's share of dynamics common to both subjects
+            (:class:`~hgpdm_torch.models.HGPDM`; 0 is the thesis's independent dynamics).
         progress: progress bar over folds.
 
     Returns:
@@ -175,6 +178,7 @@ def walkers(
     meta: dict[str, Any] = {
         "latent_dim": latent_dim,
         "model_options": {k: str(v) for k, v in options.items()},
+        "sharing": sharing,
         "fit_steps": fit_steps,
         "stride": stride,
         "fps": data.fps,
@@ -192,7 +196,7 @@ def walkers(
         te = [std.transform(data.sequences[i]) for i in test]
         y_tr, y_te = data.subject[train], data.subject[test]
         start = time.perf_counter()
-        hg = HGPDM(tr, y_tr, latent_dim, **options)
+        hg = HGPDM(tr, y_tr, latent_dim, sharing=sharing, **options)
         gp = GPDM(tr, latent_dim, **options)
         fits = {name: m.fit(fit_steps).summary() for name, m in (("H-GPDM", hg), ("GPDM", gp))}
         meta["fits"].append({**fits, "seconds": time.perf_counter() - start})
@@ -267,6 +271,12 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--back-constraint", choices=("kernel", "mlp"), default=None)
     parser.add_argument("--learn-noise", action="store_true", help="learn alpha_4 (MAP)")
     parser.add_argument(
+        "--sharing",
+        type=float,
+        default=0.0,
+        help="H-GPDM: share of the dynamics common to both subjects, in [0, 1) (default 0)",
+    )
+    parser.add_argument(
         "--fixed-measurement-width",
         action="store_true",
         help="keep the RBF measurement width at its initial value (no length-scale collapse)",
@@ -280,6 +290,8 @@ def main(argv: list[str]) -> int:
     }
     if args.back_constraint is not None:
         options["back_constraint"] = args.back_constraint
+    if not 0.0 <= args.sharing < 1.0:
+        parser.error(f"--sharing must lie in [0, 1), got {args.sharing}")
     if not args.data.is_dir():
         parser.error(f"--data {args.data} is not a folder (it needs the CMU files, see README)")
     torch.set_default_dtype(torch.float64)
@@ -292,6 +304,7 @@ def main(argv: list[str]) -> int:
         train_per_subject=args.train_per_subject,
         stride=args.stride,
         model_options=options,
+        sharing=args.sharing,
         progress=args.progress,
     )
     print(table.to_markdown(".3f"))

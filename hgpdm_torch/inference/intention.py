@@ -410,7 +410,7 @@ class SharedTransition:
         if len(terms) != 1 or terms[0].kind != "rbf" or terms[0].factor is None:
             raise TypeError(
                 "SharedTransition needs the IDDM transition kernel (one RBF over x times a factor "
-                "of g: 'iddm_continuous' or 'iddm_discrete'); got a kernel with "
+                "of g: 'iddm_continuous' or 'iddm_discrete' without sharing); got a kernel with "
                 f"{[t.kind for t in terms]} terms"
             )
         (term,) = terms

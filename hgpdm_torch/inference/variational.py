@@ -219,12 +219,28 @@ class _GaussianInputGP:
                 None,
             )
             self.leaves = leaves
-        else:
+        elif post.blocks() is not None:
             # Block-diagonal K_x of a discrete g: code c reads only its own block (exact).
             X, beta, kinv, mask = (b[codes] for b in post.blocks())
             d = X.shape[-1] - 1
             self.X, self.beta, self.kinv, self.mask = X[..., :d], beta, kinv, mask
             self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
+        else:
+            # A discrete g in a kernel that is not block-diagonal (shared dynamics): every code
+            # reads all training points; the code only sets the terms' per-point factors.
+            d = post.input_dim - 1
+            self.X, self.beta, self.kinv, self.mask = (
+                post.train_inputs[..., :d],
+                post.weights,
+                post.kinv,
+                None,
+            )
+            g = codes[..., None].to(post.train_inputs.dtype)
+            self.terms = split_terms(leaves, post.train_inputs, g, d)
+            # k(x, x) at equal codes: delta(g, g) = 1
+            self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
+            self.dim = d
+            return
         self.dim = self.X.shape[-1]
         self.terms = [
             t if self.mask is None else replace(t, factor=self.mask)
@@ -941,7 +957,9 @@ class VariationalInference:
         # per-row codes copy each row's GP block (``M^2`` per row); beyond _ROW_BLOCK_BYTES the
         # rows of one code are computed together on its shared block instead
         if discrete:
-            kinv_block = self.transition.blocks()[2]
+            blocks = self.transition.blocks()
+            # without blocks (shared dynamics) a row holds only its codes' factors
+            kinv_block = self.transition.kinv[None] if blocks is None else blocks[2]
             row_bytes = kinv_block[0].numel() * kinv_block.element_size()
 
         def by_code(idx: torch.Tensor, fn) -> tuple[torch.Tensor, ...]:

@@ -83,11 +83,18 @@ class HGPDM(GPDM):
         num_values: K for a discrete g (default ``max(intentions) + 1``).
         alpha_g: ``[alpha_2^g, alpha_3^g]`` of the continuous kernel (inverse squared width and
             linear variance of g).
+        sharing: for a discrete g, the share ``rho`` in ``[0, 1)`` of the transition kernel common
+            to all values of g: ``rho k(x, x') + (1 - rho) delta(g, g') k(x, x')`` (see
+            :func:`~hgpdm_torch.kernels.transition_kernel`). ``0`` (default) is the thesis's
+            independent dynamics per value; ``rho > 0`` lets values with few training sequences
+            borrow the shape of the dynamics from the others (not in the thesis).
         **kwargs: see :class:`GPDM` (``measurement``, ``alpha``, ``learn_alpha``, ``init``,
             ``dtype``).
 
     The transition kernel is ``delta(g, g') [alpha_1 RBF(x) + alpha_3 x^T x']`` for a discrete g and
-    ``alpha_1 RBF([x, g]) + alpha_3 x^T x' + alpha_3^g g g'`` for a continuous g (Sec. 2.2.1).
+    ``alpha_1 RBF([x, g]) + alpha_3 x^T x' + alpha_3^g g g'`` for a continuous g (Sec. 2.2.1);
+    with ``sharing = rho`` the discrete kernel is
+    ``rho k(x, x') + (1 - rho) delta(g, g') k(x, x')``.
     """
 
     kinds = {"discrete": "discrete", "continuous": "continuous"}
@@ -101,9 +108,17 @@ class HGPDM(GPDM):
         intention: str = "discrete",
         num_values: int | None = None,
         alpha_g: Sequence[float] = (1.0, 0.1),
+        sharing: float = 0.0,
         **kwargs: Any,
     ) -> None:
         check_choice(intention, "intention", INTENTION_KINDS)
+        if isinstance(sharing, bool) or not isinstance(sharing, int | float):
+            raise TypeError(f"sharing must be a float in [0, 1), got {sharing!r}")
+        if not 0.0 <= float(sharing) < 1.0:
+            raise ValueError(f"sharing must lie in [0, 1), got {sharing!r}")
+        if sharing and intention != "discrete":
+            raise ValueError("sharing applies to a discrete intention only")
+        self.sharing = float(sharing)
         dtype = kwargs.get("dtype", torch.float64)
         num_seq = len(_check_sequences(sequences, dtype))
         values, k = _check_intentions(intentions, num_seq, intention, num_values, dtype)
@@ -113,7 +128,9 @@ class HGPDM(GPDM):
         self.alpha_g = tuple(float(a) for a in alpha_g)
         super().__init__(sequences, latent_dim, **kwargs)
         self.register_buffer("intentions", values)
-        self._config.update(intention=intention, num_values=k, alpha_g=list(self.alpha_g))
+        self._config.update(
+            intention=intention, num_values=k, alpha_g=list(self.alpha_g), sharing=self.sharing
+        )
 
     @property
     def transition_kind(self) -> str:  # type: ignore[override]
@@ -127,6 +144,7 @@ class HGPDM(GPDM):
             num_values=self.num_values,
             alpha=self.alpha_init,
             alpha_g=self.alpha_g,
+            sharing=self.sharing,
         )
 
     def transition_inputs(self, latent: torch.Tensor) -> torch.Tensor:
@@ -135,7 +153,7 @@ class HGPDM(GPDM):
 
     def transition_blocks(self) -> list[torch.Tensor]:
         """One block of ``K_x`` per value of a discrete g (``delta(g, g')`` zeroes the rest)."""
-        if self.intention != "discrete":
+        if self.intention != "discrete" or self.sharing:
             return super().transition_blocks()
         codes = self.intentions[self.seq_of_src, 0]
         return [

@@ -42,6 +42,14 @@ def hgpdm(styles):
 
 
 @pytest.fixture(scope="module")
+def shared(styles):
+    """An H-GPDM whose styles share half of their dynamics (a kernel that is not block-diagonal)."""
+    model = HGPDM(styles.sequences, styles.labels, 2, alpha=ALPHA, sharing=0.5)
+    model.fit(5)
+    return model
+
+
+@pytest.fixture(scope="module")
 def iddm():
     data = targeted_movements(4, 10, 4, seed=2)
     model = HGPDM(
@@ -97,12 +105,14 @@ def _check_mc(F, samples):
     assert torch.all((mean - F).abs() < 4.0 * se + 1e-8), (F, mean, se)
 
 
-def test_free_energy_matches_pyro_monte_carlo_discrete(hgpdm, styles):
+@pytest.mark.parametrize("name", ["hgpdm", "shared"])
+def test_free_energy_matches_pyro_monte_carlo_discrete(name, styles, request):
+    model = request.getfixturevalue(name)
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(1)
-    vb = VariationalInference(hgpdm)
+    vb = VariationalInference(model)
     z = _window(styles.sequences[1], 2, 4, missing=(2,))
-    guide = _random_guide(hgpdm, 4, 2, gen)
+    guide = _random_guide(model, 4, 2, gen)
     F = vb.guide_free_energy(z, guide).detach()
     assert F.shape == (2,)
     _check_mc(F, _mc_elbo(vb, z, guide, None, 20000).detach())
@@ -126,14 +136,16 @@ def test_free_energy_matches_pyro_monte_carlo_gpdm_and_continuous(hgpdm, styles,
     _check_mc(F, _mc_elbo(vb, z, guide, None, 20000).detach())
 
 
-def test_free_energy_gradcheck(hgpdm, styles, iddm):
+def test_free_energy_gradcheck(hgpdm, shared, styles, iddm):
     gen = torch.Generator().manual_seed(3)
-    vb = VariationalInference(hgpdm)
-    z = _window(styles.sequences[2], 1, 3, missing=(1,))
-    guide = _random_guide(hgpdm, 3, 2, gen)
-    loc = guide.loc.detach().requires_grad_(True)
-    tril = guide.scale_tril.detach().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda a, b: vb.free_energy(z, a, b), (loc, tril))
+    for model in (hgpdm, shared):
+        vb = VariationalInference(model)
+        z = _window(styles.sequences[2], 1, 3, missing=(1,))
+        guide = _random_guide(model, 3, 2, gen)
+        loc = guide.loc.detach().requires_grad_(True)
+        tril = guide.scale_tril.detach().requires_grad_(True)
+        fun = lambda a, b, vb=vb, z=z: vb.free_energy(z, a, b)  # noqa: E731
+        assert torch.autograd.gradcheck(fun, (loc, tril))
     model, data = iddm
     vb = VariationalInference(model)
     z = _window(data.sequences[1], 0, 3)
@@ -146,8 +158,9 @@ def test_free_energy_gradcheck(hgpdm, styles, iddm):
     assert torch.autograd.gradcheck(fun, tuple(args))
 
 
-def test_point_predictions_equal_gp_posterior(hgpdm, generator):
-    vb = VariationalInference(hgpdm)
+@pytest.mark.parametrize("name", ["hgpdm", "shared"])
+def test_point_predictions_equal_gp_posterior(name, generator, request):
+    vb = VariationalInference(request.getfixturevalue(name))
     x = torch.randn(7, 2, generator=generator)
     m, v = vb._h.predict_point(x)
     ref_m, ref_v = vb.measurement.predict(x, include_noise=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from gpytorch.kernels import AdditiveKernel
 from scipy.stats import multivariate_normal, norm
 
 from hgpdm_torch.models import GPDM, HGPDM, IDDM
@@ -27,16 +28,19 @@ def _perturb(model: GPDM, seed: int = 1) -> None:
 
 def _transition_gram(model: GPDM, xin: np.ndarray, gin: np.ndarray | None) -> np.ndarray:
     """The transition kernel of Sec. 2.2.1 / 3.2.2 written out with NumPy."""
-    a1, a2, a3, _ = _alphas(model)
     d2 = ((xin[:, None, :] - xin[None, :, :]) ** 2).sum(-1)
     lin = xin @ xin.T
     kind = model.transition_kind
-    if kind == "gpdm":
-        return a1 * np.exp(-0.5 * a2 * d2) + a3 * lin
     if kind in ("discrete", "iddm_discrete"):
         same = (gin[:, None, 0] == gin[None, :, 0]).astype(float)
-        base = a1 * np.exp(-0.5 * a2 * d2) + (a3 * lin if kind == "discrete" else 0.0)
-        return same * base
+        if not model.sharing:
+            return same * _base_gram(model.transition_kernel.base_kernel, d2, lin)
+        # rho k_0(x, x') + (1 - rho) delta(g, g') k_0(x, x'), each part with its own values
+        shared, style = model.transition_kernel.kernels
+        return _base_gram(shared, d2, lin) + same * _base_gram(style.base_kernel, d2, lin)
+    a1, a2, a3 = _alphas(model)
+    if kind == "gpdm":
+        return a1 * np.exp(-0.5 * a2 * d2) + a3 * lin
     rbf = (
         model.transition_kernel if kind == "iddm_continuous" else model.transition_kernel.kernels[0]
     )
@@ -49,17 +53,25 @@ def _transition_gram(model: GPDM, xin: np.ndarray, gin: np.ndarray | None) -> np
     return k
 
 
-def _alphas(model: GPDM) -> tuple[float, float, float, float]:
+def _base_gram(base, d2: np.ndarray, lin: np.ndarray) -> np.ndarray:
+    """``a1 exp(-a2/2 d2) [+ a3 lin]`` from a ScaleKernel(RBF) [+ linear] base kernel."""
+    parts = list(base.kernels) if isinstance(base, AdditiveKernel) else [base]
+    a1 = float(parts[0].outputscale)
+    a2 = float(parts[0].base_kernel.lengthscale) ** -2
+    k = a1 * np.exp(-0.5 * a2 * d2)
+    return k + float(parts[1].variance) * lin if len(parts) > 1 else k
+
+
+def _alphas(model: GPDM) -> tuple[float, float, float]:
+    """``alpha_1..3`` of the gpdm and continuous kinds."""
     k = model.transition_kernel
-    if model.transition_kind in ("discrete", "iddm_discrete"):
-        k = k.base_kernel
     scale = k if model.transition_kind.startswith("iddm") else k.kernels[0]
     a1 = float(scale.outputscale)
     inner = scale.base_kernel
     ls = inner.lengthscale_x if hasattr(inner, "lengthscale_x") else inner.lengthscale
     a2 = float(ls) ** -2
     a3 = 0.0 if model.transition_kind.startswith("iddm") else float(k.kernels[1].variance)
-    return a1, a2, a3, float(model.transition_noise)
+    return a1, a2, a3
 
 
 def dense_negative_log_posterior(model: GPDM) -> float:
@@ -87,7 +99,7 @@ def dense_negative_log_posterior(model: GPDM) -> float:
     src = np.concatenate([np.arange(s, s + n - 1) for s, n in zip(starts, lengths, strict=True)])
     seq = np.repeat(np.arange(len(lengths)), lengths - 1)
     gin = model.intentions.numpy()[seq] if hasattr(model, "intentions") else None
-    kx = _transition_gram(model, x[src], gin) + _alphas(model)[3] * np.eye(len(src))
+    kx = _transition_gram(model, x[src], gin) + float(model.transition_noise) * np.eye(len(src))
     xout = x[src + 1]
     log_px = sum(
         multivariate_normal.logpdf(xout[:, d], np.zeros(len(src)), kx) for d in range(x.shape[1])
@@ -95,7 +107,7 @@ def dense_negative_log_posterior(model: GPDM) -> float:
     log_px += norm.logpdf(x[starts]).sum()
     log_prior += norm.logpdf(np.log(noise)) + norm.logpdf(np.log(w)).sum()
     if model.learn_noise:  # weak log-normal prior of a learned alpha_4, centred on alpha-bar
-        a4 = _alphas(model)[3]
+        a4 = float(model.transition_noise)
         log_prior += norm.logpdf(np.log(a4), np.log(model.alpha_init[3]), model.NOISE_PRIOR_SD)
     return -(log_pz + log_px + log_prior)
 
@@ -118,6 +130,8 @@ CASES = [
         "iddm-continuous",
         lambda s: IDDM(s, [0.3, -0.8, 0.5, 0.0], 2, intention="continuous", measurement="linear"),
     ),
+    ("hgpdm-discrete-shared", lambda s: HGPDM(s, [0, 1, 0, 2], 2, num_values=3, sharing=0.4)),
+    ("iddm-discrete-shared", lambda s: IDDM(s, [0, 1, 1, 0], 2, sharing=0.7)),
 ]
 
 

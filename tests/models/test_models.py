@@ -61,6 +61,22 @@ def test_continuous_models_fit_and_rollout():
         assert path.shape == (6, 3) and torch.isfinite(path).all()
 
 
+def test_shared_dynamics_couple_the_styles(styles):
+    """With sharing the transition GP of one style predicts from the others' transitions too."""
+    seqs, codes = styles.sequences[:4], [0, 0, 0, 1]
+    alpha = (0.9, 1.0, 0.1, 1e-2)  # a local RBF, so that far-off transitions do not explain x
+    block = HGPDM(seqs, codes, 2, alpha=alpha)
+    shared = HGPDM(seqs, codes, 2, alpha=alpha, sharing=0.5)
+    assert len(block.transition_blocks()) == 2 and len(shared.transition_blocks()) == 1
+    # states of style 0's first sequence, asked as style 1: the block model's style 1 ignores
+    # style 0's transitions, the shared one borrows from them
+    x = block.latent.detach()[:3]
+    xin = torch.cat([x, torch.ones(3, 1, dtype=x.dtype)], -1)
+    var_b = block.transition_posterior().predict(xin)[1]
+    var_s = shared.transition_posterior().predict(xin)[1]
+    assert bool((var_s < 0.9 * var_b).all())
+
+
 def test_transitions_do_not_cross_sequence_boundaries():
     seqs = [torch.randn(4, 3), torch.randn(6, 3)]
     model = GPDM(seqs, 2)
@@ -71,6 +87,7 @@ def test_transitions_do_not_cross_sequence_boundaries():
 def test_save_load_round_trip(tmp_path, styles):
     for model in (
         HGPDM(styles.sequences[:5], [0, 1, 2, 0, 1], 2),
+        HGPDM(styles.sequences[:5], [0, 1, 2, 0, 1], 2, sharing=0.6, learn_alpha=True),
         IDDM(
             styles.sequences[:4],
             [0.1, -0.3, 0.7, 0.2],
@@ -86,6 +103,7 @@ def test_save_load_round_trip(tmp_path, styles):
         again = load_model(path)
         assert type(again) is type(model)
         assert again.learn_alpha == model.learn_alpha
+        assert getattr(again, "sharing", None) == getattr(model, "sharing", None)
         assert float(again.loss().detach()) == float(model.loss().detach())
         x = torch.randn(3, 2)
         for post, post2 in ((model.measurement_posterior(), again.measurement_posterior()),):
@@ -120,6 +138,13 @@ SEQS = [torch.randn(5, 3), torch.randn(6, 3)]
         (lambda: HGPDM(SEQS, [0, -1], 2), ValueError, "lie in"),
         (lambda: HGPDM(SEQS, [0.5, 1.0], 2), ValueError, "ints"),
         (lambda: HGPDM(SEQS, [0, 1], 2, intention="ordinal"), ValueError, "unknown intention"),
+        (lambda: HGPDM(SEQS, [0, 1], 2, sharing=1.0), ValueError, "sharing"),
+        (lambda: HGPDM(SEQS, [0, 1], 2, sharing="half"), TypeError, "sharing"),
+        (
+            lambda: HGPDM(SEQS, [0.1, 0.2], 2, intention="continuous", sharing=0.5),
+            ValueError,
+            "discrete intention only",
+        ),
         (lambda: HGPDM(SEQS, [0.1, float("nan")], 2, intention="continuous"), ValueError, "NaN"),
         (lambda: GPDM(SEQS, 2, init=torch.randn(3, 2)), ValueError, "init"),
         (lambda: GPDM(SEQS, 2).fit(5, optimizer="sgd"), ValueError, "unknown optimizer"),
