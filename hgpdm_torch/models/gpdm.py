@@ -17,10 +17,10 @@ the exogenous variable g), or override :meth:`GPDM.initial_latents` and
 
 from __future__ import annotations
 
-import importlib
+import copy
 import math
+import os
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import gpytorch
@@ -36,7 +36,7 @@ from ..linalg import gaussian_nll
 from ..validation import as_tensor, check_choice
 from .back_constraints import make_back_constraint
 
-__all__ = ["GPDM", "load_model"]
+__all__ = ["GPDM"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _FIT_OPTIONS = {"ftol", "gtol", "patience", "max_eval", "restarts", "restart_scale", "seed", "warn"}
@@ -273,10 +273,43 @@ class GPDM(gpytorch.Module):
         return getattr(self, f"raw_{name}_constraint").transform(getattr(self, f"raw_{name}"))
 
     def _set_constrained(self, name: str, value: float | torch.Tensor) -> None:
+        """Set ``raw_<name>`` so that the constrained value is ``value`` (a float, a 0-dim
+        tensor, or a tensor broadcastable to the parameter's shape).
+
+        Raises:
+            TypeError: ``value`` is not a real number or tensor.
+            ValueError: ``value`` has the wrong shape, is NaN or inf, or lies outside the
+                constraint's open range (for the noises: at or below :data:`NOISE_FLOOR`).
+        """
         raw = getattr(self, f"raw_{name}")
-        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).expand_as(raw)
+        constraint = getattr(self, f"raw_{name}_constraint")
+        if isinstance(value, bool) or (
+            isinstance(value, torch.Tensor) and (value.dtype == torch.bool or value.is_complex())
+        ):
+            raise TypeError(f"{name} must be a real number or tensor, got {value!r}")
+        try:
+            target = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).detach()
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"{name} must be a real number or tensor, got {value!r}") from err
+        try:
+            target = target.expand_as(raw)
+        except RuntimeError as err:
+            raise ValueError(
+                f"{name} must be a scalar or broadcast to shape {tuple(raw.shape)}, got shape "
+                f"{tuple(target.shape)}"
+            ) from err
+        lower, upper = float(constraint.lower_bound), float(constraint.upper_bound)
+        new_raw = constraint.inverse_transform(target)
+        bad = ~(torch.isfinite(target) & (target > lower) & (target < upper))
+        bad |= ~torch.isfinite(new_raw)
+        if bool(bad.any()):
+            shown = target[bad].tolist()
+            shown = shown[0] if raw.dim() == 0 else shown
+            raise ValueError(
+                f"{name} must be finite and in the open range ({lower:g}, {upper:g}), got {shown!r}"
+            )
         with torch.no_grad():
-            raw.copy_(getattr(self, f"raw_{name}_constraint").inverse_transform(value))
+            raw.copy_(new_raw)
 
     @property
     def measurement_noise(self) -> torch.Tensor:
@@ -522,47 +555,54 @@ class GPDM(gpytorch.Module):
 
     # ----------------------------------------------------------------- persistence
     def config(self) -> dict[str, Any]:
-        """Constructor arguments (other than data) that rebuild this model."""
-        return dict(self._config)
+        """Constructor arguments (other than data) that rebuild this model (a deep copy)."""
+        return copy.deepcopy(self._config)
 
     def _data_arguments(self) -> dict[str, Any]:
+        """Constructor arguments holding training data: ``sequences``, each ``[T_j, Dz]``.
+
+        :func:`~hgpdm_torch.models.load_model` rebuilds the model from these and
+        :meth:`config`, then checks that they equal the same method's result on the loaded
+        ``state_dict``: subclasses that add data arguments extend it.
+        """
         return {"sequences": [s.clone() for s in self.sequences()]}
 
-    def save(self, path: str | Path) -> None:
-        """Save configuration, training data and state (parameters, buffers) to ``path``."""
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Save the model to ``path``: class name, configuration, training data and state.
+
+        The file has a format version and a SHA-256 checksum, and names the class by its
+        registered name (:func:`~hgpdm_torch.models.register_model`); see
+        :mod:`hgpdm_torch.models.persistence` for the layout. Load it with
+        :func:`~hgpdm_torch.models.load_model` or :meth:`load`.
+
+        Raises:
+            TypeError: the model's class is not registered.
+            ValueError: the model uses a custom back-constraint module, which the configuration
+                cannot hold.
+        """
         if self.latent_map is not None and self._config["back_constraint"] is None:
             raise ValueError(
                 "save() rebuilds the model from its configuration, which cannot hold a custom "
                 "back-constraint module; save model.state_dict() with torch.save instead"
             )
-        cls = type(self)
-        torch.save(
-            {
-                "class": f"{cls.__module__}:{cls.__qualname__}",
-                "config": self.config(),
-                "data": self._data_arguments(),
-                "state_dict": self.state_dict(),
-                "dtype": str(self.latent.dtype).removeprefix("torch."),
-            },
-            Path(path),
-        )
+        from .persistence import save_model  # persistence imports this module
+
+        save_model(self, path)
 
     @classmethod
-    def load(cls, path: str | Path) -> GPDM:
-        """Load a model written by :meth:`save` (the saved class is rebuilt)."""
-        return load_model(path)
+    def load(cls, path: str | os.PathLike[str]) -> GPDM:
+        """Load a model written by :meth:`save`; it must be an instance of ``cls``.
 
+        Raises:
+            ModelFileError: see :func:`~hgpdm_torch.models.load_model`, or the file holds a
+                model of another class (e.g. ``HGPDM.load`` of a saved plain GPDM).
+        """
+        from .persistence import ModelFileError, load_model
 
-def load_model(path: str | Path) -> GPDM:
-    """Rebuild a model saved with :meth:`GPDM.save`: same class, data, parameters and buffers."""
-    blob = torch.load(Path(path), map_location="cpu", weights_only=True)
-    module_name, _, qualname = blob["class"].partition(":")
-    cls: Any = importlib.import_module(module_name)
-    for part in qualname.split("."):
-        cls = getattr(cls, part)
-    if not (isinstance(cls, type) and issubclass(cls, GPDM)):
-        raise TypeError(f"{blob['class']} is not a GPDM model class")
-    dtype = getattr(torch, blob["dtype"])
-    model = cls(**blob["data"], **blob["config"], dtype=dtype)
-    model.load_state_dict(blob["state_dict"])
-    return model
+        model = load_model(path)
+        if not isinstance(model, cls):
+            raise ModelFileError(
+                f"{path}: holds a {type(model).__qualname__}, not a {cls.__qualname__}; "
+                "use hgpdm_torch.models.load_model to load any registered class"
+            )
+        return model

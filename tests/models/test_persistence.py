@@ -1,0 +1,327 @@
+"""Safe persistence: round trips, corruption and truncation, foreign files, the class registry,
+format versions, data/state cross-checks and the noise setters' validation."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import io
+import math
+import struct
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import hgpdm_torch
+from hgpdm_torch.models import (
+    GPDM,
+    HGPDM,
+    IDDM,
+    ModelFileError,
+    load_model,
+    register_model,
+    registered_models,
+)
+from hgpdm_torch.models.gpdm import NOISE_FLOOR
+from hgpdm_torch.models.persistence import FORMAT_VERSION, MAGIC
+
+# The documented layout, re-implemented here as an independent check of the format:
+# MAGIC | version <u4 | payload length <u8 | sha256(everything else) | payload.
+_HEAD = struct.Struct("<IQ")
+_PREFIX = len(MAGIC) + _HEAD.size + 32
+
+
+def _sequences(num: int = 4, length: int = 9, dz: int = 4, seed: int = 0) -> list[torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    t = torch.linspace(0, 3, length).unsqueeze(-1)
+    out = []
+    for j in range(num):
+        phase = 0.4 * j + torch.arange(dz) * 0.7
+        out.append(torch.sin(t + phase) + 0.05 * torch.randn(length, dz, generator=gen))
+    return out
+
+
+def _unpack(path) -> tuple[int, dict]:
+    raw = path.read_bytes()
+    assert raw.startswith(MAGIC)
+    version, length = _HEAD.unpack_from(raw, len(MAGIC))
+    assert len(raw) == _PREFIX + length
+    head, digest, payload = raw[: _PREFIX - 32], raw[_PREFIX - 32 : _PREFIX], raw[_PREFIX:]
+    assert hashlib.sha256(head + payload).digest() == digest
+    return version, torch.load(io.BytesIO(payload), weights_only=True)
+
+
+def _pack(path, blob, version: int = FORMAT_VERSION) -> None:
+    """Write ``blob`` with a valid header and checksum (a well-formed file of any content)."""
+    buffer = io.BytesIO()
+    torch.save(blob, buffer)
+    payload = buffer.getvalue()
+    head = MAGIC + _HEAD.pack(version, len(payload))
+    path.write_bytes(head + hashlib.sha256(head + payload).digest() + payload)
+
+
+def _loss(model: GPDM) -> float:
+    with torch.no_grad():
+        return float(model.loss())
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """A small fitted H-GPDM, its file, the file's bytes and its loss."""
+    model = HGPDM(_sequences(), [0, 1, 0, 1], 2)
+    model.fit(3, warn=False)
+    path = tmp_path_factory.mktemp("saved") / "model.pt"
+    model.save(path)
+    return model, path, path.read_bytes(), _loss(model)
+
+
+# ------------------------------------------------------------------------------ round trips
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda s: GPDM(s, 2),
+        lambda s: HGPDM(s, [0, 1, 0, 1], 2),
+        lambda s: HGPDM(s, [0, 1, 0, 1], 2, sharing=0.5, learn_noise=True),
+        lambda s: IDDM(s, [0.1, -0.3, 0.7, 0.2], 2, intention="continuous", measurement="linear"),
+        lambda s: GPDM(s, 2, back_constraint="kernel"),
+    ],
+    ids=["gpdm", "hgpdm", "hgpdm-sharing", "iddm-continuous", "back-constrained"],
+)
+def test_round_trip_rebuilds_the_same_model(tmp_path, build):
+    model = build(_sequences())
+    model.fit(2, warn=False)
+    model.save(tmp_path / "m.pt")
+    again = load_model(tmp_path / "m.pt")
+    assert type(again) is type(model)
+    assert again.config() == model.config()
+    assert _loss(again) == _loss(model)
+    state, state2 = model.state_dict(), again.state_dict()
+    assert state.keys() == state2.keys()
+    assert all(torch.equal(state[k], state2[k]) for k in state)
+    assert again.learn_noise == model.learn_noise
+    x = torch.randn(3, 2, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(
+        again.measurement_posterior().predict(x),
+        model.measurement_posterior().predict(x),
+        rtol=0,
+        atol=0,
+    )
+    version, blob = _unpack(tmp_path / "m.pt")
+    assert version == FORMAT_VERSION
+    assert blob["class"] == type(model).__name__ and blob["dtype"] == "float64"
+
+
+def test_load_classmethod_checks_the_class(saved):
+    model, path, _, loss = saved
+    assert isinstance(GPDM.load(path), HGPDM) and _loss(HGPDM.load(path)) == loss
+    with pytest.raises(ModelFileError, match="not a IDDM"):
+        IDDM.load(path)
+
+
+def test_error_class_is_exported():
+    assert hgpdm_torch.ModelFileError is ModelFileError
+    assert issubclass(ModelFileError, ValueError)
+    assert {"GPDM", "HGPDM", "IDDM"} <= set(registered_models())
+
+
+# ------------------------------------------------------------------------------ corruption
+def test_any_200_corrupted_bytes_are_detected(saved, tmp_path):
+    _, _, raw, loss = saved
+    rng = np.random.default_rng(15)
+    path = tmp_path / "bad.pt"
+    detected = 0
+    for _ in range(200):
+        data = bytearray(raw)
+        offset = int(rng.integers(0, len(data) - 200 + 1))
+        data[offset : offset + 200] = rng.integers(0, 256, 200, dtype=np.uint8).tobytes()
+        path.write_bytes(bytes(data))
+        try:
+            model = load_model(path)
+        except ModelFileError as err:
+            assert str(path) in str(err)
+            detected += 1
+        else:  # only acceptable if the file decodes to the very same model
+            assert _loss(model) == loss
+    assert detected >= 198
+
+
+@pytest.mark.parametrize("keep", [1, 10, 16, 20, 27, 28, 59, 60, 61, 0.5, -1])
+def test_truncated_files_are_refused(saved, tmp_path, keep):
+    _, _, raw, _ = saved
+    cut = int(len(raw) * keep) if isinstance(keep, float) else keep % len(raw)
+    path = tmp_path / "cut.pt"
+    path.write_bytes(raw[:cut])
+    with pytest.raises(ModelFileError, match="truncated") as info:
+        load_model(path)
+    assert str(path) in str(info.value)
+
+
+def test_trailing_bytes_are_refused(saved, tmp_path):
+    path = tmp_path / "long.pt"
+    path.write_bytes(saved[2] + b"\0")
+    with pytest.raises(ModelFileError, match="longer than its header"):
+        load_model(path)
+
+
+def test_empty_missing_and_foreign_files(tmp_path):
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(ModelFileError, match="empty"):
+        load_model(empty)
+    with pytest.raises(FileNotFoundError):
+        load_model(tmp_path / "missing.pt")
+    noise = tmp_path / "noise.pt"
+    noise.write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    with pytest.raises(ModelFileError, match="not an hgpdm-torch model file"):
+        load_model(noise)
+    plain = tmp_path / "plain.pt"
+    torch.save({"a": 1}, plain)
+    with pytest.raises(ModelFileError, match="plain torch.save archive"):
+        load_model(plain)
+    # a well-formed file whose payload is not a model
+    foreign = tmp_path / "foreign.pt"
+    _pack(foreign, {"a": 1})
+    with pytest.raises(ModelFileError, match="payload must be a dict"):
+        load_model(foreign)
+
+
+# ------------------------------------------------------------------------------ versions
+def test_unknown_format_versions_are_refused(saved, tmp_path):
+    raw = bytearray(saved[2])
+    path = tmp_path / "v.pt"
+    for version, match in ((FORMAT_VERSION + 1, "newer"), (2**32 - 1, "newer"), (0, "unknown")):
+        raw[len(MAGIC) : len(MAGIC) + 4] = struct.pack("<I", version)
+        path.write_bytes(bytes(raw))
+        with pytest.raises(ModelFileError, match=match) as info:
+            load_model(path)
+        assert f"version {version}" in str(info.value)
+
+
+# ------------------------------------------------------------------------------ registry
+def test_class_names_are_looked_up_never_imported(saved, tmp_path, monkeypatch):
+    marker = tmp_path / "imported.txt"
+    (tmp_path / "hgpdm_probe_side_effect.py").write_text(
+        f"import pathlib\npathlib.Path({str(marker)!r}).write_text('imported')\n"
+        "class Foo:\n    pass\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert importlib.util.find_spec("hgpdm_probe_side_effect") is not None  # importable
+    _, blob = _unpack(saved[1])
+    path = tmp_path / "named.pt"
+    for name in (
+        "os:system",
+        "somemodule:Foo",
+        "hgpdm_probe_side_effect:Foo",
+        "hgpdm_probe_side_effect.Foo",
+        "hgpdm_torch.models.hgpdm:HGPDM",  # the old format's name: no longer resolved
+    ):
+        _pack(path, {**blob, "class": name})
+        with pytest.raises(ModelFileError, match="register_model") as info:
+            load_model(path)
+        assert repr(name) in str(info.value)
+    assert not marker.exists()
+    assert "hgpdm_probe_side_effect" not in sys.modules
+
+
+@register_model(name="test_persistence.DampedGPDM")
+class DampedGPDM(GPDM):
+    """A user's subclass with an extra constructor option, kept in its configuration."""
+
+    def __init__(self, sequences, latent_dim: int = 3, *, damping: float = 0.5, **kwargs):
+        self.damping = float(damping)
+        super().__init__(sequences, latent_dim, **kwargs)
+        self._config["damping"] = self.damping
+
+    def initial_latents(self, centred: torch.Tensor) -> torch.Tensor:
+        return self.damping * super().initial_latents(centred)
+
+
+def test_user_registered_subclass_round_trip(tmp_path):
+    assert registered_models()["test_persistence.DampedGPDM"] is DampedGPDM
+    model = DampedGPDM(_sequences(), 2, damping=0.25)
+    model.fit(2, warn=False)
+    model.save(tmp_path / "d.pt")
+    assert _unpack(tmp_path / "d.pt")[1]["class"] == "test_persistence.DampedGPDM"
+    again = load_model(tmp_path / "d.pt")
+    assert type(again) is DampedGPDM and again.damping == 0.25
+    assert _loss(again) == _loss(model)
+
+
+def test_unregistered_subclasses_and_name_clashes(tmp_path):
+    class Unregistered(GPDM):
+        pass
+
+    with pytest.raises(TypeError, match="register_model"):
+        Unregistered(_sequences(), 2).save(tmp_path / "u.pt")
+    assert not list(tmp_path.iterdir())  # nothing, not even a temporary file, is left behind
+    with pytest.raises(ValueError, match="already registered"):
+        register_model(Unregistered, name="GPDM")
+    with pytest.raises(ValueError, match="already registered as"):
+        register_model(GPDM, name="another name")
+    with pytest.raises(TypeError, match="subclass of GPDM"):
+        register_model(torch.nn.Linear)
+    assert register_model(GPDM) is GPDM  # registering again under its own name is harmless
+
+
+# ------------------------------------------------------------------------------ consistency
+def test_training_data_and_saved_state_must_agree(saved, tmp_path):
+    _, blob = _unpack(saved[1])
+    path = tmp_path / "mismatch.pt"
+    state = dict(blob["state_dict"])
+    state["observations"] = state["observations"].clone()
+    state["observations"][3, 1] += 1e-3
+    data = {**blob["data"], "intentions": 1 - blob["data"]["intentions"]}
+    sequences = [s.clone() for s in blob["data"]["sequences"]]
+    sequences[0][0, 0] += 1.0
+    for bad in (
+        {**blob, "state_dict": state},
+        {**blob, "data": data},
+        {**blob, "data": {**blob["data"], "sequences": sequences}},
+    ):
+        _pack(path, bad)
+        with pytest.raises(ModelFileError, match="training data"):
+            load_model(path)
+    _pack(path, {**blob, "dtype": "Tensor"})
+    with pytest.raises(ModelFileError, match="dtype"):
+        load_model(path)
+    _pack(path, {**blob, "config": {**blob["config"], "latent_dim": 3}})
+    with pytest.raises(ModelFileError, match="saved state does not fit"):
+        load_model(path)
+    _pack(path, {**blob, "config": {**blob["config"], "unknown_option": 1}})
+    with pytest.raises(ModelFileError, match="do not rebuild"):
+        load_model(path)
+    _pack(path, blob)  # the unmodified content loads
+    assert _loss(load_model(path)) == saved[3]
+
+
+# ------------------------------------------------------------------------------ noise setters
+@pytest.mark.parametrize("attribute", ["measurement_noise", "transition_noise"])
+@pytest.mark.parametrize(
+    "value", [0.0, -0.1, math.nan, math.inf, -math.inf, 0.5 * NOISE_FLOOR, torch.tensor(0.0)]
+)
+def test_noise_setters_refuse_values_outside_the_range(attribute, value):
+    model = GPDM(_sequences(2), 2)
+    before = getattr(model, attribute).clone()
+    with pytest.raises(ValueError, match=f"{attribute} must be finite") as info:
+        setattr(model, attribute, value)
+    message = str(info.value)
+    assert "(1e-06, inf)" in message and repr(float(value)) in message
+    assert torch.equal(getattr(model, attribute), before)  # unchanged
+
+
+def test_noise_setters_accept_floats_and_0_dim_tensors():
+    model = GPDM(_sequences(2), 2)
+    model.measurement_noise = 0.02
+    model.transition_noise = torch.tensor(0.003)
+    assert float(model.measurement_noise.detach()) == pytest.approx(0.02, rel=1e-12)
+    assert float(model.transition_noise.detach()) == pytest.approx(0.003, rel=1e-6)
+    bound = float(model.raw_measurement_noise_constraint.lower_bound)
+    with pytest.raises(ValueError, match="measurement_noise"):
+        model.measurement_noise = bound  # exactly at the bound: raw would be -inf
+    with pytest.raises(ValueError, match="scalar or broadcast"):
+        model.transition_noise = torch.ones(3)
+    with pytest.raises(TypeError, match="real number"):
+        model.transition_noise = "0.1"
+    assert math.isfinite(_loss(model))
