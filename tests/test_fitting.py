@@ -156,3 +156,14 @@ def test_unevaluable_start_raises_with_advice():
     model = Rosenbrock(start=(2.0, 0.0), wall=1.5)
     with pytest.raises(FloatingPointError, match="starting parameters"):
         fit_map(model, 3)
+
+
+@pytest.mark.slow
+def test_a_converged_gpdm_stays_put_on_a_second_fit():
+    """Acceptance of issue 13 on a model: converge by the criteria, then a second fit moves the
+    loss by < 1e-6 relative (about 20-60 s; the Rosenbrock test covers it in the fast tier)."""
+    model = GPDM(styled_movements(1, 2, 15, 5, seed=3).sequences, 2)
+    first = model.fit(2000)
+    assert first.converged, first.reason
+    again = model.fit(50)
+    assert abs(again.final_loss - first.final_loss) <= 1e-6 * abs(first.final_loss)
