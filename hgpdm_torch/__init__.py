@@ -4,33 +4,54 @@ The public API, re-exported. Subpackages: :mod:`hgpdm_torch.models`, :mod:`hgpdm
 :mod:`hgpdm_torch.decision`, :mod:`hgpdm_torch.datasets`, :mod:`hgpdm_torch.experiments` and
 :mod:`hgpdm_torch.robots` (the SAPIEN scene; imported on demand because it needs the ``sim``
 extra).
+
+Every name is imported on first use (PEP 562), so ``import hgpdm_torch`` -- and with it the
+``hgpdm`` command's ``--help`` -- does not load torch, gpytorch or pyro. ``hgpdm_torch.HGPDM`` and
+``from hgpdm_torch import HGPDM`` work as usual.
 """
 
-from . import datasets, decision, expectations, inference, kernels, models
-from .gp import GPPosterior
-from .kernels import ALPHA_BAR, measurement_kernel, transition_kernel
-from .linalg import CholeskyError
-from .model_selection import CVResult, cross_validate
-from .models import GPDM, HGPDM, IDDM, load_model
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "ALPHA_BAR",
-    "CVResult",
-    "CholeskyError",
-    "GPDM",
-    "GPPosterior",
-    "HGPDM",
-    "IDDM",
-    "cross_validate",
-    "datasets",
-    "decision",
-    "expectations",
-    "inference",
-    "kernels",
-    "load_model",
-    "measurement_kernel",
-    "models",
-    "transition_kernel",
-]
+# public name -> module it lives in (relative to this package); a subpackage maps to itself.
+# New exports go here (and nowhere else: an eager import would load torch for ``hgpdm --help``).
+_EXPORTS: dict[str, str] = {
+    "ALPHA_BAR": ".kernels",
+    "CVResult": ".model_selection",
+    "CholeskyError": ".linalg",
+    "GPDM": ".models",
+    "GPPosterior": ".gp",
+    "HGPDM": ".models",
+    "IDDM": ".models",
+    "ModelFileError": ".models",
+    "cross_validate": ".model_selection",
+    "datasets": ".datasets",
+    "decision": ".decision",
+    "expectations": ".expectations",
+    "inference": ".inference",
+    "kernels": ".kernels",
+    "load_model": ".models",
+    "measurement_kernel": ".kernels",
+    "models": ".models",
+    "transition_kernel": ".kernels",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    """Import the module of a public name on first access and cache the name here."""
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module = importlib.import_module(_EXPORTS[name], __name__)
+    value = module if module.__name__ == f"{__name__}.{name}" else getattr(module, name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_EXPORTS})

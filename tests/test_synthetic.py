@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 import torch
 
@@ -54,8 +57,36 @@ def test_targeted_movements_reveal_target_at_the_end():
         (lambda: targeted_movements(noise=float("nan")), "noise"),
         (lambda: targeted_movements(target_range=(1.0, 0.0)), "target_range"),
         (lambda: targeted_movements(5).split(1.5), "test_fraction"),
+        # every numeric argument: finite, in range, an int where a count is meant
+        (lambda: styled_movements(noise=math.inf), "noise"),
+        (lambda: styled_movements(noise=math.nan), "noise"),
+        (lambda: styled_movements(noise="0.1"), "noise"),
+        (lambda: styled_movements(noise=1e308), "noise"),  # overflows the observations
+        (lambda: styled_movements(2, 2.0), "per_style"),
+        (lambda: styled_movements(True), "num_styles"),
+        (lambda: styled_movements(length_jitter=-1), "length_jitter"),
+        (lambda: styled_movements(length=10, length_jitter=9), "length_jitter"),
+        (lambda: styled_movements(seed=-1), "seed"),
+        (lambda: styled_movements(seed=2**64), "seed"),
+        (lambda: targeted_movements(0), "num"),
+        (lambda: targeted_movements(noise=-math.inf), "noise"),
+        (lambda: targeted_movements(target_range=(0.0, math.inf)), "target_range"),
+        (lambda: targeted_movements(target_range=(math.nan, 1.0)), "target_range"),
+        (lambda: targeted_movements(target_range=(-1e308, 1e308)), "target_range"),
+        (lambda: targeted_movements(target_range=(0.0,)), "target_range"),
+        (lambda: targeted_movements(target_range=1.0), "target_range"),
+        (lambda: targeted_movements(seed=-3), "seed"),
+        (lambda: targeted_movements(5).split(math.nan), "test_fraction"),
+        (lambda: targeted_movements(5).split(0.5, seed=-1), "seed"),
     ],
 )
 def test_bad_arguments(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_numpy_and_tensor_scalars_are_accepted():
+    a = styled_movements(np.int64(2), torch.tensor(2), 12, 5, noise=np.float32(0.01), seed=1)
+    b = styled_movements(2, 2, 12, 5, noise=float(np.float32(0.01)), seed=1)
+    assert all(torch.equal(x, y) for x, y in zip(a.sequences, b.sequences, strict=True))
+    assert all(bool(torch.isfinite(s).all()) for s in a.sequences)

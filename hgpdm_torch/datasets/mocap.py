@@ -86,19 +86,45 @@ class MocapTrial:
 
 
 def _open(path: str | Path, kind: str) -> list[str]:
+    """The lines of a text file; ``FileNotFoundError`` if missing, ``ValueError`` if it is empty
+    or not text."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{kind} file not found: {path}")
-    return path.read_text().splitlines()
-
-
-def _floats(tokens: list[str], n: int, what: str, lineno: int) -> np.ndarray:
-    if len(tokens) != n:
-        raise ValueError(f"line {lineno}: {what} needs {n} numbers, got {len(tokens)}")
     try:
-        return np.array([float(t) for t in tokens])
-    except ValueError as err:
-        raise ValueError(f"line {lineno}: {what} must be numbers, got {tokens}") from err
+        text = path.read_text()
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{kind} file {path} is not a text file ({err.reason})") from None
+    if "\x00" in text:
+        raise ValueError(f"{kind} file {path} is not a text file (it holds NUL bytes)")
+    if not text.strip():
+        raise ValueError(f"{kind} file {path} is empty")
+    return text.splitlines()
+
+
+def _floats(
+    tokens: list[str], n: int, what: str, where: str, *, allow_inf: bool = False
+) -> np.ndarray:
+    """``n`` numbers from ``tokens``; finite unless ``allow_inf`` (never NaN)."""
+    if len(tokens) != n:
+        raise ValueError(f"{where}: {what} needs {n} numbers, got {len(tokens)}")
+    try:
+        values = np.array([float(t) for t in tokens])
+    except ValueError:
+        raise ValueError(f"{where}: {what} must be numbers, got {tokens}") from None
+    if np.isnan(values).any() or not (allow_inf or np.isfinite(values).all()):
+        kind = "numbers, not NaN" if allow_inf else "finite numbers"
+        raise ValueError(f"{where}: {what} must be {kind}, got {tokens}")
+    return values
+
+
+def _value(tokens: list[str], what: str, where: str) -> str:
+    if len(tokens) != 2:
+        raise ValueError(f"{where}: {what} needs one value, got {tokens[1:]}")
+    return tokens[1]
+
+
+_ROOT_CHANNELS = {"tx", "ty", "tz", "rx", "ry", "rz"}
 
 
 def read_asf(path: str | Path) -> Skeleton:
@@ -106,10 +132,21 @@ def read_asf(path: str | Path) -> Skeleton:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: a malformed entry (the message names the line), a bone without a name, a
-            ``dof`` other than ``rx ry rz tx ty tz l``, or a hierarchy naming an unknown bone.
+        ValueError: naming the file: an empty, binary or truncated file, one without a ``:root``
+            ``order`` or without bones (not an ASF file), a malformed or non-finite entry (the
+            message names the line), a bone without a name or twice, a ``dof`` other than
+            ``rx ry rz tx ty tz l``, a hierarchy naming an unknown bone, or a bone missing from
+            the hierarchy.
     """
-    lines = _open(path, "ASF")
+    try:
+        return _parse_asf(_open(path, "ASF"))
+    except ValueError as err:
+        if str(err).startswith("ASF file "):
+            raise
+        raise ValueError(f"ASF file {path}: {err}") from None
+
+
+def _parse_asf(lines: list[str]) -> Skeleton:
     section, name, units = "", "", {}
     root_order: tuple[str, ...] = ()
     root_axis, root_orientation = "XYZ", np.zeros(3)
@@ -121,8 +158,11 @@ def read_asf(path: str | Path) -> Skeleton:
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
+        where = f"line {lineno}"
         tokens = line.split()
         if tokens[0].startswith(":"):
+            if bone is not None:
+                raise ValueError(f"{where}: {tokens[0]} inside a bone block (no 'end')")
             section = tokens[0][1:].lower()
             if section == "name" and len(tokens) > 1:
                 name = tokens[1]
@@ -132,23 +172,29 @@ def read_asf(path: str | Path) -> Skeleton:
             units[key] = tokens[1]
         elif section == "root" and key == "order":
             root_order = tuple(t.lower() for t in tokens[1:])
+            if set(root_order) - _ROOT_CHANNELS or len(set(root_order)) != len(root_order):
+                raise ValueError(f"{where}: root order must be distinct tx..rz: {line!r}")
         elif section == "root" and key == "axis":
             if len(tokens) != 2 or sorted(tokens[1].upper()) != ["X", "Y", "Z"]:
-                raise ValueError(f"line {lineno}: root axis must be an order of XYZ: {line!r}")
+                raise ValueError(f"{where}: root axis must be an order of XYZ: {line!r}")
             root_axis = tokens[1].upper()
         elif section == "root" and key == "orientation":
-            root_orientation = _floats(tokens[1:], 3, "orientation", lineno)
+            root_orientation = _floats(tokens[1:], 3, "orientation", where)
         elif section == "bonedata":
             if key == "begin":
+                if bone is not None:
+                    raise ValueError(f"{where}: 'begin' inside a bone block (no 'end')")
                 bone = {"limits": []}
             elif key == "end":
                 if bone is None or "name" not in bone:
-                    raise ValueError(f"line {lineno}: bone block without a name")
+                    raise ValueError(f"{where}: bone block without a name")
+                if bone["name"] in bones:
+                    raise ValueError(f"{where}: bone {bone['name']!r} defined twice")
                 bones[bone["name"]] = Bone(
-                    id=int(bone.get("id", len(bones) + 1)),
+                    id=bone.get("id", len(bones) + 1),
                     name=bone["name"],
                     direction=bone.get("direction", np.zeros(3)),
-                    length=float(bone.get("length", 0.0)),
+                    length=bone.get("length", 0.0),
                     axis=bone.get("axis", np.zeros(3)),
                     axis_order=bone.get("axis_order", "XYZ"),
                     dof=bone.get("dof", ()),
@@ -156,27 +202,33 @@ def read_asf(path: str | Path) -> Skeleton:
                 )
                 bone = None
             elif bone is None:
-                raise ValueError(f"line {lineno}: bone entry outside begin/end: {line!r}")
+                raise ValueError(f"{where}: bone entry outside begin/end: {line!r}")
             elif key == "id":
-                bone["id"] = int(tokens[1])
+                try:
+                    bone["id"] = int(_value(tokens, "id", where))
+                except ValueError as err:
+                    raise ValueError(f"{where}: id must be an integer, got {tokens[1:]}") from err
             elif key == "name":
-                bone["name"] = tokens[1]
+                bone["name"] = _value(tokens, "name", where)
             elif key == "direction":
-                bone["direction"] = _floats(tokens[1:], 3, "direction", lineno)
+                bone["direction"] = _floats(tokens[1:], 3, "direction", where)
             elif key == "length":
-                bone["length"] = float(_floats(tokens[1:], 1, "length", lineno)[0])
+                bone["length"] = float(_floats(tokens[1:], 1, "length", where)[0])
+                if bone["length"] < 0:
+                    raise ValueError(f"{where}: length must be >= 0, got {tokens[1]}")
             elif key == "axis":
-                bone["axis"] = _floats(tokens[1:4], 3, "axis", lineno)
+                bone["axis"] = _floats(tokens[1:4], 3, "axis", where)
                 bone["axis_order"] = tokens[4] if len(tokens) > 4 else "XYZ"
             elif key == "dof":
                 dof = tuple(t.lower() for t in tokens[1:])
                 bad = set(dof) - {"rx", "ry", "rz", "tx", "ty", "tz", "l"}
                 if bad:
-                    raise ValueError(f"line {lineno}: unknown dof {sorted(bad)}")
+                    raise ValueError(f"{where}: unknown dof {sorted(bad)}")
                 bone["dof"] = dof
             if key in ("limits",) or (key.startswith("(") and last_key == "limits"):
                 text = line[len("limits") :] if key == "limits" else line
-                lo, hi = text.replace("(", " ").replace(")", " ").split()
+                tokens = text.replace("(", " ").replace(")", " ").split()
+                lo, hi = _floats(tokens, 2, "limits", where, allow_inf=True)
                 bone["limits"].append((float(lo), float(hi)))
                 last_key = "limits"
                 continue
@@ -184,22 +236,34 @@ def read_asf(path: str | Path) -> Skeleton:
         elif section == "hierarchy" and key not in ("begin", "end"):
             for child in tokens[1:]:
                 parent[child] = tokens[0]
+    if bone is not None:
+        raise ValueError("the file ends inside a bone block (truncated?)")
+    if not root_order:
+        raise ValueError("no ':root' 'order' entry: not an ASF skeleton")
+    if not bones:
+        raise ValueError("no bones in ':bonedata': not an ASF skeleton, or truncated")
     for child, par in parent.items():
         for b in (child, par):
             if b != "root" and b not in bones:
                 raise ValueError(f"ASF hierarchy names an unknown bone {b!r}")
+    orphans = [b for b in bones if b not in parent]
+    if orphans:
+        raise ValueError(f"bones {orphans} are missing from ':hierarchy' (truncated?)")
     return Skeleton(name, units, root_order, bones, parent, root_axis, root_orientation)
 
 
 def read_amc(path: str | Path, skeleton: Skeleton) -> MocapTrial:
     """Parse an AMC motion file against its skeleton.
 
-    Bones missing from a frame keep the value of the previous frame (0 in the first).
+    Bones missing from a frame keep the value of the previous frame (0 in the first), unless the
+    file says ``:FULLY-SPECIFIED``: then every frame must list the bones of the first.
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: a bone unknown to the skeleton, a wrong number of values, a non-number,
-            data before the first frame number, or no frames.
+        ValueError: naming the file and line (and frame): an empty or binary file, a bone
+            unknown to the skeleton, a wrong number of values, a non-number or non-finite value
+            (``nan``, ``inf``), data before the first frame number, no frames, or a frame that
+            lacks bones of a fully specified file (truncated).
     """
     lines = _open(path, "AMC")
     channels = skeleton.channels()
@@ -207,27 +271,44 @@ def read_amc(path: str | Path, skeleton: Skeleton) -> MocapTrial:
     dofs = {"root": skeleton.root_order} | {b.name: b.dof for b in skeleton.bones.values()}
     frames: list[np.ndarray] = []
     numbers: list[int] = []
+    listed: list[set[str]] = []  # bones given in each frame
+    fully_specified = False
     current: np.ndarray | None = None
     for lineno, raw in enumerate(lines, 1):
         line = raw.strip()
-        if not line or line.startswith("#") or line.startswith(":"):
+        if not line or line.startswith("#"):
+            continue
+        if line.startswith(":"):
+            fully_specified |= line.split()[0].upper() == ":FULLY-SPECIFIED"
             continue
         tokens = line.split()
         if len(tokens) == 1 and tokens[0].isdigit():
             current = frames[-1].copy() if frames else np.zeros(len(channels))
             frames.append(current)
             numbers.append(int(tokens[0]))
+            listed.append(set())
             continue
+        where = f"AMC file {path}: line {lineno}"
         if current is None:
-            raise ValueError(f"line {lineno}: AMC data before the first frame number")
+            raise ValueError(f"{where}: AMC data before the first frame number")
+        where += f" (frame {numbers[-1]})"
         bone = tokens[0]
         if bone not in dofs:
-            raise ValueError(f"line {lineno}: bone {bone!r} is not in the skeleton")
-        values = _floats(tokens[1:], len(dofs[bone]), f"bone {bone!r}", lineno)
+            raise ValueError(f"{where}: bone {bone!r} is not in the skeleton")
+        values = _floats(tokens[1:], len(dofs[bone]), f"bone {bone!r}", where)
         for d, v in zip(dofs[bone], values, strict=True):
             current[index[f"{bone}.{d}"]] = v
+        listed[-1].add(bone)
     if not frames:
         raise ValueError(f"AMC file {path} contains no frames")
+    if fully_specified:
+        for number, bones in zip(numbers, listed, strict=True):
+            missing = listed[0] - bones
+            if missing:
+                raise ValueError(
+                    f"AMC file {path}: frame {number} lacks bones {sorted(missing)} of a fully "
+                    "specified file (truncated?)"
+                )
     return MocapTrial(np.stack(frames), channels, np.array(numbers))
 
 

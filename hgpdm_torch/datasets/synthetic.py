@@ -13,11 +13,14 @@ noise, so that a latent-variable model has something to recover:
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass, field
 
 import torch
 
 __all__ = ["MovementSet", "styled_movements", "targeted_movements"]
+
+_MAX_SEED = 2**64 - 1  # torch.Generator.manual_seed's range
 
 
 @dataclass
@@ -42,8 +45,9 @@ class MovementSet:
 
     def split(self, test_fraction: float = 0.25, seed: int = 0) -> tuple[MovementSet, MovementSet]:
         """Random train/test split (stratified by style for discrete labels)."""
-        if not 0 < test_fraction < 1:
+        if not 0 < _number("test_fraction", test_fraction) < 1:
             raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction}")
+        seed = _check("seed", seed, 0, _MAX_SEED)
         gen = torch.Generator().manual_seed(seed)
         test: list[int] = []
         groups = (
@@ -68,9 +72,33 @@ class MovementSet:
         return take(train), take(sorted(test))
 
 
-def _check(name: str, value: int, low: int) -> None:
-    if not isinstance(value, int) or value < low:
-        raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+def _check(name: str, value: int, low: int, high: int | None = None) -> int:
+    """``value`` (a Python or numpy int, or a 0-dim integer tensor) as an int in ``[low, high]``."""
+    try:
+        number = None if isinstance(value, bool) else operator.index(value)
+    except TypeError:
+        number = None
+    if number is None or number < low or (high is not None and number > high):
+        bound = f">= {low}" if high is None else f"in [{low}, {high}]"
+        raise ValueError(f"{name} must be an int {bound}, got {value!r}")
+    return number
+
+
+def _number(name: str, value: float) -> float:
+    """``value`` as a finite float."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(value, bool | str | bytes) or not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return number
+
+
+def _check_noise(noise: float) -> float:
+    if not _number("noise", noise) >= 0:
+        raise ValueError(f"noise must be >= 0, got {noise}")
+    return float(noise)
 
 
 def _lift(latents: list[torch.Tensor], obs_dim: int, noise: float, gen: torch.Generator):
@@ -82,7 +110,10 @@ def _lift(latents: list[torch.Tensor], obs_dim: int, noise: float, gen: torch.Ge
     out = []
     for y in latents:
         z = torch.tanh(y @ b.T + c) @ a.T
-        out.append(z + noise * torch.randn(z.shape, generator=gen, dtype=torch.float64))
+        z = z + noise * torch.randn(z.shape, generator=gen, dtype=torch.float64)
+        if not torch.isfinite(z).all():
+            raise ValueError(f"noise {noise} is too large: the observations overflow")
+        out.append(z)
     return out
 
 
@@ -109,19 +140,23 @@ def styled_movements(
         obs_dim: Dz >= 3.
         noise: standard deviation of the observation noise.
         length_jitter: sequence lengths are drawn uniformly from ``length +- length_jitter``.
-        seed: random seed.
+        seed: random seed (a non-negative int).
 
     Returns:
         A :class:`MovementSet` with ``labels`` the style codes ``[J]`` (long).
+
+    Raises:
+        ValueError: an argument outside its range above, or not finite.
     """
-    _check("num_styles", num_styles, 1)
-    _check("per_style", per_style, 1)
-    _check("length", length, 2)
-    _check("obs_dim", obs_dim, 3)
-    if not 0 <= length_jitter < length - 1:
+    num_styles = _check("num_styles", num_styles, 1)
+    per_style = _check("per_style", per_style, 1)
+    length = _check("length", length, 2)
+    obs_dim = _check("obs_dim", obs_dim, 3)
+    length_jitter = _check("length_jitter", length_jitter, 0)
+    seed = _check("seed", seed, 0, _MAX_SEED)
+    if not length_jitter < length - 1:
         raise ValueError(f"length_jitter must be in [0, length - 2], got {length_jitter}")
-    if not noise >= 0:  # also rejects NaN
-        raise ValueError(f"noise must be >= 0, got {noise}")
+    noise = _check_noise(noise)
     gen = torch.Generator().manual_seed(seed)
     omegas = torch.linspace(0.15, 0.45, num_styles, dtype=torch.float64)
     radii = torch.linspace(1.0, 0.6, num_styles, dtype=torch.float64)
@@ -166,18 +201,27 @@ def targeted_movements(
         obs_dim: Dz >= 3.
         target_range: ``(low, high)`` of the uniformly drawn targets.
         noise: standard deviation of the observation noise.
-        seed: random seed.
+        seed: random seed (a non-negative int).
 
     Returns:
         A :class:`MovementSet` with ``labels`` the targets ``[J]`` (float64).
+
+    Raises:
+        ValueError: an argument outside its range above, or not finite.
     """
-    _check("num", num, 1)
-    _check("length", length, 2)
-    _check("obs_dim", obs_dim, 3)
-    if not noise >= 0:
-        raise ValueError(f"noise must be >= 0, got {noise}")
-    low, high = (float(v) for v in target_range)
-    if not low < high:
+    num = _check("num", num, 1)
+    length = _check("length", length, 2)
+    obs_dim = _check("obs_dim", obs_dim, 3)
+    seed = _check("seed", seed, 0, _MAX_SEED)
+    noise = _check_noise(noise)
+    try:
+        bounds = [_number("target_range", v) for v in target_range]
+    except TypeError:  # not a sequence
+        bounds = []
+    if isinstance(target_range, str) or len(bounds) != 2:
+        raise ValueError(f"target_range must be (low, high), got {target_range!r}")
+    low, high = bounds
+    if not (low < high and math.isfinite(high - low)):
         raise ValueError(f"target_range must be (low, high) with low < high, got {target_range}")
     gen = torch.Generator().manual_seed(seed)
     targets = low + (high - low) * torch.rand(num, generator=gen, dtype=torch.float64)

@@ -31,6 +31,7 @@ payoff on the support of ``p``), and ``KL(p || q) = eps`` exactly; at the bounda
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from operator import mul
@@ -64,12 +65,43 @@ __all__ = [
 ]
 
 
+def _scalar(value: object, name: str, *, integer: bool = False) -> float:
+    """``value`` as a Python float (int if ``integer``): Python and NumPy scalars and 0-dim NumPy
+    arrays or torch tensors are accepted, booleans are not."""
+    kind = "an integer" if integer else "a real number"
+    if isinstance(value, torch.Tensor | np.ndarray):
+        if value.ndim != 0:
+            raise TypeError(f"{name} must be {kind}, got an array of shape {tuple(value.shape)}")
+        value = value.item()
+    wanted = numbers.Integral if integer else numbers.Real
+    if isinstance(value, bool | np.bool_) or not isinstance(value, wanted):
+        raise TypeError(f"{name} must be {kind}, got {type(value).__name__}")
+    return int(value) if integer else float(value)
+
+
+def _integer(value: object, name: str, low: int) -> int:
+    number = _scalar(value, name, integer=True)
+    if number < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(number)
+
+
+def _check_tol(tol: object) -> float:
+    value = _scalar(tol, "tol")
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"tol must be positive and finite, got {tol}")
+    return value
+
+
+def _check_probability(value: object, name: str) -> float:
+    p = _scalar(value, name)
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"{name} must lie in (0, 1), got {value}")
+    return p
+
+
 def _check_delta(delta: float) -> float:
-    if isinstance(delta, bool) or not isinstance(delta, int | float | np.floating):
-        raise TypeError(f"delta must be a float in (0, 1), got {type(delta).__name__}")
-    if not 0.0 < float(delta) < 1.0:
-        raise ValueError(f"delta must lie in (0, 1), got {delta}")
-    return float(delta)
+    return _check_probability(delta, "delta")
 
 
 def kl_divergence(p: object, q: object) -> float:
@@ -101,13 +133,9 @@ def kl_bound(delta: float, n_samples: int, n_actions: int, n_states: int = 1) ->
         n_states: ``|S|`` models that must hold together (union bound); 1 for a normal-form game.
     """
     delta = _check_delta(delta)
-    for name, value, low in (
-        ("n_samples", n_samples, 0),
-        ("n_actions", n_actions, 1),
-        ("n_states", n_states, 1),
-    ):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    n_samples = _integer(n_samples, "n_samples", 0)
+    n_actions = _integer(n_actions, "n_actions", 1)
+    n_states = _integer(n_states, "n_states", 1)
     if n_samples == 0:
         return math.inf
     return ((n_actions - 1) * math.log1p(n_samples) - math.log(delta / n_states)) / n_samples
@@ -222,7 +250,12 @@ class KLBall:
 
     Attributes:
         center: ``[Aj]`` the empirical distribution ``pi~_j`` of the observed actions.
-        radius: ``eps``, the KL bound; ``inf`` means the whole simplex (no observations).
+        radius: ``eps``, the KL bound; ``inf`` means the whole simplex (no observations). Any
+            real scalar (Python, NumPy, 0-dim array or tensor) is stored as a Python float.
+
+    Raises:
+        TypeError: a radius that is not a real scalar.
+        ValueError: a negative or NaN radius, or a centre that is not a distribution.
     """
 
     center: np.ndarray
@@ -230,10 +263,10 @@ class KLBall:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "center", check_strategy(self.center, None, "center"))
-        if not isinstance(self.radius, int | float) or math.isnan(self.radius) or self.radius < 0:
-            raise ValueError(
-                f"radius must be a non-negative float (inf allowed), got {self.radius}"
-            )
+        radius = _scalar(self.radius, "radius")
+        if math.isnan(radius) or radius < 0:
+            raise ValueError(f"radius must be a non-negative float (inf allowed), got {radius}")
+        object.__setattr__(self, "radius", radius)
 
     @classmethod
     def from_counts(cls, counts: object, delta: float, n_states: int = 1) -> KLBall:
@@ -369,12 +402,8 @@ class DeltaSafeResponder:
 
     def __init__(self, reward: object, *, tol: float = 1e-4, max_iter: int = 200) -> None:
         self.reward = check_reward_matrix(reward)
-        if not tol > 0:
-            raise ValueError(f"tol must be positive, got {tol}")
-        if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
-            raise ValueError(f"max_iter must be a non-negative integer, got {max_iter!r}")
-        self.tol = float(tol)
-        self.max_iter = max_iter
+        self.tol = _check_tol(tol)
+        self.max_iter = _integer(max_iter, "max_iter", 0)
         self._rows = self.reward.tolist()
         self._cols = self.reward.T.tolist()
         spread = float(self.reward.max() - self.reward.min())
@@ -586,10 +615,8 @@ def solve_delta_safe(
         max_iter: the most cutting planes.
     """
     r = check_reward_matrix(reward)
-    if not tol > 0:
-        raise ValueError(f"tol must be positive, got {tol}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    tol = _check_tol(tol)
+    max_iter = _integer(max_iter, "max_iter", 1)
     if ball is None:
         if counts is None or delta is None:
             raise ValueError("give either counts and delta, or ball")
@@ -655,8 +682,7 @@ def two_sample_z_test(
     """
     x = check_counts(counts_x, None, "counts_x")
     y = check_counts(counts_y, x.shape[0], "counts_y")
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    alpha = _check_probability(alpha, "alpha")
     nx, ny = x.sum(), y.sum()
     if nx == 0 or ny == 0:
         raise ValueError("counts_x and counts_y must each hold at least one observation")
@@ -707,11 +733,9 @@ class AdaptiveLearner:
         self.responder = DeltaSafeResponder(self.reward, tol=self.tol, max_iter=self.max_iter)
         self.reward = self.responder.reward
         if not callable(self.delta):
-            _check_delta(self.delta)
-        if isinstance(self.n_min, bool) or not isinstance(self.n_min, int) or self.n_min < 1:
-            raise ValueError(f"n_min must be a positive integer, got {self.n_min!r}")
-        if not 0.0 < self.alpha < 1.0:
-            raise ValueError(f"alpha must lie in (0, 1), got {self.alpha}")
+            self.delta = _check_delta(self.delta)
+        self.n_min = _integer(self.n_min, "n_min", 1)
+        self.alpha = _check_probability(self.alpha, "alpha")
         n_j = self.reward.shape[1]
         self._x = np.zeros(n_j, dtype=np.int64)
         self._y = np.zeros(n_j, dtype=np.int64)
@@ -729,12 +753,13 @@ class AdaptiveLearner:
     def observe(self, action: int) -> None:
         """Record the opponent's action ``a_j`` and update the strategy (Alg. 5.1 lines 6-17)."""
         n_j = self.reward.shape[1]
-        if (
-            isinstance(action, bool)
-            or not isinstance(action, int | np.integer)
-            or not (0 <= action < n_j)
-        ):
+        try:
+            index = _scalar(action, "action", integer=True)
+        except TypeError:
+            index = -1
+        if not 0 <= index < n_j:
             raise ValueError(f"action must be an integer in [0, {n_j}), got {action!r}")
+        action = int(index)
         self._games += 1
         if self._x.sum() < self.n_min:  # lines 4-8: grow X, re-solve after every sample
             self._x[action] += 1

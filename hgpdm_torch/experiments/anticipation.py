@@ -50,6 +50,7 @@ from ..decision.stopping import ACTIONS, WAIT, Episodes, Policy, StoppingProblem
 from ..inference.intention import OnlineIntentionFilter
 from ..models import IDDM
 from ..validation import as_tensor
+from .arguments import int_at_least, output_folder, positive_int, random_seed
 from .dtype import float64_default
 from .table import ResultTable
 from .target_prediction import supervised_init
@@ -134,8 +135,10 @@ class AnticipationConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
-        if self.folds < 2:
-            raise ValueError(f"folds must be at least 2, got {self.folds}")
+        if not 2 <= self.folds <= self.num_trials:
+            raise ValueError(
+                f"folds must be in [2, num_trials={self.num_trials}], got {self.folds}"
+            )
         if not self.episodes or any(
             isinstance(e, bool) or not isinstance(e, int) or e < 1 for e in self.episodes
         ):
@@ -508,13 +511,15 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--full", action="store_true", help="the thesis's sizes (270 trials, 10x10 CV)"
     )
-    parser.add_argument("--trials", type=int, help="simulated strokes before exclusion")
-    parser.add_argument("--folds", type=int)
-    parser.add_argument("--repetitions", type=int)
-    parser.add_argument("--workers", type=int, default=1, help="SAPIEN processes for the rewards")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="hgpdm_anticipation_output")
-    parser.add_argument("--cache-dir", default=None)
+    parser.add_argument("--trials", type=positive_int, help="simulated strokes before exclusion")
+    parser.add_argument("--folds", type=int_at_least(2))
+    parser.add_argument("--repetitions", type=positive_int)
+    parser.add_argument(
+        "--workers", type=positive_int, default=1, help="SAPIEN processes for the rewards"
+    )
+    parser.add_argument("--seed", type=random_seed, default=0)
+    parser.add_argument("--out", type=output_folder, default="hgpdm_anticipation_output")
+    parser.add_argument("--cache-dir", type=output_folder, default=None)
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
     smoke = os.environ.get("HGPDM_SMOKE") == "1" or not args.full
@@ -522,7 +527,10 @@ def main(argv: list[str]) -> int:
     for key, name in (("num_trials", "trials"), ("folds", "folds"), ("repetitions", "repetitions")):
         if getattr(args, name) is not None:
             changes[key] = getattr(args, name)
-    config = AnticipationConfig.smoke(**changes) if smoke else AnticipationConfig(**changes)
+    try:
+        config = AnticipationConfig.smoke(**changes) if smoke else AnticipationConfig(**changes)
+    except ValueError as err:  # sizes that contradict each other, e.g. more folds than trials
+        parser.error(str(err))
     fig6, fig7 = run_experiment(config, cache_dir=args.cache_dir, progress=args.progress)
     print(fig6.to_markdown(".4g"))
     print()

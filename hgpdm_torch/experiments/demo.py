@@ -36,6 +36,7 @@ from ..decision.lspi import lspi
 from ..decision.mcp import MonteCarloPlanner
 from ..decision.stopping import StoppingProblem
 from . import anticipation as ant
+from .arguments import non_negative_int, output_folder, positive_int, random_seed
 from .dtype import float64_default
 from .table import ResultTable
 
@@ -281,14 +282,17 @@ def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--workers W] [--seed S] [--out DIR]
     [--cache-dir DIR] [--full] [--progress]``."""
     parser = argparse.ArgumentParser(prog="hgpdm demo", description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=int, default=None, help="strokes played (48)")
+    parser.add_argument("--trials", type=positive_int, default=None, help="strokes played (48)")
     parser.add_argument(
-        "--watched", type=int, default=None, help="further strokes the IDDM learns from (150)"
+        "--watched",
+        type=non_negative_int,
+        default=None,
+        help="further strokes the IDDM learns from (150)",
     )
-    parser.add_argument("--workers", type=int, default=None, help="SAPIEN processes")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="hgpdm_demo_output")
-    parser.add_argument("--cache-dir", default=None)
+    parser.add_argument("--workers", type=positive_int, default=None, help="SAPIEN processes")
+    parser.add_argument("--seed", type=random_seed, default=0)
+    parser.add_argument("--out", type=output_folder, default="hgpdm_demo_output")
+    parser.add_argument("--cache-dir", type=output_folder, default=None)
     parser.add_argument(
         "--full", action="store_true", help="run the full Sec. 4.3 experiment instead"
     )
@@ -297,10 +301,10 @@ def main(argv: list[str]) -> int:
     if args.full and (args.trials is not None or args.watched is not None):
         parser.error("--trials and --watched set the demo's sizes; --full uses the thesis's")
     if args.full:
-        extra = ["--out", args.out, "--seed", str(args.seed)]
+        extra = ["--out", str(args.out), "--seed", str(args.seed)]
         extra += ["--workers", str(args.workers or max(1, os.cpu_count() or 1))]
         extra += ["--progress"] if args.progress else []
-        extra += ["--cache-dir", args.cache_dir] if args.cache_dir else []
+        extra += ["--cache-dir", str(args.cache_dir)] if args.cache_dir else []
         return ant.main(["--full", *extra])
     result = run_demo(
         num_trials=48 if args.trials is None else args.trials,

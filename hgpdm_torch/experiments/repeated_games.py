@@ -34,6 +34,7 @@ from hgpdm_torch.decision.games import (
     two_stage_rps,
 )
 from hgpdm_torch.decision.opponent import AdaptiveLearner, DeltaSafeResponder, delta_safe_tree
+from hgpdm_torch.experiments.arguments import output_file, random_seed
 from hgpdm_torch.experiments.table import ResultTable
 
 __all__ = [
@@ -332,8 +333,10 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="hgpdm games", description=__doc__.splitlines()[0])
     parser.add_argument("experiment", choices=["stationary", "switch", "two-stage", "serves"])
     parser.add_argument("--quick", action="store_true", help="small sizes (also HGPDM_SMOKE=1)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", help="also write the table(s) as JSON to this path")
+    parser.add_argument("--seed", type=random_seed, default=0)
+    parser.add_argument(
+        "--json", type=output_file, help="also write the table(s) as JSON to this path"
+    )
     args = parser.parse_args(argv)
     quick = args.quick or SMOKE
     if args.experiment == "stationary":
@@ -358,6 +361,6 @@ def main(argv: list[str]) -> int:
         print(table.to_markdown())
         print({k: v for k, v in table.meta.items() if k != "curves"})
         if args.json:
-            path = args.json if len(tables) == 1 else args.json.replace(".json", f"_{i}.json")
+            path = args.json if len(tables) == 1 else args.json.with_stem(f"{args.json.stem}_{i}")
             table.to_json(path)
     return 0

@@ -16,6 +16,7 @@ import torch
 
 from ..datasets import styled_movements
 from ..models import GPDM, HGPDM
+from .arguments import output_folder, random_seed
 from .table import ResultTable
 
 __all__ = ["main", "run_style_discovery", "style_purity"]
@@ -135,9 +136,12 @@ def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm style-discovery [--out DIR] [--seed N] [--quick]``."""
     parser = argparse.ArgumentParser(prog="hgpdm style-discovery", description=__doc__)
     parser.add_argument(
-        "--out", default="hgpdm_style_discovery_output", help="folder for the figure and table"
+        "--out",
+        type=output_folder,
+        default="hgpdm_style_discovery_output",
+        help="folder for the figure and table",
     )
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--quick", action="store_true", help="smaller problem (also HGPDM_SMOKE=1)")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)

@@ -45,6 +45,7 @@ from ..inference.map import MAPInference  # noqa: E402
 from ..inference.variational import VariationalInference  # noqa: E402
 from ..models import GPDM, HGPDM  # noqa: E402
 from ..validation import check_choice  # noqa: E402
+from .arguments import output_file, positive_int, random_seed  # noqa: E402
 from .table import ResultTable  # noqa: E402
 
 __all__ = [
@@ -54,6 +55,7 @@ __all__ = [
     "gap_recovery_figure",
     "load_data",
     "main",
+    "sequence_length",
     "style_recognition",
 ]
 
@@ -73,6 +75,8 @@ COLUMNS = [
     "ridge AR (CV) RMSE",
     "VB ms/window",
 ]
+#: BasicMotions recordings: 100 frames, of which every _BASIC_MOTIONS_STEP-th is kept.
+_BASIC_MOTIONS_FRAMES, _BASIC_MOTIONS_STEP = 100, 3
 # psi2 of the measurement GP holds windows x K x T x N^2 numbers: chunk the windows to this
 _MAX_ENTRIES = 2e7
 
@@ -88,6 +92,15 @@ class StyleData:
     test_labels: torch.Tensor
 
 
+def sequence_length(name: str, *, smoke: bool = SMOKE) -> int:
+    """Frames per sequence of the data set ``name`` as :func:`load_data` returns it; a forecast
+    window (:func:`forecast_windows`) must be shorter."""
+    check_choice(name, "name", DATASETS)
+    if name == "synthetic":
+        return 30 if smoke else 40
+    return -(-_BASIC_MOTIONS_FRAMES // _BASIC_MOTIONS_STEP)
+
+
 def load_data(name: str, *, seed: int = 0, smoke: bool = SMOKE) -> StyleData:
     """The synthetic set or BasicMotions (needs ``aeon``), at smoke or full size.
 
@@ -96,8 +109,8 @@ def load_data(name: str, *, seed: int = 0, smoke: bool = SMOKE) -> StyleData:
     """
     check_choice(name, "name", DATASETS)
     if name == "synthetic":
-        per_style, length = (4, 30) if smoke else (4, 40)
-        train, test = styled_movements(3, per_style, length, 12, seed=seed).split(0.25, seed)
+        length = sequence_length(name, smoke=smoke)
+        train, test = styled_movements(3, 4, length, 12, seed=seed).split(0.25, seed)
         return StyleData(name, train.sequences, train.labels, test.sequences, test.labels)
     try:
         from aeon.datasets import load_basic_motions
@@ -110,7 +123,7 @@ def load_data(name: str, *, seed: int = 0, smoke: bool = SMOKE) -> StyleData:
         names = sorted(set(y))
         codes = torch.tensor([names.index(v) for v in y])
         keep = torch.cat([torch.nonzero(codes == k).flatten()[:n] for k in range(len(names))])
-        z = torch.as_tensor(x, dtype=torch.float64).transpose(1, 2)[keep, ::3]
+        z = torch.as_tensor(x, dtype=torch.float64).transpose(1, 2)[keep, ::_BASIC_MOTIONS_STEP]
         parts.append((z, codes[keep]))
     (ztr, ytr), (zte, yte) = parts
     mean, std = ztr.reshape(-1, ztr.shape[-1]).mean(0), ztr.reshape(-1, ztr.shape[-1]).std(0)
@@ -189,9 +202,23 @@ def style_recognition(
 
     Returns:
         A :class:`ResultTable` with columns :data:`COLUMNS`.
+
+    Raises:
+        ValueError: an unknown data set, a size that is not a positive int, or a window length
+            not shorter than the data set's sequences (checked before any fit).
     """
     for name in datasets:
         check_choice(name, "datasets", DATASETS)
+    if isinstance(lengths, int) or not lengths:
+        raise ValueError(f"lengths must be a non-empty tuple of positive ints, got {lengths!r}")
+    for name, value in (
+        *(("lengths", T) for T in lengths),
+        ("latent_dim", latent_dim),
+        ("fit_steps", fit_steps),
+        ("stride", 1 if stride is None else stride),
+    ):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
     stride = stride or (6 if SMOKE else 4)
     table = ResultTable(
         "Tables 2.1-2.4: next-frame forecast RMSE and style recognition accuracy",
@@ -208,6 +235,12 @@ def style_recognition(
                 table.meta.setdefault("skipped", {})[name] = str(err)
                 models[name] = None
                 continue
+            shortest = min(s.shape[0] for s in data.test)
+            if max(lengths) >= shortest:
+                raise ValueError(
+                    f"lengths must be below the {name} test sequences' {shortest} frames, "
+                    f"got {max(lengths)}"
+                )
             hg = HGPDM(data.train, data.train_labels, latent_dim)
             gp = GPDM(data.train, latent_dim)
             for label, model in (("H-GPDM", hg), ("GPDM", gp)):
@@ -305,13 +338,22 @@ def main(argv: list[str]) -> int:
     [--out table.json] [--figure gap.png]``."""
     parser = argparse.ArgumentParser(prog="hgpdm style-recognition", description=__doc__)
     parser.add_argument("--data", nargs="+", default=list(DATASETS), choices=DATASETS)
-    parser.add_argument("--lengths", nargs="+", type=int, default=[5, 10])
-    parser.add_argument("--fit-steps", type=int, default=60)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=None, help="write the table as JSON")
-    parser.add_argument("--figure", type=Path, default=None, help="gap-recovery figure (PNG)")
+    parser.add_argument("--lengths", nargs="+", type=positive_int, default=[5, 10])
+    parser.add_argument("--fit-steps", type=positive_int, default=60)
+    parser.add_argument("--seed", type=random_seed, default=0)
+    parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
+    parser.add_argument(
+        "--figure", type=output_file, default=None, help="gap-recovery figure (PNG)"
+    )
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
+    for name in args.data:
+        frames = sequence_length(name)
+        if max(args.lengths) >= frames:
+            parser.error(
+                f"argument --lengths: windows must be shorter than the {name} sequences "
+                f"({frames} frames), got {max(args.lengths)}"
+            )
     torch.set_default_dtype(torch.float64)
     table = style_recognition(
         tuple(args.data),

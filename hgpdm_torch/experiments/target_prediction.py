@@ -33,6 +33,7 @@ from ..baselines import MedianPredictor, WindowGPR, WindowRidge
 from ..inference.intention import OnlineIntentionFilter, infer_intention
 from ..models import IDDM
 from ..validation import as_tensor, check_choice
+from .arguments import output_file, random_seed
 from .table import ResultTable
 
 __all__ = ["HORIZONS_MS", "main", "supervised_init", "target_prediction"]
@@ -245,8 +246,8 @@ def main(argv: list[str]) -> int:
     """``hgpdm target-prediction [--quick] [--out results.json] [--seed N] [--init pls|pca]``."""
     parser = argparse.ArgumentParser(prog="hgpdm target-prediction", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="small smoke-test sizes")
-    parser.add_argument("--out", help="write the table as JSON")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=output_file, help="write the table as JSON")
+    parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--init", choices=("pls", "pca"), default="pls", help="latent init")
     args = parser.parse_args(argv)
     quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"

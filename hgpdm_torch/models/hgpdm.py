@@ -229,9 +229,22 @@ class HGPDM(GPDM):
         Returns:
             The fitted model; ``model.intention_codes()`` is the discovered assignment and
             ``model.discovery_history`` the loss after each iteration.
+
+        Raises:
+            ValueError: ``num_styles``, ``iterations`` or ``steps`` not a positive int, ``seed``
+                not a non-negative int, or more styles than sequences.
         """
-        if not isinstance(num_styles, int) or num_styles < 1:
-            raise ValueError(f"num_styles must be a positive int, got {num_styles!r}")
+        for name, value, low in (
+            ("num_styles", num_styles, 1),
+            ("iterations", iterations, 1),
+            ("steps", steps, 1),
+            ("seed", seed, 0),
+        ):
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+                kind = "a positive int" if low else "a non-negative int"
+                raise ValueError(f"{name} must be {kind}, got {value!r}")
+        num_styles, iterations, steps = int(num_styles), int(iterations), int(steps)
+        seed = int(seed)
         check_choice(init, "init", ("kmeans", "random"))
         kwargs.pop("intention", None)
         model = cls(

@@ -119,7 +119,7 @@ def test_bad_files(files, tmp_path):
         read_asf(tmp_path / "none.asf")
     bad = tmp_path / "bad.amc"
     bad.write_text("1\nlfemur 1 2\n")
-    with pytest.raises(ValueError, match="line 2: bone 'lfemur' needs 3 numbers"):
+    with pytest.raises(ValueError, match=r"bad.amc: line 2 \(frame 1\): bone 'lfemur' needs 3"):
         read_amc(bad, sk)
     bad.write_text("1\nrhand 1\n")
     with pytest.raises(ValueError, match="not in the skeleton"):
@@ -146,3 +146,66 @@ def test_bad_files(files, tmp_path):
     broken.write_text(ASF.replace("lfemur ltibia", "lfemur rtibia"))
     with pytest.raises(ValueError, match="unknown bone 'rtibia'"):
         read_asf(broken)
+
+
+@pytest.mark.parametrize(
+    "bone,values,match",
+    [
+        ("lfemur", "nan -3 0.5", "must be finite numbers"),
+        ("lfemur", "1.0 inf 0.5", "must be finite numbers"),
+        ("root", "5 17 -1.5 0.5 1e999 0", "must be finite numbers"),
+        ("lfemur", "1.0 -3 0,5", "must be numbers"),
+    ],
+)
+def test_amc_bad_values_name_file_line_and_frame(files, tmp_path, bone, values, match):
+    asf, amc = files
+    lines = amc.read_text().splitlines()
+    at = lines.index("5") + (1 if bone == "root" else 2)  # the bone's line in frame 5
+    lines[at] = f"{bone} {values}"
+    bad = tmp_path / "values.amc"
+    bad.write_text("\n".join(lines) + "\n")
+    where = rf"values\.amc: line {at + 1} \(frame 5\): bone '{bone}' {match}"
+    with pytest.raises(ValueError, match=where):
+        read_amc(bad, read_asf(asf))
+
+
+def test_truncated_empty_and_foreign_files(files, tmp_path):
+    asf, amc = files
+    sk = read_asf(asf)
+    cases = {
+        "empty.asf": ("", "empty.asf is empty"),
+        "blank.asf": ("\n  \n", "blank.asf is empty"),
+        "binary.asf": (b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe", "binary.asf is not a text file"),
+        # cut inside a bone block, and cut before the hierarchy
+        "cut.asf": (ASF[: ASF.index("name lfemur")], "cut.asf: the file ends inside a bone block"),
+        "nohier.asf": (ASF[: ASF.index(":hierarchy")], r"nohier.asf: bones .* missing from"),
+        # an AMC motion or a text file where the skeleton is expected
+        "motion.asf": (_amc(2), "motion.asf: no ':root' 'order' entry: not an ASF skeleton"),
+        "text.asf": ("hello world\n", "text.asf: no ':root' 'order' entry"),
+        "badlen.asf": (ASF.replace("length 7.17", "length nan"), r"badlen.asf: line \d+: length"),
+        "badlim.asf": (ASF.replace("(-10.0 170.0)", "(-10.0)"), r"badlim.asf: line \d+: limits"),
+        "badid.asf": (ASF.replace("id 3", "id three"), r"badid.asf: line \d+: id"),
+    }
+    for name, (content, match) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+        with pytest.raises(ValueError, match=match):
+            read_asf(path)
+    text = amc.read_text()
+    amc_cases = {
+        "empty.amc": ("", "empty.amc is empty"),
+        "binary.amc": (b"\x00\x01\x02", "binary.amc is not a text file"),
+        # cut in the middle of the last frame of a fully specified file
+        "cut.amc": (text[: text.rindex("lfemur")], r"cut.amc: frame 12 lacks bones \['lfemur'"),
+        "skeleton.amc": (ASF, "skeleton.amc: line .*before the first frame number"),
+    }
+    for name, (content, match) in amc_cases.items():
+        path = tmp_path / name
+        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+        with pytest.raises(ValueError, match=match):
+            read_amc(path, sk)
+    # a file that is not fully specified may leave bones out of a frame
+    partial = tmp_path / "partial.amc"
+    partial.write_text(text[: text.rindex("lfemur")].replace(":FULLY-SPECIFIED\n", ""))
+    trial = read_amc(partial, sk)
+    assert trial.values.shape[0] == 12 and np.isfinite(trial.values).all()

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from scipy.optimize import minimize
 from scipy.stats import chi2_contingency
 
@@ -393,3 +394,54 @@ def test_bad_inputs_raise_clear_errors() -> None:
         delta_safe_tree(two_stage_rps(), [np.zeros(3)], 0.1)
     with pytest.raises(ValueError, match="method"):
         delta_safe_tree(two_stage_rps(), [np.zeros(3)] * 10, 0.1, method="magic")
+
+
+@pytest.mark.parametrize(
+    "radius",
+    [np.float32(0.25), np.float64(0.25), np.array(0.25), torch.tensor(0.25), 0.25, np.int64(0)],
+    ids=["float32", "float64", "0-dim array", "0-dim tensor", "float", "int64"],
+)
+def test_kl_ball_accepts_any_real_scalar_radius(radius) -> None:
+    ball = KLBall(np.array([0.5, 0.3, 0.2]), radius)
+    assert type(ball.radius) is float and ball.radius == pytest.approx(float(radius))
+    reference = KLBall(np.array([0.5, 0.3, 0.2]), float(radius))
+    value, q = ball.worst_case([1.0, 0.0, -1.0])
+    assert value == pytest.approx(reference.worst_case([1.0, 0.0, -1.0])[0], abs=1e-12)
+    assert ball.contains(q, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "radius,error,match",
+    [
+        (-0.1, ValueError, "radius must be a non-negative"),
+        (np.float32(-1.0), ValueError, "radius must be a non-negative"),
+        (math.nan, ValueError, "radius must be a non-negative"),
+        (torch.tensor(float("nan")), ValueError, "radius must be a non-negative"),
+        ("0.1", TypeError, "radius must be a real number"),
+        (True, TypeError, "radius must be a real number"),
+        (np.array([0.1, 0.2]), TypeError, r"radius must be a real number, got an array"),
+        (torch.tensor([0.1]), TypeError, r"radius must be a real number, got an array"),
+    ],
+)
+def test_kl_ball_rejects_bad_radius(radius, error, match) -> None:
+    with pytest.raises(error, match=match):
+        KLBall(np.array([0.5, 0.5]), radius)
+
+
+def test_numpy_and_tensor_scalars_elsewhere() -> None:
+    assert kl_bound(np.float32(0.1), np.int32(10), torch.tensor(3)) == pytest.approx(
+        kl_bound(0.1, 10, 3), rel=1e-6
+    )
+    learner = AdaptiveLearner(RPS_REWARD, n_min=np.int64(4), alpha=np.float32(0.05))
+    learner.observe(torch.tensor(1))
+    learner.observe(np.int8(2))
+    assert learner.counts.tolist() == [0, 1, 1]
+    DeltaSafeResponder(RPS_REWARD, tol=np.float32(1e-3), max_iter=np.int64(50))
+    with pytest.raises(TypeError, match="n_samples"):
+        kl_bound(0.1, 2.5, 3)
+    with pytest.raises(ValueError, match="tol"):
+        DeltaSafeResponder(RPS_REWARD, tol=math.inf)
+    with pytest.raises(ValueError, match="alpha"):
+        two_sample_z_test([1, 2, 3], [3, 2, 1], alpha=np.float64(math.nan))
+    with pytest.raises(ValueError, match="action"):
+        AdaptiveLearner(RPS_REWARD).observe(torch.tensor(0.5))

@@ -368,3 +368,49 @@ def test_unreachable_aims_raise_or_are_reported_never_nan() -> None:
     res = B.aim_through_bounce(torch.tensor([0.0, 1.65, 1.0]), 0.3, -0.9, 0.47, heavy, max_iter=2)
     assert not bool(res.converged)
     assert bool(torch.isfinite(res.vel).all())
+
+
+@pytest.mark.parametrize(
+    "vel,spin,match",
+    [
+        ([0.0, 1e8, 0.0], [0.0, 0.0, 0.0], r"vel: \|vel\| must be at most MAX_SPEED = 50 m/s"),
+        ([0.0, 40.0, 40.0], [0.0, 0.0, 0.0], "vel.*got 56.57 m/s"),
+        ([0.0, 5.0, 0.0], [1e6, 0.0, 0.0], r"spin: \|spin\| must be at most MAX_SPIN = 2000 rad/s"),
+    ],
+)
+def test_unphysical_ball_states_raise_instead_of_nan(vel, spin, match) -> None:
+    pos = [0.0, -1.5, 1.0]
+    with pytest.raises(ValueError, match=match):
+        B.make_state(pos, vel, spin)
+    # a BallState built directly is checked by every integrator
+    state = B.BallState(*(torch.tensor(x, dtype=torch.float64) for x in (pos, vel, spin)))
+    for run in (
+        lambda: B.simulate(state, 0.5, 0.01),
+        lambda: B.step(state, 0.01),
+        lambda: B.propagate(state, 0.1),
+        lambda: B.predict_plane_crossing(state, 0.0),
+    ):
+        with pytest.raises(ValueError, match=match.split(":")[0]):
+            run()
+
+
+def test_ranges_admit_the_fastest_real_balls() -> None:
+    # a 50 m/s smash with 2000 rad/s of spin is inside the documented ranges and stays finite
+    state = B.make_state([0.0, -1.5, 1.0], [0.0, 50.0, 0.0], [-2000.0, 0.0, 0.0])
+    traj = B.simulate(state, 0.3, 0.005)
+    assert bool(torch.isfinite(traj.pos).all()) and bool(torch.isfinite(traj.spin).all())
+    assert B.MAX_SPEED == 50.0 and B.MAX_SPIN == 2000.0
+
+
+def test_integration_overflow_raises() -> None:
+    # constants far outside the model's range overflow: a clear error instead of NaN data
+    state = B.make_state([0.0, -1.5, 1.0], [0.0, 5.0, 1.0])
+    absurd = B.BallParams(drag=1e300)
+    for run in (
+        lambda: B.simulate(state, 0.2, 0.01, absurd),
+        lambda: B.step(state, 0.01, absurd),
+        lambda: B.propagate(state, 0.05, absurd),
+        lambda: B.predict_plane_crossing(state, 0.0, absurd),
+    ):
+        with pytest.raises(ValueError, match="non-finite values"):
+            run()

@@ -13,6 +13,8 @@ _LAZY = {
     "BallParams": "ball",
     "BallState": "ball",
     "BallTrajectory": "ball",
+    "MAX_SPEED": "ball",
+    "MAX_SPIN": "ball",
     "aim": "ball",
     "is_legal_return": "ball",
     "predict_plane_crossing": "ball",

@@ -35,6 +35,8 @@ from hgpdm_torch.validation import as_tensor, check_choice, check_shape
 
 __all__ = [
     "DEFAULT_PARAMS",
+    "MAX_SPEED",
+    "MAX_SPIN",
     "BallParams",
     "BallState",
     "BallTrajectory",
@@ -59,6 +61,15 @@ __all__ = [
 
 _AIR_DENSITY = 1.2  # kg/m^3 at ~20 C, sea level
 _MAX_DT = 0.05  # one event of each kind per step is assumed; 10 ms is the design step
+
+#: Largest ball speed [m/s] a :class:`BallState` may start with. The fastest measured smashes
+#: reach about 32 m/s (116 km/h); far beyond, drag and the contact events leave the model's range
+#: and the integration overflows (a ball at 1e8 m/s gives NaN).
+MAX_SPEED = 50.0
+#: Largest ball spin [rad/s] a :class:`BallState` may start with: top players' loops reach about
+#: 150 rev/s (940 rad/s); a table bounce adds up to ~21 rad/s per m/s of slip, so balls that the
+#: model itself produced from states within :data:`MAX_SPEED` stay below it.
+MAX_SPIN = 2000.0
 
 
 def _magnus_coefficient(radius: float, mass: float) -> float:
@@ -224,8 +235,9 @@ def make_state(
 ) -> BallState:
     """Validate and broadcast ``pos``, ``vel``, ``spin`` ([..., 3] each) into a :class:`BallState`.
 
-    ``spin`` defaults to zeros. Raises ``ValueError`` for a wrong trailing shape or non-finite
-    entries and ``TypeError`` for non-numeric input.
+    ``spin`` defaults to zeros. Raises ``ValueError`` for a wrong trailing shape, non-finite
+    entries, a speed ``|vel|`` above :data:`MAX_SPEED` or a spin ``|spin|`` above :data:`MAX_SPIN`,
+    and ``TypeError`` for non-numeric input.
     """
     p = as_tensor(pos, "pos", dtype=dtype, min_ndim=1)
     v = as_tensor(vel, "vel", dtype=dtype or p.dtype, device=p.device, min_ndim=1)
@@ -236,6 +248,14 @@ def make_state(
     )
     for t, name in ((p, "pos"), (v, "vel"), (w, "spin")):
         check_shape(t, name, (3,))
+    limits = ((v, "vel", "MAX_SPEED", MAX_SPEED, "m/s"), (w, "spin", "MAX_SPIN", MAX_SPIN, "rad/s"))
+    for t, name, constant, bound, unit in limits:
+        largest = float(t.norm(dim=-1).max()) if t.numel() else 0.0
+        if largest > bound:
+            raise ValueError(
+                f"{name}: |{name}| must be at most {constant} = {bound:g} {unit}, "
+                f"got {largest:.4g} {unit}"
+            )
     try:
         p, v, w = torch.broadcast_tensors(p, v, w)
     except RuntimeError as err:
@@ -255,6 +275,16 @@ def _check_params(params: BallParams) -> BallParams:
     if not isinstance(params, BallParams):
         raise TypeError(f"params must be a BallParams, got {type(params).__name__}")
     return params
+
+
+def _check_result(what: str, *tensors: torch.Tensor) -> None:
+    """Raise if the integration left the floating-point range (states within the documented
+    ranges never do; extreme :class:`BallParams` can)."""
+    if not all(bool(torch.isfinite(t).all()) for t in tensors):
+        raise ValueError(
+            f"{what}: the ball integration produced non-finite values; the state or the "
+            "BallParams are outside the model's range"
+        )
 
 
 def _check_dt(dt: float, name: str = "dt") -> float:
@@ -514,7 +544,9 @@ def step_events(
     params = _check_params(params)
     dt = _check_dt(dt)
     h = torch.full(state.batch_shape, dt, dtype=state.pos.dtype, device=state.pos.device)
-    return _advance(state, h, params)
+    new, events = _advance(state, h, params)
+    _check_result("step", *new, events.bounce_pos, events.bounce_time)
+    return new, events
 
 
 def step(state: BallState, dt: float, params: BallParams = DEFAULT_PARAMS) -> BallState:
@@ -556,6 +588,7 @@ def propagate(
     n = math.ceil(float(d.max()) / dt - 1e-9) if d.numel() else 0
     for k in range(n):
         state = _advance(state, (d - k * dt).clamp(0.0, dt), params)[0]
+    _check_result("propagate", *state)
     return state
 
 
@@ -602,7 +635,7 @@ def simulate(
         btime.append(torch.where(ev.bounce, ev.bounce_time + k * h_val, ev.bounce_time))
         net.append(ev.net)
     times = torch.arange(n + 1, dtype=state.pos.dtype, device=state.pos.device) * h_val
-    return BallTrajectory(
+    traj = BallTrajectory(
         times,
         torch.stack(pos, -2),
         torch.stack(vel, -2),
@@ -612,6 +645,8 @@ def simulate(
         torch.stack(btime, -1),
         torch.stack(net, -1),
     )
+    _check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)
+    return traj
 
 
 # --------------------------------------------------------------------------------------------
@@ -697,6 +732,16 @@ def predict_plane_crossing(
     dt = _check_dt(dt)
     if not isinstance(max_time, int | float) or not math.isfinite(max_time) or max_time <= 0:
         raise ValueError(f"max_time must be a positive number of seconds, got {max_time!r}")
+    t_cross, out, valid = _plane_crossing(state, y_plane, params, max_time, dt)
+    _check_result("predict_plane_crossing", t_cross, *out)
+    return t_cross, out, valid
+
+
+def _plane_crossing(
+    state: BallState, y_plane: float | torch.Tensor, params: BallParams, max_time: float, dt: float
+) -> tuple[torch.Tensor, BallState, torch.Tensor]:
+    """:func:`predict_plane_crossing` without input checks (also for trial states of solvers,
+    which may leave the documented ranges)."""
     yp = as_tensor(y_plane, "y_plane", dtype=state.pos.dtype, device=state.pos.device)
     yp = torch.broadcast_to(yp, state.batch_shape).clone()
     g0 = state.pos[..., 1] - yp
@@ -1043,7 +1088,7 @@ def aim_through_bounce(
 
     def crossing(xb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         v0, resid = _aim(p0, torch.stack([xb, by], -1), ft, params, spin=w, tol=1e-9, max_iter=20)
-        _, at, valid = predict_plane_crossing(BallState(p0, v0, w), y_plane, params, dt=0.01)
+        _, at, valid = _plane_crossing(BallState(p0, v0, w), y_plane, params, 2.0, 0.01)
         return at.pos[..., 0], v0, valid & (resid < 1e-6)
 
     # straight-line guess from the start over the bounce to the plane

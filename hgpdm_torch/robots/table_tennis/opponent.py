@@ -443,13 +443,21 @@ def _sample(
     vel_after, spin_after = B.racket_contact(
         before.vel, before.spin, racket_vel[:m], normal[:m], params
     )
+    # a plan that did not converge can hit the ball faster or spin it harder than a ball flies
+    # (B.MAX_SPEED, B.MAX_SPIN): such a stroke is illegal, and its ball is slowed down to fly
+    speed, rate = vel_after.norm(dim=-1, keepdim=True), spin_after.norm(dim=-1, keepdim=True)
+    fast, spun = speed > B.MAX_SPEED, rate > B.MAX_SPIN
+    vel_after = torch.where(fast, vel_after * (0.5 * B.MAX_SPEED / speed), vel_after)
+    spin_after = torch.where(spun, spin_after * (0.5 * B.MAX_SPIN / rate), spin_after)
+    physical = ~(fast | spun).squeeze(-1)
     after = B.make_state(contact, vel_after, spin_after)
 
     # 5. the returned ball: where it crosses the hitting plane and whether it is legal
     t_cross, at_plane, crossed = B.predict_plane_crossing(after, geo.HITTING_PLANE_Y, params)
     traj = B.simulate(after, float(t_cross.max()), 0.005, params)
     # (the first plan of a late changer is never executed and need not be reachable)
-    legal = reached & aimed[:m] & crossed & B.is_legal_return(traj, side=geo.ROBOT_SIDE)
+    legal = reached & physical & aimed[:m] & crossed
+    legal = legal & B.is_legal_return(traj, side=geo.ROBOT_SIDE)
 
     # 6. racket motion: the first plan (late changers) blends into the executed final plan
     swing = (cfg.swing_duration_mean + cfg.swing_duration_std * _randn(m, gen=gen)).clamp(0.2, 0.4)

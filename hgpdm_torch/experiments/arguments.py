@@ -1,0 +1,87 @@
+"""Argument types for the experiments' command lines: bad values end in an argparse usage message
+(exit code 2) naming the option, before any data is generated or any model fitted.
+
+Each function is an ``argparse`` ``type=``: it takes the option's text and returns the parsed
+value or raises :class:`argparse.ArgumentTypeError`. Only the standard library is imported here.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = [
+    "MAX_SEED",
+    "int_at_least",
+    "non_negative_int",
+    "output_file",
+    "output_folder",
+    "positive_int",
+    "random_seed",
+]
+
+#: Largest accepted seed: scikit-learn's ``random_state`` (used by K-means) takes ``[0, 2**32)``.
+MAX_SEED = 2**32 - 1
+
+
+def _int(text: str, expected: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+
+
+def int_at_least(low: int) -> Callable[[str], int]:
+    """A type accepting integers ``>= low``."""
+    expected = {0: "a non-negative integer", 1: "a positive integer"}.get(
+        low, f"an integer >= {low}"
+    )
+
+    def parse(text: str) -> int:
+        value = _int(text, expected)
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text}")
+        return value
+
+    return parse
+
+
+positive_int = int_at_least(1)
+non_negative_int = int_at_least(0)
+
+
+def random_seed(text: str) -> int:
+    """A random seed: an integer in ``[0, MAX_SEED]``."""
+    expected = f"a seed in [0, {MAX_SEED}]"
+    value = _int(text, expected)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text}")
+    return value
+
+
+def _writable(text: str, kind: str) -> Path:
+    """``text`` as a path whose existing ancestors are folders (so it can be created)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a {kind} path, got an empty string")
+    path = Path(text)
+    for parent in path.parents:
+        if parent.exists() and not parent.is_dir():
+            raise argparse.ArgumentTypeError(f"{text}: {parent} is a file, not a folder")
+    return path
+
+
+def output_folder(text: str) -> Path:
+    """A folder to write into: it may not exist yet, but must not be a file."""
+    path = _writable(text, "folder")
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, expected a folder")
+    return path
+
+
+def output_file(text: str) -> Path:
+    """A file to write: it may not exist yet, but must not be a folder."""
+    path = _writable(text, "file")
+    if path.is_dir() or text.endswith(("/", "\\")):
+        raise argparse.ArgumentTypeError(f"{text} is a folder, expected a file path")
+    return path
