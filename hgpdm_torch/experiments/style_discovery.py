@@ -111,12 +111,10 @@ def run_style_discovery(
 
 def plot_latents(models: dict[str, GPDM], path: str | Path) -> Path:
     """Save the first two latent dims of each model's trajectories, coloured by style."""
-    import matplotlib
+    from matplotlib.figure import Figure  # a bare Figure leaves the pyplot backend alone
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(models), figsize=(4.2 * len(models), 4))
+    fig = Figure(figsize=(4.2 * len(models), 4))
+    axes = fig.subplots(1, len(models), squeeze=False)[0]
     for ax, (name, model) in zip(axes, models.items(), strict=True):
         codes = model.intention_codes() if isinstance(model, HGPDM) else None
         for j, lat in enumerate(model.latent_sequences()):
@@ -128,7 +126,6 @@ def plot_latents(models: dict[str, GPDM], path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
-    plt.close(fig)
     return path
 
 

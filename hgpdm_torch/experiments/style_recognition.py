@@ -32,21 +32,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import torch
+from matplotlib.figure import Figure
+from tqdm.auto import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-from tqdm.auto import tqdm  # noqa: E402
-
-from ..baselines import LastFrameForecaster, RidgeAR  # noqa: E402
-from ..datasets import styled_movements  # noqa: E402
-from ..inference.map import MAPInference  # noqa: E402
-from ..inference.variational import VariationalInference  # noqa: E402
-from ..models import GPDM, HGPDM  # noqa: E402
-from ..validation import check_choice  # noqa: E402
-from .arguments import output_file, positive_int, random_seed  # noqa: E402
-from .table import ResultTable  # noqa: E402
+from ..baselines import LastFrameForecaster, RidgeAR
+from ..datasets import styled_movements
+from ..inference.map import MAPInference
+from ..inference.variational import VariationalInference
+from ..models import GPDM, HGPDM
+from ..validation import check_choice
+from .arguments import output_file, positive_int, random_seed
+from .table import ResultTable
 
 __all__ = [
     "StyleData",
@@ -312,7 +309,9 @@ def gap_recovery_figure(
         out[name] = (rec, var)
         err = rec[:, gap[0] : gap[1]] - z[:, gap[0] : gap[1]]
         rmse[name] = float(err.pow(2).mean().sqrt())
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2), sharex=True)
+    # a bare Figure draws with Agg on savefig and leaves the user's pyplot backend alone
+    fig = Figure(figsize=(9, 3.2))
+    axes = fig.subplots(1, 2, sharex=True)
     t = torch.arange(length)
     for ax, ch in zip(axes, (0, 1), strict=True):
         ax.plot(t, z[0, :, ch], "k.-", label="truth")
@@ -329,7 +328,6 @@ def gap_recovery_figure(
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return rmse
 
 

@@ -39,7 +39,15 @@ def test_basic_motions_loader_and_row():
 
 
 def test_gap_figure_and_main(tmp_path, monkeypatch):
-    rmse = sr.gap_recovery_figure(tmp_path / "gap.png", fit_steps=40)
+    import matplotlib
+
+    backend = matplotlib.get_backend()
+    matplotlib.use("svg")  # a user's choice the library must not override
+    try:
+        rmse = sr.gap_recovery_figure(tmp_path / "gap.png", fit_steps=40)
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(backend)
     assert (tmp_path / "gap.png").stat().st_size > 1000
     assert rmse["H-GPDM"] < rmse["GPDM"]
     with pytest.raises(ValueError, match="datasets"):
