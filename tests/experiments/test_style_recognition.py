@@ -34,8 +34,11 @@ def test_basic_motions_loader_and_row():
     torch.testing.assert_close(flat.mean(0), torch.zeros(6), atol=1e-9, rtol=0)
     table = sr.style_recognition(("basic_motions",), lengths=(5,), fit_steps=20, stride=10)
     row = table.rows[0]
-    assert row["data"] == "basic_motions" and 0.0 <= row["VB H-GPDM accuracy"] <= 1.0
+    assert row["data"] == "basic_motions" and row["windows"] == 48
+    # 4 activities (chance 0.25; 0.58 measured): >= 0.45 of 48 windows is far above chance
+    assert row["VB H-GPDM accuracy"] >= 0.45
     assert all(math.isfinite(row[c]) for c in sr.COLUMNS if c.endswith("RMSE"))
+    assert row["oracle VB RMSE"] < row["repeat last frame RMSE"]
 
 
 def test_gap_figure_and_main(tmp_path, monkeypatch):
