@@ -54,8 +54,11 @@ def test_small_real_run_has_every_method_and_an_exact_baseline():
     from hgpdm_torch.experiments.style_recognition import forecast_windows
 
     data = load_walkers(CMU)
-    table = walkers(data, lengths=(4,), fit_steps=4, folds=1, train_per_subject=1, stride=8)
+    table = walkers(
+        data, lengths=(4,), fit_steps=4, folds=1, train_per_subject=1, stride=8, sharing=0.5
+    )
     assert [r["method"] for r in table.rows] == list(METHODS)
+    assert table.meta["sharing"] == 0.5
     for row in table.rows:
         assert math.isfinite(row["RMSE"]) and row["RMSE"] > 0
     fits = table.meta["fits"][0]
@@ -82,3 +85,6 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--data", str(tmp_path / "missing")])
     assert "not a folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--sharing", "1.0"])
+    assert "--sharing" in capsys.readouterr().err
