@@ -24,6 +24,15 @@ the fast default, consistent with the filter's own approximation) or literally a
 prints, ``x_t ~ q``, ``x_{t+1} ~ GP(x_t, g)``, ``z ~ GP(x_{t+1})`` at points
 (``sampling="points"``, one ``[I, N]`` kernel per GP).
 
+Observation health is the filter's (its :class:`~hgpdm_torch.inference.filtering.ObservationCheck`):
+an observation row that is +-inf, partly NaN or implausible (more than the filter's
+``outlier_sd`` training standard deviations from the training mean in a channel) is, for that
+particle only, treated as missing, exactly as the filter treats it: a prediction-only step in
+which the belief only forgets. :meth:`MonteCarloPlanner.step` flags such rows (or, for a filter
+with ``strict=True``, raises); sampled particles are checked the same way (never raising). A
+particle's update is affine in its (checked) observation, with factors shared by all particles,
+so it cannot fail on its own; where the shared factors of a belief fail, the call raises.
+
 Shapes: ``I`` particles, ``K`` intention values, ``Dx`` latent, ``Dz`` observed, ``S`` stopping
 actions.
 """
@@ -34,10 +43,12 @@ import math
 import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from scipy import stats
 
+from ..inference.filtering import _as_observations, _bad_observation
 from ..inference.intention import OnlineIntentionFilter
 from ..linalg import psd_cholesky, symmetrize
 from ..models import HGPDM
@@ -45,7 +56,7 @@ from ..validation import as_tensor, check_choice
 from .lspi import LinearQ
 from .stopping import WAIT, _belief_vector, belief_vector
 
-__all__ = ["Belief", "MCPDecision", "MonteCarloPlanner"]
+__all__ = ["Belief", "MCPDecision", "MonteCarloPlanner", "ParticleUpdate"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -83,6 +94,22 @@ class Belief:
     def vector(self) -> torch.Tensor:
         """``[F]`` belief vector (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
         return belief_vector(self.mean, self.cov, self.log_prob.exp())
+
+
+class ParticleUpdate(NamedTuple):
+    """Output of :meth:`MonteCarloPlanner.step`: the updated beliefs of I particles.
+
+    Attributes:
+        mean: ``[I, Dx]`` mean of the mixed ``q(x_{t+1})``.
+        cov: ``[I, Dx, Dx]`` its covariance.
+        log_prob: ``[I, K]`` normalised log posterior over the filter's grid.
+        rejected: ``[I]`` bool, the particle's observation was bad and treated as missing.
+    """
+
+    mean: torch.Tensor
+    cov: torch.Tensor
+    log_prob: torch.Tensor
+    rejected: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -281,31 +308,53 @@ class MonteCarloPlanner:
         z = m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=m.dtype)
         return z.to(dtype)
 
-    def step(self, belief: Belief, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def step(self, belief: Belief, z: torch.Tensor) -> ParticleUpdate:
         """The online filter's update of one belief on many observations at once.
 
         Args:
             belief: the current belief.
-            z: ``[I, Dz]`` observations.
+            z: ``[I, Dz]`` observations; a NaN row is missing, a bad row (module docstring) is
+                treated as missing and flagged.
 
         Returns:
-            ``mean [I, Dx]``, ``cov [I, Dx, Dx]`` of the mixed ``q(x_{t+1})`` and ``log_prob
-            [I, K]``: what ``OnlineIntentionFilter.update`` gives for I streams in this belief.
+            :class:`ParticleUpdate`: ``mean [I, Dx]``, ``cov [I, Dx, Dx]`` of the mixed
+            ``q(x_{t+1})``, ``log_prob [I, K]`` and ``rejected [I]``: what
+            ``OnlineIntentionFilter.update`` gives for I streams in this belief.
+
+        Raises:
+            ValueError: a wrong shape; a bad row when the filter is ``strict`` (naming the row
+                and channel).
         """
         shared = self._shared(self._check_belief(belief))
-        z = as_tensor(z, "z", ndim=2, dtype=shared.z_mean.dtype)
-        if z.shape[1] != shared.z_mean.shape[-1]:
+        z = _as_observations(z, min_ndim=2)
+        if z.dim() != 2 or z.shape[1] != shared.z_mean.shape[-1]:
             raise ValueError(
-                f"z must have Dz = {shared.z_mean.shape[-1]} columns, got {z.shape[1]}"
+                f"z must have shape [I, Dz] with Dz = {shared.z_mean.shape[-1]} columns, got "
+                f"{tuple(z.shape)}"
             )
-        return self._update(shared, z)
+        missing, rejected = self.filter.check.classify(z)
+        if self.filter.strict and bool(rejected.any()):
+            i = int(torch.nonzero(rejected)[0])
+            raise _bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
+        update = self._update(shared, z.to(shared.z_mean.dtype), missing | rejected)
+        return ParticleUpdate(*update, rejected)
 
-    def _update(self, shared: _Shared, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Linear-Gaussian conditioning of the shared predictions on ``z [I, Dz]``."""
+    def _update(
+        self, shared: _Shared, z: torch.Tensor, missing: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, ...]:
+        """Linear-Gaussian conditioning of the shared predictions on ``z [I, Dz]``; the rows
+        ``missing [I]`` (missing or rejected observations) are prediction-only steps, as in the
+        filter."""
         num, (K, dx), dz = z.shape[0], shared.pred_mean.shape, z.shape[1]
+        skip = missing is not None and bool(missing.any())
+        if skip:
+            z = z.masked_fill(missing[:, None], 0.0)
         mu = (z @ shared.gain - shared.gain_offset).view(num, K, dx)  # filtered means per g
         w = (z @ shared.white - shared.white_offset).view(num, K, dz)  # whitened innovations
         evidence = -0.5 * (w.pow(2).sum(-1) + shared.z_logdet + dz * _LOG_2PI)  # [I, K]
+        if skip:
+            mu = torch.where(missing[:, None, None], shared.pred_mean, mu)
+            evidence = evidence.masked_fill(missing[:, None], 0.0)
         log_prob = (1.0 - self.filter.forgetting) * shared.log_prob + evidence
         log_prob = log_prob - torch.logsumexp(log_prob, -1, keepdim=True)
         p = log_prob.exp()  # [I, K]
@@ -313,6 +362,9 @@ class MonteCarloPlanner:
         d = mu - mean[:, None, :]
         # mixture covariance: sum_k p_k (P_k + d_k d_k^T), with P_k shared by all particles
         cov = (p @ shared.post_cov.reshape(K, dx * dx)).view(num, dx, dx)
+        if skip:
+            predicted = (p @ shared.pred_cov.reshape(K, dx * dx)).view(num, dx, dx)
+            cov = torch.where(missing[:, None, None], predicted, cov)
         cov = cov + (p[..., None, None] * d[..., :, None] * d[..., None, :]).sum(1)
         return mean, symmetrize(cov), log_prob
 
@@ -321,7 +373,8 @@ class MonteCarloPlanner:
 
     def _project(self, shared: _Shared, num: int, generator: torch.Generator | None):
         z = self._sample_observations(shared, num, generator)
-        mean, cov, log_prob = self._update(shared, z)
+        usable = self.filter.check.usable(z)
+        mean, cov, log_prob = self._update(shared, z, None if bool(usable.all()) else ~usable)
         return self._stop_values(_belief_vector(mean, cov, log_prob.exp())).max(-1).values
 
     def project(

@@ -26,14 +26,22 @@ The intention ``g`` may be
   ``s = [x, g]`` with a static ``g``, and the filter also infers ``g``. Results then have
   ``D = Dx + Dg`` columns, the last ``Dg`` being the belief over ``g``.
 
+Observations are checked before filtering (:class:`ObservationCheck`): a row of NaN is a missing
+observation (a prediction-only step); a row with inf, with NaN in some channels only, or with a
+value more than ``outlier_sd`` (default 100) training standard deviations from the training mean
+of its channel raises a ``ValueError`` naming its batch index, step and channel. Such values would
+otherwise overflow the moment matching and fail far from their cause.
+
 Shapes: ``T`` time steps, ``D`` state dim, ``Dz`` observation dim; ``...`` batch dims.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import numbers
+from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -43,7 +51,9 @@ from ..linalg import psd_cholesky, symmetrize
 from ..validation import as_tensor
 
 __all__ = [
+    "DEFAULT_OUTLIER_SD",
     "FilterResult",
+    "ObservationCheck",
     "SmootherResult",
     "filter_sequence",
     "gp_adf_predict",
@@ -88,6 +98,162 @@ class SmootherResult:
     mean: torch.Tensor
     cov: torch.Tensor
     cross_cov: torch.Tensor
+
+
+#: Default plausibility threshold of :class:`ObservationCheck`, in training standard deviations.
+DEFAULT_OUTLIER_SD = 100.0
+
+
+def _real_scalar(value: object, name: str) -> float:
+    """``value`` as a float: a Python or NumPy real number or a 0-dim real tensor (not a bool).
+
+    Raises:
+        TypeError: anything else, naming ``name``.
+    """
+    if isinstance(value, torch.Tensor):
+        if value.dim() != 0 or value.dtype == torch.bool or value.is_complex():
+            raise TypeError(
+                f"{name} must be a real number or a 0-dim real tensor, got a tensor of shape "
+                f"{tuple(value.shape)} and dtype {value.dtype}"
+            )
+        return float(value)
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
+    return float(value)
+
+
+def _check_outlier_sd(outlier_sd: object) -> float | None:
+    if outlier_sd is None:
+        return None
+    value = _real_scalar(outlier_sd, "outlier_sd")
+    if not value > 0:
+        raise ValueError(f"outlier_sd must be positive (or None to disable), got {outlier_sd!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class ObservationCheck:
+    r"""Classifies observation rows as usable, missing or bad, from the training data's scale.
+
+    A row ``z [Dz]`` (one stream at one step) is
+
+    - **missing** when every entry is NaN: a prediction-only step, as everywhere in the toolkit;
+    - **bad** when it is not missing and some channel ``c`` is NaN (a partly missing row), +-inf,
+      or implausible: ``|z_c - center_c| > outlier_sd * spread_c``;
+    - **usable** otherwise.
+
+    ``center_c`` is the mean of the measurement GP's training observations in channel ``c`` and
+    ``spread_c = sqrt(Var_c + noise * scale_c^2)`` their (population) standard deviation with the
+    GP's observation noise in that channel added, so that a channel that is constant in the
+    training data does not reject every other value. Both are in the channel's own units, so the
+    threshold is relative: rescaling or shifting a channel in training and test data alike
+    changes nothing. The default ``outlier_sd = 100`` accepts values far beyond anything the
+    model explains (``-5000`` nats under a Gaussian of the training spread) and refuses sensor
+    glitches and unit errors long before they can overflow the moment matching (squares of
+    ``1e154``).
+
+    Attributes:
+        center: ``[Dz]`` training mean per channel (float64).
+        spread: ``[Dz]`` ``spread_c`` above (float64).
+        outlier_sd: the threshold in units of ``spread``; ``None`` refuses non-finite entries
+            and partly missing rows only.
+        limit: ``[Dz]`` ``outlier_sd * spread`` (inf for ``None``).
+    """
+
+    center: torch.Tensor
+    spread: torch.Tensor
+    outlier_sd: float | None = DEFAULT_OUTLIER_SD
+    limit: torch.Tensor = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        sd = math.inf if self.outlier_sd is None else self.outlier_sd
+        object.__setattr__(self, "limit", sd * self.spread)
+
+    @classmethod
+    def from_measurement(
+        cls, measurement: GPPosterior, outlier_sd: float | None = DEFAULT_OUTLIER_SD
+    ) -> ObservationCheck:
+        """Limits from a measurement GP's training targets (plus its ``offset``), noise, scale.
+
+        Args:
+            measurement: GP from ``x`` to ``z`` (e.g. ``model.measurement_posterior()``).
+            outlier_sd: positive threshold, or ``None`` to check finiteness only.
+        """
+        measurement = _check_posterior(measurement, "measurement")
+        outlier_sd = _check_outlier_sd(outlier_sd)
+        y = measurement.train_targets.detach().double()
+        scale = measurement.scale.detach().double().expand(y.shape[1])
+        noise = measurement.noise.detach().double() * scale.pow(2)
+        center = y.mean(0) + measurement.offset.detach().double()
+        return cls(center, (y.var(0, correction=0) + noise).sqrt(), outlier_sd)
+
+    def usable(self, z: torch.Tensor) -> torch.Tensor:
+        """``[...]`` mask of the usable rows of ``z [..., Dz]``: neither missing nor bad."""
+        if self.outlier_sd is None:
+            return torch.isfinite(z).all(-1)
+        center, limit = self.center, self.limit
+        if center.dtype != z.dtype or center.device != z.device:
+            center, limit = (x.to(dtype=z.dtype, device=z.device) for x in (center, limit))
+        return ((z - center).abs() <= limit).all(-1)  # False for NaN and +-inf
+
+    def classify(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``missing`` and ``bad`` masks ``[...]`` of the rows of ``z [..., Dz]`` (vectorised)."""
+        missing = torch.isnan(z).all(-1)
+        return missing, ~(missing | self.usable(z))
+
+    def reason(self, row: torch.Tensor) -> str:
+        """Why the bad row ``row [Dz]`` is bad (:meth:`classify`), naming its first offending
+        channel: NaN first, then inf, then implausible."""
+        row = row.detach().double().cpu()
+        nan = torch.isnan(row)
+        if bool(nan.any()):
+            c = int(torch.nonzero(nan)[0])
+            return (
+                f"channel {c} is NaN but the row is not all NaN (a missing observation is a row "
+                "of NaN; a partly missing row is not supported)"
+            )
+        inf = torch.isinf(row)
+        if bool(inf.any()):
+            c = int(torch.nonzero(inf)[0])
+            return f"channel {c} is {float(row[c])} (a missing observation is a row of NaN)"
+        dev = (row - self.center.cpu()).abs() / self.spread.cpu()
+        c = int(torch.nonzero(~(dev <= float(self.outlier_sd or math.inf)))[0])
+        return (
+            f"channel {c} = {float(row[c]):.6g} is implausible: {float(dev[c]):.3g} training "
+            f"standard deviations from the training mean {float(self.center[c]):.6g} "
+            f"(outlier_sd = {self.outlier_sd:g}; None disables this check)"
+        )
+
+    def first_bad(self, z: torch.Tensor) -> tuple[tuple[int, ...], str] | None:
+        """The index of the first bad row of ``z [..., Dz]`` and its :meth:`reason`, or ``None``."""
+        _, bad = self.classify(z)
+        if not bool(bad.any()):
+            return None
+        index = tuple(int(i) for i in torch.nonzero(bad)[0])
+        return index, self.reason(z[index])
+
+
+def _as_observations(z: object, min_ndim: int) -> torch.Tensor:
+    """``z`` as a real floating tensor (integers become float64), NaN and inf kept so that
+    :class:`ObservationCheck` can say which row is bad."""
+    if not isinstance(z, torch.Tensor):
+        try:
+            z = torch.as_tensor(np.asarray(z, dtype=np.float64))
+        except (TypeError, ValueError) as err:
+            raise TypeError(
+                f"z must be a tensor or numeric array-like, got {type(z).__name__}"
+            ) from err
+    if z.dtype == torch.bool or z.is_complex():
+        raise TypeError(f"z must have a real numeric dtype, got {z.dtype}")
+    if not z.is_floating_point():
+        z = z.to(torch.float64)
+    if z.dim() < min_ndim:
+        raise ValueError(f"z must have at least {min_ndim} dimensions, got shape {tuple(z.shape)}")
+    return z
+
+
+def _bad_observation(where: str, why: str) -> ValueError:
+    return ValueError(f"{where} cannot be used: {why}")
 
 
 def _check_posterior(gp: object, name: str) -> GPPosterior:
@@ -203,6 +369,7 @@ def filter_sequence(
     *,
     g: torch.Tensor | None = None,
     g_cov: torch.Tensor | None = None,
+    outlier_sd: float | None = DEFAULT_OUTLIER_SD,
     progress: bool = False,
 ) -> FilterResult:
     """GP-ADF over a sequence: alternate :func:`gp_adf_update` and :func:`gp_adf_predict`.
@@ -210,12 +377,17 @@ def filter_sequence(
     Args:
         transition: transition GP (``[x, g] -> x_{t+1}``, noise = process noise).
         measurement: measurement GP (``x -> z``).
-        z: ``[..., T, Dz]`` observations; NaN rows are missing (prediction-only steps).
+        z: ``[..., T, Dz]`` observations; NaN rows are missing (prediction-only steps). A row
+            that :class:`ObservationCheck` calls bad (inf, partly NaN, or more than
+            ``outlier_sd`` training standard deviations from the training mean in a channel)
+            raises a ``ValueError`` naming its batch index, step and channel.
         mu0: ``[..., Dx]`` prior mean of ``x_1``.
         Sigma0: ``[..., Dx, Dx]`` prior covariance of ``x_1``.
         g: known intention values/codes ``[..., Dg]``; or, with ``g_cov``, the prior mean of a
             Gaussian intention; or ``None``.
         g_cov: ``[..., Dg, Dg]`` prior covariance of a Gaussian intention (augments the state).
+        outlier_sd: plausibility threshold of :class:`ObservationCheck` (limits from the
+            measurement GP's training data); ``None`` refuses only non-finite entries.
         progress: show a tqdm bar over time steps.
 
     Returns:
@@ -224,7 +396,19 @@ def filter_sequence(
     _check_posterior(transition, "transition")
     _check_posterior(measurement, "measurement")
     mu, Sigma = check_gaussian(mu0, Sigma0, "initial state")
-    z = as_tensor(z, "z", min_ndim=2, dtype=mu.dtype, device=mu.device, allow_nan=True)
+    z = _as_observations(z, min_ndim=2)
+    if z.shape[-1] != measurement.output_dim:
+        raise ValueError(
+            f"z must have {measurement.output_dim} columns (measurement output dim), got "
+            f"{z.shape[-1]}"
+        )
+    found = ObservationCheck.from_measurement(measurement, outlier_sd).first_bad(z)
+    if found is not None:
+        index, why = found
+        lead = ", ".join(map(str, index[:-1]))
+        lead = f"batch index {lead}, " if lead else ""
+        raise _bad_observation(f"z{list(index)} ({lead}step {index[-1]})", why)
+    z = z.to(dtype=mu.dtype, device=mu.device)
     known = g
     if g_cov is not None:
         if g is None:

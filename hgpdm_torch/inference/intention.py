@@ -37,6 +37,13 @@ moments and traces then follow from ``U x U`` group sums of ``psi2``:
 per intention. See :class:`SharedTransition` (optionally on M < N pseudo-inputs, Sec. 3.3.3);
 a linear measurement kernel is updated in closed form (:class:`LinearMeasurement`).
 
+Observations: a row of NaN is a missing observation everywhere. Other rows that the filter
+cannot use (+-inf, partly NaN, or more than ``outlier_sd`` = 100 training standard deviations
+from the training mean in a channel; :class:`~hgpdm_torch.inference.filtering.ObservationCheck`)
+make the batch algorithm raise a ``ValueError`` naming the window, step and channel; the online
+filter rejects them for their stream only and restarts a stream whose update fails numerically,
+without touching the others (:class:`OnlineIntentionFilter`).
+
 Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
 ``Dg`` intention dims, ``N`` transition training points.
 """
@@ -45,6 +52,8 @@ from __future__ import annotations
 
 import copy
 import math
+import numbers
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,10 +63,19 @@ from tqdm.auto import tqdm
 
 from ..expectations import Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
 from ..gp import GPPosterior
-from ..linalg import psd_cholesky, symmetrize
+from ..linalg import CholeskyError, psd_cholesky, symmetrize
 from ..models import HGPDM
 from ..validation import as_tensor, check_choice, check_probability
-from .filtering import filter_sequence, gp_adf_update, smooth
+from .filtering import (
+    DEFAULT_OUTLIER_SD,
+    ObservationCheck,
+    _as_observations,
+    _bad_observation,
+    _real_scalar,
+    filter_sequence,
+    gp_adf_update,
+    smooth,
+)
 
 __all__ = [
     "IntentionBelief",
@@ -71,6 +89,12 @@ __all__ = [
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
+#: What a failed update of one stream raises: a covariance that does not factorise
+#: (:func:`~hgpdm_torch.linalg.psd_cholesky`: ``CholeskyError``, or ``ValueError`` for NaN/inf),
+#: or a LAPACK failure. The online filter isolates the stream and restarts it.
+_NUMERICAL_ERRORS = (CholeskyError, torch.linalg.LinAlgError, ValueError)
+#: Streams initialised together (a measurement update is cheap; fixed ranges, see ``update``).
+_INIT_CHUNK = 4096
 
 
 @dataclass
@@ -83,6 +107,13 @@ class IntentionBelief:
         values: ``[K, Dg]`` the intention values (codes for a discrete g).
         mean: ``[..., Dg]`` posterior mean of a continuous g (``None`` for a discrete g).
         std: ``[..., Dg]`` posterior standard deviation of a continuous g (or ``None``).
+        rejected: (:meth:`OnlineIntentionFilter.update` only, else ``None``) ``[B]`` bool
+            (``[]`` for one ``[Dz]`` observation): the stream's observation of this update was
+            bad (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`) and was treated as
+            missing.
+        reset_streams: (:meth:`OnlineIntentionFilter.update` only) ``[B]`` bool: the stream
+            failed numerically in this update (or held a non-finite state) and was restarted
+            at the prior.
     """
 
     prob: torch.Tensor
@@ -90,6 +121,8 @@ class IntentionBelief:
     values: torch.Tensor
     mean: torch.Tensor | None = None
     std: torch.Tensor | None = None
+    rejected: torch.Tensor | None = None
+    reset_streams: torch.Tensor | None = None
 
     @classmethod
     def from_log(
@@ -208,14 +241,25 @@ def _state_prior(
     return mu.to(dtype), symmetrize(Sigma).to(dtype)
 
 
-def _check_observations(z: Any, dz: int, dtype: torch.dtype, min_ndim: int) -> torch.Tensor:
-    z = as_tensor(z, "z", min_ndim=min_ndim, dtype=dtype, allow_nan=True)
+def _check_observations(z: Any, dz: int, min_ndim: int) -> torch.Tensor:
+    """``z [..., Dz]`` as a floating tensor in its own precision (bad rows are kept: the caller
+    classifies them with an :class:`~hgpdm_torch.inference.filtering.ObservationCheck`)."""
+    z = _as_observations(z, min_ndim=min_ndim)
     if z.shape[-1] != dz:
         raise ValueError(f"z must have Dz = {dz} columns (the model's), got {z.shape[-1]}")
-    nan = torch.isnan(z)
-    if bool((nan.any(-1) & ~nan.all(-1)).any()):
-        raise ValueError("z rows must be fully observed or all NaN (missing); got partial NaN")
     return z
+
+
+def _check_chunk_size(chunk_size: Any) -> int | None:
+    if chunk_size is None:
+        return None
+    if (
+        isinstance(chunk_size, bool)
+        or not isinstance(chunk_size, numbers.Integral)
+        or int(chunk_size) < 1
+    ):
+        raise ValueError(f"chunk_size must be a positive int or None, got {chunk_size!r}")
+    return int(chunk_size)
 
 
 # ------------------------------------------------------------------------------------------
@@ -595,6 +639,14 @@ def _mix(
     return (m, S) if cross is None else (m, S, (w * cross).sum(-3))
 
 
+def _finite_state(mean: torch.Tensor, cov: torch.Tensor, log_belief: torch.Tensor) -> torch.Tensor:
+    """``[B]`` mask of streams whose mean ``[B, Dx]``, covariance ``[B, Dx, Dx]`` and log belief
+    ``[B, K]`` are usable: the sum of the means, the covariance entries and the largest log
+    belief is finite. So no entry is NaN or +-inf (or so large, ~1e307, that the sum overflows)
+    except -inf log beliefs (zero probabilities), of which not all."""
+    return torch.isfinite(mean.sum(-1) + cov.sum((-2, -1)) + log_belief.amax(-1))
+
+
 class OnlineIntentionFilter:
     r"""Online intention inference (Algorithm 3.2) for B independent streams at once.
 
@@ -625,13 +677,42 @@ class OnlineIntentionFilter:
     The first observation of a stream initialises ``q(x_1)`` from the prior ``N(mu0, Sigma0)``
     and leaves the belief at the prior (lines 1-3). A NaN row is a prediction-only step: ``q``
     is predicted under the belief and the belief only forgets (``B_t = (1 - eps) B_{t-1}``),
-    since an unobserved step carries no evidence about g.
+    since an unobserved step carries no evidence about g; before the first observation it leaves
+    the stream unstarted.
+
+    Stream isolation: nothing one stream receives or computes changes another's belief, bit for
+    bit: streams are updated in chunks that are fixed ranges of stream indices, each computing
+    all its streams (unobserved and discarded where they are not due), so that not even the
+    rounding of a stream's update depends on the other streams' observations, failures or
+    (re)starts.
+
+    - An observation row that is bad (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`:
+      +-inf, NaN in some channels only, or more than ``outlier_sd`` training standard
+      deviations from the training mean in a channel) is *rejected*: that stream takes a
+      prediction-only step, exactly as for a NaN row, and ``belief.rejected`` flags it;
+      ``rejected_count`` counts the stream's rejections.
+    - A stream whose update fails numerically (a covariance that does not factorise even with
+      jitter, e.g. an indefinite state covariance; a LAPACK error; or a result that is not
+      finite) or whose stored state is not finite is *restarted*: its state goes back to the
+      prior (``mu0``, ``Sigma0``, the prior belief, not started), ``belief.reset_streams``
+      flags it and ``reset_count`` counts it. A stream that failed during the update restarts
+      with its next observation; one found with a non-finite stored state (e.g. set by hand)
+      restarts with the current one. A failing chunk of streams is split in halves until the
+      failing streams are found, then recomputed with them at the prior and unobserved (the
+      extra work is paid only when a stream fails).
+    - With ``strict=True`` both raise a ``ValueError`` naming the stream, its step and (for an
+      observation) the channel instead, and the update changes no state.
+
+    The checks are vectorised over streams: an update costs a few elementwise operations on the
+    ``[B, Dz]`` observations and the ``[B, ...]`` state more than the filter itself (about 0.1 ms
+    for one stream).
 
     Args:
         model: a fitted :class:`~hgpdm_torch.models.IDDM` (tensor-product transition kernel).
         intentions: grid of values (continuous g, ``[K]``/``[K, Dg]``) or codes (discrete g);
             see :func:`intention_grid`.
-        forgetting: ``eps`` in ``[0, 1)``; 0 keeps all evidence (plain Bayes recursion).
+        forgetting: ``eps`` in ``[0, 1)``, a Python or NumPy real number or a 0-dim tensor; 0
+            keeps all evidence (plain Bayes recursion).
         batch_size: B, the number of independent streams.
         prior: ``[K]`` prior probabilities (default uniform).
         evidence: ``"predictive"`` or ``"bound"``.
@@ -646,11 +727,26 @@ class OnlineIntentionFilter:
             :class:`SharedTransition`), or ``None`` for the exact GP.
         inducing_values: distinct intention values among the pseudo-inputs (continuous g;
             default ``round(sqrt(inducing))``, all training values when ``inducing >= N``).
-        chunk_size: streams processed together; the ``[chunk, N, N]`` temporaries are passed
-            over several times, so the default ``2^19 / N^2`` keeps them in cache.
+        chunk_size: positive int, streams processed together; the ``[chunk, N, N]``
+            temporaries are passed over several times, so the default ``2^19 / N^2`` keeps them
+            in cache.
+        outlier_sd: plausibility threshold in training standard deviations per channel (default
+            100; see :class:`~hgpdm_torch.inference.filtering.ObservationCheck`); ``None``
+            rejects only non-finite values and partly NaN rows.
+        strict: raise instead of rejecting an observation or restarting a stream.
+
+    Attributes:
+        mean, cov: ``[B, Dx]``, ``[B, Dx, Dx]`` the shared ``q(x_t)`` of every stream.
+        log_belief: ``[B, K]`` normalised log posterior over the grid.
+        started: ``[B]`` bool, whether the stream has seen its first observation.
+        steps: ``[B]`` int64, observations (missing ones included) given to each stream since it
+            was (re)started; a stream's current observation has step ``steps[b]`` in messages.
+        rejected_count, reset_count: ``[B]`` int64, rejected observations and automatic restarts
+            of each stream since :meth:`reset`.
+        check: the :class:`~hgpdm_torch.inference.filtering.ObservationCheck` in use.
 
     Shapes: ``update(z [B, Dz])`` (or ``[Dz]`` when B = 1) -> :class:`IntentionBelief` with
-    ``prob [B, K]`` (or ``[K]``).
+    ``prob [B, K]`` (or ``[K]``), ``rejected [B]`` and ``reset_streams [B]`` (or ``[]``).
     """
 
     def __init__(
@@ -670,12 +766,20 @@ class OnlineIntentionFilter:
         inducing: int | None = None,
         inducing_values: int | None = None,
         chunk_size: int | None = None,
+        outlier_sd: float | None = DEFAULT_OUTLIER_SD,
+        strict: bool = False,
     ) -> None:
         values = intention_grid(model, intentions)
-        if not (isinstance(forgetting, int | float) and 0.0 <= float(forgetting) < 1.0):
+        eps = _real_scalar(forgetting, "forgetting (epsilon)")
+        if not 0.0 <= eps < 1.0:
             raise ValueError(f"forgetting (epsilon) must be in [0, 1), got {forgetting!r}")
-        if not isinstance(batch_size, int) or batch_size < 1:
+        if (
+            isinstance(batch_size, bool)
+            or not isinstance(batch_size, numbers.Integral)
+            or int(batch_size) < 1
+        ):
             raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        chunk_size = _check_chunk_size(chunk_size)
         check_choice(evidence, "evidence", ("predictive", "bound"))
         check_choice(mixing, "mixing", ("grid", "gaussian"))
         if mixing == "gaussian" and (model.intention != "continuous" or evidence != "bound"):
@@ -686,20 +790,23 @@ class OnlineIntentionFilter:
         self.transition = SharedTransition(
             trans, values, self.dtype, inducing=inducing, inducing_values=inducing_values
         )
-        self.measure = _measurement_update(model.measurement_posterior(), self.dtype)
+        meas = model.measurement_posterior()
+        self.check = ObservationCheck.from_measurement(meas, outlier_sd)
+        self.measure = _measurement_update(meas, self.dtype)
         self.gaussian_transition = (
             _posterior_as(trans, self.dtype) if mixing == "gaussian" else None
         )
         self.values = self.transition.values
         self.log_prior = _log_prior(prior, len(values), self.dtype)
         self.mu0, self.Sigma0 = _state_prior(model, mu0, Sigma0, self.dtype)
-        self.forgetting = float(forgetting)
-        self.batch_size = batch_size
+        self.forgetting = eps
+        self.batch_size = int(batch_size)
         self.evidence = evidence
         self.mixing, self.relinearize = mixing, bool(relinearize) or mixing == "gaussian"
+        self.strict = bool(strict)
         self.obs_dim = model.obs_dim
         n = self.transition.inputs.shape[0]
-        self.chunk_size = int(chunk_size) if chunk_size else max(1, 2**19 // (n * n))
+        self.chunk_size = chunk_size or max(1, 2**19 // (n * n))
         self.reset()
 
     @property
@@ -707,22 +814,59 @@ class OnlineIntentionFilter:
         """K, the number of intention values."""
         return self.values.shape[0]
 
+    def _stream_index(self, streams: Any) -> torch.Tensor:
+        """Stream indices ``[S]`` (int64, in ``[0, B)``) from indices or a ``[B]`` bool mask."""
+        B = self.batch_size
+        try:
+            idx = torch.as_tensor(streams)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"streams must be stream indices or a [B] bool mask: {err}") from err
+        if idx.numel() == 0:
+            return torch.zeros(0, dtype=torch.long)
+        if idx.dtype == torch.bool:
+            if idx.shape != (B,):
+                raise ValueError(f"a streams mask must have shape [B] = [{B}], got {idx.shape}")
+            return torch.nonzero(idx).flatten()
+        if idx.is_floating_point() or idx.is_complex():
+            raise TypeError(f"streams must be integer indices or a bool mask, got {idx.dtype}")
+        idx = idx.reshape(-1).long()
+        if bool(((idx < -B) | (idx >= B)).any()):
+            raise ValueError(f"streams must be indices in [-{B}, {B}), got {idx.tolist()}")
+        return idx % B
+
     def reset(self, streams: Any = None) -> None:
-        """Restart streams (all, or the given indices / boolean mask) at the prior."""
-        idx = slice(None) if streams is None else torch.as_tensor(streams)
+        """Restart streams at the prior and zero their ``steps``, ``rejected_count`` and
+        ``reset_count``.
+
+        Args:
+            streams: ``None`` (all streams), stream indices (an int or a sequence/tensor of
+                ints, negative ones counting from the end) or a ``[B]`` bool mask. An empty
+                selection is a no-op.
+        """
         if streams is None:
             B, dx, K = self.batch_size, self.mu0.shape[0], self.num_values
             self.mean = torch.empty(B, dx, dtype=self.dtype)
             self.cov = torch.empty(B, dx, dx, dtype=self.dtype)
             self.log_belief = torch.empty(B, K, dtype=self.dtype)
             self.started = torch.zeros(B, dtype=torch.bool)
+            self.steps = torch.zeros(B, dtype=torch.long)
+            self.rejected_count = torch.zeros(B, dtype=torch.long)
+            self.reset_count = torch.zeros(B, dtype=torch.long)
+            idx: Any = slice(None)
+        else:
+            idx = self._stream_index(streams)
+            if idx.numel() == 0:
+                return
         self.mean[idx] = self.mu0
         self.cov[idx] = self.Sigma0
         self.log_belief[idx] = self.log_prior
         self.started[idx] = False
+        self.steps[idx] = 0
+        self.rejected_count[idx] = 0
+        self.reset_count[idx] = 0
 
     def belief(self) -> IntentionBelief:
-        """The current posterior over intentions, ``prob [B, K]``."""
+        """The current posterior over intentions, ``prob [B, K]`` (no ``rejected`` flags)."""
         return IntentionBelief.from_log(self.log_belief, self.values, self.continuous)
 
     def update(self, z: Any) -> IntentionBelief:
@@ -730,36 +874,188 @@ class OnlineIntentionFilter:
 
         Args:
             z: ``[B, Dz]`` observations (``[Dz]`` when B = 1); a NaN row is a missing
-                observation of that stream.
+                observation of that stream. A bad row (inf, partly NaN, or implausible; see
+                the class docstring) is rejected for its stream only (``strict``: raises).
 
         Returns:
-            The posterior after this step: ``prob [B, K]`` (``[K]`` for a ``[Dz]`` input), and
-            for a continuous g its ``mean`` and ``std``.
+            The posterior after this step: ``prob [B, K]`` (``[K]`` for a ``[Dz]`` input), for a
+            continuous g its ``mean`` and ``std``, and the flags ``rejected`` and
+            ``reset_streams`` ``[B]`` (``[]``).
+
+        Raises:
+            ValueError: a wrong shape; with ``strict``, a bad observation or a failed stream
+                (naming the stream, step and channel); the filter's state is then unchanged.
         """
-        z = _check_observations(z, self.obs_dim, self.dtype, min_ndim=1)
+        z = _check_observations(z, self.obs_dim, min_ndim=1)
         single = z.dim() == 1
         if single:
             z = z[None]
-        if z.shape != (self.batch_size, self.obs_dim):
+        B = self.batch_size
+        if z.shape != (B, self.obs_dim):
             raise ValueError(
                 f"z must have shape [B, Dz] = [{self.batch_size}, {self.obs_dim}], got "
                 f"{tuple(z.shape)}"
             )
-        new = ~self.started
-        if bool(new.any()):
-            m, P, _ = self.measure(self.mean[new], self.cov[new], z[new])
-            self.mean[new], self.cov[new] = m, P
-            self.started |= new & ~torch.isnan(z).all(-1)
-        old = torch.nonzero(~new).flatten()
-        for start in range(0, len(old), self.chunk_size):
-            i = old[start : start + self.chunk_size]
-            self.mean[i], self.cov[i], self.log_belief[i] = self._step(
-                self.mean[i], self.cov[i], self.log_belief[i], z[i]
+        _, rejected = self.check.classify(z)
+        any_rejected = bool(rejected.any())
+        if any_rejected:
+            b = int(torch.nonzero(rejected)[0])
+            if self.strict:
+                raise _bad_observation(self._where(b), self.check.reason(z[b]))
+            z = z.masked_fill(rejected[:, None], math.nan)
+        z = z.to(self.dtype)
+        # the update works on copies, written back at the end: a strict error changes nothing
+        mean, cov, log_belief = self.mean.clone(), self.cov.clone(), self.log_belief.clone()
+        started = self.started.clone()
+        broken = ~_finite_state(mean, cov, log_belief)
+        any_broken = bool(broken.any())
+        if any_broken:
+            self._fail(int(torch.nonzero(broken)[0]), "holds a non-finite state")
+            self._restart(broken, mean, cov, log_belief, started)
+        failed = torch.zeros_like(broken)
+        new = ~started
+        num_new = int(new.sum())
+        # Chunks are fixed ranges of streams and compute every stream of their range, the
+        # inactive ones unobserved and discarded: the shapes, and so the rounding, of a stream's
+        # update do not depend on which other streams are new, rejected or failing. The step
+        # runs first: it reads the state of the new streams before they are initialised.
+        for fn, active, size, targets, count in (
+            (self._step, ~new, self.chunk_size, (mean, cov, log_belief), B - num_new),
+            (self._initialise, new, _INIT_CHUNK, (mean, cov), num_new),
+        ):
+            if count == 0:
+                continue
+            every = count == B
+            inputs = (
+                mean,
+                cov,
+                log_belief,
+                z if every else z.masked_fill(~active[:, None], math.nan),
             )
-        out = self.belief()
+            for start in range(0, B, size):
+                rows = slice(start, start + size)
+                act = active[rows]
+                if not every and not bool(act.any()):
+                    continue
+                out = self._guarded(fn, rows, inputs, act, failed)
+                for target, value in zip(targets, out, strict=True):
+                    if not every:
+                        keep = act.view(-1, *([1] * (value.dim() - 1)))
+                        value = torch.where(keep, value, target[rows])
+                    target[rows] = value
+        if num_new:
+            started |= new & ~torch.isnan(z).all(-1)
+        failed |= ~_finite_state(mean, cov, log_belief)
+        any_failed = bool(failed.any())
+        if any_failed:
+            self._fail(int(torch.nonzero(failed)[0]), "gave a non-finite state")
+            self._restart(failed, mean, cov, log_belief, started)
+        for attr, value in (
+            ("mean", mean), ("cov", cov), ("log_belief", log_belief), ("started", started),
+        ):  # fmt: skip
+            getattr(self, attr).copy_(value)
+        self.steps += 1
+        reset = broken | failed
+        if any_broken or any_failed:
+            # a stream restarted before its step counts this observation, one that failed not
+            self.steps.copy_(torch.where(broken, 1, self.steps).masked_fill_(failed, 0))
+            self.reset_count += reset
+        if any_rejected:
+            self.rejected_count += rejected
         if single:
-            return IntentionBelief.from_log(out.log_prob[0], self.values, self.continuous)
+            out = IntentionBelief.from_log(self.log_belief[0], self.values, self.continuous)
+            out.rejected, out.reset_streams = rejected[0], reset[0]
+        else:
+            out = self.belief()
+            out.rejected, out.reset_streams = rejected, reset
         return out
+
+    def _where(self, b: int) -> str:
+        return f"z[{b}] (stream {b}, step {int(self.steps[b])})"
+
+    def _fail(self, b: int, what: str, err: Exception | None = None) -> None:
+        """With ``strict``, raise for stream ``b`` (else the caller restarts it)."""
+        if self.strict:
+            cause = f": {err}" if err is not None else ""
+            raise ValueError(
+                f"stream {b} at step {int(self.steps[b])} {what}{cause} (with strict=False it "
+                "would be restarted at the prior)"
+            ) from err
+
+    def _guarded(
+        self,
+        fn: Callable[..., tuple[torch.Tensor, ...]],
+        rows: slice,
+        inputs: tuple[torch.Tensor, ...],
+        active: torch.Tensor,
+        failed: torch.Tensor,
+    ) -> tuple[torch.Tensor, ...]:
+        """``fn`` on the streams ``rows`` of ``inputs`` (``mean, cov, log_belief, z``, ``[B, ..]``).
+
+        Where it fails numerically (``_NUMERICAL_ERRORS``), bisection finds the streams that fail
+        on their own; the active ones among them are marked in ``failed [B]`` (``strict``:
+        raised), and ``fn`` is run again on all ``rows`` with those streams at the prior and
+        unobserved, so that the others get the results (bit for bit) they get without them.
+        """
+        args = tuple(x[rows] for x in inputs)
+        try:
+            return fn(*args)
+        except _NUMERICAL_ERRORS as err:
+            error = err
+        bad = self._bisect(fn, args, torch.arange(len(active)), active, rows.start, error)
+        if len(bad) == 0:  # no stream fails on its own: not a failure of a stream
+            raise error
+        failed[rows.start + bad[active[bad]]] = True
+        args = tuple(a.clone() for a in args)
+        for a, prior in zip(args, (self.mu0, self.Sigma0, self.log_prior, math.nan), strict=True):
+            a[bad] = prior
+        return fn(*args)
+
+    def _bisect(
+        self,
+        fn: Callable[..., tuple[torch.Tensor, ...]],
+        args: tuple[torch.Tensor, ...],
+        pos: torch.Tensor,
+        active: torch.Tensor,
+        offset: int,
+        error: Exception | None = None,
+    ) -> torch.Tensor:
+        """The positions among ``pos`` at which ``fn`` fails on a single stream (``error``:
+        how ``fn`` already failed on all of ``pos``)."""
+        if error is None:
+            try:
+                fn(*(a[pos] for a in args))
+                return pos[:0]
+            except _NUMERICAL_ERRORS as err:
+                error = err
+        if len(pos) == 1:
+            if bool(active[pos[0]]):
+                self._fail(offset + int(pos[0]), "failed numerically", error)
+            return pos
+        half = len(pos) // 2
+        first = self._bisect(fn, args, pos[:half], active, offset)
+        return torch.cat([first, self._bisect(fn, args, pos[half:], active, offset)])
+
+    def _restart(
+        self,
+        streams: torch.Tensor,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        log_belief: torch.Tensor,
+        started: torch.Tensor,
+    ) -> None:
+        """Put the ``[B]`` mask ``streams`` of the given state tensors back at the prior."""
+        mean[streams] = self.mu0
+        cov[streams] = self.Sigma0
+        log_belief[streams] = self.log_prior
+        started[streams] = False
+
+    def _initialise(
+        self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Algorithm 3.2, lines 1-3: ``q(x_1)`` from the prior and ``z_1``; the belief stays."""
+        mean, cov, _ = self.measure(m, P, z)
+        return mean, cov
 
     def _step(
         self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
@@ -843,6 +1139,8 @@ def batch_bound(
     g: torch.Tensor,
     mu0: torch.Tensor,
     Sigma0: torch.Tensor,
+    *,
+    outlier_sd: float | None = DEFAULT_OUTLIER_SD,
 ) -> torch.Tensor:
     """The bound of Eq. 22 without ``log p(g)``, for every intention value and window.
 
@@ -852,15 +1150,18 @@ def batch_bound(
 
     Args:
         trans: transition GP ``[x, g] -> x_{t+1}``; meas: measurement GP ``x -> z``.
-        z: ``[W, T, Dz]`` windows (NaN rows missing).
+        z: ``[W, T, Dz]`` windows (NaN rows missing; other bad rows raise, see
+            :func:`~hgpdm_torch.inference.filtering.filter_sequence`).
         g: ``[K, Dg]`` intention values (codes).
         mu0, Sigma0: ``[Dx]``, ``[Dx, Dx]`` prior of the first state.
+        outlier_sd: plausibility threshold of the observation check (``None``: finiteness only).
 
     Returns:
         ``[K, W]``.
     """
     gk = g[:, None, :]  # [K, 1, Dg] broadcasts against the W windows
-    sm = smooth(filter_sequence(trans, meas, z, mu0, Sigma0, g=gk))  # [K, W, T, ...]
+    fr = filter_sequence(trans, meas, z, mu0, Sigma0, g=gk, outlier_sd=outlier_sd)
+    sm = smooth(fr)  # [K, W, T, ...]
     total = _gaussian_entropy(sm.cov[..., 0, :, :]).expand(len(g), z.shape[0])
     total = total + _expected_log_normal(mu0, Sigma0, sm.mean[..., 0, :], sm.cov[..., 0, :, :])
     # E_q[log p(z_t | x_t)] over observed steps
@@ -899,6 +1200,7 @@ def infer_intention(
     mu0: Any = None,
     Sigma0: Any = None,
     chunk_size: int | None = None,
+    outlier_sd: float | None = DEFAULT_OUTLIER_SD,
     progress: bool = False,
 ) -> IntentionBelief:
     r"""Batch intention inference (Algorithm 3.1), batched over the K intention values.
@@ -912,15 +1214,22 @@ def infer_intention(
 
     Args:
         model: a fitted :class:`~hgpdm_torch.models.HGPDM` / ``IDDM``.
-        z: ``[T, Dz]`` or ``[W, T, Dz]`` observations; NaN rows are missing.
+        z: ``[T, Dz]`` or ``[W, T, Dz]`` observations; NaN rows are missing. A bad row (inf,
+            partly NaN, or more than ``outlier_sd`` training standard deviations from the
+            training mean in a channel; see
+            :class:`~hgpdm_torch.inference.filtering.ObservationCheck`) raises a ``ValueError``
+            naming its window, step and channel.
         intentions: grid or codes, see :func:`intention_grid`.
         window: if given, a sliding window: the belief at every step ``t`` from
             ``z_{max(1, t-window+1):t}`` (output ``[..., T, K]``).
         prior: ``[K]`` prior probabilities (default uniform).
         mu0, Sigma0: prior of the first state of each window (default: the training latents'
             empirical mean and covariance, as a window may start anywhere in a movement).
-        chunk_size: windows processed together; default ``2^24 / (K N^2)`` bounds the
-            ``[K, chunk, N, N]`` moment-matching temporaries to about 128 MB each (float64).
+        chunk_size: positive int, windows processed together; default ``2^24 / (K N^2)``
+            bounds the ``[K, chunk, N, N]`` moment-matching temporaries to about 128 MB each
+            (float64).
+        outlier_sd: plausibility threshold (limits from the model's training observations);
+            ``None`` refuses only non-finite values and partly NaN rows.
         progress: show a tqdm bar over chunks.
 
     Returns:
@@ -928,14 +1237,22 @@ def infer_intention(
     """
     values = intention_grid(model, intentions)
     dtype = values.dtype
-    z = _check_observations(z, model.obs_dim, dtype, min_ndim=2)
+    z = _check_observations(z, model.obs_dim, min_ndim=2)
     if z.shape[-2] == 0:
         raise ValueError("z must hold at least one time step")
     if window is not None and (not isinstance(window, int) or window < 1):
         raise ValueError(f"window must be a positive int or None, got {window!r}")
+    chunk_size = _check_chunk_size(chunk_size)
+    trans, meas = model.transition_posterior(), model.measurement_posterior()
+    found = ObservationCheck.from_measurement(meas, outlier_sd).first_bad(z)
+    if found is not None:
+        index, why = found
+        windows = ", ".join(map(str, index[:-1]))
+        where = f"window {windows}, step {index[-1]}" if windows else f"step {index[-1]}"
+        raise _bad_observation(f"z{list(index)} ({where})", why)
+    z = z.to(dtype)
     log_prior = _log_prior(prior, len(values), dtype)
     m0, S0 = _state_prior(model, mu0, Sigma0, dtype)
-    trans, meas = model.transition_posterior(), model.measurement_posterior()
     n = trans.train_inputs.shape[0]
     chunk_size = chunk_size or max(1, 2**24 // (len(values) * n * n))
     lead, T = z.shape[:-2], z.shape[-2]
@@ -951,7 +1268,9 @@ def infer_intention(
     out = torch.empty(flat.shape[0], T if window else 1, len(values), dtype=dtype)
     for batch, tag in tqdm(jobs, disable=not progress, desc="batch intention", leave=False):
         parts = [
-            batch_bound(trans, meas, batch[i : i + chunk_size], values, m0, S0).mT
+            batch_bound(
+                trans, meas, batch[i : i + chunk_size], values, m0, S0, outlier_sd=outlier_sd
+            ).mT
             for i in range(0, batch.shape[0], chunk_size)
         ]
         score = torch.cat(parts, 0) + log_prior  # [windows, K]

@@ -98,16 +98,67 @@ def test_batched_particle_update_equals_the_online_filter(model, pipeline, gener
     z = model.measurement_posterior().predict(belief.mean[None])[0] + 0.2 * torch.randn(
         40, model.obs_dim, generator=generator
     )
-    mean, cov, log_prob = planner.step(belief, z)
-    ref = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=40)
-    ref.update(torch.zeros(40, model.obs_dim))  # start the streams, then overwrite the state
-    ref.mean[:] = belief.mean
-    ref.cov[:] = belief.cov
-    ref.log_belief[:] = belief.log_prob
+    mean, cov, log_prob, rejected = planner.step(belief, z)
+    assert not bool(rejected.any())
+    ref = _filter_in(model, belief, 40)
     out = ref.update(z)
     torch.testing.assert_close(log_prob, out.log_prob, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(mean, ref.mean, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(cov, ref.cov, rtol=1e-9, atol=1e-10)
+
+
+def _filter_in(model, belief, num, **options):
+    """An online filter of ``num`` streams, all in ``belief``."""
+    ref = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=num, **options)
+    ref.update(torch.zeros(num, model.obs_dim))  # start the streams, then overwrite the state
+    ref.mean[:] = belief.mean
+    ref.cov[:] = belief.cov
+    ref.log_belief[:] = belief.log_prob
+    return ref
+
+
+def test_bad_particle_observations_are_missing_like_in_the_filter(model, pipeline, generator):
+    """Rows with inf, partial NaN or implausible values are prediction-only steps for their
+    particle only, flagged, and equal to what the filter does with them (and with NaN rows);
+    a strict filter makes the planner raise, naming the row and channel."""
+    f, basis, q, states = pipeline
+    planner = MonteCarloPlanner(model, f, q, basis)
+    belief = _belief(states, 3, 1)
+    num = 8
+    z = model.measurement_posterior().predict(belief.mean[None])[0] + 0.2 * torch.randn(
+        num, model.obs_dim, generator=generator
+    )
+    z[1, 0] = math.inf
+    z[2, 3] = math.nan
+    z[4] = 1e200
+    z[5, 1] = -1e6  # finite, but ~1e6 training standard deviations out
+    z[6] = math.nan  # missing: not a rejection
+    mean, cov, log_prob, rejected = planner.step(belief, z)
+    assert rejected.tolist() == [False, True, True, False, True, True, False, False]
+    ref = _filter_in(model, belief, num)
+    out = ref.update(z)
+    assert out.rejected.tolist() == rejected.tolist()
+    torch.testing.assert_close(log_prob, out.log_prob, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(mean, ref.mean, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(cov, ref.cov, rtol=1e-9, atol=1e-10)
+    # a rejected row equals a missing one exactly; the clean rows are untouched by the bad ones
+    for i in (1, 2, 4, 5):
+        torch.testing.assert_close(log_prob[i], log_prob[6], rtol=0, atol=0)
+        torch.testing.assert_close(mean[i], mean[6], rtol=0, atol=0)
+    clean = planner.step(belief, z[[0, 3, 7]])
+    torch.testing.assert_close(clean.log_prob, log_prob[[0, 3, 7]], rtol=0, atol=1e-12)
+    torch.testing.assert_close(clean.mean, mean[[0, 3, 7]], rtol=0, atol=1e-12)
+    # the missing step only forgets: B = (1 - eps) B_{t-1}, normalised
+    forget = 0.9 * belief.log_prob
+    torch.testing.assert_close(log_prob[6], forget - torch.logsumexp(forget, -1))
+
+    strict_filter = OnlineIntentionFilter(model, GRID, forgetting=0.1, strict=True)
+    strict = MonteCarloPlanner(model, strict_filter, q, basis)
+    with pytest.raises(ValueError, match=r"z\[1\] \(particle 1\).*channel 0 is inf"):
+        strict.step(belief, z)
+    with pytest.raises(ValueError, match=r"z\[0\] \(particle 0\).*channel 1 = -1e\+06 is impl"):
+        strict.step(belief, z[5:])
+    assert not bool(strict.step(belief, z[6:]).rejected.any())
 
 
 def test_moment_sampling_matches_the_literal_chain(model, pipeline):
@@ -233,7 +284,7 @@ def test_projection_estimates_the_value_of_waiting(model, pipeline):
     g = rng.choice(len(prob), n, p=prob)
     eps = rng.standard_normal((n, dz))
     z_ref = m[g] + np.einsum("nij,nj->ni", np.linalg.cholesky(S)[g], eps)
-    mean, cov, log_prob = planner.step(belief, torch.from_numpy(z_ref))
+    mean, cov, log_prob, _ = planner.step(belief, torch.from_numpy(z_ref))
     r_ref = _stop_value(basis, q, belief_vector(mean, cov, log_prob.exp()))
     se = math.sqrt(r.var() / n + r_ref.var() / n)
     assert r.std() > 0.01
@@ -357,6 +408,8 @@ def test_bad_input(model, pipeline):
         planner.decide(Belief(belief.mean * math.nan, belief.cov, belief.log_prob))
     with pytest.raises(ValueError, match="Dz"):
         planner.step(belief, torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=r"\[I, Dz\]"):
+        planner.step(belief, torch.zeros(2, 3, model.obs_dim))
     with pytest.raises(ValueError, match="num"):
         planner.project(belief, 0)
     assert isinstance(q, LinearQ)

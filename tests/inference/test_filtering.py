@@ -306,6 +306,37 @@ def test_bad_inputs_raise(generator):
     assert isinstance(filter_sequence(trans, meas, z[:1], mu0, P0), FilterResult)
 
 
+def test_bad_observations_raise_naming_batch_index_step_and_channel(generator):
+    """Rows that would overflow the moment matching (or are not a missing row) raise a clear
+    error where they are; NaN rows stay missing observations."""
+    trans, meas = linear_system(generator)
+    mu0, P0 = torch.zeros(2), torch.eye(2)
+    z = 0.5 * torch.randn(2, 5, 3, generator=generator)
+    z[0, 1] = float("nan")
+    assert bool(torch.isfinite(filter_sequence(trans, meas, z, mu0, P0).log_likelihood).all())
+    cases = [
+        ((1, 3, 2), 1e200, r"z\[1, 3\] \(batch index 1, step 3\).*channel 2 = 1e\+200 is impl"),
+        ((0, 4, 0), float("inf"), r"z\[0, 4\] \(batch index 0, step 4\).*channel 0 is inf"),
+        ((1, 0, 1), float("nan"), r"z\[1, 0\].*channel 1 is NaN but the row is not all NaN"),
+    ]
+    for index, value, message in cases:
+        bad = z.clone()
+        bad[index] = value
+        with pytest.raises(ValueError, match=message):
+            filter_sequence(trans, meas, bad, mu0, P0)
+    # the threshold: training standard deviations of the measurement GP's targets (+ its noise)
+    y = meas.train_targets + meas.offset
+    spread = (y.var(0, correction=0) + meas.noise * meas.scale**2).sqrt()
+    one = y.mean(0).repeat(4, 1)
+    one[2, 1] += 150.0 * spread[1]
+    with pytest.raises(ValueError, match=r"z\[2\] \(step 2\).*channel 1 = .* 150 training"):
+        filter_sequence(trans, meas, one, mu0, P0)
+    res = filter_sequence(trans, meas, one, mu0, P0, outlier_sd=200)
+    assert bool(torch.isfinite(res.mean).all())
+    with pytest.raises(ValueError, match="outlier_sd"):
+        filter_sequence(trans, meas, one, mu0, P0, outlier_sd=0)
+
+
 # ----- integration with fitted models ------------------------------------------------------------
 
 

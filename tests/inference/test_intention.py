@@ -511,17 +511,110 @@ def test_bad_inputs_raise(continuous_model, discrete_model):
         f.update(torch.zeros(2, dz + 1))
     with pytest.raises(ValueError, match=r"\[B, Dz\]"):
         f.update(torch.zeros(3, dz))
+    with pytest.raises(TypeError, match="z must"):
+        f.update("observations")
+    # bad rows are rejected per stream (tests/inference/test_stream_isolation.py); strict raises
+    strict = OnlineIntentionFilter(model, GRID, batch_size=2, strict=True)
     bad = torch.zeros(2, dz)
-    bad[0, 0] = float("inf")
-    with pytest.raises(ValueError, match="inf"):
-        f.update(bad)
-    bad[0, 0] = float("nan")
-    with pytest.raises(ValueError, match="partial NaN"):
-        f.update(bad)
+    bad[1, 2] = float("inf")
+    with pytest.raises(ValueError, match=r"z\[1\] \(stream 1, step 0\).*channel 2 is inf"):
+        strict.update(bad)
+    bad[1, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"stream 1, step 0.*channel 2 is NaN but the row"):
+        strict.update(bad)
+    assert f.update(bad).rejected.tolist() == [False, True]
     with pytest.raises(ValueError, match="Dz"):
         infer_intention(model, np.zeros((4, dz - 1)), GRID)
     with pytest.raises(ValueError, match="window"):
         infer_intention(model, torch.zeros(4, dz), GRID, window=0)
+
+
+def test_numeric_options_are_validated(continuous_model):
+    model = continuous_model
+    for eps in (0.2, 0, np.float64(0.2), np.float32(0.2), torch.tensor(0.2), torch.tensor(0)):
+        f = OnlineIntentionFilter(model, GRID, forgetting=eps)
+        assert isinstance(f.forgetting, float) and abs(f.forgetting - float(eps)) < 1e-7
+    for eps in ("0.2", None, torch.tensor([0.2]), [0.2], True, torch.tensor(True)):
+        with pytest.raises(TypeError, match="forgetting"):
+            OnlineIntentionFilter(model, GRID, forgetting=eps)
+    with pytest.raises(ValueError, match="forgetting"):
+        OnlineIntentionFilter(model, GRID, forgetting=torch.tensor(1.0))
+    with pytest.raises(ValueError, match="forgetting"):
+        OnlineIntentionFilter(model, GRID, forgetting=float("nan"))
+    for chunk in (-5, 0, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="chunk_size"):
+            OnlineIntentionFilter(model, GRID, chunk_size=chunk)
+        with pytest.raises(ValueError, match="chunk_size"):
+            infer_intention(model, model.sequences()[0][:3], GRID, chunk_size=chunk)
+    assert OnlineIntentionFilter(model, GRID, chunk_size=np.int64(3)).chunk_size == 3
+    assert OnlineIntentionFilter(model, GRID, batch_size=np.int64(2)).batch_size == 2
+    with pytest.raises(ValueError, match="batch_size"):
+        OnlineIntentionFilter(model, GRID, batch_size=True)
+    with pytest.raises(ValueError, match="outlier_sd"):
+        OnlineIntentionFilter(model, GRID, outlier_sd=-1.0)
+
+
+def test_chunk_size_one_updates_and_reset_selections(continuous_model):
+    """A small chunk still updates every stream (a negative one used to skip them all); reset
+    takes indices, negative indices or a bool mask, and an empty selection is a no-op."""
+    model = continuous_model
+    z = torch.stack(model.sequences()[:3])[:, :3]
+    f = OnlineIntentionFilter(model, GRID, batch_size=3, chunk_size=1)
+    ref = OnlineIntentionFilter(model, GRID, batch_size=3)
+    for t in range(3):
+        out, want = f.update(z[:, t]), ref.update(z[:, t])
+    torch.testing.assert_close(out.prob, want.prob, rtol=1e-7, atol=1e-9)
+    assert float((out.prob - f.log_prior.exp()).abs().max()) > 0.01  # not the prior
+    assert f.steps.tolist() == [3, 3, 3]
+    state = [f.mean.clone(), f.log_belief.clone(), f.started.clone(), f.steps.clone()]
+    for empty in ([], (), torch.zeros(0, dtype=torch.long), np.zeros(0, dtype=int)):
+        f.reset(empty)
+    for before, after in zip(state, (f.mean, f.log_belief, f.started, f.steps), strict=True):
+        assert torch.equal(before, after)
+    f.reset(-1)
+    assert f.started.tolist() == [True, True, False] and f.steps.tolist() == [3, 3, 0]
+    f.reset(torch.tensor([True, False, False]))
+    assert f.started.tolist() == [False, True, False]
+    torch.testing.assert_close(f.log_belief[0], f.log_prior)
+    torch.testing.assert_close(f.mean[1], state[0][1], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="streams"):
+        f.reset([3])
+    with pytest.raises(ValueError, match="streams mask"):
+        f.reset(torch.tensor([True, False]))
+    with pytest.raises(TypeError, match="streams"):
+        f.reset([0.5])
+
+
+def test_batch_inference_names_bad_observations(continuous_model):
+    model = continuous_model
+    z = torch.stack(model.sequences()[:3])[:, :4].clone()
+    z[1, 2] = float("nan")  # a missing observation is fine
+    out = infer_intention(model, z, GRID)
+    assert bool(torch.isfinite(out.prob).all()) and out.prob.shape == (3, len(GRID))
+    windowed = infer_intention(model, z, GRID, window=2)
+    assert bool(torch.isfinite(windowed.prob).all())
+    cases = [
+        ((2, 1, 4), 1e200, r"z\[2, 1\] \(window 2, step 1\).*channel 4 = 1e\+200 is implausible"),
+        ((0, 3, 0), float("inf"), r"z\[0, 3\] \(window 0, step 3\).*channel 0 is inf"),
+        ((1, 0, 5), float("nan"), r"z\[1, 0\] \(window 1, step 0\).*channel 5 is NaN but"),
+        ((2, 2, 1), -1e5, r"window 2, step 2.*channel 1 = -100000 is implausible"),
+    ]
+    for index, value, message in cases:
+        bad = z.clone()
+        bad[index] = value
+        with pytest.raises(ValueError, match=message):
+            infer_intention(model, bad, GRID)
+        with pytest.raises(ValueError, match=message):
+            infer_intention(model, bad, GRID, window=2)
+    bad = z[0].clone()
+    bad[1, 4] = float("-inf")
+    with pytest.raises(ValueError, match=r"z\[1\] \(step 1\).*channel 4 is -inf"):
+        infer_intention(model, bad, GRID)
+    bad = z[0].clone()
+    bad[1, 4] = 1e4  # 1e5 sd out: refused by default, accepted with a looser threshold
+    with pytest.raises(ValueError, match="implausible"):
+        infer_intention(model, bad, GRID)
+    assert bool(torch.isfinite(infer_intention(model, bad, GRID, outlier_sd=1e7).prob).all())
 
 
 def test_float32_filter_tracks_float64(conditioned_model):
