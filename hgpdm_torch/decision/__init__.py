@@ -15,7 +15,7 @@ from .games import (
     two_stage_rps,
 )
 from .lspi import LinearQ, LSPIResult, lspi, lstdq
-from .mcp import Belief, MCPDecision, MonteCarloPlanner
+from .mcp import Belief, MCPDecision, MonteCarloPlanner, ParticleUpdate
 from .nac import NACResult, SoftmaxPolicy, nac, natural_gradient
 from .opponent import (
     AdaptiveLearner,
@@ -48,6 +48,7 @@ __all__ = [
     "LinearQ",
     "MCPDecision",
     "MonteCarloPlanner",
+    "ParticleUpdate",
     "NACResult",
     "RadialBasis",
     "SoftmaxPolicy",

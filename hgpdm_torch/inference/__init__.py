@@ -3,7 +3,9 @@ Bayes (Ch. 2.3), the MAP baseline (conditional GPDM), and batch and online inten
 (Algorithms 3.1-3.2)."""
 
 from .filtering import (
+    DEFAULT_OUTLIER_SD,
     FilterResult,
+    ObservationCheck,
     SmootherResult,
     filter_sequence,
     gp_adf_predict,
@@ -30,7 +32,9 @@ from .variational import (
 )
 
 __all__ = [
+    "DEFAULT_OUTLIER_SD",
     "FilterResult",
+    "ObservationCheck",
     "IntentionBelief",
     "LinearMeasurement",
     "OnlineIntentionFilter",
