@@ -1,18 +1,36 @@
 """Datasets: seeded synthetic generators and loaders for real movement data."""
 
 from .mocap import load_mocap, read_amc, read_asf
+from .msrc12 import (
+    MSRC12,
+    MissingTagstreamError,
+    MSRC12Recording,
+    PosePCA,
+    kinect_features,
+    load_msrc12_folder,
+    load_msrc12_npz,
+    read_msrc12_recording,
+)
 from .synthetic import MovementSet, styled_movements, targeted_movements
 from .walkers import Standardizer, Walkers, load_walkers, motion_features
 
 __all__ = [
+    "MSRC12",
+    "MSRC12Recording",
+    "MissingTagstreamError",
     "MovementSet",
+    "PosePCA",
     "Standardizer",
     "Walkers",
+    "kinect_features",
     "load_mocap",
+    "load_msrc12_folder",
+    "load_msrc12_npz",
     "load_walkers",
     "motion_features",
     "read_amc",
     "read_asf",
+    "read_msrc12_recording",
     "styled_movements",
     "targeted_movements",
 ]

@@ -1,0 +1,665 @@
+"""MSRC-12 Kinect gestures (Fothergill et al., CHI 2012): the real data of the action-recognition
+experiment (thesis Sec. 3.6, Table 3.3, which used Kinect skeletons of similar actions).
+
+Two sources give the same :class:`MSRC12` instances, windows of skeletons cut around annotated
+action points:
+
+- :func:`load_msrc12_npz`: the development archive ``../shared/data/msrc12_dev.npz`` (already cut:
+  ``positions [n, 36, 20, 3]`` at 10 frames/s, the action point at frame 30);
+- :func:`load_msrc12_folder`: a folder of the original release, read by
+  :func:`read_msrc12_recording`, and cut by the same rule at any frame rate.
+
+The original release format, as this reader assumes it:
+
+- ``<name>.csv``: one frame per line, ``81`` numbers separated by spaces (commas and semicolons are
+  accepted too): a timestamp in milliseconds, then for each of the 20 joints (in the order of
+  :data:`JOINTS`, Kinect SDK v1) ``x y z w``, positions in metres and ``w`` the tracking value,
+  kept as :attr:`MSRC12Recording.state` and otherwise unused. Frames whose 20 positions are all
+  zero carry no skeleton (the Kinect had not yet found the person, as at the start of some
+  recordings) and are dropped.
+- ``<name>.tagstream``: a header line (``XQPCTick;Tag``) and one line ``<tick>;<tag>`` per action
+  point, the tag being the gesture id (``7``, or with a prefix such as ``G7``). Ticks count at
+  :data:`TICKS_PER_SECOND` = 49875 Hz on the clock of the csv timestamps:
+  ``time_ms = tick * 1000 / 49875``. This is the conversion of the MATLAB loader shipped with the
+  data set (which also rounds to whole milliseconds; here the time is kept exact, a difference of
+  at most 0.5 ms). A recording none of whose action points falls within its csv time span
+  contradicts the assumption and is an error.
+- File names ``P<a>_<b>_<gesture>[<variant>]_p<person>``, e.g. ``P1_1_1_p06`` or ``P1_1_12A_p21``:
+  ``P<a>_<b>`` codes the instruction the person was given (text, images, video, ...; kept as the
+  string :attr:`MSRC12Recording.instruction`, not interpreted), then the gesture id (1-12) with
+  an optional letter, then the person (``p06``).
+
+Gesture ids and names are in :data:`GESTURES`. The development archive holds six of them
+(2, 3, 6, 7, 8, 12); labels are coded ``0 .. K-1`` in increasing order of the ids present.
+
+Features (:func:`kinect_features`): joint positions relative to the hip centre, and
+:class:`PosePCA` for statistics and a PCA fitted on the training persons' frames only.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from sklearn.decomposition import PCA
+from tqdm.auto import tqdm
+
+from ..validation import as_tensor, check_choice
+from .walkers import Standardizer
+
+__all__ = [
+    "GESTURES",
+    "JOINTS",
+    "MSRC12",
+    "MSRC12Recording",
+    "MissingTagstreamError",
+    "PosePCA",
+    "TICKS_PER_SECOND",
+    "kinect_features",
+    "load_msrc12_folder",
+    "load_msrc12_npz",
+    "read_msrc12_recording",
+]
+
+JOINTS: tuple[str, ...] = (
+    "hip_centre", "spine", "shoulder_centre", "head",
+    "shoulder_left", "elbow_left", "wrist_left", "hand_left",
+    "shoulder_right", "elbow_right", "wrist_right", "hand_right",
+    "hip_left", "knee_left", "ankle_left", "foot_left",
+    "hip_right", "knee_right", "ankle_right", "foot_right",
+)  # fmt: skip
+"""The 20 Kinect SDK v1 joints, in file order."""
+
+GESTURES: dict[int, str] = {
+    1: "lift outstretched arms",
+    2: "crouch",
+    3: "push right",
+    4: "goggles",
+    5: "wind it up",
+    6: "shoot",
+    7: "bow",
+    8: "throw",
+    9: "had enough",
+    10: "change weapon",
+    11: "beat both",
+    12: "kick",
+}
+"""MSRC-12 gesture id -> short name."""
+
+TICKS_PER_SECOND = 49875
+"""Rate of the tagstream's ``XQPCTick`` clock (see the module docstring)."""
+
+_VALUES_PER_FRAME = 1 + 4 * len(JOINTS)
+_NAME = re.compile(r"^(P\d+_\d+)_(\d+)([A-Za-z]*)_(p\d+)$")
+_TAG = re.compile(r"^[A-Za-z_]*(\d+)$")
+_SPLIT = re.compile(r"[\s,;]+")
+
+
+class MissingTagstreamError(FileNotFoundError, ValueError):
+    """A recording's ``.tagstream`` file is missing (both a ``FileNotFoundError`` and a
+    ``ValueError``, as the other format errors of this module)."""
+
+
+# ------------------------------------------------------------------------------------------
+# Instances
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MSRC12:
+    """Gesture instances: skeleton windows around action points.
+
+    Attributes:
+        positions: ``[n, T, 20, 3]`` (float64) joint positions in metres, joints as in
+            :data:`JOINTS`.
+        labels: ``[n]`` (long) class codes ``0 .. K-1``.
+        gesture_ids: the K MSRC-12 gesture ids, ``gesture_ids[labels[i]]`` is instance i's.
+        names: the K gesture names.
+        person: ``n`` person ids (``"p04"``, ...).
+        sequence: ``n`` names of the recordings the instances were cut from.
+        fps: frame rate of ``positions``.
+        action_frame: index of the action point in every window.
+        dropped: windows that could not be cut (outside the recording, or across a gap), in
+            words; empty for the development archive.
+    """
+
+    positions: torch.Tensor
+    labels: torch.Tensor
+    gesture_ids: tuple[int, ...]
+    names: tuple[str, ...]
+    person: list[str]
+    sequence: list[str]
+    fps: float
+    action_frame: int
+    dropped: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def num_classes(self) -> int:
+        """K, the number of gestures."""
+        return len(self.gesture_ids)
+
+    @property
+    def persons(self) -> list[str]:
+        """The distinct person ids, sorted."""
+        return sorted(set(self.person))
+
+    def groups(self) -> np.ndarray:
+        """``[n]`` (int) index of each instance's person in :attr:`persons`: the groups of a
+        leave-persons-out split (e.g. scikit-learn ``GroupKFold``)."""
+        index = {p: i for i, p in enumerate(self.persons)}
+        return np.array([index[p] for p in self.person], dtype=int)
+
+    def subset(self, index: Any) -> MSRC12:
+        """The instances at ``index`` (integer indices or a boolean mask ``[n]``), same K."""
+        idx = np.arange(len(self))[np.asarray(index)]
+        return MSRC12(
+            positions=self.positions[torch.as_tensor(idx, dtype=torch.long)],
+            labels=self.labels[torch.as_tensor(idx, dtype=torch.long)],
+            gesture_ids=self.gesture_ids,
+            names=self.names,
+            person=[self.person[i] for i in idx],
+            sequence=[self.sequence[i] for i in idx],
+            fps=self.fps,
+            action_frame=self.action_frame,
+            dropped=list(self.dropped),
+        )
+
+
+def _code_gestures(gesture: np.ndarray, source: str) -> tuple[torch.Tensor, tuple[int, ...]]:
+    unknown = sorted(set(gesture.tolist()) - set(GESTURES))
+    if unknown:
+        raise ValueError(f"{source}: unknown gesture ids {unknown}; MSRC-12 has ids 1-12")
+    ids = tuple(sorted(set(gesture.tolist())))
+    code = {g: k for k, g in enumerate(ids)}
+    return torch.tensor([code[g] for g in gesture.tolist()], dtype=torch.long), ids
+
+
+def load_msrc12_npz(
+    path: str | Path = "../shared/data/msrc12_dev.npz",
+    *,
+    fps: float = 10.0,
+    action_frame: int = 30,
+) -> MSRC12:
+    """Load the development archive of cut MSRC-12 instances.
+
+    Args:
+        path: ``.npz`` with ``positions`` ``[n, T, 20, 3]`` (metres), ``gesture`` ``[n]``
+            (MSRC-12 ids), ``person`` ``[n]`` and ``sequence`` ``[n]`` (strings).
+        fps: frame rate of the windows (10 for the shared file).
+        action_frame: index of the action point in each window (30 for the shared file: 3.0 s
+            before to 0.5 s after it).
+
+    Returns:
+        :class:`MSRC12` with labels coded in increasing order of the gesture ids present.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: a missing key, wrong shapes, non-finite positions, unknown gesture ids.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"MSRC-12 archive not found: {path}")
+    with np.load(path, allow_pickle=False) as archive:
+        missing = [k for k in ("positions", "gesture", "person", "sequence") if k not in archive]
+        if missing:
+            raise ValueError(f"{path} lacks the arrays {missing}")
+        positions = archive["positions"]
+        gesture, person, sequence = (archive[k] for k in ("gesture", "person", "sequence"))
+    n = positions.shape[0]
+    if positions.ndim != 4 or positions.shape[2:] != (len(JOINTS), 3):
+        raise ValueError(f"{path}: positions must be [n, T, 20, 3], got {positions.shape}")
+    for key, arr in (("gesture", gesture), ("person", person), ("sequence", sequence)):
+        if arr.shape != (n,):
+            raise ValueError(f"{path}: {key} must be [{n}], one per instance, got {arr.shape}")
+    if not 0 <= action_frame < positions.shape[1]:
+        raise ValueError(f"action_frame must index the {positions.shape[1]} frames")
+    x = as_tensor(positions, f"{path}[positions]", dtype=torch.float64)
+    labels, ids = _code_gestures(gesture.astype(int), str(path))
+    return MSRC12(
+        positions=x,
+        labels=labels,
+        gesture_ids=ids,
+        names=tuple(GESTURES[g] for g in ids),
+        person=[str(p) for p in person],
+        sequence=[str(s) for s in sequence],
+        fps=float(fps),
+        action_frame=int(action_frame),
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# The original release: csv + tagstream
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MSRC12Recording:
+    """One recording of the original release.
+
+    Attributes:
+        name: the file stem, e.g. ``"P1_1_12A_p21"``.
+        time_ms: ``[F]`` csv timestamps (milliseconds) of the tracked frames, increasing.
+        positions: ``[F, 20, 3]`` joint positions (metres).
+        state: ``[F, 20]`` the fourth value of every joint (tracking value ``w``).
+        tag_ms: ``[A]`` action points in milliseconds on the csv clock.
+        tag_gesture: ``[A]`` (int) the gesture id of every action point.
+        instruction: ``"P<a>_<b>"`` from the file name (``None`` if the name does not parse).
+        gesture: gesture id from the file name (or ``None``).
+        variant: letter after the gesture id in the file name (``""`` if none, or ``None``).
+        person: person id from the file name, e.g. ``"p21"`` (or ``None``).
+        untracked: frames dropped because all their positions were zero.
+    """
+
+    name: str
+    time_ms: np.ndarray
+    positions: np.ndarray
+    state: np.ndarray
+    tag_ms: np.ndarray
+    tag_gesture: np.ndarray
+    instruction: str | None
+    gesture: int | None
+    variant: str | None
+    person: str | None
+    untracked: int = 0
+
+
+def _nonblank(path: Path) -> list[tuple[int, str]]:
+    """``(line number, stripped text)`` of the non-blank lines."""
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path} is not a text file: {err}") from err
+    return [(i, s) for i, line in enumerate(text.splitlines(), 1) if (s := line.strip())]
+
+
+def _read_csv(path: Path) -> np.ndarray:
+    """The ``[F, 81]`` numbers of a skeleton csv, every line checked."""
+    lines = _nonblank(path)
+    if not lines:
+        raise ValueError(f"{path} is empty; expected one frame of {_VALUES_PER_FRAME} numbers "
+                         f"per line")  # fmt: skip
+    rows = [_SPLIT.split(text) for _, text in lines]
+    for (number, _), row in zip(lines, rows, strict=True):
+        if len(row) != _VALUES_PER_FRAME:
+            raise ValueError(
+                f"{path}, line {number}: expected {_VALUES_PER_FRAME} numbers (a timestamp and "
+                f"x y z w of 20 joints), got {len(row)}"
+            )
+    try:
+        values = np.array(rows, dtype=np.float64)
+    except ValueError:  # find the offending line
+        for (number, _), row in zip(lines, rows, strict=True):
+            for col, item in enumerate(row):
+                try:
+                    float(item)
+                except ValueError:
+                    raise ValueError(
+                        f"{path}, line {number}: value {col + 1} ({item!r}) is not a number"
+                    ) from None
+        raise
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise ValueError(
+            f"{path}, line {lines[row][0]}: value {col + 1} is {values[row, col]}; expected "
+            f"finite numbers"
+        )
+    step = np.diff(values[:, 0])
+    if (step <= 0).any():
+        row = int(np.argmax(step <= 0)) + 1
+        raise ValueError(
+            f"{path}, line {lines[row][0]}: timestamp {values[row, 0]:g} ms does not increase "
+            f"(previous {values[row - 1, 0]:g} ms)"
+        )
+    return values
+
+
+def _read_tagstream(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Action points ``(time_ms [A], gesture id [A])`` of a tagstream file."""
+    lines = _nonblank(path)
+    if lines and not lines[0][1].split(";")[0].strip().isdigit():
+        header, lines = lines[0], lines[1:]
+        if len(header[1].split(";")) != 2:
+            raise ValueError(
+                f"{path}, line {header[0]}: expected a header 'XQPCTick;Tag', got {header[1]!r}"
+            )
+    if not lines:
+        raise ValueError(f"{path} holds no action points; expected lines '<tick>;<gesture id>'")
+    ticks, gestures = [], []
+    for number, text in lines:
+        parts = [p.strip() for p in text.split(";")]
+        tag = _TAG.match(parts[1]) if len(parts) == 2 else None
+        if len(parts) != 2 or not parts[0].isdigit() or tag is None:
+            raise ValueError(
+                f"{path}, line {number}: expected '<tick>;<gesture id>' (a non-negative integer "
+                f"tick and an integer id such as 7 or G7), got {text!r}"
+            )
+        gesture = int(tag.group(1))
+        if gesture not in GESTURES:
+            raise ValueError(f"{path}, line {number}: gesture id {gesture} is not in 1-12")
+        ticks.append(int(parts[0]))
+        gestures.append(gesture)
+    time_ms = np.array(ticks, dtype=np.float64) * 1000.0 / TICKS_PER_SECOND
+    return time_ms, np.array(gestures, dtype=int)
+
+
+def read_msrc12_recording(
+    csv_path: str | Path, tagstream_path: str | Path | None = None
+) -> MSRC12Recording:
+    """Read one recording of the original MSRC-12 release (format in the module docstring).
+
+    Args:
+        csv_path: the skeleton ``.csv`` file.
+        tagstream_path: its action points (default: ``<csv stem>.tagstream`` beside it).
+
+    Returns:
+        :class:`MSRC12Recording` with the tracked frames and the action points in ms.
+
+    Raises:
+        FileNotFoundError: no csv file.
+        MissingTagstreamError: no tagstream file.
+        ValueError: naming the file and line: a line without 81 numbers, a non-numeric or
+            non-finite value, timestamps that do not increase, a malformed tagstream line or
+            an unknown gesture id; an empty file (no frames, no action points, or no tracked
+            frame).
+    """
+    csv_path = Path(csv_path)
+    if not csv_path.is_file():
+        raise FileNotFoundError(f"MSRC-12 recording not found: {csv_path}")
+    tag_path = Path(tagstream_path or csv_path.with_suffix(".tagstream"))
+    if not tag_path.is_file():
+        raise MissingTagstreamError(
+            f"{csv_path} has no tagstream file {tag_path} (the action points are needed)"
+        )
+    values = _read_csv(csv_path)
+    joints = values[:, 1:].reshape(-1, len(JOINTS), 4)
+    tracked = (joints[..., :3] != 0).any(axis=(1, 2))
+    if not tracked.any():
+        raise ValueError(f"{csv_path} has no tracked frame (all positions are zero)")
+    tag_ms, tag_gesture = _read_tagstream(tag_path)
+    match = _NAME.match(csv_path.stem)
+    instruction, gesture, variant, person = (
+        (match.group(1), int(match.group(2)), match.group(3), match.group(4))
+        if match
+        else (None, None, None, None)
+    )
+    return MSRC12Recording(
+        name=csv_path.stem,
+        time_ms=values[tracked, 0],
+        positions=joints[tracked, :, :3],
+        state=joints[tracked, :, 3],
+        tag_ms=tag_ms,
+        tag_gesture=tag_gesture,
+        instruction=instruction,
+        gesture=gesture,
+        variant=variant,
+        person=person,
+        untracked=int((~tracked).sum()),
+    )
+
+
+def _frames(seconds: float, fps: float, name: str) -> int:
+    if not (isinstance(seconds, numbers.Real) and 0 <= seconds < math.inf):
+        raise ValueError(f"{name} must be a finite number of seconds >= 0, got {seconds!r}")
+    frames = seconds * fps
+    if abs(frames - round(frames)) > 1e-6:
+        raise ValueError(f"{name} * fps must be a whole number of frames, got {frames:g}")
+    return round(frames)
+
+
+def _resample(
+    time_ms: np.ndarray, values: np.ndarray, at_ms: np.ndarray, method: str
+) -> np.ndarray:
+    """``values [F, ...]`` at the times ``at_ms [S]`` (within ``time_ms``) -> ``[S, ...]``."""
+    if len(time_ms) == 1:
+        return np.repeat(values, len(at_ms), axis=0)
+    i = np.clip(np.searchsorted(time_ms, at_ms, side="right") - 1, 0, len(time_ms) - 2)
+    w = (at_ms - time_ms[i]) / (time_ms[i + 1] - time_ms[i])
+    if method == "nearest":
+        return values[np.where(w > 0.5, i + 1, i)]
+    w = w.reshape(-1, *([1] * (values.ndim - 1)))
+    return (1.0 - w) * values[i] + w * values[i + 1]
+
+
+def load_msrc12_folder(
+    folder: str | Path,
+    fps: float = 10.0,
+    before: float = 3.0,
+    after: float = 0.5,
+    *,
+    gestures: Sequence[int] | None = None,
+    method: str = "linear",
+    max_gap: float = 0.2,
+    progress: bool = False,
+) -> MSRC12:
+    """Cut windows around every action point of a folder of original MSRC-12 recordings.
+
+    Every ``*.csv`` in ``folder`` (not its subfolders, in sorted order) is read with its
+    ``.tagstream`` (:func:`read_msrc12_recording`). Around an action point at time ``a`` the
+    window samples the skeleton at ``a + (k - n_before) / fps`` for ``k = 0 .. n_before +
+    n_after`` (``n_before = before * fps``, ``n_after = after * fps``, whole numbers), so the
+    action point is frame ``n_before``: the defaults give the layout of the development archive
+    (36 frames at 10 frames/s, action point at frame 30). The csv frames (~30 frames/s, not
+    evenly spaced) are resampled by linear interpolation in time between the two frames around
+    each sample time (``method="linear"``) or by the frame with the nearest timestamp
+    (``"nearest"``, ties to the earlier). A window is dropped (and listed in
+    :attr:`MSRC12.dropped`) when a sample time lies before the first or after the last tracked
+    frame, or between two tracked frames more than ``max_gap`` seconds apart.
+
+    Args:
+        folder: the folder of recordings.
+        fps: frame rate of the windows.
+        before, after: seconds before and after the action point.
+        gestures: keep only these gesture ids (default: all found).
+        method: ``"linear"`` or ``"nearest"``.
+        max_gap: longest gap (s) between tracked frames a window may span.
+        progress: tqdm bar over the recordings.
+
+    Returns:
+        :class:`MSRC12`, labels coded in increasing order of the gesture ids kept, instances in
+        file order then time order.
+
+    Raises:
+        FileNotFoundError: the folder does not exist or holds no csv file.
+        MissingTagstreamError: a recording without its tagstream.
+        ValueError: malformed files (see :func:`read_msrc12_recording`), a file name without the
+            person (``..._p<digits>``), an action point whose gesture id differs from the file
+            name's, a recording none of whose action points lies within its time span (see the
+            module docstring on the tick clock), no window at all, or bad arguments.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"MSRC-12 folder not found: {folder}")
+    if not (isinstance(fps, numbers.Real) and 0 < fps < math.inf):
+        raise ValueError(f"fps must be a positive finite number, got {fps!r}")
+    if not (isinstance(max_gap, numbers.Real) and 0 < max_gap <= math.inf):
+        raise ValueError(f"max_gap must be a positive number of seconds, got {max_gap!r}")
+    check_choice(method, "method", ("linear", "nearest"))
+    n_before, n_after = _frames(before, fps, "before"), _frames(after, fps, "after")
+    keep = None if gestures is None else {int(g) for g in gestures}
+    files = sorted(folder.glob("*.csv"))
+    if not files:
+        raise FileNotFoundError(f"no MSRC-12 recording (*.csv) in {folder}")
+    offsets_ms = (np.arange(n_before + n_after + 1) - n_before) * 1000.0 / fps
+    windows, gesture, person, sequence, dropped = [], [], [], [], []
+    for path in tqdm(files, disable=not progress, desc="MSRC-12 recordings"):
+        rec = read_msrc12_recording(path)
+        if rec.person is None:
+            raise ValueError(
+                f"{path}: cannot read the person from the file name; expected "
+                f"P<a>_<b>_<gesture>[letter]_p<person>.csv"
+            )
+        t = rec.time_ms
+        inside = (rec.tag_ms >= t[0]) & (rec.tag_ms <= t[-1])
+        if not inside.any():
+            raise ValueError(
+                f"{path}: none of its {len(rec.tag_ms)} action points "
+                f"({rec.tag_ms.min():.0f}-{rec.tag_ms.max():.0f} ms) lies within the csv time span "
+                f"{t[0]:.0f}-{t[-1]:.0f} ms; the tagstream ticks are read as "
+                f"{TICKS_PER_SECOND} Hz on the csv's millisecond clock"
+            )
+        for a, (at, g) in enumerate(zip(rec.tag_ms, rec.tag_gesture, strict=True)):
+            if rec.gesture is not None and g != rec.gesture:
+                raise ValueError(
+                    f"{path.with_suffix('.tagstream')}: action point {a + 1} has gesture id {g}, "
+                    f"the file name says {rec.gesture}"
+                )
+            if keep is not None and g not in keep:
+                continue
+            times = at + offsets_ms
+            where = f"{rec.name} action point {a + 1} at {at:.0f} ms"
+            if times[0] < t[0] or times[-1] > t[-1]:
+                dropped.append(f"{where}: window outside the recording")
+                continue
+            i = np.searchsorted(t, times, side="left")  # first frame at or after each sample
+            between = (t[np.clip(i, 0, len(t) - 1)] != times) & (i > 0)
+            gaps = t[np.clip(i, 0, len(t) - 1)] - t[np.clip(i - 1, 0, len(t) - 1)]
+            if (between & (gaps > 1000.0 * max_gap)).any():
+                dropped.append(f"{where}: window spans a gap over {max_gap:g} s")
+                continue
+            windows.append(_resample(t, rec.positions, times, method))
+            gesture.append(g)
+            person.append(rec.person)
+            sequence.append(rec.name)
+    if not windows:
+        raise ValueError(f"no window could be cut from the recordings in {folder}: {dropped[:3]}")
+    labels, ids = _code_gestures(np.array(gesture), str(folder))
+    return MSRC12(
+        positions=torch.as_tensor(np.stack(windows), dtype=torch.float64),
+        labels=labels,
+        gesture_ids=ids,
+        names=tuple(GESTURES[g] for g in ids),
+        person=person,
+        sequence=sequence,
+        fps=float(fps),
+        action_frame=n_before,
+        dropped=dropped,
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Features
+# ------------------------------------------------------------------------------------------
+
+
+def kinect_features(
+    positions: Any, joints: Sequence[int | str] | None = None, *, include_hip: bool = False
+) -> torch.Tensor:
+    """Joint positions relative to the hip centre, flattened per frame.
+
+    The hip centre (joint 0) is subtracted from every joint in every frame, which removes where
+    the person stands (and walks) in front of the camera but keeps the body's orientation to it.
+
+    Args:
+        positions: ``[..., T, 20, 3]`` joint positions (joints as in :data:`JOINTS`).
+        joints: the joints to keep, by index or name (default: all but the hip centre, or all 20
+            with ``include_hip``).
+        include_hip: with ``joints=None``, keep the hip centre too (three columns that are
+            zero: 60 instead of 57 columns).
+
+    Returns:
+        ``[..., T, 3 J]`` (float64): ``x y z`` of the first kept joint, then of the second, ...
+
+    Raises:
+        ValueError: ``positions`` not finite ``[..., 20, 3]``, an unknown or repeated joint.
+    """
+    x = as_tensor(positions, "positions", dtype=torch.float64, min_ndim=3)
+    if x.shape[-2:] != (len(JOINTS), 3):
+        raise ValueError(f"positions must be [..., T, 20, 3], got shape {tuple(x.shape)}")
+    if joints is None:
+        index = list(range(0 if include_hip else 1, len(JOINTS)))
+    else:
+        index = []
+        for j in joints:
+            if isinstance(j, str) and j in JOINTS:
+                index.append(JOINTS.index(j))
+            elif isinstance(j, numbers.Integral) and 0 <= j < len(JOINTS):
+                index.append(int(j))
+            else:
+                raise ValueError(f"joints must be indices 0-19 or names in JOINTS, got {j!r}")
+        if not index or len(set(index)) != len(index):
+            raise ValueError(f"joints must be a non-empty list of distinct joints, got {joints}")
+    rel = x - x[..., :1, :]
+    return rel[..., index, :].flatten(-2)
+
+
+class PosePCA:
+    """Frame statistics and a PCA, fitted on training frames only.
+
+    :meth:`fit` centres the training frames (and, with ``standardize``, drops the channels
+    constant in training and scales the others to unit variance, with
+    :class:`~hgpdm_torch.datasets.Standardizer`), then fits scikit-learn's ``PCA`` (full SVD,
+    deterministic) on them. :meth:`transform` applies the same maps to any frames.
+
+    Args:
+        dim: components to keep: an int ``d >= 1``, a fraction in ``(0, 1)`` of the training
+            variance to explain (the smallest ``d`` that does), or ``None`` (no PCA: the
+            centred, optionally standardised, features).
+        standardize: scale channels to unit training variance before the PCA (with positions
+            in metres the default ``False`` keeps large movements large).
+
+    Attributes (after :meth:`fit`):
+        dim_: the output dimension.
+        explained_variance_ratio_: ``[dim_]`` share of the training variance of each component
+            (``None`` without PCA).
+    """
+
+    def __init__(self, dim: int | float | None = None, *, standardize: bool = False) -> None:
+        if dim is not None and not (
+            (isinstance(dim, numbers.Integral) and dim >= 1)
+            or (isinstance(dim, float) and 0.0 < dim < 1.0)
+        ):
+            raise ValueError(f"dim must be an int >= 1, a fraction in (0, 1) or None, got {dim!r}")
+        self.dim, self.standardize = dim, bool(standardize)
+
+    def _prepare(self, x: torch.Tensor) -> torch.Tensor:
+        if self.standardize:
+            return self.scaler_.transform(x)
+        return x - self.mean_.to(x)
+
+    def fit(self, x: Any) -> PosePCA:
+        """Fit on training frames ``[..., F]`` (e.g. ``[n, T, F]`` features of the training
+        instances: every frame counts once)."""
+        x = as_tensor(x, "x", dtype=torch.float64, min_ndim=1)
+        frames = x.reshape(-1, x.shape[-1])
+        if frames.shape[0] < 2:
+            raise ValueError(f"x must hold at least 2 frames, got shape {tuple(x.shape)}")
+        self.features_ = frames.shape[1]
+        if self.standardize:
+            self.scaler_ = Standardizer().fit(frames)
+        else:
+            self.mean_ = frames.mean(0)
+        u = self._prepare(frames)
+        if self.dim is None:
+            self.pca_, self.dim_, self.explained_variance_ratio_ = None, u.shape[1], None
+            return self
+        if isinstance(self.dim, numbers.Integral) and self.dim > min(u.shape):
+            raise ValueError(f"dim = {self.dim} exceeds min(frames, features) = {min(u.shape)}")
+        self.pca_ = PCA(self.dim, svd_solver="full").fit(u.cpu().numpy())
+        self.dim_ = int(self.pca_.n_components_)
+        self.explained_variance_ratio_ = self.pca_.explained_variance_ratio_.tolist()
+        return self
+
+    def transform(self, x: Any) -> torch.Tensor:
+        """``[..., F]`` -> ``[..., dim_]`` (float64, on the input's device)."""
+        if not hasattr(self, "dim_"):
+            raise RuntimeError("call fit before transform")
+        x = as_tensor(x, "x", dtype=torch.float64, min_ndim=1)
+        if x.shape[-1] != self.features_:
+            raise ValueError(f"x must have {self.features_} features, got shape {tuple(x.shape)}")
+        u = self._prepare(x)
+        if self.pca_ is None:
+            return u
+        mean = torch.as_tensor(self.pca_.mean_, dtype=u.dtype, device=u.device)
+        comp = torch.as_tensor(self.pca_.components_, dtype=u.dtype, device=u.device)
+        return (u - mean) @ comp.T
