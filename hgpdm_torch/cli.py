@@ -24,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "action-recognition": (
         "hgpdm_torch.experiments.action_recognition",
-        "action recognition on aeon BasicMotions (Sec. 3.6, Table 3.3)",
+        "action recognition on BasicMotions or MSRC-12 Kinect skeletons (Sec. 3.6, Table 3.3)",
     ),
     "anticipation": (
         "hgpdm_torch.experiments.anticipation",
