@@ -133,15 +133,17 @@ def _methods(
     model: IDDM,
     z_train: torch.Tensor,
     y_train: torch.Tensor,
+    meta: dict[str, Any],
     *,
     windows: Sequence[int],
     forgettings: Sequence[float],
     baseline_window: int,
     seed: int,
-) -> tuple[list[tuple[str, Method]], str | None]:
+) -> list[tuple[str, Method]]:
     """The methods of Table 3.3, baselines fitted on ``z_train [J, T, Dz]``, ``y_train [J]``.
 
-    Returns ``(name, method)`` pairs in table order and why a method was left out (or None).
+    Returns ``(name, method)`` pairs in table order; a method left out is named in
+    ``meta["skipped"]``.
     """
     jobs: list[tuple[str, Method]] = []
     for w in windows:
@@ -166,9 +168,10 @@ def _methods(
     try:
         hmm = HMMClassifier(states=3, window=baseline_window, seed=seed).fit(train, y_train)
     except ImportError:
-        return jobs, "HMM (hmmlearn not installed)"
+        meta["skipped"] = "HMM (hmmlearn not installed)"
+        return jobs
     jobs.append((f"HMM n={baseline_window}", hmm.predict))
-    return jobs, None
+    return jobs
 
 
 def _decide(
@@ -243,18 +246,11 @@ def action_recognition(
             "fits": [fit.summary()],
         },
     )
-    jobs, skipped = _methods(
-        model,
-        z_train,
-        y_train,
-        windows=windows,
-        forgettings=forgettings,
-        baseline_window=baseline_window,
-        seed=seed,
+    settings = dict(
+        windows=windows, forgettings=forgettings, baseline_window=baseline_window, seed=seed
     )
-    if skipped:
-        table.meta["skipped"] = skipped
-    for name, pred, ms in _decide(jobs, z_test, progress):
+    methods = _methods(model, z_train, y_train, table.meta, **settings)
+    for name, pred, ms in _decide(methods, z_test, progress):
         acc = 100.0 * float((pred == y_test[:, None]).double().mean())
         table.add(**{"method": name, "accuracy [%]": round(acc, 1), "CPU ms/decision": ms})
         table.meta["confusion"][name] = _confusion(pred, y_test[:, None], k).tolist()
@@ -383,6 +379,9 @@ def msrc12_recognition(
     )
     results: dict[str, dict[str, list[float]]] = {}
     splits = list(GroupKFold(n_splits=folds).split(features, groups=data.groups()))
+    settings = dict(
+        windows=windows, forgettings=forgettings, baseline_window=baseline_window, seed=seed
+    )
     for fold, (train, test) in enumerate(tqdm(splits, disable=not progress, desc="folds")):
         shared = set(persons[train]) & set(persons[test])
         if shared:  # GroupKFold guarantees this; the table's validity rests on it
@@ -414,18 +413,8 @@ def msrc12_recognition(
                 "fit": fit.summary(),
             }
         )
-        jobs, skipped = _methods(
-            model,
-            z_train,
-            y_train,
-            windows=windows,
-            forgettings=forgettings,
-            baseline_window=baseline_window,
-            seed=seed,
-        )
-        if skipped:
-            table.meta["skipped"] = skipped
-        for name, pred, ms in _decide(jobs, z_test, progress):
+        methods = _methods(model, z_train, y_train, table.meta, **settings)
+        for name, pred, ms in _decide(methods, z_test, progress):
             r = results.setdefault(name, {"all": [], "end": [], "ms": []})
             r["all"].append(100.0 * float((pred == y_test[:, None]).double().mean()))
             r["end"].append(100.0 * float((pred[:, -1] == y_test).double().mean()))
