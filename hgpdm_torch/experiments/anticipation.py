@@ -49,6 +49,7 @@ from ..decision.nac import nac
 from ..decision.stopping import ACTIONS, WAIT, Episodes, Policy, StoppingProblem, belief_vector
 from ..inference.intention import OnlineIntentionFilter
 from ..models import IDDM
+from ..parallel import Executor, get_executor, ray_address_type
 from ..validation import as_tensor
 from .arguments import int_at_least, output_folder, positive_int, random_seed
 from .dtype import float64_default
@@ -58,6 +59,7 @@ from .target_prediction import supervised_init
 __all__ = [
     "AnticipationConfig",
     "Beliefs",
+    "connect",
     "decision_indices",
     "fit_beliefs",
     "fixed_time_policy",
@@ -435,13 +437,15 @@ def run_protocol(
 def run_experiment(
     config: AnticipationConfig | None = None,
     *,
+    executor: Executor | None = None,
     cache_dir: str | Path | None = None,
     progress: bool = False,
 ) -> tuple[ResultTable, ResultTable]:
     """Simulate the trials and their reward table in SAPIEN, then run :func:`run_protocol`.
 
     The reward table is cached on disk (``cache_dir``, default ``$HGPDM_CACHE`` or
-    ``~/.cache/hgpdm_torch``); ``config.workers`` SAPIEN processes fill it.
+    ``~/.cache/hgpdm_torch``); ``executor`` (an :class:`~hgpdm_torch.parallel.Executor`, e.g.
+    a Ray cluster; left open) or else ``config.workers`` local SAPIEN processes fill it.
     """
     from ..robots.table_tennis import strokes
     from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
@@ -451,10 +455,10 @@ def run_experiment(
         raise RuntimeError(f"robot movements {strokes.MOVEMENTS} differ from actions {MOVEMENTS}")
     with float64_default():
         trials = make_trials(config.num_trials, seed=config.seed, progress=progress)
+        pool = {"workers": config.workers} if executor is None else {"executor": executor}
         rewards = reward_table(
-            trials, MOVEMENTS, DEFAULT_START_TIMES, workers=config.workers,
-            cache_dir=cache_dir, progress=progress,
-        )  # fmt: skip
+            trials, MOVEMENTS, DEFAULT_START_TIMES, cache_dir=cache_dir, progress=progress, **pool
+        )
         return run_protocol(
             trials.obs, trials.obs_times, trials.targets, rewards.to(torch.float64),
             DEFAULT_START_TIMES, config, progress=progress,
@@ -504,9 +508,23 @@ def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[
     return paths
 
 
+def connect(
+    parser: argparse.ArgumentParser, workers: int | None, ray_address: str | None
+) -> Executor | None:
+    """The Ray executor of a command's ``--ray-address`` (``None`` without one); Ray missing or
+    a cluster that does not answer ends in a usage error naming the option."""
+    if ray_address is None:
+        return None
+    try:
+        return get_executor(workers, ray_address)
+    except (ImportError, ConnectionError) as err:
+        parser.error(f"argument --ray-address: {err}")
+
+
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm anticipation [--full] [--trials N] [--folds K] [--repetitions R]
-    [--workers W] [--seed S] [--out DIR] [--cache-dir DIR] [--progress]``."""
+    [--workers W] [--ray-address ADDRESS] [--seed S] [--out DIR] [--cache-dir DIR]
+    [--progress]``."""
     parser = argparse.ArgumentParser(prog="hgpdm anticipation", description=__doc__.split("\n")[0])
     parser.add_argument(
         "--full", action="store_true", help="the thesis's sizes (270 trials, 10x10 CV)"
@@ -515,7 +533,18 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--folds", type=int_at_least(2))
     parser.add_argument("--repetitions", type=positive_int)
     parser.add_argument(
-        "--workers", type=positive_int, default=1, help="SAPIEN processes for the rewards"
+        "--workers",
+        type=positive_int,
+        default=None,
+        help="SAPIEN jobs at once for the rewards: local processes (default 1); with "
+        "--ray-address local the Ray instance's CPUs, with a cluster the most tasks in flight",
+    )
+    parser.add_argument(
+        "--ray-address",
+        type=ray_address_type,
+        default=None,
+        help="simulate the rewards on Ray: 'local' (a Ray instance here), 'auto' ($RAY_ADDRESS "
+        "or the cluster `ray start` runs here) or HOST:PORT of a head node",
     )
     parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--out", type=output_folder, default="hgpdm_anticipation_output")
@@ -523,7 +552,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
     smoke = os.environ.get("HGPDM_SMOKE") == "1" or not args.full
-    changes = {"seed": args.seed, "workers": args.workers}
+    changes = {"seed": args.seed, "workers": args.workers or 1}
     for key, name in (("num_trials", "trials"), ("folds", "folds"), ("repetitions", "repetitions")):
         if getattr(args, name) is not None:
             changes[key] = getattr(args, name)
@@ -531,7 +560,14 @@ def main(argv: list[str]) -> int:
         config = AnticipationConfig.smoke(**changes) if smoke else AnticipationConfig(**changes)
     except ValueError as err:  # sizes that contradict each other, e.g. more folds than trials
         parser.error(str(err))
-    fig6, fig7 = run_experiment(config, cache_dir=args.cache_dir, progress=args.progress)
+    executor = connect(parser, args.workers, args.ray_address)
+    try:
+        fig6, fig7 = run_experiment(
+            config, executor=executor, cache_dir=args.cache_dir, progress=args.progress
+        )
+    finally:
+        if executor is not None:
+            executor.close()
     print(fig6.to_markdown(".4g"))
     print()
     print(fig7.to_markdown(".4g"))

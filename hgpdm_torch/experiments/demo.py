@@ -35,6 +35,7 @@ from ..decision.basis import RadialBasis
 from ..decision.lspi import lspi
 from ..decision.mcp import MonteCarloPlanner
 from ..decision.stopping import StoppingProblem
+from ..parallel import Executor, ray_address_type
 from . import anticipation as ant
 from .arguments import non_negative_int, output_folder, positive_int, random_seed
 from .dtype import float64_default
@@ -84,6 +85,7 @@ def run_demo(
     test_fraction: float = 1 / 3,
     config: ant.AnticipationConfig | None = None,
     workers: int | None = None,
+    executor: Executor | None = None,
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
@@ -98,6 +100,8 @@ def run_demo(
         config: IDDM, basis, LSPI and MCP settings (default: the full experiment's with 20
             RBF centres; learning takes seconds, the SAPIEN simulation minutes).
         workers: SAPIEN processes for the reward table (default: all cores, at most 4).
+        executor: an :class:`~hgpdm_torch.parallel.Executor` (e.g. a Ray cluster) to simulate
+            the reward table on instead of ``workers`` local processes; left open.
         seed: seeds the strokes, the split and the planner.
         cache_dir: reward-table cache (default ``$HGPDM_CACHE`` or ``~/.cache/hgpdm_torch``).
         progress: tqdm bars.
@@ -107,7 +111,7 @@ def run_demo(
 
     Raises:
         ValueError: bad sizes (``num_trials``, ``watched``, ``workers``, ``test_fraction``
-            outside (0, 1)), or too few valid strokes to split.
+            outside (0, 1)), ``workers`` with an ``executor``, or too few valid strokes to split.
     """
     from ..robots.table_tennis import strokes
     from ..robots.table_tennis.trials import (
@@ -126,8 +130,11 @@ def run_demo(
         isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
     ):
         raise ValueError(f"workers must be a positive int or None, got {workers!r}")
+    if workers is not None and executor is not None:
+        raise ValueError("give workers or an executor, not both")
     config = config or ant.AnticipationConfig(centres=20, iddm_trials=10_000, seed=seed)
-    workers = workers or max(1, min(4, os.cpu_count() or 1))
+    local = {"workers": workers or max(1, min(4, os.cpu_count() or 1))}
+    pool = local if executor is None else {"executor": executor}
     movements = tuple(strokes.MOVEMENTS)
     if movements != ant.MOVEMENTS:
         raise RuntimeError(f"robot movements {movements} differ from actions {ant.MOVEMENTS}")
@@ -136,9 +143,8 @@ def run_demo(
     with float64_default():
         trials = make_trials(num_trials, seed=seed, progress=progress)
         rewards = reward_table(
-            trials, movements, start_times, workers=workers, cache_dir=cache_dir,
-            progress=progress,
-        ).to(torch.float64)  # fmt: skip
+            trials, movements, start_times, cache_dir=cache_dir, progress=progress, **pool
+        ).to(torch.float64)
         t_sim = time.perf_counter() - clock
         valid = torch.nonzero(ant.valid_trials(rewards)).flatten()
         n_test = round(test_fraction * len(valid))
@@ -279,8 +285,8 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
 
 
 def main(argv: list[str]) -> int:
-    """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--workers W] [--seed S] [--out DIR]
-    [--cache-dir DIR] [--full] [--progress]``."""
+    """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--workers W] [--ray-address ADDRESS]
+    [--seed S] [--out DIR] [--cache-dir DIR] [--full] [--progress]``."""
     parser = argparse.ArgumentParser(prog="hgpdm demo", description=__doc__.split("\n")[0])
     parser.add_argument("--trials", type=positive_int, default=None, help="strokes played (48)")
     parser.add_argument(
@@ -289,7 +295,18 @@ def main(argv: list[str]) -> int:
         default=None,
         help="further strokes the IDDM learns from (150)",
     )
-    parser.add_argument("--workers", type=positive_int, default=None, help="SAPIEN processes")
+    parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=None,
+        help="SAPIEN processes (all cores, at most 4); with --ray-address as in anticipation",
+    )
+    parser.add_argument(
+        "--ray-address",
+        type=ray_address_type,
+        default=None,
+        help="simulate the reward table on Ray: 'local', 'auto' or HOST:PORT of a head node",
+    )
     parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--out", type=output_folder, default="hgpdm_demo_output")
     parser.add_argument("--cache-dir", type=output_folder, default=None)
@@ -302,16 +319,25 @@ def main(argv: list[str]) -> int:
         parser.error("--trials and --watched set the demo's sizes; --full uses the thesis's")
     if args.full:
         extra = ["--out", str(args.out), "--seed", str(args.seed)]
-        extra += ["--workers", str(args.workers or max(1, os.cpu_count() or 1))]
+        if args.ray_address is None:
+            extra += ["--workers", str(args.workers or max(1, os.cpu_count() or 1))]
+        else:
+            extra += ["--ray-address", args.ray_address]
+            extra += ["--workers", str(args.workers)] if args.workers else []
         extra += ["--progress"] if args.progress else []
         extra += ["--cache-dir", str(args.cache_dir)] if args.cache_dir else []
         return ant.main(["--full", *extra])
-    result = run_demo(
-        num_trials=48 if args.trials is None else args.trials,
-        watched=150 if args.watched is None else args.watched,
-        workers=args.workers, seed=args.seed,
-        cache_dir=args.cache_dir, progress=args.progress,
-    )  # fmt: skip
+    executor = ant.connect(parser, args.workers, args.ray_address)
+    try:
+        result = run_demo(
+            num_trials=48 if args.trials is None else args.trials,
+            watched=150 if args.watched is None else args.watched,
+            workers=None if executor is not None else args.workers, executor=executor,
+            seed=args.seed, cache_dir=args.cache_dir, progress=args.progress,
+        )  # fmt: skip
+    finally:
+        if executor is not None:
+            executor.close()
     print(result.table.to_markdown(".3g"))
     print()
     print(", ".join(f"{k}: {v:.3g}" if isinstance(v, float) else f"{k}: {v}"

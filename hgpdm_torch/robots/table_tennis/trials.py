@@ -4,14 +4,17 @@ A trial is one stroke of the simulated opponent (:mod:`.opponent`): the observat
 before the opponent's hit, the true target and the ball leaving the opponent's racket. Evaluating a
 trial runs the SAPIEN scene with one of the robot's movements initiated at one time; the reward is
 +1 for a legal return and -1 otherwise, as in the thesis. :func:`reward_table` enumerates every
-(trial, movement, start time) combination, in parallel over processes, cached on disk.
+(trial, movement, start time) combination on an executor of :mod:`hgpdm_torch.parallel` (this
+process, local processes or a Ray cluster) and caches every cell on disk.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
-from concurrent.futures import ProcessPoolExecutor
+import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +22,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from ...parallel import Executor, get_executor
 from . import ball as B
 from . import geometry as geo
 from .opponent import OpponentConfig, sample_strokes
@@ -81,12 +85,20 @@ class Trials:
             B.BallState(*(f[i] for f in self.ball_after_hit)),
         )
 
-    def fingerprint(self) -> str:
-        """Hash of the balls that define the trials (the cache key's data part)."""
-        h = hashlib.sha256()
-        for f in self.ball_after_hit:
-            h.update(np.ascontiguousarray(f.detach().cpu().numpy(), dtype=np.float64).tobytes())
-        return h.hexdigest()[:16]
+    def fingerprints(self) -> list[str]:
+        """``n`` hashes, one per trial, of the ball that defines it (values and dtype): the data
+        part of the reward cache's key. Equal balls have equal fingerprints."""
+        fields = [f.detach().cpu().numpy() for f in self.ball_after_hit]
+        return [_ball_key(*(f[i] for f in fields)) for i in range(len(self))]
+
+
+def _ball_key(*arrays: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(a.dtype.str.encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:24]
 
 
 def make_trials(
@@ -124,7 +136,7 @@ _SIMULATORS: dict[tuple, _Simulator] = {}
 
 
 def _simulator(scene_config: SceneConfig | None, stroke_config: StrokeConfig | None) -> _Simulator:
-    key = (repr(scene_config), repr(stroke_config))
+    key = (repr(scene_config), repr(stroke_config), torch.get_default_dtype())
     if key not in _SIMULATORS:
         _SIMULATORS[key] = _Simulator(scene_config, stroke_config)
     return _SIMULATORS[key]
@@ -174,15 +186,61 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("HGPDM_CACHE", Path.home() / ".cache" / "hgpdm_torch"))
 
 
-def _rewards_for(args: tuple) -> np.ndarray:
-    pos, vel, spin, actions, start_times, scene_config, stroke_config = args
-    ball = B.BallState(torch.as_tensor(pos), torch.as_tensor(vel), torch.as_tensor(spin))
-    sim = _simulator(scene_config, stroke_config)
-    out = np.empty((len(actions), len(start_times)), dtype=np.int8)
-    for a, action in enumerate(actions):
-        for s, t0 in enumerate(start_times):
-            out[a, s] = 1 if sim.run(ball, action, t0).success else -1
-    return out
+def _settings_key(scene_config: SceneConfig | None, stroke_config: StrokeConfig | None) -> str:
+    """Hash of everything besides the ball that decides a reward: both configurations and the
+    simulation's source (:func:`_simulation_fingerprint`)."""
+    text = repr((scene_config, stroke_config, _simulation_fingerprint()))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _cell_name(action: str, start_time: float) -> str:
+    return f"{action}@{start_time!r}"
+
+
+def _read_cells(path: Path) -> dict[str, int]:
+    """The cached rewards of one trial, ``{"action@start_time": +-1}`` (empty if none)."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as err:
+        warnings.warn(f"ignoring the unreadable reward cache {path}: {err}", stacklevel=3)
+        return {}
+    if not isinstance(data, dict):
+        warnings.warn(f"ignoring the malformed reward cache {path}", stacklevel=3)
+        return {}
+    return {k: v for k, v in data.items() if v in (-1, 1) and not isinstance(v, bool)}
+
+
+def _write_cells(path: Path, cells: dict[str, int]) -> None:
+    """Add ``cells`` to the cache file of one trial, keeping the cells already there. Only the
+    calling process writes (workers return their rewards), and the file is replaced atomically:
+    a reader never sees half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    merged = {**_read_cells(path), **cells}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(merged, f, sort_keys=True)
+    os.replace(tmp, path)
+
+
+def _rewards_for(job: tuple) -> np.ndarray:
+    """One job of :func:`reward_table`: the rewards ``[C]`` of one ball's ``C`` missing cells.
+
+    The job carries the caller's default dtype and runs under it: a worker (a fresh Ray worker
+    above all) must not fall back to its own process's setting.
+    """
+    pos, vel, spin, cells, scene_config, stroke_config, dtype = job
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        # copies: an array a Ray worker receives is read-only
+        ball = B.BallState(torch.tensor(pos), torch.tensor(vel), torch.tensor(spin))
+        sim = _simulator(scene_config, stroke_config)
+        rewards = [1 if sim.run(ball, action, t0).success else -1 for action, t0 in cells]
+    finally:
+        torch.set_default_dtype(previous)
+    return np.array(rewards, dtype=np.int8)
 
 
 def reward_table(
@@ -191,6 +249,7 @@ def reward_table(
     start_times: tuple[float, ...] = DEFAULT_START_TIMES,
     *,
     workers: int = 1,
+    executor: Executor | None = None,
     cache_dir: str | Path | None = None,
     scene_config: SceneConfig | None = None,
     stroke_config: StrokeConfig | None = None,
@@ -198,26 +257,36 @@ def reward_table(
 ) -> torch.Tensor:
     """Reward (+1 legal return, -1 otherwise) of every trial x action x start time.
 
-    The thesis enumerates these combinations to learn when and how to act (Sec. 4.3.2). Results
-    are cached under ``cache_dir`` (default :func:`default_cache_dir`) keyed by the trials'
-    balls, the actions, the start times, both configurations and a hash of the simulation's
-    source files (a changed simulation never reads an old table).
+    The thesis enumerates these combinations to learn when and how to act (Sec. 4.3.2).
+
+    Every cell is cached under ``cache_dir`` (default :func:`default_cache_dir`): one small file
+    per trial, named by the trial's ball (:meth:`Trials.fingerprints`) in a folder named by both
+    configurations and a hash of the simulation's source files (a changed simulation never reads
+    an old reward). Only the cells missing from the cache are simulated -- one job per trial,
+    written to the cache as soon as it returns -- so an interrupted table resumes where it
+    stopped, a table that shares cells with an earlier one (other actions, start times or
+    trials) simulates only the new ones, and the executor that filled a cell does not matter:
+    the simulation is deterministic and gives the same table on every executor.
 
     Args:
         trials: the trials.
         actions: movement names.
         start_times: initiation times relative to the opponent's hit [s].
-        workers: processes to use (1: in this process).
+        workers: jobs at once when no ``executor`` is given (1: in this process; more: local
+            processes, see :func:`hgpdm_torch.parallel.get_executor`).
+        executor: an :class:`hgpdm_torch.parallel.Executor` to run the jobs on (local processes
+            or a Ray cluster); left open for the caller to reuse.
         cache_dir: cache folder.
         scene_config, stroke_config: simulation settings.
-        progress: show a tqdm bar over trials.
+        progress: show a tqdm bar over the trials still to simulate.
 
     Returns:
         ``[n, len(actions), len(start_times)]`` int8 tensor.
 
     Raises:
-        ValueError: unknown action, bad ``workers``, or a start time at or after the moment some
-            trial's ball reaches the hitting plane.
+        ValueError: unknown action, bad ``workers`` (or ``workers`` together with
+            ``executor``), or a start time at or after the moment some trial's ball reaches the
+            hitting plane.
     """
     if not isinstance(trials, Trials):
         raise TypeError(f"trials must be Trials, got {type(trials).__name__}")
@@ -228,6 +297,10 @@ def reward_table(
     start_times = tuple(float(t) for t in start_times)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive int, got {workers!r}")
+    if executor is not None and not isinstance(executor, Executor):
+        raise TypeError(f"executor must be an Executor, got {type(executor).__name__}")
+    if executor is not None and workers != 1:
+        raise ValueError("give workers or an executor, not both")
     t_cross, _, valid = B.predict_plane_crossing(trials.ball_after_hit, geo.HITTING_PLANE_Y)
     if not bool(valid.all()):
         raise ValueError("some trials' balls never reach the hitting plane")
@@ -236,52 +309,37 @@ def reward_table(
             f"start_times must come before every ball reaches the hitting plane (earliest "
             f"{float(t_cross.min()):.3f} s after the opponent's hit), got {max(start_times)}"
         )
-    key = hashlib.sha256(
-        repr(
-            (
-                trials.fingerprint(),
-                actions,
-                start_times,
-                scene_config,
-                stroke_config,
-                _simulation_fingerprint(),
-            )
-        ).encode()
-    ).hexdigest()[:24]
-    path = Path(cache_dir if cache_dir is not None else default_cache_dir())
-    path = path / "table_tennis" / f"rewards_{key}.npy"
-    if path.exists():
-        return torch.from_numpy(np.load(path))
-    jobs = [
-        (
-            trials.ball_after_hit.pos[i].numpy(),
-            trials.ball_after_hit.vel[i].numpy(),
-            trials.ball_after_hit.spin[i].numpy(),
-            actions,
-            start_times,
-            scene_config,
-            stroke_config,
-        )
-        for i in range(len(trials))
-    ]
-    bar = tqdm(total=len(jobs), disable=not progress, desc="reward table")
-    if workers == 1:
-        rows = []
-        for job in jobs:
-            rows.append(_rewards_for(job))
-            bar.update()
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            rows = []
-            for row in pool.map(_rewards_for, jobs):
-                rows.append(row)
+    folder = Path(cache_dir if cache_dir is not None else default_cache_dir())
+    folder = folder / "table_tennis" / "rewards" / _settings_key(scene_config, stroke_config)
+    cells = [(a, t) for a in actions for t in start_times]
+    names = [_cell_name(a, t) for a, t in cells]
+    keys = trials.fingerprints()
+    first = {}  # ball -> its first trial (equal balls are simulated once)
+    for i, key in enumerate(keys):
+        first.setdefault(key, i)
+    known = {key: _read_cells(folder / f"{key}.json") for key in first}
+    balls = [f.detach().cpu().numpy() for f in trials.ball_after_hit]
+    jobs, job_keys, dtype = [], [], torch.get_default_dtype()
+    for key, i in first.items():
+        missing = tuple(c for c, name in zip(cells, names, strict=True) if name not in known[key])
+        if missing:
+            jobs.append((*(f[i] for f in balls), missing, scene_config, stroke_config, dtype))
+            job_keys.append(key)
+    if jobs:
+        pool = executor if executor is not None else get_executor(workers)
+        bar = tqdm(total=len(jobs), disable=not progress, desc="reward table")
+        try:
+            for key, job, rewards in zip(job_keys, jobs, pool.map(_rewards_for, jobs), strict=True):
+                new = {_cell_name(a, t): int(r) for (a, t), r in zip(job[3], rewards, strict=True)}
+                known[key].update(new)
+                _write_cells(folder / f"{key}.json", new)
                 bar.update()
-    bar.close()
-    table = np.stack(rows) if rows else np.empty((0, len(actions), len(start_times)), np.int8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npy")
-    np.save(tmp, table)
-    tmp.replace(path)
+        finally:
+            bar.close()
+            if executor is None:
+                pool.close()
+    table = [[known[key][name] for name in names] for key in keys]
+    table = np.array(table, dtype=np.int8).reshape(len(trials), len(actions), len(start_times))
     return torch.from_numpy(table)
 
 
@@ -303,8 +361,8 @@ def hitting_regions(
         start_time: movement initiation relative to the opponent's hit [s].
         bins: ``[K + 1]`` bin edges of the target ``x`` [m] (default: 12 bins over +-1.2 m).
         actions: movements to evaluate.
-        **reward_kw: passed to :func:`reward_table` (``workers``, ``cache_dir``, ``progress``,
-            configurations).
+        **reward_kw: passed to :func:`reward_table` (``workers`` or ``executor``, ``cache_dir``,
+            ``progress``, configurations).
 
     Returns:
         ``centers [K]``, ``{movement: rate [K]}`` (NaN in empty bins) and ``counts [K]``.
