@@ -124,6 +124,10 @@ BAD_ARGUMENTS = [
     (["demo", "--out", "{file}"], "argument --out: {file} is a file"),
     (["demo", "--cache-dir", "{file}"], "argument --cache-dir: {file} is a file"),
     (["demo", "--full", "--trials", "3"], "--full uses the thesis's"),
+    (["anticipation", "--ray-address", "head"], "argument --ray-address"),
+    (["demo", "--ray-address", "a:b:c"], "argument --ray-address"),
+    (["walkers", "--sharing", "1.5"], "--sharing must lie in [0, 1)"),
+    (["action-recognition", "--dataset", "kinect"], "argument --dataset: invalid choice"),
 ]
 
 
