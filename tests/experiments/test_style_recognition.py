@@ -32,11 +32,11 @@ def test_basic_motions_loader_and_row():
     assert sorted(data.train_labels.tolist()) == [0, 0, 1, 1, 2, 2, 3, 3]
     flat = torch.cat(data.train)
     torch.testing.assert_close(flat.mean(0), torch.zeros(6), atol=1e-9, rtol=0)
-    table = sr.style_recognition(("basic_motions",), lengths=(5,), fit_steps=20, stride=10)
+    table = sr.style_recognition(("basic_motions",), lengths=(5,), fit_steps=20, stride=2)
     row = table.rows[0]
-    assert row["data"] == "basic_motions" and row["windows"] == 48
-    # 4 activities (chance 0.25; 0.58 measured): >= 0.45 of 48 windows is far above chance
-    assert row["VB H-GPDM accuracy"] >= 0.45
+    assert row["data"] == "basic_motions" and row["windows"] >= 60
+    # 4 activities, chance 0.25 (measured: 0.52 of 60 windows at smoke size, 0.58 at full size)
+    assert row["VB H-GPDM accuracy"] >= 0.4
     assert all(math.isfinite(row[c]) for c in sr.COLUMNS if c.endswith("RMSE"))
     assert row["oracle VB RMSE"] < row["repeat last frame RMSE"]
 
