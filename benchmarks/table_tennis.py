@@ -1,9 +1,20 @@
-"""Speed of the simulated table tennis: opponent strokes/s, robot strokes/s, reward-table time.
+"""Speed of the simulated table tennis: opponent and robot strokes/s, old vs new; reward table.
 
 The thesis's reward table enumerates 270 trials x 3 movements x 5 start times (Sec. 4.3.2).
-``python -m benchmarks table_tennis`` samples the trials and plays ``--trials`` of them (default
-30; ``--trials 270`` builds the whole table) in one process, and extrapolates the full table's
-time from the measured strokes/s; ``--quick`` plays 2 trials (smoke mode, written to
+``python -m benchmarks table_tennis`` (options: ``python -m benchmarks.table_tennis --trials N``)
+samples ``--trials`` trials (default 30) in one process and
+
+1. plays the first ``--legacy-trials`` of them (default 4, 60 strokes) with the previous
+   implementation (``execute_stroke(..., legacy=True)``: 1 ms PhysX steps throughout, per-step
+   Python control, uncached planning on tensors) and with the current one, each with a fresh
+   planner (nothing cached), and reports both strokes/s, their ratio and whether the rewards
+   agree;
+2. builds the reward table of all trials with :func:`reward_table` (the planner's cache shares
+   the prediction and aiming of a trial between its 15 strokes), and extrapolates the full
+   table's time from its strokes/s.
+
+All times are CPU seconds of this process (``time.process_time``), so that other jobs on the
+machine disturb them less. ``--quick`` plays 2 trials and 1 legacy trial (smoke mode, written to
 ``table_tennis_quick.json``, not tracked). The success rate of each movement and start time is
 recorded alongside.
 """
@@ -11,10 +22,11 @@ recorded alongside.
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 import time
 
-from benchmarks._common import RESULTS
+from benchmarks._common import RESULTS, environment
 from hgpdm_torch.experiments.table import ResultTable
 
 N_FULL = 270
@@ -30,7 +42,8 @@ def main(argv: list[str]) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
-    from hgpdm_torch.robots.table_tennis.strokes import MOVEMENTS
+    from hgpdm_torch.robots.table_tennis.scene import TableTennisScene
+    from hgpdm_torch.robots.table_tennis.strokes import MOVEMENTS, StrokePlanner, execute_stroke
     from hgpdm_torch.robots.table_tennis.trials import (
         DEFAULT_START_TIMES,
         make_trials,
@@ -40,42 +53,95 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(1)
     quick = "--quick" in argv
     n = 2 if quick else _option(argv, "--trials", 30)
+    n_legacy = min(n, 1 if quick else _option(argv, "--legacy-trials", 4))
+    per_trial = len(MOVEMENTS) * len(DEFAULT_START_TIMES)
+    full = N_FULL * per_trial
+
     t0 = time.process_time()
     trials = make_trials(n, seed=0)
     sample_s = time.process_time() - t0
-    strokes = n * len(MOVEMENTS) * len(DEFAULT_START_TIMES)
+
+    def play(legacy: bool) -> tuple[float, list[bool]]:
+        planner = StrokePlanner()  # fresh: no prediction, aim or IK cached
+        scene = TableTennisScene(wam=planner.wam)
+        t0 = time.process_time()
+        won = [
+            execute_stroke(scene, planner, trials[i].ball_after_hit, m, st, legacy=legacy).success
+            for i in range(n_legacy)
+            for m in MOVEMENTS
+            for st in DEFAULT_START_TIMES
+        ]
+        return time.process_time() - t0, won
+
+    old_s, old_won = play(legacy=True)
+    new_s, new_won = play(legacy=False)
+    strokes = n_legacy * per_trial
+    agree = sum(a == b for a, b in zip(old_won, new_won, strict=True))
+
     with tempfile.TemporaryDirectory() as cache:
+        # builds trials.py's simulator (planner IK, scene) outside the timed table
+        reward_table(make_trials(1, seed=1), cache_dir=cache, progress=False)
         t0 = time.process_time()
         table = reward_table(trials, cache_dir=cache, progress=not quick)
-        play_s = time.process_time() - t0
-    per_s = strokes / play_s
-    full_s = N_FULL * len(MOVEMENTS) * len(DEFAULT_START_TIMES) / per_s
-    how = "measured" if n == N_FULL else f"extrapolated from {n} trials"
+        table_s = time.process_time() - t0
+    table_per_s = n * per_trial / table_s
+
     result = ResultTable(
-        "Table tennis: opponent sampler and robot strokes (SAPIEN, 1 ms steps, one process, CPU s)",
+        "Table tennis: opponent sampler and robot strokes (SAPIEN, one process, CPU s)",
         ["stage", "count", "cpu s", "per s", "table 270x3x5 [s]", "how"],
     )
-    result.add(
-        stage="opponent trials (sample_strokes)",
-        count=n,
-        **{"cpu s": sample_s, "per s": n / sample_s, "table 270x3x5 [s]": None, "how": "measured"},
+
+    def row(stage: str, count: int, cpu: float, how: str, per_table: bool = True) -> None:
+        values = {"cpu s": cpu, "per s": count / cpu}
+        values["table 270x3x5 [s]"] = full * cpu / count if per_table else None
+        result.add(stage=stage, count=count, how=how, **values)
+
+    row("opponent trials (sample_strokes)", n, sample_s, "measured", per_table=False)
+    row(
+        "robot strokes, previous (legacy=True, 1 ms)",
+        strokes,
+        old_s,
+        f"{n_legacy} trials, extrapolated",
     )
-    result.add(
-        stage="robot strokes (reward_table)",
-        count=strokes,
-        **{"cpu s": play_s, "per s": per_s, "table 270x3x5 [s]": full_s, "how": how},
+    row(
+        "robot strokes, current (execute_stroke)",
+        strokes,
+        new_s,
+        f"same {n_legacy} trials, nothing cached, extrapolated",
+    )
+    row(
+        "robot strokes, current (reward_table)",
+        n * per_trial,
+        table_s,
+        "measured" if n == N_FULL else f"{n} trials, extrapolated",
     )
     rates = (table > 0).double().mean(0)  # [actions, start times]
     result.meta = {
-        "command": "python -m benchmarks table_tennis"
-        + (" --quick" if quick else f" --trials {n}"),
+        "command": "python -m benchmarks table_tennis --quick"
+        if quick
+        else f"python -m benchmarks.table_tennis --trials {n} --legacy-trials {n_legacy}",
+        "speedup_same_strokes": old_s / new_s,
+        "speedup_reward_table": table_per_s / (strokes / old_s),
+        "rewards_agree": f"{agree} of {strokes} strokes",
+        "reward_table_s": table_s,
         "start_times": list(DEFAULT_START_TIMES),
         "success_rate": {
             m: [round(float(r), 3) for r in rates[i]] for i, m in enumerate(MOVEMENTS)
         },
         "best_movement_success": float((table > 0).any(1).double().mean()),
+        **environment(),
     }
     print(result)
+    print(
+        f"strokes/s previous {strokes / old_s:.3g}, current {strokes / new_s:.3g} "
+        f"(x{old_s / new_s:.1f} on the same {strokes} strokes; reward_table "
+        f"{table_per_s:.3g}/s, x{result.meta['speedup_reward_table']:.1f}); rewards agree on "
+        f"{agree} of {strokes}; reward table of {n} trials: {table_s:.1f} CPU s"
+    )
     print("success rate by movement (rows) and start time (columns):", result.meta["success_rate"])
     result.to_json(RESULTS / ("table_tennis_quick.json" if quick else "table_tennis.json"))
     return 0
+
+
+if __name__ == "__main__":  # python -m benchmarks.table_tennis [--quick] [--trials N] ...
+    raise SystemExit(main(sys.argv[1:]))

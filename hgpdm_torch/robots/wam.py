@@ -7,6 +7,11 @@ every pose it returns is in the world frame (origin on the floor below the table
 robot towards the opponent, z up).
 
 Shapes: ``q`` is ``[..., 7]`` joint angles (rad); positions and normals are ``[..., 3]`` (m).
+
+One configuration (the robot's stroke planning solves one IK problem per stroke) goes through the
+same chain in numpy (:class:`_Chain1`): pytorch-kinematics spends milliseconds per call on a batch
+of one, numpy tens of microseconds; the transforms are taken from the pytorch-kinematics chain, so
+the two agree to rounding (``tests/robots/test_wam.py``).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import math
 from dataclasses import dataclass
 from importlib import resources
 
+import numpy as np
 import pytorch_kinematics as pk
 import torch
 
@@ -139,6 +145,17 @@ class WAM:
         self.effort_limit = torch.as_tensor(
             self.chain.get_joint_effort_limits()[1], dtype=dtype, device=pos.device
         )
+        self._one: _Chain1 | None = None
+
+    def _single(self, *tensors: torch.Tensor) -> _Chain1 | None:
+        """The numpy chain when every argument is one float64 CPU vector (no autograd)."""
+        if self.dtype != torch.float64 or not all(
+            t.dim() == 1 and t.device.type == "cpu" and not t.requires_grad for t in tensors
+        ):
+            return None
+        if self._one is None:
+            self._one = _Chain1(self)
+        return self._one
 
     # -- helpers -------------------------------------------------------------------------------
     def _q(self, q: object, name: str = "q") -> torch.Tensor:
@@ -238,9 +255,17 @@ class WAM:
         if not damping > 0 or not max_iter >= 1:
             raise ValueError("damping must be positive and max_iter at least 1")
         batch = torch.broadcast_shapes(p_t.shape[:-1], n_t.shape[:-1])
-        q = self._q(q0, "q0").expand(*batch, DOF).reshape(-1, DOF).clone()
-        rest = q0 if q_rest is None else q_rest
-        rest = self._q(rest, "q_rest").expand(*batch, DOF).reshape(-1, DOF)
+        q0_t = self._q(q0, "q0")
+        rest_t = q0_t if q_rest is None else self._q(q_rest, "q_rest")
+        one = self._single(p_t, n_t, q0_t, rest_t)
+        if one is not None:
+            res = one.ik(
+                p_t.numpy(), n_t.numpy(), q0_t.numpy(), rest_t.numpy(), damping, rest_gain,
+                max_iter, position_tol, normal_tol,
+            )  # fmt: skip
+            return IKResult(*(torch.as_tensor(x) for x in res))
+        q = q0_t.expand(*batch, DOF).reshape(-1, DOF).clone()
+        rest = rest_t.expand(*batch, DOF).reshape(-1, DOF)
         p_t = p_t.expand(*batch, 3).reshape(-1, 3)
         n_t = n_t.expand(*batch, 3).reshape(-1, 3)
         eye3 = torch.eye(3, dtype=self.dtype, device=self.device)
@@ -294,7 +319,119 @@ class WAM:
         """
         v = as_tensor(racket_velocity, "racket_velocity", dtype=self.dtype, device=self.device)
         check_shape(v, "racket_velocity", (3,))
+        q = self._q(q)
+        one = self._single(q, v)
+        if one is not None:
+            jv1 = one.jacobian(q.numpy())[:3]
+            gram1 = jv1 @ jv1.T + damping**2 * np.eye(3)
+            return torch.as_tensor(jv1.T @ np.linalg.solve(gram1, v.numpy()))
         jv = self.jacobian(q)[..., :3, :]
         eye3 = torch.eye(3, dtype=self.dtype, device=self.device)
         gram = jv @ jv.transpose(-1, -2) + damping**2 * eye3
         return (jv.transpose(-1, -2) @ torch.linalg.solve(gram, v.unsqueeze(-1))).squeeze(-1)
+
+
+class _Chain1:
+    """Racket pose, Jacobian and IK of one configuration ``[7]`` in numpy (float64).
+
+    The fixed transform in front of each joint is read off the pytorch-kinematics chain (its
+    frames at ``q = 0``), so that both evaluate the same arm to rounding.
+    """
+
+    def __init__(self, wam: WAM) -> None:
+        names = ["wam_base", *[f"wam_link{i}" for i in range(1, DOF + 1)], "wam_flange"]
+        names.append(RACKET_LINK)
+        zero = torch.zeros(1, DOF, dtype=torch.float64, device=wam.device)
+        frames = wam.chain.forward_kinematics(zero, end_only=False)
+        mats = [frames[n].get_matrix()[0].cpu().double().numpy() for n in names]
+        # offset i maps frame i-1 to frame i at q_i = 0 (joint i turns about its frame's z)
+        offsets = [np.linalg.solve(mats[i - 1], mats[i]) for i in range(1, len(mats))]
+        self.offsets = offsets[:DOF]
+        self.tail = offsets[DOF] @ offsets[DOF + 1]  # link 7 -> flange -> racket
+        self.base = np.eye(4)
+        self.base[:3, :3] = wam.base_rotation.cpu().double().numpy()
+        self.base[:3, 3] = wam.base_position.cpu().double().numpy()
+        self.lower = wam.lower.cpu().double().numpy()
+        self.upper = wam.upper.cpu().double().numpy()
+
+    def _frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Joint axes ``[7, 3]``, joint origins ``[7, 3]`` and the racket frame ``[4, 4]``."""
+        t = self.base
+        axes, origins = np.empty((DOF, 3)), np.empty((DOF, 3))
+        for j, (off, qj) in enumerate(zip(self.offsets, q.tolist(), strict=True)):
+            t = t @ off
+            axes[j], origins[j] = t[:3, 2], t[:3, 3]
+            c, s = math.cos(qj), math.sin(qj)
+            t = t.copy()
+            t[:3, 0], t[:3, 1] = c * t[:3, 0] + s * t[:3, 1], c * t[:3, 1] - s * t[:3, 0]
+        return axes, origins, t @ self.tail
+
+    def fk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Racket centre ``[3]`` and frame axes ``[3, 3]`` (columns; the normal is column 2)."""
+        end = self._frames(q)[2]
+        return end[:3, 3], end[:3, :3]
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """:meth:`WAM.jacobian` of one configuration: ``[6, 7]``."""
+        return self._pose_jacobian(q)[2]
+
+    def _pose_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Racket centre ``[3]``, frame axes ``[3, 3]`` and Jacobian ``[6, 7]`` in one pass."""
+        axes, origins, end = self._frames(q)
+        arm = end[:3, 3] - origins
+        lin = np.stack(
+            [
+                axes[:, 1] * arm[:, 2] - axes[:, 2] * arm[:, 1],
+                axes[:, 2] * arm[:, 0] - axes[:, 0] * arm[:, 2],
+                axes[:, 0] * arm[:, 1] - axes[:, 1] * arm[:, 0],
+            ]
+        )
+        return end[:3, 3], end[:3, :3], np.concatenate([lin, axes.T])
+
+    def ik(
+        self,
+        p_t: np.ndarray,
+        n_t: np.ndarray,
+        q0: np.ndarray,
+        rest: np.ndarray,
+        damping: float,
+        rest_gain: float,
+        max_iter: int,
+        position_tol: float,
+        normal_tol: float,
+    ) -> tuple[np.ndarray, float, float, bool]:
+        """:meth:`WAM.ik` for one target (the same iteration, step by step)."""
+        q = q0.copy()
+        eye6, eye7 = np.eye(6), np.eye(DOF)
+        for _ in range(max_iter):
+            pos, rot, jac = self._pose_jacobian(q)
+            normal = rot[:, 2]
+            e_p = p_t - pos
+            e_n = _cross(normal, n_t)
+            cos = float(normal @ n_t)
+            if cos < 0:  # opposite normals: any axis orthogonal to n turns it
+                e_n = e_n / max(float(np.linalg.norm(e_n)), 1e-9)
+            err_p = float(np.linalg.norm(e_p))
+            err_n = math.atan2(float(np.linalg.norm(e_n)), cos)
+            if err_p < position_tol and err_n < normal_tol:
+                break
+            e_p = e_p * (0.1 / max(err_p, 0.1))
+            proj = np.eye(3) - np.outer(normal, normal)
+            j = np.concatenate([jac[:3], proj @ jac[3:]])
+            e = np.concatenate([e_p, e_n])
+            dq = j.T @ np.linalg.solve(j @ j.T + damping**2 * eye6, e)
+            null = eye7 - np.linalg.pinv(j, rcond=1e-6) @ j
+            q = np.minimum(
+                np.maximum(q + dq + null @ (rest_gain * (rest - q)), self.lower), self.upper
+            )
+        pos, rot = self.fk(q)
+        err_p = float(np.linalg.norm(p_t - pos))
+        err_n = math.acos(min(max(float(rot[:, 2] @ n_t), -1.0), 1.0))
+        return q, err_p, err_n, err_p < position_tol and err_n < normal_tol
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two 3-vectors (np.cross costs ten times more for one pair)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )

@@ -414,3 +414,73 @@ def test_integration_overflow_raises() -> None:
     ):
         with pytest.raises(ValueError, match="non-finite values"):
             run()
+
+
+def _batch_of_one(state: B.BallState) -> B.BallState:
+    return B.BallState(*(x.unsqueeze(0) for x in state))
+
+
+def test_one_ball_in_floats_matches_the_tensor_code(generator: torch.Generator) -> None:
+    # An unbatched state takes ScalarBall's float path, a batch of one the tensor path: the same
+    # flights, bounces and net contacts to rounding. A third of the balls are lowered into the
+    # net, so the sample has both kinds of contact.
+    state = _served(9, generator)
+    vel = state.vel.clone()
+    vel[::3, 2] -= 1.5
+    state = B.make_state(state.pos, vel, state.spin)
+    nets = bounces = 0
+    for i in range(9):
+        one = B.BallState(*(x[i] for x in state))
+        single, batch = B.simulate(one, 1.0, 0.01), B.simulate(_batch_of_one(one), 1.0, 0.01)
+        torch.testing.assert_close(single.times, batch.times, atol=0, rtol=0)
+        for name in ("pos", "vel", "spin", "bounce_pos", "bounce_time"):
+            torch.testing.assert_close(
+                getattr(single, name), getattr(batch, name)[0], atol=1e-12, rtol=0
+            )
+        assert torch.equal(single.bounce, batch.bounce[0])
+        assert torch.equal(single.net, batch.net[0])
+        nets += int(single.net.any())
+        bounces += int(single.bounce.sum())
+        # the other entry points: a step over the first contact, a duration through it and the
+        # plane crossing
+        k = max(int(torch.argmax((single.bounce | single.net).to(torch.int8))) - 2, 0)
+        near = B.BallState(single.pos[k], single.vel[k], single.spin[k])
+        s1, e1 = B.step_events(near, 0.05)
+        sb, eb = B.step_events(_batch_of_one(near), 0.05)
+        assert bool(e1.bounce or e1.net) or k == 0
+        for a, b in zip((*s1, *e1), (*sb, *eb), strict=True):
+            torch.testing.assert_close(a, b[0], atol=1e-12, rtol=0)
+        for a, b in zip(B.propagate(one, 0.73), B.propagate(_batch_of_one(one), 0.73), strict=True):
+            torch.testing.assert_close(a, b[0], atol=1e-12, rtol=0)
+        t1, at1, ok1 = B.predict_plane_crossing(one, 0.5)
+        tb, atb, okb = B.predict_plane_crossing(_batch_of_one(one), 0.5)
+        torch.testing.assert_close(t1, tb[0], atol=1e-12, rtol=0)
+        for a, b in zip(at1, atb, strict=True):
+            torch.testing.assert_close(a, b[0], atol=1e-12, rtol=0)
+        assert bool(ok1) == bool(okb[0])
+    assert nets >= 2 and bounces >= 6, (nets, bounces)
+    # aiming one ball: the same Newton iteration (same steps, same stopping rule)
+    v1 = B.aim(state.pos[0], [0.2, 0.7], 0.5, spin=state.spin[0])
+    vb = B.aim(state.pos[:1], torch.tensor([[0.2, 0.7]]), 0.5, spin=state.spin[:1])
+    torch.testing.assert_close(v1, vb[0], atol=1e-12, rtol=0)
+
+
+def test_absurd_durations_are_refused_before_any_work() -> None:
+    # simulate(state, 1e5, 0.05) used to run 2 million steps; every integrator has a cap
+    state = B.make_state([0.0, -1.5, 1.0], [0.0, 5.0, 1.0])
+    with pytest.raises(ValueError, match=r"duration must be .* \(0, MAX_DURATION = 10\], got 1"):
+        B.simulate(state, 1e5, 0.05)
+    with pytest.raises(ValueError, match=r"duration / dt = 500000 steps exceeds MAX_STEPS"):
+        B.simulate(state, 5.0, 1e-5)
+    with pytest.raises(ValueError, match="duration must be at most MAX_DURATION = 10 s"):
+        B.propagate(state, 100.0)
+    with pytest.raises(ValueError, match="MAX_STEPS"):
+        B.propagate(state, 5.0, dt=1e-5)
+    with pytest.raises(ValueError, match=r"max_time must be .* MAX_DURATION"):
+        B.predict_plane_crossing(state, 0.0, max_time=1e3)
+    with pytest.raises(ValueError, match="flight_time must be positive and at most MAX_DURATION"):
+        B.aim([0.0, -1.5, 1.0], [0.0, 0.5], 1e3)
+    with pytest.raises(ValueError, match="flight_time"):
+        B.aim_through_bounce([0.0, 1.6, 1.0], 0.0, -1.0, 50.0)
+    # the caps themselves are allowed
+    assert B.simulate(state, B.MAX_DURATION, 0.05).times.shape == (201,)

@@ -92,3 +92,49 @@ def test_bad_ball_state(scene: TableTennisScene) -> None:
         scene.set_ball((1, 2, 3))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="single ball"):
         scene.set_ball(B.make_state(torch.zeros(2, 3), torch.zeros(2, 3)))
+
+
+def test_parked_ball_returns_and_long_steps_need_it_parked(scene: TableTennisScene) -> None:
+    scene.set_robot(PARKED)
+    scene.park_ball()
+    scene.step(scene.config.coarse_steps)  # the arm alone may take long steps
+    state = B.make_state(torch.tensor([0.1, 0.5, 1.0]), torch.tensor([0.3, -3.5, 2.0]))
+    scene.set_ball(state)
+    with pytest.raises(ValueError, match="parked"):
+        scene.step(2)
+    for _ in range(100):
+        scene.step()
+    ref = B.simulate(state, 0.1, 0.001)
+    torch.testing.assert_close(scene.ball_state().pos, ref.pos[-1], atol=1e-3, rtol=0)
+    with pytest.raises(ValueError, match="steps"):
+        scene.step(scene.config.coarse_steps + 1)
+
+
+def test_arm_clearance_is_false_near_the_arm_and_true_far_from_it(scene: TableTennisScene) -> None:
+    scene.set_robot(torch.tensor([0.0, 0.9, 0.0, 1.4, 0.0, 0.0, 0.0]))  # racket stretched out
+    scene.step()
+    centre, normal = scene.racket_pose()
+    on_racket = tuple((centre + 0.03 * normal).tolist())
+    assert not scene.arm_clear_of(on_racket, 0.0, 0.001)
+    # 0.3 m off the face on the side away from the arm: clear for a slow ball over 1 ms, not
+    # for a fast one over 20 ms
+    away = normal if float(normal @ (centre - np.array([0.0, -2.4, 1.05]))) > 0 else -normal
+    off = tuple((centre + 0.3 * away).tolist())
+    assert scene.arm_clear_of(off, 1.0, 0.001)
+    assert not scene.arm_clear_of(off, 20.0, 0.02)
+    # the shoulder is an obstacle too, and the opponent's side of the table is far from all
+    assert not scene.arm_clear_of((0.0, -2.4, 1.05), 0.0, 0.001)
+    assert scene.arm_clear_of((0.0, 1.5, 1.0), 10.0, 0.02)
+    scene.set_robot(PARKED)
+
+
+def test_bad_durations_and_steps() -> None:
+    with pytest.raises(ValueError, match="coarse_timestep"):
+        SceneConfig(coarse_timestep=0.0025)
+    with pytest.raises(ValueError, match="coarse_timestep"):
+        SceneConfig(coarse_timestep=0.02)
+    assert SceneConfig(coarse_timestep=0.004).coarse_steps == 4
+    sc = TableTennisScene()
+    state = B.make_state(torch.tensor([0.1, 0.5, 1.0]), torch.tensor([0.3, -3.5, 2.0]))
+    with pytest.raises(ValueError, match=r"duration must be .* MAX_DURATION"):
+        sc.simulate_ball(state, 1e5)

@@ -126,6 +126,33 @@ def test_joint_velocity_produces_racket_velocity(wam: WAM, generator: torch.Gene
     assert float((null @ qd.unsqueeze(-1)).abs().max()) < 1e-6
 
 
+def test_one_configuration_in_numpy_matches_pytorch_kinematics(
+    wam: WAM, generator: torch.Generator
+) -> None:
+    # One IK problem (the stroke planner's) runs on the numpy chain, a batch of one on
+    # pytorch-kinematics: the same iteration on the same arm, to rounding. At an unreachable
+    # target the iteration never settles and amplifies rounding (after ~20 iterations the two
+    # differ), so there only the first iterations are compared.
+    q_true = random_q(wam, 6, generator, margin=0.4).double()
+    target = wam.fk(q_true)
+    seed = torch.minimum(torch.maximum(q_true + 0.3, wam.lower), wam.upper)
+    far = wam.base_position + torch.tensor([0.0, 0.0, -3.0], dtype=torch.float64)
+    cases = [(target.position[i], target.normal[i], seed[i], 150) for i in range(6)]
+    cases.append((far, target.normal[0], seed[0], 5))
+    v = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    for pos, normal, q0, iters in cases:
+        one = wam.ik(pos, normal, q0, max_iter=iters)
+        batch = wam.ik(pos[None], normal, q0, max_iter=iters)
+        torch.testing.assert_close(one.q, batch.q[0], atol=1e-10, rtol=0)
+        torch.testing.assert_close(one.position_error, batch.position_error[0], atol=1e-10, rtol=0)
+        torch.testing.assert_close(one.normal_error, batch.normal_error[0], atol=1e-10, rtol=0)
+        assert bool(one.success) == bool(batch.success[0]) == (iters == 150)
+        torch.testing.assert_close(
+            wam.joint_velocity(one.q, v), wam.joint_velocity(one.q[None], v)[0], atol=1e-12, rtol=0
+        )
+    assert float(wam.ik(far, target.normal[0], seed[0], max_iter=150).position_error) > 1.5
+
+
 def test_bad_input(wam: WAM) -> None:
     with pytest.raises(ValueError, match="q"):
         wam.fk(torch.zeros(6))

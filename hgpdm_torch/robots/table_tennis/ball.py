@@ -18,6 +18,11 @@ torch (float64, any leading batch dims ``...``):
 
 Table and net contacts are events located inside a step to machine precision (a safeguarded
 Newton search on the RK4 flow), so results do not depend on the step size for ``dt <= 10 ms``.
+
+A single float64 ball on the CPU (an unbatched state) is integrated by :class:`ScalarBall`, the same
+arithmetic on Python floats (tensor operations on three numbers cost more than the numbers); batches
+are tensors. One call simulates at most :data:`MAX_DURATION` seconds in at most :data:`MAX_STEPS`
+steps.
 """
 
 from __future__ import annotations
@@ -25,8 +30,10 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -35,13 +42,16 @@ from hgpdm_torch.validation import as_tensor, check_choice, check_shape
 
 __all__ = [
     "DEFAULT_PARAMS",
+    "MAX_DURATION",
     "MAX_SPEED",
     "MAX_SPIN",
+    "MAX_STEPS",
     "BallParams",
     "BallState",
     "BallTrajectory",
     "BounceAim",
     "Landing",
+    "ScalarBall",
     "StepEvents",
     "aim",
     "aim_through_bounce",
@@ -70,6 +80,12 @@ MAX_SPEED = 50.0
 #: 150 rev/s (940 rad/s); a table bounce adds up to ~21 rad/s per m/s of slip, so balls that the
 #: model itself produced from states within :data:`MAX_SPEED` stay below it.
 MAX_SPIN = 2000.0
+#: Longest time [s] one call may simulate (``duration``, ``max_time``, ``flight_time``): every
+#: table-tennis flight ends on the floor within ~2 s, and the model has no floor, so a longer
+#: flight only measures a fall (and a typo like ``1e5`` s would run for hours).
+MAX_DURATION = 10.0
+#: Most integration steps one call may take (``duration / dt``): 10 s at 0.1 ms.
+MAX_STEPS = 100_000
 
 
 def _magnus_coefficient(radius: float, mass: float) -> float:
@@ -293,6 +309,51 @@ def _check_dt(dt: float, name: str = "dt") -> float:
     return float(dt)
 
 
+def _check_duration(value: object, name: str) -> float:
+    """A positive number of seconds up to :data:`MAX_DURATION`."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or not 0 < value <= MAX_DURATION
+    ):
+        raise ValueError(
+            f"{name} must be a number of seconds in (0, MAX_DURATION = {MAX_DURATION:g}], "
+            f"got {value!r}"
+        )
+    return float(value)
+
+
+def _check_steps(n: int, name: str, dt: float) -> int:
+    if n > MAX_STEPS:
+        raise ValueError(
+            f"{name} / dt = {n} steps exceeds MAX_STEPS = {MAX_STEPS}; take a larger dt "
+            f"(at most {_MAX_DT} s; got {dt}) or a shorter {name}"
+        )
+    return n
+
+
+def _single(state: BallState) -> bool:
+    """Whether ``state`` is one float64 ball on the CPU (integrated by :class:`ScalarBall`)."""
+    p = state.pos
+    return (
+        p.dim() == 1 and p.dtype == torch.float64 and p.device.type == "cpu" and not p.requires_grad
+    )
+
+
+def _floats(state: BallState) -> Floats:
+    return tuple(torch.cat(tuple(state)).tolist())  # type: ignore[return-value]
+
+
+def _tensors(s: Floats) -> BallState:
+    return BallState(*(torch.tensor(s[i : i + 3], dtype=torch.float64) for i in (0, 3, 6)))
+
+
+@lru_cache(maxsize=16)
+def _scalar(params: BallParams) -> ScalarBall:
+    return ScalarBall(params)
+
+
 def table_point(x: object, y: object) -> torch.Tensor:
     """Centre ``[..., 3]`` of a ball touching the table surface at ``(x, y)`` (each ``[...]``)."""
     xt = as_tensor(x, "x")
@@ -315,23 +376,40 @@ def flight(state: BallState, params: BallParams = DEFAULT_PARAMS) -> torch.Tenso
     return acc
 
 
+@lru_cache(maxsize=16)
+def _gravity(g: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    return torch.tensor([0.0, 0.0, -g], dtype=dtype, device=device)
+
+
 def _rk4(state: BallState, h: torch.Tensor, params: BallParams) -> BallState:
-    """One classical RK4 step of the flight ODE with a per-ball step ``h`` [...] (may be 0)."""
+    """One classical RK4 step of the flight ODE with a per-ball step ``h`` [...] (may be 0).
+
+    :func:`flight` in few tensor operations (fused multiply-adds, the Magnus factor applied to
+    the spin once), because batches of tens of balls cost per operation, not per ball.
+    """
     h = h.unsqueeze(-1)
     p, v, w = state
+    kd = -params.drag
+    mw = params.magnus * w if params.magnus else None
+    g = _gravity(params.gravity, v.dtype, v.device)
 
-    def acc(vel: torch.Tensor) -> torch.Tensor:
-        return flight(BallState(p, vel, w), params)
+    def acc(u: torch.Tensor) -> torch.Tensor:
+        a = torch.linalg.vector_norm(u, dim=-1, keepdim=True).mul(kd).mul(u)
+        if mw is not None:
+            a.add_(torch.linalg.cross(mw, u, dim=-1))
+        return a.add_(g)
 
+    hh = 0.5 * h
     a1 = acc(v)
-    v2 = v + 0.5 * h * a1
+    v2 = torch.addcmul(v, hh, a1)
     a2 = acc(v2)
-    v3 = v + 0.5 * h * a2
+    v3 = torch.addcmul(v, hh, a2)
     a3 = acc(v3)
-    v4 = v + h * a3
+    v4 = torch.addcmul(v, h, a3)
     a4 = acc(v4)
-    new_p = p + h / 6.0 * (v + 2 * v2 + 2 * v3 + v4)
-    new_v = v + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+    h6 = h / 6.0
+    new_p = torch.addcmul(p, h6, torch.add(v, v2, alpha=2).add_(v3, alpha=2).add_(v4))
+    new_v = torch.addcmul(v, h6, torch.add(a1, a2, alpha=2).add_(a3, alpha=2).add_(a4))
     return BallState(new_p, new_v, w)
 
 
@@ -464,6 +542,18 @@ def _advance(
     state: BallState, h: torch.Tensor, params: BallParams, max_events: int = 4
 ) -> tuple[BallState, StepEvents]:
     """Propagate each ball by its own time ``h`` [...] through table and net contacts."""
+    trial = _rk4(state, h, params)
+    # most steps of most balls touch nothing: tell in a few operations (the same tests as the
+    # table and net events below) before any event bookkeeping
+    level = geo.TABLE_HEIGHT + params.radius
+    z0, z1 = state.pos[..., 2], trial.pos[..., 2]
+    toward = -torch.sign(state.vel[..., 1])
+    cand = (z0 > level) & (z1 <= level)
+    y0, y1 = toward * (state.pos[..., 1] - geo.NET_Y), toward * (trial.pos[..., 1] - geo.NET_Y)
+    cand |= (y0 > params.radius) & (y1 <= params.radius)
+    if not bool(cand.any()):
+        no = torch.zeros(h.shape, dtype=torch.bool, device=h.device)
+        return trial, StepEvents(no, torch.zeros_like(state.pos), torch.zeros_like(h), no.clone())
     remaining = h.clone()
     zeros = torch.zeros_like(h)
     bounce = torch.zeros(h.shape, dtype=torch.bool, device=h.device)
@@ -543,8 +633,18 @@ def step_events(
     state = _check_state(state)
     params = _check_params(params)
     dt = _check_dt(dt)
-    h = torch.full(state.batch_shape, dt, dtype=state.pos.dtype, device=state.pos.device)
-    new, events = _advance(state, h, params)
+    if _single(state):
+        s, bounce, pos, time, net = _scalar(params).advance(_floats(state), dt)
+        new = _tensors(s)
+        events = StepEvents(
+            torch.tensor(bounce),
+            torch.tensor(pos, dtype=torch.float64),
+            torch.tensor(time, dtype=torch.float64),
+            torch.tensor(net),
+        )
+    else:
+        h = torch.full(state.batch_shape, dt, dtype=state.pos.dtype, device=state.pos.device)
+        new, events = _advance(state, h, params)
     _check_result("step", *new, events.bounce_pos, events.bounce_time)
     return new, events
 
@@ -571,7 +671,8 @@ def propagate(
 
     Args:
         state: :class:`BallState` ``[..., 3]``.
-        duration: ``[...]`` (broadcast to the batch) or scalar time [s].
+        duration: ``[...]`` (broadcast to the batch) or scalar time [s], at most
+            :data:`MAX_DURATION`.
         params: ball constants.
         dt: step [s], ``0 < dt <= 0.05``.
 
@@ -584,10 +685,18 @@ def propagate(
     d = as_tensor(duration, "duration", dtype=state.pos.dtype, device=state.pos.device)
     if bool((d < 0).any()):
         raise ValueError("duration must be >= 0")
+    longest = float(d.max()) if d.numel() else 0.0
+    if longest > MAX_DURATION:
+        raise ValueError(
+            f"duration must be at most MAX_DURATION = {MAX_DURATION:g} s, got {longest:g}"
+        )
     d = torch.broadcast_to(d, state.batch_shape)
-    n = math.ceil(float(d.max()) / dt - 1e-9) if d.numel() else 0
-    for k in range(n):
-        state = _advance(state, (d - k * dt).clamp(0.0, dt), params)[0]
+    n = _check_steps(math.ceil(longest / dt - 1e-9) if d.numel() else 0, "duration", dt)
+    if _single(state):
+        state = _tensors(_scalar(params).propagate(_floats(state), float(d), dt))
+    else:
+        for k in range(n):
+            state = _advance(state, (d - k * dt).clamp(0.0, dt), params)[0]
     _check_result("propagate", *state)
     return state
 
@@ -606,10 +715,10 @@ def simulate(
 
     Args:
         state: initial :class:`BallState` ``[..., 3]``.
-        duration: simulated time [s] (> 0).
-        dt: nominal step [s], ``0 < dt <= 0.05``.
+        duration: simulated time [s], ``0 < duration <= MAX_DURATION``.
+        dt: nominal step [s], ``0 < dt <= 0.05``, at most :data:`MAX_STEPS` steps in all.
         params: ball constants.
-        progress: show a tqdm bar over steps.
+        progress: show a tqdm bar over steps (batches only).
 
     Returns:
         :class:`BallTrajectory` with ``S = round(duration / dt) + 1`` samples.
@@ -617,9 +726,12 @@ def simulate(
     state = _check_state(state)
     params = _check_params(params)
     dt = _check_dt(dt)
-    if not isinstance(duration, int | float) or not math.isfinite(duration) or duration <= 0:
-        raise ValueError(f"duration must be a positive number of seconds, got {duration!r}")
-    n = max(1, round(duration / dt))
+    duration = _check_duration(duration, "duration")
+    n = _check_steps(max(1, round(duration / dt)), "duration", dt)
+    if _single(state):
+        traj = _trajectory(*_scalar(params).simulate(_floats(state), duration, dt))
+        _check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)
+        return traj
     h_val = duration / n
     h = torch.full(state.batch_shape, h_val, dtype=state.pos.dtype, device=state.pos.device)
     pos, vel, spin = [state.pos], [state.vel], [state.spin]
@@ -647,6 +759,21 @@ def simulate(
     )
     _check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)
     return traj
+
+
+def _trajectory(h: float, samples: list[tuple]) -> BallTrajectory:
+    """A :class:`BallTrajectory` of one ball from :meth:`ScalarBall.simulate`'s samples."""
+    states = torch.tensor([s for s, *_ in samples], dtype=torch.float64)  # [S, 9]
+    return BallTrajectory(
+        torch.arange(len(samples), dtype=torch.float64) * h,
+        states[:, 0:3].contiguous(),
+        states[:, 3:6].contiguous(),
+        states[:, 6:9].contiguous(),
+        torch.tensor([e[1] for e in samples]),
+        torch.tensor([e[2] for e in samples], dtype=torch.float64),
+        torch.tensor([e[3] for e in samples], dtype=torch.float64),
+        torch.tensor([e[4] for e in samples]),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -719,7 +846,7 @@ def predict_plane_crossing(
         state: :class:`BallState` ``[..., 3]``.
         y_plane: plane position, a float or a tensor broadcastable to ``[...]``.
         params: ball constants.
-        max_time: give up after this many seconds.
+        max_time: give up after this many seconds (at most :data:`MAX_DURATION`).
         dt: integration step [s] (the crossing itself is located exactly).
 
     Returns:
@@ -730,8 +857,8 @@ def predict_plane_crossing(
     state = _check_state(state)
     params = _check_params(params)
     dt = _check_dt(dt)
-    if not isinstance(max_time, int | float) or not math.isfinite(max_time) or max_time <= 0:
-        raise ValueError(f"max_time must be a positive number of seconds, got {max_time!r}")
+    max_time = _check_duration(max_time, "max_time")
+    _check_steps(math.ceil(max_time / dt - 1e-9), "max_time", dt)
     t_cross, out, valid = _plane_crossing(state, y_plane, params, max_time, dt)
     _check_result("predict_plane_crossing", t_cross, *out)
     return t_cross, out, valid
@@ -743,6 +870,9 @@ def _plane_crossing(
     """:func:`predict_plane_crossing` without input checks (also for trial states of solvers,
     which may leave the documented ranges)."""
     yp = as_tensor(y_plane, "y_plane", dtype=state.pos.dtype, device=state.pos.device)
+    if _single(state) and yp.dim() == 0:
+        t, at, ok = _scalar(params).plane_crossing(_floats(state), float(yp), max_time, dt)
+        return torch.tensor(t, dtype=torch.float64), _tensors(at), torch.tensor(ok)
     yp = torch.broadcast_to(yp, state.batch_shape).clone()
     g0 = state.pos[..., 1] - yp
     event = _PlaneEvent(yp, torch.where(g0 >= 0, 1.0, -1.0).to(yp.dtype))
@@ -915,6 +1045,14 @@ def _fly_for(
     return s.pos
 
 
+def _check_flight_time(t: torch.Tensor) -> torch.Tensor:
+    if bool((t <= 0).any()) or bool((t > MAX_DURATION).any()):
+        raise ValueError(
+            f"flight_time must be positive and at most MAX_DURATION = {MAX_DURATION:g} s"
+        )
+    return t
+
+
 def aim(
     pos: object,
     target_pos: object,
@@ -936,7 +1074,8 @@ def aim(
         pos: ``[..., 3]`` start position of the ball centre.
         target_pos: ``[..., 2]`` landing point ``(x, y)`` on the table surface (the ball centre
             then reaches ``z = TABLE_HEIGHT + radius``), or ``[..., 3]`` a ball-centre point.
-        flight_time: ``[...]`` or scalar time to reach the target [s] (> 0).
+        flight_time: ``[...]`` or scalar time to reach the target [s], in
+            ``(0, MAX_DURATION]``.
         params: ball constants.
         spin: ``[..., 3]`` angular velocity during the flight (default zero).
         tol: stop when every position residual is below this [m].
@@ -983,14 +1122,17 @@ def _aim(
             [tgt, torch.full_like(tgt[..., :1], geo.TABLE_HEIGHT + params.radius)], dim=-1
         )
     check_shape(tgt, "target_pos", (3,))
-    t = as_tensor(flight_time, "flight_time", **kw)
-    if bool((t <= 0).any()):
-        raise ValueError("flight_time must be positive")
+    t = _check_flight_time(as_tensor(flight_time, "flight_time", **kw))
     w = torch.zeros(3, **kw) if spin is None else as_tensor(spin, "spin", min_ndim=1, **kw)
     check_shape(w, "spin", (3,))
     shape = torch.broadcast_shapes(p0.shape, tgt.shape, w.shape, t.shape + (3,))
     p0, tgt, w = (x.expand(shape) for x in (p0, tgt, w))
     t = t.expand(shape[:-1])
+    if shape == (3,) and _single(BallState(p0, tgt, w)):
+        v1, err1 = _scalar(params).aim(
+            tuple(p0.tolist()), tuple(tgt.tolist()), float(t), tuple(w.tolist()), tol, max_iter
+        )
+        return torch.tensor(v1, dtype=torch.float64), torch.tensor(err1, dtype=torch.float64)
     g = torch.zeros(3, **kw)
     g[2] = params.gravity
     guess = (tgt - p0) / t[..., None] + 0.5 * g * t[..., None]  # drag-free ballistic guess
@@ -1004,13 +1146,15 @@ def _aim(
             p0.unsqueeze(-2), vs, w.unsqueeze(-2), t[..., None].expand(vs.shape[:-1]), params
         )
         resid = end[..., 0, :] - tgt
-        if float(torch.nan_to_num(resid, nan=math.inf).abs().max()) < tol:
+        # an element stops where it converged, so that it does not depend on the rest of the batch
+        active = (torch.nan_to_num(resid, nan=math.inf).abs().amax(-1) >= tol).unsqueeze(-1)
+        if not bool(active.any()):
             break
         jac = (end[..., 1:4, :] - end[..., 4:7, :]).transpose(-1, -2) / (2 * eps)  # [..., 3, 3]
         step, info = torch.linalg.solve_ex(jac, resid.unsqueeze(-1))
         bad = (info != 0).unsqueeze(-1) | ~torch.isfinite(step.squeeze(-1))
         # a singular or diverged element restarts from the guess and is judged by its residual
-        v = torch.where(bad, guess, v - step.squeeze(-1))
+        v = torch.where(active, torch.where(bad, guess, v - step.squeeze(-1)), v)
     else:
         end = _fly_for(p0, v, w, t, params)
         resid = end - tgt
@@ -1078,17 +1222,18 @@ def aim_through_bounce(
     kw = {"dtype": p0.dtype, "device": p0.device}
     px = as_tensor(plane_x, "plane_x", **kw)
     by = as_tensor(bounce_y, "bounce_y", **kw)
-    ft = as_tensor(flight_time, "flight_time", **kw)
-    if bool((ft <= 0).any()):
-        raise ValueError("flight_time must be positive")
+    ft = _check_flight_time(as_tensor(flight_time, "flight_time", **kw))
     w = torch.zeros(3, **kw) if spin is None else as_tensor(spin, "spin", min_ndim=1, **kw)
     shape = torch.broadcast_shapes(p0.shape[:-1], px.shape, by.shape, ft.shape, w.shape[:-1])
     p0, w = p0.expand(*shape, 3), w.expand(*shape, 3)
     px, by, ft = (x.expand(shape) for x in (px, by, ft))
 
     def crossing(xb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        v0, resid = _aim(p0, torch.stack([xb, by], -1), ft, params, spin=w, tol=1e-9, max_iter=20)
-        _, at, valid = _plane_crossing(BallState(p0, v0, w), y_plane, params, 2.0, 0.01)
+        """Plane crossing ``x``, velocity and validity for bounce points ``xb`` [k, ...]."""
+        pk, wk = p0.expand(*xb.shape, 3), w.expand(*xb.shape, 3)
+        v0, resid = _aim(pk, torch.stack([xb, by.expand_as(xb)], -1), ft, params, spin=wk,
+                         tol=1e-9, max_iter=20)  # fmt: skip
+        _, at, valid = _plane_crossing(BallState(pk, v0, wk), y_plane, params, 2.0, 0.01)
         return at.pos[..., 0], v0, valid & (resid < 1e-6)
 
     # straight-line guess from the start over the bounce to the plane
@@ -1096,14 +1241,293 @@ def aim_through_bounce(
     xb = p0[..., 0] + frac * (px - p0[..., 0])
     step = 1e-5
     for _ in range(max_iter):
-        got, v0, valid = crossing(xb)
+        # the bounce point and its finite-difference neighbour in one batch: each element's
+        # result does not depend on its batch (see _aim), and the batch costs half as much
+        both_x, both_v, both_valid = crossing(torch.stack([xb, xb + step]))
+        got, v0, valid = both_x[0], both_v[0], both_valid[0]
         err = got - px
         converged = valid & (err.abs() < tol)
         if bool((converged | ~valid).all()):
             break
-        slope = (crossing(xb + step)[0] - got) / step
+        slope = (both_x[1] - got) / step
         slope = torch.where(slope.abs() > 1e-3, slope, torch.ones_like(slope))
         # a trust region of 0.2 m per iteration; converged and unreachable elements stay put
         delta = (err / slope).clamp(-0.2, 0.2)
         xb = torch.where(converged | ~valid, xb, xb - delta)
     return BounceAim(v0, xb, ft.clone(), converged)
+
+
+# --------------------------------------------------------------------------------------------
+# one ball in plain floats
+
+#: A single ball's state as nine floats: position, velocity, spin (each x, y, z).
+Floats = tuple[float, float, float, float, float, float, float, float, float]
+
+
+class ScalarBall:
+    """The ball model of this module for one ball, in plain Python floats.
+
+    One ball is what the robot's stroke predicts, aims and judges, and on a batch of one every
+    step of the tensor code above is a few dozen tensor operations of a few microseconds each;
+    the same arithmetic on floats is ~30 times faster. The methods mirror :func:`_rk4`,
+    :func:`_find_root`, :func:`_advance`, :func:`_plane_crossing` and :func:`_fly_for`
+    operation for operation (the same equations, events, root finder and tolerances), so that
+    the two agree to rounding; ``tests/robots/test_ball.py`` checks it. The public functions of
+    this module use it for an unbatched float64 CPU state; batches stay tensors.
+
+    States are :data:`Floats` tuples ``(px, py, pz, vx, vy, vz, wx, wy, wz)``.
+    """
+
+    def __init__(self, params: BallParams = DEFAULT_PARAMS) -> None:
+        self.params = _check_params(params)
+        self._drag = -params.drag
+        self._magnus = params.magnus
+        self._g = params.gravity
+        self.radius = params.radius
+        self._level = geo.TABLE_HEIGHT + params.radius
+        self._fx = params.table_friction_x - 1.0
+        self._fy = params.table_friction_y - 1.0
+        self._e = -params.table_restitution
+        self._kr = params.inertia_factor * params.radius
+        self._net = (params.net_damping, -params.net_restitution, params.net_damping)
+
+    # -- flight --------------------------------------------------------------------------------
+    def rk4(self, s: Floats, h: float) -> Floats:
+        """One classical RK4 step of length ``h`` (may be 0) in free flight (:func:`_rk4`; the
+        drag, Magnus and gravity of the four stages written out)."""
+        vx, vy, vz = s[3], s[4], s[5]
+        km, kd, g = self._magnus, self._drag, self._g
+        wx, wy, wz = km * s[6], km * s[7], km * s[8]  # the Magnus factor on the spin, as _rk4
+        hh = 0.5 * h
+        c = kd * math.sqrt(vx * vx + vy * vy + vz * vz)
+        a1x = c * vx + (wy * vz - wz * vy)
+        a1y = c * vy + (wz * vx - wx * vz)
+        a1z = c * vz + (wx * vy - wy * vx) - g
+        v2x, v2y, v2z = vx + hh * a1x, vy + hh * a1y, vz + hh * a1z
+        c = kd * math.sqrt(v2x * v2x + v2y * v2y + v2z * v2z)
+        a2x = c * v2x + (wy * v2z - wz * v2y)
+        a2y = c * v2y + (wz * v2x - wx * v2z)
+        a2z = c * v2z + (wx * v2y - wy * v2x) - g
+        v3x, v3y, v3z = vx + hh * a2x, vy + hh * a2y, vz + hh * a2z
+        c = kd * math.sqrt(v3x * v3x + v3y * v3y + v3z * v3z)
+        a3x = c * v3x + (wy * v3z - wz * v3y)
+        a3y = c * v3y + (wz * v3x - wx * v3z)
+        a3z = c * v3z + (wx * v3y - wy * v3x) - g
+        v4x, v4y, v4z = vx + h * a3x, vy + h * a3y, vz + h * a3z
+        c = kd * math.sqrt(v4x * v4x + v4y * v4y + v4z * v4z)
+        a4x = c * v4x + (wy * v4z - wz * v4y)
+        a4y = c * v4y + (wz * v4x - wx * v4z)
+        a4z = c * v4z + (wx * v4y - wy * v4x) - g
+        h6 = h / 6.0
+        return (
+            s[0] + h6 * (vx + 2 * v2x + 2 * v3x + v4x),
+            s[1] + h6 * (vy + 2 * v2y + 2 * v3y + v4y),
+            s[2] + h6 * (vz + 2 * v2z + 2 * v3z + v4z),
+            vx + h6 * (a1x + 2 * a2x + 2 * a3x + a4x),
+            vy + h6 * (a1y + 2 * a2y + 2 * a3y + a4y),
+            vz + h6 * (a1z + 2 * a2z + 2 * a3z + a4z),
+            s[6],
+            s[7],
+            s[8],
+        )
+
+    def fly_for(self, s: Floats, t: float) -> Floats:
+        """Free flight for ``t`` seconds in ``max(8, ceil(t / 5 ms))`` RK4 steps (no contacts)."""
+        n = max(8, math.ceil(t / 0.005))
+        h = t / n
+        for _ in range(n):
+            s = self.rk4(s, h)
+        return s
+
+    # -- events --------------------------------------------------------------------------------
+    @staticmethod
+    def _root(
+        s: Floats,
+        hi: float,
+        g_start: float,
+        g_end: float,
+        event: Callable[[Floats], tuple[float, float]],
+        fly: Callable[[Floats, float], Floats],
+        iters: int = 12,
+    ) -> float:
+        """:func:`_find_root` for one ball."""
+        lo = 0.0
+        denom = g_start - g_end
+        tau = hi * g_start / denom if denom > 0 else hi
+        tau = min(max(tau, 0.0), hi)
+        for _ in range(iters):
+            g, gdot = event(fly(s, tau))
+            if abs(g) < 1e-14:
+                break
+            if g > 0:
+                lo = tau
+            else:
+                hi = tau
+            newton = tau - g / gdot if gdot != 0 else math.nan
+            tau = newton if lo <= newton <= hi else 0.5 * (lo + hi)
+        return tau
+
+    def _table_event(self, s: Floats) -> tuple[float, float]:
+        return s[2] - self._level, s[5]
+
+    def _bounce(self, s: Floats) -> Floats:
+        """:func:`_table_bounce` for one ball."""
+        r = self.radius
+        vx, vy, vz, wx, wy, wz = s[3:]
+        dvx = self._fx * (vx - r * wy)
+        dvy = self._fy * (vy + r * wx)
+        kr = self._kr
+        return (s[0], s[1], geo.TABLE_HEIGHT + r, vx + dvx, vy + dvy, self._e * vz,
+                wx + dvy / kr, wy - dvx / kr, wz)  # fmt: skip
+
+    def _net_hit(self, s: Floats, sign: float) -> Floats:
+        """:func:`_net_hit` for one ball travelling along ``sign`` in ``y``."""
+        d, e, _ = self._net
+        return (s[0], geo.NET_Y - sign * self.radius, s[2], s[3] * d, s[4] * e, s[5] * d,
+                s[6] * d, s[7] * d, s[8] * d)  # fmt: skip
+
+    def advance(
+        self, s: Floats, h: float, max_events: int = 4
+    ) -> tuple[Floats, bool, tuple[float, float, float], float, bool]:
+        """:func:`_advance` for one ball: the state after ``h`` seconds through contacts.
+
+        Returns:
+            ``(state, bounce, bounce_pos, bounce_time, net)`` as in :class:`StepEvents`.
+        """
+        r = self.radius
+        remaining, elapsed = h, 0.0
+        bounce = net = False
+        bounce_pos, bounce_time = (0.0, 0.0, 0.0), 0.0
+        rk4, level = self.rk4, self._level
+        for _ in range(max_events + 1):
+            if not remaining > 0:
+                break
+            trial = rk4(s, remaining)
+            g0_t, g1_t = s[2] - level, trial[2] - level
+            table = g0_t > 0 and g1_t <= 0
+            sign = math.copysign(1.0, s[4]) if s[4] != 0 else 0.0
+            g0_n = -sign * (s[1] - geo.NET_Y) - r
+            g1_n = -sign * (trial[1] - geo.NET_Y) - r
+            at_net = sign != 0 and g0_n > 0 and g1_n <= 0
+            if not (table or at_net):
+                s = trial
+                break
+            tau_t = tau_n = math.inf
+            if table:
+                tau = self._root(s, remaining, g0_t, g1_t, self._table_event, rk4)
+                x, y = rk4(s, tau)[:2]
+                table = abs(x) <= geo.TABLE_HALF_WIDTH and abs(y) <= geo.TABLE_HALF_LENGTH
+                if table:
+                    tau_t = tau
+            if at_net:
+
+                def net_event(q: Floats, sign: float = sign) -> tuple[float, float]:
+                    return -sign * (q[1] - geo.NET_Y) - r, -sign * q[4]
+
+                tau = self._root(s, remaining, g0_n, g1_n, net_event, rk4)
+                q = rk4(s, tau)
+                z = q[2] - geo.TABLE_HEIGHT
+                at_net = abs(q[0]) <= geo.NET_HALF_WIDTH + r and 0 < z < geo.NET_HEIGHT + r
+                if at_net:
+                    tau_n = tau
+            use_t = table and tau_t <= tau_n
+            use_n = at_net and not use_t
+            tau = tau_t if use_t else tau_n if use_n else remaining
+            at = rk4(s, tau)
+            if use_t and not bounce:
+                bounce_pos, bounce_time = (at[0], at[1], geo.TABLE_HEIGHT), elapsed + tau
+            bounce = bounce or use_t
+            net = net or use_n
+            s = self._bounce(at) if use_t else self._net_hit(at, sign) if use_n else at
+            elapsed += tau
+            remaining = remaining - tau if use_t or use_n else 0.0
+        else:
+            s = rk4(s, remaining)
+        return s, bounce, bounce_pos, bounce_time, net
+
+    def propagate(self, s: Floats, duration: float, dt: float = 0.005) -> Floats:
+        """:func:`propagate` for one ball: ``duration`` seconds in steps of ``dt``."""
+        for k in range(math.ceil(duration / dt - 1e-9)):
+            s = self.advance(s, min(max(duration - k * dt, 0.0), dt))[0]
+        return s
+
+    def simulate(self, s: Floats, duration: float, dt: float) -> tuple[float, list[tuple]]:
+        """:func:`simulate` for one ball.
+
+        Returns:
+            The step ``h`` and ``n + 1`` samples ``(state, bounce, bounce_pos, bounce_time,
+            net)``, bounce times absolute, the first sample without events.
+        """
+        n = max(1, round(duration / dt))
+        h = duration / n
+        out: list[tuple] = [(s, False, (0.0, 0.0, 0.0), 0.0, False)]
+        for k in range(n):
+            s, bounce, pos, time, net = self.advance(s, h)
+            out.append((s, bounce, pos, time + k * h if bounce else time, net))
+        return h, out
+
+    def plane_crossing(
+        self, s: Floats, y_plane: float, max_time: float = 2.0, dt: float = 0.005
+    ) -> tuple[float, Floats, bool]:
+        """:func:`predict_plane_crossing` for one ball: ``(t, state at the crossing, valid)``."""
+        sign = 1.0 if s[1] - y_plane >= 0 else -1.0
+
+        def event(q: Floats) -> tuple[float, float]:
+            return sign * (q[1] - y_plane), sign * q[4]
+
+        def fly(q: Floats, tau: float) -> Floats:
+            return self.advance(q, tau)[0]
+
+        t = 0.0
+        for k in range(math.ceil(max_time / dt - 1e-9)):
+            h = min(dt, max_time - k * dt)
+            new = self.advance(s, h)[0]
+            g_start, g_end = sign * (s[1] - y_plane), sign * (new[1] - y_plane)
+            if g_start > 0 and g_end <= 0:
+                tau = self._root(s, h, g_start, g_end, event, fly)
+                at = fly(s, tau)
+                return t + tau, at, at[2] > self.radius
+            if new[2] <= self.radius:
+                return float(max_time), new, False
+            t += h
+            s = new
+        return float(max_time), s, False
+
+    # -- aiming --------------------------------------------------------------------------------
+    def aim(
+        self,
+        pos: tuple[float, float, float],
+        target: tuple[float, float, float],
+        flight_time: float,
+        spin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        tol: float = 1e-9,
+        max_iter: int = 20,
+    ) -> tuple[tuple[float, float, float], float]:
+        """:func:`_aim` for one ball: ``(v0, residual [m])`` (``inf`` when it diverged)."""
+        t = flight_time
+        guess = tuple((b - a) / t + (0.5 * self._g * t if i == 2 else 0.0)
+                      for i, (a, b) in enumerate(zip(pos, target, strict=True)))  # fmt: skip
+        eps = 1e-6
+        tgt = np.array(target)
+
+        def end(v: np.ndarray) -> np.ndarray:
+            return np.array(self.fly_for((*pos, *v.tolist(), *spin), t)[:3]) - tgt
+
+        v = np.array(guess)
+        for _ in range(max_iter):
+            resid = end(v)
+            if float(np.nan_to_num(np.abs(resid), nan=math.inf).max()) < tol:
+                break
+            jac = np.stack([(end(v + d) - end(v - d)) / (2 * eps) for d in np.eye(3) * eps], -1)
+            try:
+                step = np.linalg.solve(jac, resid)
+            except np.linalg.LinAlgError:
+                step = np.full(3, math.nan)
+            # a singular or diverged iterate restarts from the guess, judged by its residual
+            v = v - step if np.isfinite(step).all() else np.array(guess)
+        else:
+            resid = end(v)
+        err = float(np.abs(resid).max())
+        if not (np.isfinite(v).all() and math.isfinite(err)):
+            return guess, math.inf
+        return (float(v[0]), float(v[1]), float(v[2])), err

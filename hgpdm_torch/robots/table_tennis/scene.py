@@ -17,10 +17,16 @@ The ball follows the model of :mod:`.ball` (the SL simulator lineage):
 * PhysX's semi-implicit Euler stores velocities half a step behind positions; the ball's velocity
   is staggered accordingly (leapfrog), which makes free flight second-order accurate.
 
-Known PhysX traps handled here: steps of at most 1 ms (a 20 m/s ball moves 2 cm per step, half its
-diameter, so it cannot tunnel through the racket), a bounce threshold far below PhysX's 2 m/s,
-explicit ball inertia (the automatic one is clamped), and drive force limits (URDF efforts are
-ignored by SAPIEN).
+Known PhysX traps handled here: steps of at most 1 ms while the ball is simulated (a 20 m/s ball
+moves 2 cm per step, half its diameter, so it cannot tunnel through the racket), a bounce threshold
+far below PhysX's 2 m/s, explicit ball inertia (the automatic one is clamped), and drive force
+limits (URDF efforts are ignored by SAPIEN).
+
+Speed: a PhysX step of the arm costs ~50 us whatever its length, so the scene can also take longer
+steps (``SceneConfig.coarse_timestep``) with the ball *parked* (kinematic, out of the way) while the
+ball model of :mod:`.ball` flies it: :meth:`TableTennisScene.arm_clear_of` tells when the ball
+cannot touch any part of the arm within a step (bounding spheres of the links and a bound on their
+speed), and :func:`.strokes.execute_stroke` hands the ball to PhysX before it can.
 """
 
 from __future__ import annotations
@@ -35,12 +41,14 @@ import torch
 
 from ..wam import DOF, RACKET_LINK, WAM, urdf_path
 from . import geometry as geo
-from .ball import DEFAULT_PARAMS, BallParams, BallState
+from .ball import DEFAULT_PARAMS, MAX_DURATION, MAX_STEPS, BallParams, BallState
 
 __all__ = ["SceneConfig", "TableTennisScene"]
 
 _TABLE_THICKNESS = 0.03
 _NET_THICKNESS = 0.004
+_PARKED = sapien.Pose([5.0, 5.0, 3.0])  # where a parked ball waits, far from everything
+_JOINT_ACC = 200.0  # rad/s^2: bound on joint accelerations within a clearance horizon
 
 
 @dataclass(frozen=True)
@@ -48,7 +56,17 @@ class SceneConfig:
     """Settings of the physics scene.
 
     Attributes:
-        timestep: PhysX step [s]; at most 1 ms (see the module notes on tunnelling).
+        timestep: PhysX step [s] while the ball is simulated, and the control period of the
+            arm's reference; at most 1 ms (see the module notes on tunnelling).
+        coarse_timestep: longest PhysX step [s] while the ball is parked (the ball model flies
+            it and it cannot touch the arm): a whole multiple of ``timestep``, at most 10 ms
+            (the stroke's record period); equal to ``timestep``, every step is short. The
+            stroke loop takes short steps anyway around the planned hit and while PhysX has the
+            ball (:func:`.strokes.execute_stroke`). With 10 ms a stroke takes ~250 PhysX steps
+            instead of ~1300, and the rewards of 900 of 900 strokes (60 opponent trials x 3
+            movements x 5 start times) are those of 1 ms steps throughout, the landing points
+            of the returns within 3 cm (median; 5 ms: 2 cm); ``tests/robots/test_strokes.py``
+            checks the agreement.
         ball: ball model constants (shared with :mod:`.ball`).
         stiffness: PD drive stiffness per joint [N m / rad].
         damping: PD drive damping per joint [N m s / rad].
@@ -56,6 +74,7 @@ class SceneConfig:
     """
 
     timestep: float = 0.001
+    coarse_timestep: float = 0.01
     ball: BallParams = DEFAULT_PARAMS
     stiffness: tuple[float, ...] = (3000.0, 3000.0, 2000.0, 1500.0, 300.0, 300.0, 100.0)
     damping: tuple[float, ...] = (120.0, 120.0, 80.0, 60.0, 8.0, 8.0, 2.0)
@@ -64,6 +83,13 @@ class SceneConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.timestep, int | float) and 0 < self.timestep <= 0.001):
             raise ValueError(f"timestep must be in (0, 0.001] s, got {self.timestep!r}")
+        c = self.coarse_timestep
+        ratio = c / self.timestep if isinstance(c, int | float) and 0 < c <= 0.01 else math.nan
+        if not (math.isfinite(ratio) and round(ratio) >= 1 and abs(ratio - round(ratio)) < 1e-9):
+            raise ValueError(
+                "coarse_timestep must be a whole multiple of timestep and at most 0.01 s, got "
+                f"{self.coarse_timestep!r} (timestep {self.timestep!r})"
+            )
         if not isinstance(self.ball, BallParams):
             raise TypeError(f"ball must be a BallParams, got {type(self.ball).__name__}")
         for name in ("stiffness", "damping"):
@@ -74,6 +100,11 @@ class SceneConfig:
             raise ValueError(
                 f"solver_iterations must be a positive int, got {self.solver_iterations!r}"
             )
+
+    @property
+    def coarse_steps(self) -> int:
+        """``coarse_timestep / timestep``: how many short steps one coarse step spans."""
+        return round(self.coarse_timestep / self.timestep)
 
 
 def _quat_wxyz(rotation: torch.Tensor) -> list[float]:
@@ -109,6 +140,8 @@ class TableTennisScene:
         self.scene = sapien.Scene([physx.PhysxCpuSystem()])
         self.scene.set_timestep(config.timestep)
         self.dt = float(config.timestep)
+        self._steps = 1  # timesteps per PhysX step now set in the scene
+        self.ball_parked = False
         e_ball = params.table_restitution
         # Averaged restitution: partner value 2 e_pair - e_ball gives e_pair for the ball pair.
         self._table_mat = physx.PhysxMaterial(0.0, 0.0, params.table_restitution)
@@ -174,6 +207,52 @@ class TableTennisScene:
         for link in robot.get_links():
             for shape in link.get_collision_shapes():
                 shape.set_collision_groups([1, 1, 2, 0])
+        self._build_clearance()
+
+    def _build_clearance(self) -> None:
+        """Bounding spheres of the arm's collision shapes and the lever arms that bound their
+        speed.
+
+        The links form a chain (SAPIEN lists them root first) and each link's frame sits on the
+        axis of the joint in front of it, so a point of a shape of link ``i`` is at most
+        ``lever[s, j]`` = (the fixed joint offsets from link ``j`` to link ``i``) + (the shape's
+        distance from its link's frame) + (its radius) from the axis of active joint ``j <= i``,
+        and moves at most ``sum_j |qd_j| lever[s, j]``.
+        """
+        links = self.robot.get_links()
+        joints = self.robot.get_joints()  # joints[i] leads into links[i] (joints[0]: the root)
+        offset = [float(np.linalg.norm(j.get_pose_in_parent().p)) for j in joints]
+        names = {j.get_name() for j in self.joints}
+        active = [i for i, j in enumerate(joints) if j.get_name() in names]
+        spheres, lever, reach = [], [], []
+        for i, link in enumerate(links):
+            for shape in link.get_collision_shapes():
+                if isinstance(shape, physx.PhysxCollisionShapeSphere):
+                    size = shape.get_radius()
+                elif isinstance(shape, physx.PhysxCollisionShapeBox):
+                    size = float(np.linalg.norm(shape.get_half_size()))
+                elif isinstance(shape, physx.PhysxCollisionShapeCylinder):
+                    size = math.hypot(shape.get_radius(), shape.get_half_length())
+                elif isinstance(shape, physx.PhysxCollisionShapeCapsule):
+                    size = shape.get_radius() + shape.get_half_length()
+                else:
+                    raise RuntimeError(f"no bounding sphere for a {type(shape).__name__}")
+                local = shape.get_local_pose()
+                extent = float(np.linalg.norm(local.p)) + size
+                # PhysX reports the velocity of the centre of mass: the shape's farthest point
+                arm = float(np.linalg.norm(local.p - link.get_cmass_local_pose().p)) + size
+                spheres.append((link, sapien.Pose(local.p), size, arm))
+                lever.append(
+                    [sum(offset[k + 1 : i + 1]) + extent if k <= i else 0.0 for k in active]
+                )
+                reach.append(sum(offset[1 : i + 1]) + extent)
+        self._spheres = spheres
+        lever_arr = np.array(lever)
+        self._lever_sum = lever_arr.sum(1).tolist()
+        self._lever_max = lever_arr.max(0)
+        self._lever_max_sum = float(self._lever_max.sum())
+        self._shoulder = [float(x) for x in links[0].get_entity_pose().p]
+        self._reach = max(reach)  # every point of the arm lies this close to the root's origin
 
     def _build_ball(self) -> None:
         p = self.config.ball
@@ -194,37 +273,98 @@ class TableTennisScene:
         self.ball.set_max_depenetration_velocity(1.0)
 
     # -- ball ----------------------------------------------------------------------------------
-    def _flight_acc(self, vel: np.ndarray, spin: np.ndarray) -> np.ndarray:
+    def _flight_acc(self, v: list[float], w: list[float]) -> tuple[float, float, float]:
+        """Drag and Magnus acceleration (no gravity) in floats (numpy costs more than a step)."""
         p = self.config.ball
-        # spin x vel written out: np.cross costs more than the PhysX step for one 3-vector
-        w, v = spin, vel
-        magnus = np.array(
-            [w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0]]
+        c = -p.drag * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        km = p.magnus
+        return (
+            c * v[0] + km * (w[1] * v[2] - w[2] * v[1]),
+            c * v[1] + km * (w[2] * v[0] - w[0] * v[2]),
+            c * v[2] + km * (w[0] * v[1] - w[1] * v[0]),
         )
-        return -p.drag * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * v + p.magnus * magnus
 
     def set_ball(self, state: BallState) -> None:
-        """Place the ball (unbatched :class:`BallState`, fields ``[3]``)."""
+        """Place the ball (unbatched :class:`BallState`, fields ``[3]``) and simulate it."""
         if not isinstance(state, BallState):
             raise TypeError(f"state must be a BallState, got {type(state).__name__}")
         pos, vel, spin = (np.asarray(t.detach().cpu(), dtype=np.float64) for t in state)
         if pos.shape != (3,) or vel.shape != (3,) or spin.shape != (3,):
             raise ValueError("state must hold a single ball (fields of shape [3])")
+        self.set_ball_floats((*pos.tolist(), *vel.tolist(), *spin.tolist()))
+
+    def set_ball_floats(self, s: tuple[float, ...]) -> None:
+        """:meth:`set_ball` from nine floats ``(pos, vel, spin)`` (:class:`.ball.ScalarBall`)."""
+        vel, spin = s[3:6], s[6:9]
+        if self.ball_parked:
+            self.ball.set_kinematic(False)
+            self.ball_parked = False
         # Stagger: PhysX's velocity lags the position by half a step.
-        acc = self._flight_acc(vel, spin) - np.array([0.0, 0.0, self.config.ball.gravity])
-        self.ball.set_entity_pose(sapien.Pose(pos.tolist()))
-        self.ball.set_linear_velocity((vel - 0.5 * self.dt * acc).tolist())
-        self.ball.set_angular_velocity(spin.tolist())
+        ax, ay, az = self._flight_acc(vel, spin)
+        h = 0.5 * self.dt
+        az -= self.config.ball.gravity
+        self.ball.set_entity_pose(sapien.Pose(list(s[0:3])))
+        self.ball.set_linear_velocity([vel[0] - h * ax, vel[1] - h * ay, vel[2] - h * az])
+        self.ball.set_angular_velocity(list(spin))
         self.ball.wake_up()
 
+    def park_ball(self) -> None:
+        """Take the ball out of the simulation: kinematic, far from everything, until
+        :meth:`set_ball`. Its state then comes from the ball model, not from PhysX."""
+        if not self.ball_parked:
+            self.ball.set_kinematic(True)
+            self.ball_parked = True
+        self.ball.set_kinematic_target(_PARKED)
+        self.ball.set_entity_pose(_PARKED)
+
+    def ball_floats(self) -> tuple[float, ...]:
+        """The ball's position, velocity and spin as nine floats (cheap, per step)."""
+        pos = self.ball.get_entity_pose().p.tolist()
+        vel = self.ball.get_linear_velocity().tolist()
+        spin = self.ball.get_angular_velocity().tolist()
+        ax, ay, az = self._flight_acc(vel, spin)
+        h = 0.5 * self.dt
+        az -= self.config.ball.gravity
+        return (*pos, vel[0] + h * ax, vel[1] + h * ay, vel[2] + h * az, *spin)
+
     def ball_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The ball's position, velocity and spin as float64 arrays ``[3]`` (cheap, per step)."""
-        pos = np.asarray(self.ball.get_entity_pose().p, dtype=np.float64)
-        vel = np.asarray(self.ball.get_linear_velocity(), dtype=np.float64)
-        spin = np.asarray(self.ball.get_angular_velocity(), dtype=np.float64)
-        acc = self._flight_acc(vel, spin)
-        acc[2] -= self.config.ball.gravity
-        return pos, vel + 0.5 * self.dt * acc, spin
+        """The ball's position, velocity and spin as float64 arrays ``[3]``."""
+        s = np.array(self.ball_floats())
+        return s[0:3], s[3:6], s[6:9]
+
+    def arm_clear_of(self, pos: tuple[float, ...], speed: float, horizon: float) -> bool:
+        """Whether a ball at ``pos`` [3] moving at ``speed`` [m/s] cannot touch any part of the
+        arm within ``horizon`` seconds.
+
+        Every collision shape of the arm is bounded by a sphere. Within ``horizon = h`` the ball
+        moves at most ``speed h + g h^2 / 2``, a point of a shape at most ``u h + A L h^2 / 2``:
+        ``u`` its speed now (from its link's velocity and angular velocity), ``L`` the sum of
+        its lever arms about the joints and ``A = 200 rad/s^2`` a joint acceleration 4-8 times
+        the reference's limits; 1 cm is kept in hand. The whole arm's sphere about the shoulder,
+        with ``u`` bounded by the joint velocities (one read), is tried first, the shapes' only
+        when the ball is near.
+        """
+        h = horizon
+        slack = self.config.ball.radius + 0.01 + (speed + 0.5 * self.config.ball.gravity * h) * h
+        grow = 0.5 * _JOINT_ACC * h * h
+        x, y, z = pos[0], pos[1], pos[2]
+        c = self._shoulder
+        far = math.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) - self._reach
+        qd = np.abs(self.robot.get_qvel())
+        if far - slack > float(self._lever_max.dot(qd)) * h + grow * self._lever_max_sum:
+            return True
+        for (link, local, radius, arm), lever in zip(self._spheres, self._lever_sum, strict=True):
+            pose = link.get_entity_pose()
+            centre = (pose * local).p
+            gap = math.dist((x, y, z), centre.tolist()) - radius - slack
+            if gap <= grow * lever:
+                return False
+            v = link.get_linear_velocity()
+            w = link.get_angular_velocity()
+            u = math.hypot(*v.tolist()) + math.hypot(*w.tolist()) * arm
+            if gap <= u * h + grow * lever:
+                return False
+        return True
 
     def ball_state(self) -> BallState:
         """The ball's current :class:`BallState` (fields ``[3]``, float64)."""
@@ -243,9 +383,10 @@ class TableTennisScene:
 
     def set_targets(self, q: np.ndarray, qd: np.ndarray) -> None:
         """PD drive targets: joint angles ``[7]`` and joint velocities ``[7]``."""
+        q, qd = np.asarray(q, dtype=np.float64).tolist(), np.asarray(qd, dtype=np.float64).tolist()
         for j, a, v in zip(self.joints, q, qd, strict=True):
-            j.set_drive_target(float(a))
-            j.set_drive_velocity_target(float(v))
+            j.set_drive_target(a)
+            j.set_drive_velocity_target(v)
 
     def robot_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Joint angles and velocities, ``[7]`` each."""
@@ -260,29 +401,43 @@ class TableTennisScene:
         return np.asarray(m[:3, 3], dtype=np.float64), np.asarray(m[:3, 2], dtype=np.float64)
 
     # -- stepping ------------------------------------------------------------------------------
-    def step(self) -> None:
-        """Advance the scene by one timestep: gravity compensation, ball forces, PhysX, bounce."""
-        p = self.config.ball
+    def step(self, steps: int = 1) -> None:
+        """Advance the scene by ``steps`` timesteps in one PhysX step: gravity compensation,
+        ball forces, PhysX, bounce law. ``steps > 1`` (at most ``config.coarse_steps``) needs
+        the ball parked (:meth:`park_ball`)."""
+        if steps != self._steps:
+            if not (isinstance(steps, int) and 1 <= steps <= self.config.coarse_steps):
+                raise ValueError(
+                    f"steps must be an int in [1, coarse_steps = {self.config.coarse_steps}], "
+                    f"got {steps!r}"
+                )
+            if steps > 1 and not self.ball_parked:
+                raise ValueError("steps > 1 needs the ball parked (park_ball)")
+            self.scene.set_timestep(steps * self.dt)
+            self._steps = steps
         self.robot.set_qf(self.robot.compute_passive_force(True, True))
-        vel = np.asarray(self.ball.get_linear_velocity(), dtype=np.float64)
-        spin = np.asarray(self.ball.get_angular_velocity(), dtype=np.float64)
-        force = p.mass * self._flight_acc(vel, spin)
-        self.ball.add_force_torque(force.astype(np.float32), np.zeros(3, dtype=np.float32))
-        vz_before = vel[2]
+        if self.ball_parked:
+            self.scene.step()
+            return
+        p = self.config.ball
+        vel = self.ball.get_linear_velocity().tolist()
+        ax, ay, az = self._flight_acc(vel, self.ball.get_angular_velocity().tolist())
+        m = p.mass
+        self.ball.add_force_torque([m * ax, m * ay, m * az], [0.0, 0.0, 0.0])
         self.scene.step()
-        self._table_tangential(vz_before)
+        self._table_tangential(vel[2])
 
     def _table_tangential(self, vz_before: float) -> None:
         """Apply the model's tangential bounce law when the ball just bounced on the table."""
         p = self.config.ball
-        vel = np.asarray(self.ball.get_linear_velocity(), dtype=np.float64)
+        vel = self.ball.get_linear_velocity().tolist()
         if not (vz_before < 0 < vel[2]):
             return
-        pos = np.asarray(self.ball.get_entity_pose().p, dtype=np.float64)
+        pos = self.ball.get_entity_pose().p.tolist()
         on_table = abs(pos[0]) <= geo.TABLE_HALF_WIDTH and abs(pos[1]) <= geo.TABLE_HALF_LENGTH
         if not on_table or pos[2] > geo.TABLE_HEIGHT + p.radius + 0.01:
             return
-        spin = np.asarray(self.ball.get_angular_velocity(), dtype=np.float64)
+        spin = self.ball.get_angular_velocity().tolist()
         slip_x = vel[0] - p.radius * spin[1]
         slip_y = vel[1] + p.radius * spin[0]
         dvx = (p.table_friction_x - 1.0) * slip_x
@@ -296,11 +451,24 @@ class TableTennisScene:
 
         Returns:
             ``times [S]`` and ball positions ``[S, 3]`` sampled every step, ``S = n + 1``.
+
+        Raises:
+            ValueError: ``duration`` outside ``(0, MAX_DURATION]`` or more than ``MAX_STEPS``
+                steps (see :mod:`.ball`).
         """
-        if not (isinstance(duration, int | float) and duration > 0):
-            raise ValueError(f"duration must be a positive number of seconds, got {duration!r}")
-        self.set_ball(state)
+        if not (
+            isinstance(duration, int | float)
+            and math.isfinite(duration)
+            and 0 < duration <= MAX_DURATION
+        ):
+            raise ValueError(
+                f"duration must be a number of seconds in (0, MAX_DURATION = {MAX_DURATION:g}], "
+                f"got {duration!r}"
+            )
         n = round(duration / self.dt)
+        if n > MAX_STEPS:
+            raise ValueError(f"duration / timestep = {n} steps exceeds MAX_STEPS = {MAX_STEPS}")
+        self.set_ball(state)
         pos = [self.ball_state().pos]
         for _ in range(n):
             self.step()
