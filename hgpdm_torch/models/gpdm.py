@@ -243,9 +243,14 @@ class GPDM(gpytorch.Module):
             raise ValueError(
                 f"latent_dim ({self.latent_dim}) must not exceed Dz ({dz}) for PCA init"
             )
-        _, _, v = torch.linalg.svd(centred / centred.std(0).clamp_min(1e-8), full_matrices=False)
-        proj = centred / centred.std(0).clamp_min(1e-8) @ v[: self.latent_dim].T
-        return proj / proj.std(0).clamp_min(1e-8)
+        # floors relative to the largest spread, so the result does not depend on the units
+        tiny = torch.finfo(centred.dtype).tiny
+        std = centred.std(0)
+        scaled = centred / std.clamp_min(1e-10 * float(std.max()) + tiny)
+        _, _, v = torch.linalg.svd(scaled, full_matrices=False)
+        proj = scaled @ v[: self.latent_dim].T
+        spread = proj.std(0)
+        return proj / spread.clamp_min(1e-10 * float(spread.max()) + tiny)
 
     def _initial(self, init: str | torch.Tensor, centred: torch.Tensor) -> torch.Tensor:
         if isinstance(init, str):
