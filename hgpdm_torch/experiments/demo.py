@@ -3,20 +3,24 @@ r"""``hgpdm demo``: the anticipatory table-tennis player, end to end (thesis Ch.
 1. Simulate opponent strokes and the reward of every movement (forehand, middle, backhand)
    started at every decision time (320 ... 0 ms before the opponent's hit) in the SAPIEN scene
    with the Barrett WAM (:func:`~hgpdm_torch.robots.table_tennis.trials.reward_table`, cached on
-   disk).
-2. Split the strokes inside the robot's hitting region into training and test strokes.
-3. Fit the IDDM (continuous target, Ch. 3) on the training strokes and on further opponent
-   strokes that the robot only watched (observations and targets, no SAPIEN: watching the
-   opponent is cheap, trying movements is not); the online filter
-   (Algorithm 3.2) gives every stroke's belief (latent state and target histogram) at every
-   decision time.
-4. Learn when and how to hit (Ch. 4): LSPI (Algorithm 4.1) on the enumerated training episodes,
-   and Monte-Carlo planning (Algorithms 4.2-4.3) on top of LSPI's stopping values.
-5. Play the test rallies: at each decision time the player, with MCP, waits or starts a movement;
+   disk). Strokes outside the robot's hitting region (no movement at any time returns them) are
+   dropped.
+2. Fit the IDDM (continuous target, Ch. 3) on further opponent strokes that the robot only
+   watched (observations and targets, no SAPIEN: watching the opponent is cheap, trying
+   movements is not); the online filter (Algorithm 3.2) gives every stroke's belief (latent
+   state and target histogram) at every decision time. The IDDM never sees a test stroke.
+3. Cross-fitting over ``folds`` folds of the simulated strokes, so that every stroke inside the
+   hitting region is a test rally exactly once: per fold, learn when and how to hit (Ch. 4) on
+   the other folds -- LSPI (Algorithm 4.1) on the enumerated training episodes and Monte-Carlo
+   planning (Algorithms 4.2-4.3) on top of LSPI's stopping values -- and the fixed-strategy
+   baselines (each single movement started 240 ms before the hit; the best movement chosen at
+   a fixed time).
+4. Play the test rallies: at each decision time the player, with MCP, waits or starts a movement;
    the chosen movement is executed in SAPIEN and the ball is returned or missed.
-6. Print the return rates against the baselines (each single movement started 240 ms before the
-   hit; the best movement chosen at a fixed time; LSPI) and save figures: return rates, one
-   played rally in 3-D and the belief over the target during that stroke.
+5. Print each player's return rate with an exact 95% interval (Clopper-Pearson) and the paired
+   difference MCP - best fixed strategy over the same rallies with its 95% interval (Newcombe's
+   square-and-add interval for paired proportions), then save figures: return rates with their
+   intervals, one played rally in 3-D and the belief over the target during that stroke.
 
 ``hgpdm demo --full`` runs the whole Sec. 4.3 experiment instead (``hgpdm anticipation --full``).
 """
@@ -24,8 +28,11 @@ r"""``hgpdm demo``: the anticipatory table-tennis player, end to end (thesis Ch.
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,13 +42,37 @@ from ..decision.basis import RadialBasis
 from ..decision.lspi import lspi
 from ..decision.mcp import MonteCarloPlanner
 from ..decision.stopping import StoppingProblem
-from ..parallel import Executor, ray_address_type
+from ..parallel import Executor, available_cpus, get_executor, ray_address_type
 from . import anticipation as ant
-from .arguments import non_negative_int, output_folder, positive_int, random_seed
+from .arguments import (
+    int_at_least,
+    non_negative_int,
+    output_folder,
+    positive_int,
+    random_seed,
+)
 from .dtype import float64_default
+from .intervals import paired_difference_interval, return_rate_interval
 from .table import ResultTable
 
-__all__ = ["Rally", "DemoResult", "main", "plot_demo", "run_demo"]
+__all__ = [
+    "DEFAULT_TRIALS",
+    "DEFAULT_WATCHED",
+    "DemoResult",
+    "Rally",
+    "main",
+    "plot_demo",
+    "run_demo",
+    "summary",
+]
+
+#: Strokes simulated in SAPIEN by default: about 85% fall inside the hitting region, so that the
+#: default run (seed 0) plays more than 60 test rallies.
+DEFAULT_TRIALS = 80
+#: Further opponent strokes the IDDM is fitted on by default (observed only, never played).
+DEFAULT_WATCHED = 150
+#: Fixed strategies: the players whose timing does not depend on the belief.
+FIXED_PREFIXES = ("always ", "best movement @")
 
 
 @dataclass
@@ -66,8 +97,11 @@ class Rally:
 class DemoResult:
     """What :func:`run_demo` returns: the table, the played rallies and the beliefs to draw.
 
-    ``target_probs [n_test, T, K]`` is the belief over the target grid ``grid [K]`` of each test
-    stroke at the ``T`` decision times ``start_times``.
+    ``rallies`` are the test rallies in stroke order (every stroke inside the hitting region);
+    ``target_probs [n_test, T, K]`` is the belief over the target grid ``grid [K]`` of each of
+    them at the ``T`` decision times ``start_times``; ``successes`` maps each player of the
+    table to its ``[n_test]`` returns on the same rallies (the pairs behind the paired
+    difference).
     """
 
     table: ResultTable
@@ -76,54 +110,92 @@ class DemoResult:
     start_times: tuple[float, ...]
     target_probs: torch.Tensor
     meta: dict = field(default_factory=dict)
+    successes: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+def _play_rally(job: tuple) -> object:
+    """One live rally on an executor: ``evaluate(trial, action, start_time)`` under the caller's
+    default dtype (a worker process must not fall back to its own)."""
+    from ..robots.table_tennis.trials import evaluate
+
+    trial, action, start_time, dtype = job
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        return evaluate(trial, action, start_time)
+    finally:
+        torch.set_default_dtype(previous)
+
+
+def _verdict(low: float, high: float, best: str, n: int) -> str:
+    """One honest sentence on the paired interval MCP - best fixed strategy."""
+    if low > 0:
+        return f"MCP returns more balls than {best} (the 95% interval is above 0, {n} rallies)"
+    if high < 0:
+        return f"MCP returns fewer balls than {best} (the 95% interval is below 0, {n} rallies)"
+    return (
+        f"no significant difference between MCP and {best} at the 95% level over {n} rallies "
+        "(the interval contains 0)"
+    )
 
 
 def run_demo(
     *,
-    num_trials: int = 48,
-    watched: int = 150,
-    test_fraction: float = 1 / 3,
+    num_trials: int = DEFAULT_TRIALS,
+    watched: int = DEFAULT_WATCHED,
+    folds: int = 3,
     config: ant.AnticipationConfig | None = None,
     workers: int | None = None,
     executor: Executor | None = None,
     seed: int = 0,
     cache_dir: str | Path | None = None,
     progress: bool = False,
+    status: Callable[[str], None] | None = None,
 ) -> DemoResult:
     """Train the anticipatory player on simulated strokes and play the test rallies in SAPIEN.
+
+    Every simulated stroke inside the robot's hitting region is a test rally once (cross-fitting
+    over ``folds`` folds): the decision layers (LSPI, MCP and the fixed-time baselines) are
+    learned on the other folds, the IDDM on the ``watched`` strokes only.
 
     Args:
         num_trials: opponent strokes played in SAPIEN (before excluding those outside the
             robot's hitting region).
-        watched: further opponent strokes the IDDM is trained on (no robot movements).
-        test_fraction: share of the valid strokes held out as test rallies.
+        watched: further opponent strokes the IDDM is trained on (no robot movements). With
+            ``0`` the IDDM of each fold is fitted on that fold's training strokes instead.
+        folds: cross-fitting folds (``>= 2``); each learns from ``(folds - 1) / folds`` of the
+            strokes.
         config: IDDM, basis, LSPI and MCP settings (default: the full experiment's with 20
             RBF centres; learning takes seconds, the SAPIEN simulation minutes).
-        workers: SAPIEN processes for the reward table (default: all cores, at most 4).
+        workers: SAPIEN processes for the reward table and the live rallies (default: all
+            cores, at most 4).
         executor: an :class:`~hgpdm_torch.parallel.Executor` (e.g. a Ray cluster) to simulate
-            the reward table on instead of ``workers`` local processes; left open.
-        seed: seeds the strokes, the split and the planner.
+            on instead of ``workers`` local processes; left open.
+        seed: seeds the strokes, the folds and the planner.
         cache_dir: reward-table cache (default ``$HGPDM_CACHE`` or ``~/.cache/hgpdm_torch``).
         progress: tqdm bars.
+        status: called with one short line at the end of each stage (simulate, fit, learn,
+            play) giving its elapsed seconds; ``None`` for silence.
 
     Returns:
-        A :class:`DemoResult`.
+        A :class:`DemoResult`; its table has each player's returns, rate and exact 95%
+        interval, and its meta the paired difference MCP - best fixed strategy with its 95%
+        interval (:func:`paired_difference_interval`).
 
     Raises:
-        ValueError: bad sizes (``num_trials``, ``watched``, ``workers``, ``test_fraction``
-            outside (0, 1)), ``workers`` with an ``executor``, or too few valid strokes to split.
+        ValueError: bad sizes (``num_trials``, ``watched``, ``workers``, ``folds``), ``workers``
+            with an ``executor``, or too few strokes inside the hitting region for the folds.
     """
-    from ..robots.table_tennis import strokes
-    from ..robots.table_tennis.trials import (
-        DEFAULT_START_TIMES,
-        evaluate,
-        make_trials,
-        reward_table,
-    )
+    from tqdm.auto import tqdm
 
-    if not 0.0 < test_fraction < 1.0:
-        raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction!r}")
-    for name, value, low in (("num_trials", num_trials, 1), ("watched", watched, 0)):
+    from ..robots.table_tennis import strokes
+    from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
+
+    for name, value, low in (
+        ("num_trials", num_trials, 1),
+        ("watched", watched, 0),
+        ("folds", folds, 2),
+    ):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
     if workers is not None and (
@@ -132,108 +204,184 @@ def run_demo(
         raise ValueError(f"workers must be a positive int or None, got {workers!r}")
     if workers is not None and executor is not None:
         raise ValueError("give workers or an executor, not both")
+    if status is not None and not callable(status):
+        raise TypeError(f"status must be callable or None, got {type(status).__name__}")
     config = config or ant.AnticipationConfig(centres=20, iddm_trials=10_000, seed=seed)
-    local = {"workers": workers or max(1, min(4, os.cpu_count() or 1))}
-    pool = local if executor is None else {"executor": executor}
     movements = tuple(strokes.MOVEMENTS)
     if movements != ant.MOVEMENTS:
         raise RuntimeError(f"robot movements {movements} differ from actions {ant.MOVEMENTS}")
     start_times = DEFAULT_START_TIMES
-    clock = time.perf_counter()
-    with float64_default():
-        trials = make_trials(num_trials, seed=seed, progress=progress)
-        rewards = reward_table(
-            trials, movements, start_times, cache_dir=cache_dir, progress=progress, **pool
-        ).to(torch.float64)
-        t_sim = time.perf_counter() - clock
-        valid = torch.nonzero(ant.valid_trials(rewards)).flatten()
-        n_test = round(test_fraction * len(valid))
-        if n_test < 1 or len(valid) - n_test < 4:
-            raise ValueError(
-                f"only {len(valid)} of {num_trials} strokes are inside the hitting region; "
-                "simulate more (num_trials)"
+    say = status or (lambda line: None)
+    pool = (
+        executor
+        if executor is not None
+        else get_executor(workers or max(1, min(4, available_cpus())))
+    )
+    try:
+        with float64_default():
+            clock = time.perf_counter()
+            trials = make_trials(num_trials, seed=seed, progress=progress)
+            rewards = reward_table(
+                trials, movements, start_times, executor=pool, cache_dir=cache_dir,
+                progress=progress,
+            ).to(torch.float64)  # fmt: skip
+            t_sim = time.perf_counter() - clock
+            valid = torch.nonzero(ant.valid_trials(rewards)).flatten()
+            n = len(valid)
+            say(
+                f"simulate: {num_trials} strokes x {rewards[0].numel()} (movement, start) in "
+                f"SAPIEN, {n} inside the hitting region ({t_sim:.0f} s)"
             )
-        gen = torch.Generator().manual_seed(seed)
-        perm = valid[torch.randperm(len(valid), generator=gen)]
-        test, train = perm[:n_test].sort().values, perm[n_test:].sort().values
+            if n < folds or n - math.ceil(n / folds) < 4:
+                raise ValueError(
+                    f"only {n} of {num_trials} strokes are inside the hitting region; "
+                    f"{folds} folds need more: simulate more (num_trials)"
+                )
+            gen = torch.Generator().manual_seed(seed)
+            fold_of = torch.empty(n, dtype=torch.long)
+            fold_of[torch.randperm(n, generator=gen)] = torch.arange(n) % folds
 
-        clock = time.perf_counter()
-        obs, targets, iddm_train = trials.obs, trials.targets, train
-        if watched:
-            seen = make_trials(watched, seed=seed + 1, progress=progress)
-            if not torch.equal(seen.obs_times, trials.obs_times):
-                raise RuntimeError("watched strokes must share the trials' observation times")
-            obs, targets = torch.cat([obs, seen.obs]), torch.cat([targets, seen.targets])
-            iddm_train = torch.cat([train, num_trials + torch.arange(watched)])
-        steps_at = ant.decision_indices(trials.obs_times, start_times)
-        beliefs = ant.fit_beliefs(obs, targets, steps_at, iddm_train, test, config)
-        vectors = beliefs.vectors()[:num_trials]
-        problem = StoppingProblem(vectors, rewards)
-        train_p, test_p = problem.subset(train), problem.subset(test)
-        basis = RadialBasis(config.centres, seed=seed, bias=True).fit(
-            train_p.beliefs.reshape(-1, vectors.shape[-1])
-        )
-        enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
-        q = lspi(enumerated, features=basis, ridge=config.ridge).q
-        planner = MonteCarloPlanner(
-            beliefs.model, beliefs.belief_filter, q, basis,
-            num_particles=config.particles, confidence=config.confidence,
-        )  # fmt: skip
-        t_learn = time.perf_counter() - clock
+            clock = time.perf_counter()
+            obs, targets = trials.obs, trials.targets
+            steps_at = ant.decision_indices(trials.obs_times, start_times)
+            shared = None
+            if watched:
+                seen = make_trials(watched, seed=seed + 1, progress=progress)
+                if not torch.equal(seen.obs_times, trials.obs_times):
+                    raise RuntimeError("watched strokes must share the trials' observation times")
+                obs, targets = torch.cat([obs, seen.obs]), torch.cat([targets, seen.targets])
+                iddm_train = num_trials + torch.arange(watched)
+                shared = ant.fit_beliefs(obs, targets, steps_at, iddm_train, valid, config)
+            t_fit = time.perf_counter() - clock
+            if shared is not None:
+                say(f"fit: IDDM on {watched} watched strokes, beliefs filtered ({t_fit:.0f} s)")
 
-        table = ResultTable(
-            f"hgpdm demo: anticipatory table tennis, {len(test)} test rallies "
-            f"({len(train)} training strokes)",
-            ["player", "returns", "rate", "played in"],
-            meta={"num_trials": num_trials, "watched": watched, "valid": len(valid), "seed": seed},
-        )
-        single = start_times.index(ant.SINGLE_TIME)
-        for a, name in enumerate(movements):
-            won = int((test_p.rewards[:, a, single] > 0).sum())
-            table.add(player=f"always {name} @240ms", returns=won, rate=won / len(test))
-        for s in ant.ORACLE_TIMES:
-            step = start_times.index(s)
-            q_t = ant.stop_only_q(train_p, step, basis, config.ridge)
-            won = ant.successes(test_p.run(ant.fixed_time_policy(q_t, basis, step)))
-            name = f"best movement @{round(-1000 * s)}ms"
-            table.add(player=name, returns=won, rate=won / len(test))
-        won = ant.successes(test_p.run(ant.greedy_policy(q, basis, test_p)))
-        table.add(player="LSPI", returns=won, rate=won / len(test))
-        for row in table.rows:
-            row["played in"] = "reward table (SAPIEN)"
+            # per fold: the baselines and LSPI are scored on the reward table, MCP decides
+            players = [f"always {m} @240ms" for m in movements]
+            players += [f"best movement @{round(-1000 * s)}ms" for s in ant.ORACLE_TIMES]
+            players += ["LSPI", "MCP"]
+            won = {p: torch.zeros(n, dtype=torch.bool) for p in players}
+            stop_step = torch.zeros(n, dtype=torch.long)
+            stop_action = torch.zeros(n, dtype=torch.long)
+            table_reward = torch.zeros(n)
+            probs = torch.zeros(n, len(start_times), config.grid_size)
+            single = start_times.index(ant.SINGLE_TIME)
+            t_learn = t_plan = 0.0
+            decisions = 0
+            bar = tqdm(total=folds, disable=not progress, desc="learn + plan (folds)", leave=False)
+            for k in range(folds):
+                at = torch.nonzero(fold_of == k).flatten()  # positions among the valid strokes
+                train, test = valid[fold_of != k], valid[at]
+                clock = time.perf_counter()
+                beliefs = shared
+                if beliefs is None:  # no watched strokes: this fold's IDDM on its training set
+                    beliefs = ant.fit_beliefs(obs, targets, steps_at, train, valid, config)
+                    t_fit += time.perf_counter() - clock
+                    clock = time.perf_counter()
+                vectors = beliefs.vectors()[:num_trials]
+                problem = StoppingProblem(vectors, rewards)
+                train_p, test_p = problem.subset(train), problem.subset(test)
+                basis = RadialBasis(config.centres, seed=seed, bias=True).fit(
+                    train_p.beliefs.reshape(-1, vectors.shape[-1])
+                )
+                for a, name in enumerate(movements):
+                    won[f"always {name} @240ms"][at] = test_p.rewards[:, a, single] > 0
+                for s in ant.ORACLE_TIMES:
+                    step = start_times.index(s)
+                    q_t = ant.stop_only_q(train_p, step, basis, config.ridge)
+                    episodes = test_p.run(ant.fixed_time_policy(q_t, basis, step))
+                    won[f"best movement @{round(-1000 * s)}ms"][at] = episodes.reward > 0
+                enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
+                q = lspi(enumerated, features=basis, ridge=config.ridge).q
+                won["LSPI"][at] = test_p.run(ant.greedy_policy(q, basis, test_p)).reward > 0
+                planner = MonteCarloPlanner(
+                    beliefs.model, beliefs.belief_filter, q, basis,
+                    num_particles=config.particles, confidence=config.confidence,
+                )  # fmt: skip
+                t_learn += time.perf_counter() - clock
+                clock = time.perf_counter()
+                # the MCP player's decisions on this fold's rallies (positions in `valid` of
+                # the fold's trials index the beliefs)
+                decided = test_p.run(ant.mcp_policy(planner, beliefs, test, test_p.horizon, gen))
+                t_plan += time.perf_counter() - clock
+                decisions += int((decided.stop_step + 1).sum())
+                stop_step[at], stop_action[at] = decided.stop_step, decided.stop_action
+                table_reward[at] = decided.reward.to(table_reward.dtype)
+                probs[at] = beliefs.log_prob[test].exp().to(probs.dtype)
+                bar.update()
+            bar.close()
+            if shared is None:
+                say(f"fit: one IDDM per fold on its training strokes ({t_fit:.0f} s)")
+            say(
+                f"learn: LSPI, baselines and MCP decisions on {folds} folds "
+                f"({t_learn + t_plan:.0f} s)"
+            )
 
-        # the MCP player's decisions, each executed in SAPIEN
-        clock = time.perf_counter()
-        decided = test_p.run(ant.mcp_policy(planner, beliefs, test, test_p.horizon, gen))
-        t_plan = time.perf_counter() - clock
-        clock = time.perf_counter()
-        rallies = []
-        for j, i in enumerate(test.tolist()):
-            action = movements[int(decided.stop_action[j]) - 1]
-            t0 = start_times[int(decided.stop_step[j])]
-            outcome = evaluate(trials[i], action, t0)
-            rallies.append(Rally(i, float(trials.targets[i]), action, t0, outcome))
-        t_play = time.perf_counter() - clock
-        won = sum(r.outcome.success for r in rallies)
-        table.add(player="MCP", returns=won, rate=won / len(test), **{"played in": "SAPIEN"})
-        # the scene is deterministic: each live rally must reproduce the reward the stopping
-        # problem gave the planner's (step, action) decision
-        agree = sum(r.outcome.success == bool(decided.reward[j] > 0) for j, r in enumerate(rallies))
-        probs = beliefs.log_prob[test].exp()
+            # every MCP decision executed in SAPIEN
+            clock = time.perf_counter()
+            dtype = torch.get_default_dtype()
+            jobs = [
+                (trials[int(i)], movements[int(stop_action[j]) - 1],
+                 start_times[int(stop_step[j])], dtype)
+                for j, i in enumerate(valid.tolist())
+            ]  # fmt: skip
+            outcomes = list(
+                tqdm(pool.map(_play_rally, jobs), total=n, disable=not progress,
+                     desc="play (SAPIEN)", leave=False)
+            )  # fmt: skip
+            rallies = [
+                Rally(int(i), float(trials.targets[i]), job[1], job[2], outcome)
+                for i, job, outcome in zip(valid.tolist(), jobs, outcomes, strict=True)
+            ]
+            t_play = time.perf_counter() - clock
+            say(f"play: {n} rallies of the MCP player in SAPIEN ({t_play:.0f} s)")
+    finally:
+        if executor is None:
+            pool.close()
+    won["MCP"] = torch.tensor([bool(r.outcome.success) for r in rallies])
+    # the scene is deterministic: each live rally must reproduce the reward the stopping
+    # problem gave the planner's (step, action) decision
+    agree = int((won["MCP"] == (table_reward > 0)).sum())
+
+    table = ResultTable(
+        f"hgpdm demo: anticipatory table tennis, {n} test rallies ({folds}-fold cross-fitting "
+        f"over {n} of {num_trials} strokes)",
+        ["player", "returns", "rate", "95% low", "95% high", "played in"],
+        meta={"num_trials": num_trials, "watched": watched, "valid": n, "folds": folds,
+              "seed": seed},
+    )  # fmt: skip
+    for p in players:
+        k = int(won[p].sum())
+        low, high = return_rate_interval(k, n)
+        where = "SAPIEN" if p == "MCP" else "reward table (SAPIEN)"
+        table.add(**{"player": p, "returns": k, "rate": k / n, "95% low": low, "95% high": high,
+                     "played in": where})  # fmt: skip
+    fixed = [p for p in players if p.startswith(FIXED_PREFIXES)]
+    best = max(fixed, key=lambda p: int(won[p].sum()))  # first of the best on ties
+    diff, low, high = paired_difference_interval(won["MCP"], won[best])
     meta = {
+        "best fixed": best,
+        "MCP - best fixed": diff,
+        "MCP - best fixed 95% low": low,
+        "MCP - best fixed 95% high": high,
+        "MCP only / best fixed only": f"{int((won['MCP'] & ~won[best]).sum())}/"
+        f"{int((~won['MCP'] & won[best]).sum())}",
+        "verdict": _verdict(low, high, best, n),
         "simulate [s]": t_sim,
+        "fit [s]": t_fit,
         "learn [s]": t_learn,
-        "MCP per decision [ms]": 1e3 * t_plan / max(1, int((decided.stop_step + 1).sum())),
+        "MCP per decision [ms]": 1e3 * t_plan / max(1, decisions),
         "play [s]": t_play,
-        "live = table": f"{agree}/{len(rallies)}",
+        "live = table": f"{agree}/{n}",
     }
     table.meta.update(meta)
     grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
-    return DemoResult(table, rallies, grid, start_times, probs, meta)
+    return DemoResult(table, rallies, grid, start_times, probs, meta, won)
 
 
 def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
-    """Save the return rates, one played rally in 3-D and its belief over the target (PNGs)."""
+    """Save the return rates with their 95% intervals, one played rally in 3-D and its belief
+    over the target (PNGs)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -245,14 +393,29 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    names, rates = result.table.column("player"), result.table.column("rate")
-    fig, ax = plt.subplots(figsize=(8, 3.6))
+    table = result.table
+    names, rates = table.column("player"), table.column("rate")
+    lows, highs = table.column("95% low"), table.column("95% high")
+    errors = [[r - lo for r, lo in zip(rates, lows, strict=True)],
+              [hi - r for r, hi in zip(rates, highs, strict=True)]]  # fmt: skip
+    fig, ax = plt.subplots(figsize=(8.5, 4.0))
     colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:orange", "tab:green"]
-    ax.bar(range(len(names)), rates, color=colours[: len(names)])
+    bars = ax.bar(range(len(names)), rates, color=colours[: len(names)], yerr=errors, capsize=4,
+                  error_kw={"lw": 1, "ecolor": "k"})  # fmt: skip
+    best = result.meta.get("best fixed")
+    if best in names:
+        bars[names.index(best)].set_hatch("//")
     ax.set_xticks(range(len(names)), [n.replace(" ", "\n") for n in names], fontsize=8)
-    ax.set_ylabel("successful returns (test rallies)")
+    ax.set_ylabel("return rate on the test rallies\n(exact 95% interval)")
     ax.set_ylim(0, 1)
-    ax.set_title(result.table.title, fontsize=9)
+    title = table.title
+    if "MCP - best fixed" in result.meta:
+        m = result.meta
+        title += (
+            f"\nMCP - {m['best fixed']} (hatched), paired: {m['MCP - best fixed']:+.3f} "
+            f"[{m['MCP - best fixed 95% low']:+.3f}, {m['MCP - best fixed 95% high']:+.3f}]"
+        )
+    ax.set_title(title, fontsize=9)
     fig.tight_layout()
     paths.append(out / "return_rates.png")
     fig.savefig(paths[-1], dpi=120)
@@ -284,17 +447,41 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     return paths
 
 
+def summary(result: DemoResult) -> str:
+    """The paired comparison MCP - best fixed strategy as printed under the table."""
+    m = result.meta
+    return (
+        f"MCP - best fixed strategy ({m['best fixed']}), paired over the same rallies: "
+        f"{m['MCP - best fixed']:+.3f}, 95% interval [{m['MCP - best fixed 95% low']:+.3f}, "
+        f"{m['MCP - best fixed 95% high']:+.3f}] (Newcombe square-and-add; rallies returned by "
+        f"MCP only / by {m['best fixed']} only: {m['MCP only / best fixed only']}): "
+        f"{m['verdict']}."
+    )
+
+
 def main(argv: list[str]) -> int:
-    """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--workers W] [--ray-address ADDRESS]
-    [--seed S] [--out DIR] [--cache-dir DIR] [--full] [--progress]``."""
+    """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--folds K] [--workers W]
+    [--ray-address ADDRESS] [--seed S] [--out DIR] [--cache-dir DIR] [--full]
+    [--progress | --quiet]``.
+
+    Progress: tqdm bars when stderr is a terminal (or with ``--progress``); a one-line status
+    per stage on stderr unless ``--quiet``, which leaves only the results on stdout.
+    """
     parser = argparse.ArgumentParser(prog="hgpdm demo", description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=positive_int, default=None, help="strokes played (48)")
+    parser.add_argument(
+        "--trials", type=positive_int, default=None,
+        help=f"strokes played in SAPIEN ({DEFAULT_TRIALS})",
+    )  # fmt: skip
     parser.add_argument(
         "--watched",
         type=non_negative_int,
         default=None,
-        help="further strokes the IDDM learns from (150)",
+        help=f"further strokes the IDDM learns from ({DEFAULT_WATCHED})",
     )
+    parser.add_argument(
+        "--folds", type=int_at_least(2), default=3,
+        help="cross-fitting folds: every stroke in the hitting region is a test rally once (3)",
+    )  # fmt: skip
     parser.add_argument(
         "--workers",
         type=positive_int,
@@ -313,10 +500,18 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--full", action="store_true", help="run the full Sec. 4.3 experiment instead"
     )
-    parser.add_argument("--progress", action="store_true")
+    noise = parser.add_mutually_exclusive_group()
+    noise.add_argument(
+        "--progress", action="store_true",
+        help="tqdm bars even when stderr is not a terminal (default: only on a terminal)",
+    )  # fmt: skip
+    noise.add_argument(
+        "--quiet", action="store_true", help="no bars and no status lines: only the results"
+    )
     args = parser.parse_args(argv)
     if args.full and (args.trials is not None or args.watched is not None):
         parser.error("--trials and --watched set the demo's sizes; --full uses the thesis's")
+    bars = not args.quiet and (args.progress or sys.stderr.isatty())
     if args.full:
         extra = ["--out", str(args.out), "--seed", str(args.seed)]
         if args.ray_address is None:
@@ -324,26 +519,40 @@ def main(argv: list[str]) -> int:
         else:
             extra += ["--ray-address", args.ray_address]
             extra += ["--workers", str(args.workers)] if args.workers else []
-        extra += ["--progress"] if args.progress else []
+        extra += ["--progress"] if bars else []
         extra += ["--cache-dir", str(args.cache_dir)] if args.cache_dir else []
         return ant.main(["--full", *extra])
+    start = time.perf_counter()
+
+    def status(line: str) -> None:
+        print(f"[hgpdm demo {time.perf_counter() - start:5.0f} s] {line}", file=sys.stderr,
+              flush=True)  # fmt: skip
+
     executor = ant.connect(parser, args.workers, args.ray_address)
     try:
         result = run_demo(
-            num_trials=48 if args.trials is None else args.trials,
-            watched=150 if args.watched is None else args.watched,
+            num_trials=DEFAULT_TRIALS if args.trials is None else args.trials,
+            watched=DEFAULT_WATCHED if args.watched is None else args.watched,
+            folds=args.folds,
             workers=None if executor is not None else args.workers, executor=executor,
-            seed=args.seed, cache_dir=args.cache_dir, progress=args.progress,
+            seed=args.seed, cache_dir=args.cache_dir, progress=bars,
+            status=None if args.quiet else status,
         )  # fmt: skip
     finally:
         if executor is not None:
             executor.close()
     print(result.table.to_markdown(".3g"))
     print()
+    print(summary(result))
+    print()
+    skip = {"best fixed", "MCP - best fixed", "MCP - best fixed 95% low",
+            "MCP - best fixed 95% high", "MCP only / best fixed only", "verdict"}  # fmt: skip
     print(", ".join(f"{k}: {v:.3g}" if isinstance(v, float) else f"{k}: {v}"
-                    for k, v in result.meta.items()))  # fmt: skip
+                    for k, v in result.meta.items() if k not in skip))  # fmt: skip
     out = Path(args.out)
     result.table.to_json(out / "demo.json")
     for path in plot_demo(result, out):
         print(f"saved {path}")
+    if not args.quiet:
+        status(f"done ({time.perf_counter() - start:.0f} s in all)")
     return 0

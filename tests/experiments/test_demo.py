@@ -2,40 +2,139 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import sys
 
 import pytest
 
 pytest.importorskip("sapien")
 
 from hgpdm_torch import cli  # noqa: E402
+from hgpdm_torch.experiments import demo, intervals  # noqa: E402
 from hgpdm_torch.experiments.demo import run_demo  # noqa: E402
 
+STAGES = ("simulate:", "fit:", "learn:", "play:")
 
-def test_demo_plays_rallies_in_sapien(tmp_path, capsys):
-    out = tmp_path / "out"
+
+@pytest.fixture(scope="module")
+def played(tmp_path_factory):
+    """One small CLI run (12 strokes, 20 watched, 1 process): its output folder, stdout, stderr
+    and the :class:`~hgpdm_torch.experiments.demo.DemoResult` it printed."""
+    tmp = tmp_path_factory.mktemp("demo")
+    out = tmp / "out"
+    results = []
+    real = demo.run_demo
+
+    def spy(**kwargs):
+        results.append(real(**kwargs))
+        return results[-1]
+
     args = ["demo", "--trials", "12", "--watched", "20", "--workers", "1", "--out", str(out)]
-    assert cli.main([*args, "--cache-dir", str(tmp_path / "cache")]) == 0
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(demo, "run_demo", spy)
+        stdout, stderr = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            assert cli.main([*args, "--cache-dir", str(tmp / "cache")]) == 0
+    return out, stdout.getvalue(), stderr.getvalue(), results[0]
+
+
+def test_demo_plays_rallies_in_sapien(played):
+    out, stdout, stderr, result = played
     table = json.loads((out / "demo.json").read_text())
     players = [r["player"] for r in table["rows"]]
     assert players[-2:] == ["LSPI", "MCP"] and len(players) == 8
-    n_test = int(table["title"].split(", ")[1].split()[0])
+    assert table["columns"] == ["player", "returns", "rate", "95% low", "95% high", "played in"]
+    n_test = table["meta"]["valid"]
+    # cross-fitting: every stroke inside the hitting region is a test rally once
+    assert len(result.rallies) == n_test == len({r.trial for r in result.rallies}) >= 6
+    assert f"{n_test} test rallies" in table["title"]
     for row in table["rows"]:
         assert 0 <= row["returns"] <= n_test
         assert row["rate"] == pytest.approx(row["returns"] / n_test)
+        low, high = intervals.return_rate_interval(row["returns"], n_test)
+        assert (row["95% low"], row["95% high"]) == pytest.approx((low, high))
+        assert row["95% low"] <= row["rate"] <= row["95% high"]
+    # the paired difference: MCP against the best fixed strategy on the same rallies
+    meta = table["meta"]
+    fixed = {r["player"]: r["returns"] for r in table["rows"][:6]}
+    assert fixed[meta["best fixed"]] == max(fixed.values())
+    mcp = table["rows"][-1]["returns"]
+    assert meta["MCP - best fixed"] == pytest.approx((mcp - fixed[meta["best fixed"]]) / n_test)
+    expected = intervals.paired_difference_interval(
+        result.successes["MCP"], result.successes[meta["best fixed"]]
+    )
+    got = (meta["MCP - best fixed"], meta["MCP - best fixed 95% low"])
+    assert (*got, meta["MCP - best fixed 95% high"]) == pytest.approx(expected)
+    assert meta["verdict"] in stdout and "MCP - best fixed strategy" in stdout
     # the live SAPIEN rallies reproduce the reward table of the deterministic scene
-    assert table["meta"]["live = table"] == f"{n_test}/{n_test}"
+    assert meta["live = table"] == f"{n_test}/{n_test}"
     for name in ("return_rates.png", "rally.png"):
         assert (out / name).stat().st_size > 10_000
-    assert "MCP" in capsys.readouterr().out
+    assert "| MCP |" in stdout
+    # not a terminal: no bars, one status line per stage on stderr, the results on stdout
+    status = [line for line in stderr.splitlines() if line.startswith("[hgpdm demo")]
+    for stage in STAGES:
+        assert sum(stage in line for line in status) == 1, (stage, status)
+    assert "reward table:" not in stderr and "|" not in stderr
 
 
-def test_demo_rejects_bad_arguments():
-    with pytest.raises(ValueError, match="test_fraction"):
-        run_demo(test_fraction=1.0)
+@pytest.mark.parametrize(
+    "flags,tty,bars,lines",
+    [
+        ([], False, False, True),
+        ([], True, True, True),
+        (["--progress"], False, True, True),
+        (["--quiet"], True, False, False),
+        (["--quiet"], False, False, False),
+    ],
+)
+def test_progress_follows_the_terminal_and_the_flags(
+    played, flags, tty, bars, lines, tmp_path, monkeypatch, capsys
+):
+    """Bars on a terminal (or with --progress), status lines unless --quiet; the work itself is
+    the module run's result, replayed."""
+    result = played[3]
+    seen = {}
+
+    def replay(**kwargs):
+        seen.update(kwargs)
+        if kwargs["status"] is not None:
+            for stage in STAGES:
+                kwargs["status"](f"{stage} replayed")
+        return result
+
+    monkeypatch.setattr(demo, "run_demo", replay)
+    monkeypatch.setattr(demo, "plot_demo", lambda result, out: [])
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: tty)
+    assert cli.main(["demo", "--out", str(tmp_path), *flags]) == 0
+    assert seen["progress"] is bars and (seen["status"] is not None) is lines
+    out, err = capsys.readouterr()
+    assert "| MCP |" in out and "MCP - best fixed strategy" in out
+    status = [line for line in err.splitlines() if line.startswith("[hgpdm demo")]
+    assert len(status) == (len(STAGES) + 1 if lines else 0), err
+    if not lines:
+        assert err == ""
+
+
+def test_demo_rejects_bad_arguments(capsys):
+    with pytest.raises(ValueError, match="folds"):
+        run_demo(folds=1)
     with pytest.raises(ValueError, match="watched"):
         run_demo(watched=-1)
     with pytest.raises(ValueError, match="num_trials"):
         run_demo(num_trials=0)
     with pytest.raises(ValueError, match="workers"):
         run_demo(workers=-2)
+    with pytest.raises(TypeError, match="status"):
+        run_demo(status="loud")  # type: ignore[arg-type]
+    for argv, fragment in [
+        (["--folds", "1"], "argument --folds: expected an integer >= 2"),
+        (["--quiet", "--progress"], "argument --progress: not allowed with argument --quiet"),
+        (["--trials", "many"], "argument --trials: expected a positive integer"),
+    ]:
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main(["demo", *argv])
+        assert exit_info.value.code == 2
+        assert fragment in capsys.readouterr().err
