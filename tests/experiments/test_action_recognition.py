@@ -46,7 +46,18 @@ def test_table_is_consistent_with_its_confusion_matrices():
         assert m.shape == (4, 4) and m.sum() == decisions
         assert abs(100 * np.trace(m) / decisions - row["accuracy [%]"]) < 0.06
         assert row["CPU ms/decision"] > 0
+        check_coverage(row)
     assert table.meta["fits"][0]["steps"] <= 5
+
+
+def check_coverage(row: dict) -> None:
+    """The IDDM's 90% credible sets always hold its decision (the most probable class), so
+    they cover the truth at least as often as it is right; baselines give no probabilities."""
+    cover = row["90% set coverage [%]"]
+    if row["method"].startswith("IDDM"):
+        assert row["accuracy [%]"] - 0.1 <= cover <= 100.0
+    else:
+        assert cover is None
 
 
 # ------------------------------------------------------------------------------------------
@@ -106,6 +117,7 @@ def check_decisions_and_folds(table, n_persons: int) -> None:
         assert row["accuracy [%]"] == pytest.approx(np.mean(per_fold["all"]), abs=0.06)
         assert row["end accuracy [%]"] == pytest.approx(np.mean(per_fold["end"]), abs=0.06)
         assert row["CPU ms/decision"] > 0
+        check_coverage(row)
 
 
 def test_msrc12_baselines_separate_a_trivially_separable_set(tmp_path):
@@ -174,6 +186,8 @@ def test_msrc12_smoke_on_the_development_archive():
         ["--dataset", "msrc12", "--data", ".", "--folds", "1"],
         ["--dataset", "msrc12", "--data", ".", "--train-per-class", "0"],
         ["--dataset", "msrc12", "--data", ".", "--seed", "-1"],
+        ["--state-prior", "uniform"],
+        ["--dataset", "msrc12", "--data", ".", "--latent-dim", "0"],
     ],
 )
 def test_bad_arguments_exit_before_any_work(monkeypatch, capsys, argv):
