@@ -4,6 +4,8 @@ The action is a discrete intention; every method decides after every new frame:
 
 - batch IDDM (Algorithm 3.1) on the last ``n = 4, 5, 6`` frames;
 - online IDDM (Algorithm 3.2) with forgetting ``eps = 0.1, 0.2, 0.3``;
+  both with the class-conditional first-state prior ``p(x_1 | g)`` by default
+  (``--state-prior class``; ``marginal`` is the thesis's prior shared by all g);
 - SVM, GP classification and per-class HMMs on the same sliding window (``n = 5``).
 
 Two data sets (``--dataset``):
@@ -20,10 +22,10 @@ Two data sets (``--dataset``):
   random subset of the training persons' instances per class to fit the models (the thesis used
   ten repetitions per action; every GP is exact, O(N^3) in the training frames).
 
-Reported: accuracy over all decisions (Table 3.3 calls it precision) and the CPU time per
-decision; for MSRC-12 also the accuracy of the decision at the end of each instance (its last
-kept frame, 0.3 s after the action point by default) and the standard errors of the means over
-folds. ``meta["confusion"]`` holds each
+Reported: accuracy over all decisions (Table 3.3 calls it precision), how often the IDDM's 90%
+credible set holds the true action, and the CPU time per decision; for MSRC-12 also the accuracy
+of the decision at the end of each instance (its last kept frame, 0.3 s after the action point by
+default) and the standard errors of the means over folds. ``meta["confusion"]`` holds each
 method's confusion matrix over all decisions (rows true, columns predicted), and
 ``meta["fits"]`` the ``FitResult.summary()`` of every IDDM fit.
 """
