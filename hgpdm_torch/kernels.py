@@ -171,6 +171,13 @@ class DiscreteIntentionKernel(Kernel):
     def forward(
         self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False, **params: object
     ) -> torch.Tensor:
+        # a code outside 0..K-1 would silently match nothing and give the prior
+        for x in (x1, x2):
+            c = x[..., -1]
+            if bool(((c != c.round()) | (c < 0) | (c >= self.num_values)).any()):
+                raise ValueError(
+                    f"discrete intention codes g must be integers in [0, {self.num_values - 1}]"
+                )
         k = self.base_kernel(x1[..., :-1], x2[..., :-1], diag=diag, **params)
         k = k.to_dense() if hasattr(k, "to_dense") else k
         if diag:

@@ -113,3 +113,20 @@ def test_bad_kernel_arguments(call, match):
 def test_discrete_kernel_rejects_non_kernel():
     with pytest.raises(TypeError, match="base_kernel"):
         DiscreteIntentionKernel("rbf", 2)
+
+
+@pytest.mark.parametrize("code", [7.0, -1.0, 0.5])
+def test_discrete_kernel_and_posterior_refuse_codes_outside_the_values(code):
+    """A code that matches no value would give the prior silently (probe of issue 15)."""
+    from hgpdm_torch.datasets import styled_movements
+    from hgpdm_torch.models import IDDM
+
+    data = styled_movements(2, 3, 10, 4, seed=0)
+    post = IDDM(data.sequences, data.labels, 2, measurement="linear").transition_posterior()
+    good = torch.tensor([[0.1, 0.2, 1.0]], dtype=torch.float64)
+    mean, _ = post.predict(good)
+    assert bool(mean.abs().sum() > 0)  # a valid code is predicted from its own block
+    with pytest.raises(ValueError, match=r"codes g must be integers in \[0, 1\]"):
+        post.predict(torch.tensor([[0.1, 0.2, code]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="codes g"):
+        post.kernel(good, torch.tensor([[0.0, 0.0, code]], dtype=torch.float64)).to_dense()
