@@ -861,14 +861,12 @@ class OnlineIntentionFilter:
         self.log_prior = _log_prior(prior, len(values), self.dtype)
         check_choice(state_prior, "state_prior", STATE_PRIORS)
         self.state_prior = state_prior
-        # the stored state of an unstarted stream is the marginal prior in either case
-        self.mu0, self.Sigma0 = _state_prior(model, None, None, self.dtype)
         if state_prior == "class":
             self.class_mu0, self.class_Sigma0 = _first_state_prior(
                 model, values, mu0, Sigma0, state_prior, self.dtype
             )
-        else:
-            self.mu0, self.Sigma0 = _state_prior(model, mu0, Sigma0, self.dtype)
+            mu0 = Sigma0 = None  # an unstarted stream stores the marginal prior
+        self.mu0, self.Sigma0 = _state_prior(model, mu0, Sigma0, self.dtype)
         self.forgetting = eps
         self.batch_size = int(batch_size)
         self.evidence = evidence
