@@ -41,12 +41,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from sklearn.model_selection import GroupKFold
+from sklearn.model_selection import GroupKFold, StratifiedKFold
 from tqdm.auto import tqdm
 
 from ..baselines import HMMClassifier, WindowGPC, WindowSVM
 from ..datasets.msrc12 import MSRC12, PosePCA, kinect_features, load_msrc12_folder, load_msrc12_npz
 from ..fitting import FitResult
+from ..inference.calibration import fit_temperature
 from ..inference.intention import (
     STATE_PRIORS,
     IntentionBelief,
@@ -75,8 +76,8 @@ MSRC12_DEV = "../shared/data/msrc12_dev.npz"
 """The shared development archive, relative to the project root."""
 
 # a method maps test sequences [M, T, Dz] to a decision after every frame: [M, T] labels
-# (long), or [M, T, K] class probabilities (the IDDM's beliefs, whose 90% credible sets are
-# scored too)
+# (long), or [M, T, K] log class probabilities (the IDDM's beliefs, whose 90% credible sets
+# are scored too)
 Method = Callable[[torch.Tensor], torch.Tensor]
 
 
@@ -138,6 +139,47 @@ def _fit_iddm(
     return model, model.fit(fit_steps, progress=progress)
 
 
+def _iddm_methods(
+    model: IDDM,
+    *,
+    windows: Sequence[int],
+    forgettings: Sequence[float],
+    state_prior: str,
+    temperatures: dict[str, float] | None = None,
+) -> list[tuple[str, Method]]:
+    """The IDDM rows of Table 3.3 (batch windows, online forgettings), each returning log
+    beliefs ``[M, T, K]``; ``temperatures`` maps a row's name to its evidence temperature
+    (default 1, the thesis's inference)."""
+    temps = temperatures or {}
+    jobs: list[tuple[str, Method]] = []
+    for w in windows:
+        name = f"IDDM batch n={w}"
+
+        def batch(z: torch.Tensor, w: int = w, temp: float = temps.get(name, 1.0)) -> torch.Tensor:
+            return infer_intention(
+                model, z, window=w, state_prior=state_prior, temperature=temp
+            ).log_prob
+
+        jobs.append((name, batch))
+    for eps in forgettings:
+        name = f"IDDM online eps={eps}"
+
+        def online(
+            z: torch.Tensor, eps: float = eps, temp: float = temps.get(name, 1.0)
+        ) -> torch.Tensor:
+            f = OnlineIntentionFilter(
+                model,
+                forgetting=eps,
+                batch_size=z.shape[0],
+                state_prior=state_prior,
+                temperature=temp,
+            )
+            return torch.stack([f.update(z[:, t]).log_prob for t in range(z.shape[1])], 1)
+
+        jobs.append((name, online))
+    return jobs
+
+
 def _methods(
     model: IDDM,
     z_train: torch.Tensor,
@@ -149,30 +191,22 @@ def _methods(
     baseline_window: int,
     seed: int,
     state_prior: str,
+    temperatures: dict[str, float] | None = None,
 ) -> list[tuple[str, Method]]:
     """The methods of Table 3.3, baselines fitted on ``z_train [J, T, Dz]``, ``y_train [J]``;
-    the IDDM's first-state prior ``state_prior`` (see :func:`infer_intention`).
+    the IDDM's first-state prior ``state_prior`` (see :func:`infer_intention`) and evidence
+    ``temperatures`` (:func:`_iddm_methods`).
 
     Returns ``(name, method)`` pairs in table order; a method left out is named in
     ``meta["skipped"]``.
     """
-    jobs: list[tuple[str, Method]] = []
-    for w in windows:
-        jobs.append(
-            (
-                f"IDDM batch n={w}",
-                lambda z, w=w: infer_intention(model, z, window=w, state_prior=state_prior).prob,
-            )
-        )
-    for eps in forgettings:
-
-        def online(z: torch.Tensor, eps: float = eps) -> torch.Tensor:
-            f = OnlineIntentionFilter(
-                model, forgetting=eps, batch_size=z.shape[0], state_prior=state_prior
-            )
-            return torch.stack([f.update(z[:, t]).prob for t in range(z.shape[1])], 1)
-
-        jobs.append((f"IDDM online eps={eps}", online))
+    jobs = _iddm_methods(
+        model,
+        windows=windows,
+        forgettings=forgettings,
+        state_prior=state_prior,
+        temperatures=temperatures,
+    )
     train = list(z_train)
     svm = WindowSVM(baseline_window).fit(train, y_train)
     jobs.append((f"SVM n={baseline_window}", svm.predict))
@@ -187,11 +221,67 @@ def _methods(
     return jobs
 
 
+# one inner split of the training data: (z_fit [J, T, Dz], y_fit [J], z_val [V, T, Dz], y_val [V])
+Split = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _fit_temperatures(
+    splits: Sequence[Split],
+    num_classes: int,
+    latent_dim: int,
+    fit_steps: int,
+    seed: int,
+    *,
+    windows: Sequence[int],
+    forgettings: Sequence[float],
+    state_prior: str,
+    progress: bool = False,
+) -> tuple[dict[str, float], list[dict[str, Any]]]:
+    """Evidence temperature of each IDDM row by cross-validation within the training data.
+
+    For each inner split an IDDM is fitted on ``z_fit`` as the row's own model is, its beliefs
+    at ``T = 1`` after every frame of the held-out ``z_val`` are pooled over the splits, and
+    :func:`~hgpdm_torch.inference.fit_temperature` gives the ``T`` that maximises the
+    likelihood of the true classes. For the batch rows this is exact temperature scaling; the
+    online filter mixes its state under the belief, so there ``T`` is the scaling that fits the
+    untempered beliefs best.
+
+    Returns:
+        ``{row name: T}`` and the ``FitResult.summary()`` of the inner fits.
+    """
+    logs: dict[str, list[torch.Tensor]] = {}
+    truths, fits = [], []
+    for z_fit, y_fit, z_val, y_val in tqdm(
+        splits, disable=not progress, desc="calibration", leave=False
+    ):
+        dx = min(latent_dim, z_fit.shape[-1])
+        model, fit = _fit_iddm(z_fit, y_fit, num_classes, dx, fit_steps, seed, progress)
+        fits.append(fit.summary())
+        rows = _iddm_methods(
+            model, windows=windows, forgettings=forgettings, state_prior=state_prior
+        )
+        for name, run in rows:
+            logs.setdefault(name, []).append(run(z_val))
+        truths.append(y_val[:, None].expand(-1, z_val.shape[1]))
+    truth = torch.cat(truths)
+    temps = {name: fit_temperature(torch.cat(parts), truth) for name, parts in logs.items()}
+    return temps, fits
+
+
+def _check_calibration_folds(folds: Any, most: int, what: str) -> None:
+    """``folds`` must be an int in ``[2, most]`` (``most``: the number of ``what``)."""
+    if isinstance(folds, bool) or not isinstance(folds, int) or not 2 <= folds <= most:
+        raise ValueError(
+            f"calibration_folds must be None or an int in [2, {most}] (the {what}), got {folds!r}"
+        )
+
+
 def _decide(
     jobs: list[tuple[str, Method]], z_test: torch.Tensor, progress: bool
 ) -> list[tuple[str, torch.Tensor, float, torch.Tensor | None]]:
     """Every method's decisions ``[M, T]`` on ``z_test [M, T, Dz]``, its CPU ms/decision and,
-    for a method that returns probabilities, the ``[M, T, K]`` mask of its 90% credible sets."""
+    for a method that returns log probabilities, the ``[M, T, K]`` mask of its 90% credible
+    sets."""
     out = []
     for name, run in tqdm(jobs, disable=not progress, desc="methods", leave=False):
         start = time.process_time()
@@ -199,7 +289,7 @@ def _decide(
         seconds = time.process_time() - start
         credible = None
         if result.is_floating_point():
-            credible = IntentionBelief(result, result.log(), torch.empty(0)).credible_set(0.9)
+            credible = IntentionBelief(result.exp(), result, torch.empty(0)).credible_set(0.9)
             result = result.argmax(-1)
         out.append((name, result, 1e3 * seconds / result.numel(), credible))
     return out
@@ -229,6 +319,7 @@ def action_recognition(
     max_train: int | None = None,
     max_test: int | None = None,
     state_prior: str = "class",
+    calibration_folds: int | None = 4,
     seed: int = 0,
     progress: bool = False,
 ) -> ResultTable:
@@ -244,7 +335,10 @@ def action_recognition(
         max_train, max_test: use only the first recordings of each class (smoke runs).
         state_prior: the IDDM's first-state prior, ``"class"`` (default) or ``"marginal"``
             (:func:`~hgpdm_torch.inference.infer_intention`).
-        seed: seed of the model fit and the baselines.
+        calibration_folds: the IDDM rows' evidence temperatures come from this many stratified
+            folds of the training recordings (:func:`_fit_temperatures`; ``meta
+            ["temperatures"]``); ``None``: ``T = 1``, the thesis's inference.
+        seed: seed of the model fit, the calibration folds and the baselines.
         progress: tqdm bars.
     """
     z_train, y_train, z_test, y_test, names = load_actions(subsample)
@@ -259,6 +353,20 @@ def action_recognition(
     z_test, y_test = first(z_test, y_test, max_test)
     k = len(names)
     model, fit = _fit_iddm(z_train, y_train, k, latent_dim, fit_steps, seed, progress)
+    temps: dict[str, float] = {}
+    inner_fits: list[dict[str, Any]] = []
+    if calibration_folds is not None:
+        fewest = int(torch.bincount(y_train, minlength=k).min())
+        _check_calibration_folds(calibration_folds, fewest, "training recordings of a class")
+        folds = StratifiedKFold(calibration_folds, shuffle=True, random_state=seed)
+        splits = [
+            (z_train[a], y_train[a], z_train[b], y_train[b])
+            for a, b in folds.split(z_train[:, 0], y_train)
+        ]
+        temps, inner_fits = _fit_temperatures(
+            splits, k, latent_dim, fit_steps, seed, windows=windows,
+            forgettings=forgettings, state_prior=state_prior, progress=progress,
+        )  # fmt: skip
     table = ResultTable(
         "Table 3.3: action recognition on BasicMotions, accuracy over all decisions",
         ["method", "accuracy [%]", "90% set coverage [%]", "CPU ms/decision"],
@@ -270,10 +378,13 @@ def action_recognition(
             "subsample": subsample,
             "Dx": latent_dim,
             "state_prior": state_prior,
+            "calibration_folds": calibration_folds,
+            "temperatures": temps,
             "seed": seed,
             "confusion": {},
             "fit": fit.summary(),
             "fits": [fit.summary()],
+            "calibration_fits": inner_fits,
         },
     )
     settings = dict(
@@ -282,6 +393,7 @@ def action_recognition(
         baseline_window=baseline_window,
         seed=seed,
         state_prior=state_prior,
+        temperatures=temps,
     )
     methods = _methods(model, z_train, y_train, table.meta, **settings)
     for name, pred, ms, credible in _decide(methods, z_test, progress):
@@ -336,6 +448,8 @@ def msrc12_recognition(
     forgettings: tuple[float, ...] = (0.1, 0.2, 0.3),
     baseline_window: int = 5,
     state_prior: str = "class",
+    calibration_folds: int | None = 2,
+    calibration_per_class: int | None = 20,
     seed: int = 0,
     progress: bool = False,
 ) -> ResultTable:
@@ -369,6 +483,11 @@ def msrc12_recognition(
         latent_dim: ``Dx`` of the IDDM (at most the fold's PCA dimension ``Dz``: the latent
             states start from a PCA of the observations); fit_steps: its L-BFGS steps.
         windows, forgettings, baseline_window, state_prior: as :func:`action_recognition`.
+        calibration_folds: the IDDM rows' evidence temperatures of each fold come from this
+            many person folds of its training persons (:func:`_fit_temperatures`: for each,
+            a PCA and an IDDM on ``train_per_class`` instances per gesture of the other
+            training persons, beliefs on up to ``calibration_per_class`` instances per gesture
+            of the held-out ones); ``None``: ``T = 1``, the thesis's inference.
         seed: seed of the instance subsets, the fits and the baselines.
         progress: tqdm bars.
 
@@ -376,8 +495,9 @@ def msrc12_recognition(
         :class:`ResultTable`: per method the accuracy over all decisions and at the last frame
         of each instance (means over folds [%], with their SEM) and the CPU ms per decision.
         ``meta``: ``confusion`` / ``confusion_end`` (summed over folds), ``per_fold``
-        accuracies, ``folds`` (persons, sizes, PCA dimension and fit summary of each fold) and
-        ``fits`` (the ``FitResult.summary()`` of every IDDM fit).
+        accuracies, ``folds`` (persons, sizes, PCA dimension, fit summary and evidence
+        temperatures of each fold), ``fits`` (the ``FitResult.summary()`` of every IDDM fit) and
+        ``calibration_fits`` (of the calibration splits' fits).
 
     Raises:
         ValueError: bad ``folds`` (fewer than 2 or more than the persons), or a training fold
@@ -420,12 +540,15 @@ def msrc12_recognition(
             "pca": pca,
             "Dx": latent_dim,
             "state_prior": state_prior,
+            "calibration_folds": calibration_folds,
+            "calibration_per_class": calibration_per_class,
             "fit_steps": fit_steps,
             "train_per_class": train_per_class,
             "test_per_class": test_per_class,
             "seed": seed,
             "folds": [],
             "fits": [],
+            "calibration_fits": [],
             "confusion": {},
             "confusion_end": {},
             "per_fold": {},
@@ -440,6 +563,9 @@ def msrc12_recognition(
         seed=seed,
         state_prior=state_prior,
     )
+    if calibration_folds is not None:
+        fewest = min(len(set(persons[train].tolist())) for train, _ in splits)
+        _check_calibration_folds(calibration_folds, fewest, "training persons of a fold")
     for fold, (train, test) in enumerate(tqdm(splits, disable=not progress, desc="folds")):
         shared = set(persons[train]) & set(persons[test])
         if shared:  # GroupKFold guarantees this; the table's validity rests on it
@@ -457,6 +583,29 @@ def msrc12_recognition(
         dx = min(latent_dim, prep.dim_)
         model, fit = _fit_iddm(z_train, y_train, k, dx, fit_steps, seed, progress)
         table.meta["fits"].append(fit.summary())
+        temps: dict[str, float] = {}
+        if calibration_folds is not None:
+            inner_rng = np.random.default_rng([seed, fold])  # the outer subsets stay as they were
+            splits = []
+            for a, b in GroupKFold(n_splits=calibration_folds).split(train, groups=persons[train]):
+                lacking = sorted(set(range(k)) - set(labels[train[a]].tolist()))
+                if lacking:
+                    raise ValueError(
+                        f"fold {fold}: a calibration split has no training instance of "
+                        f"{[data.names[c] for c in lacking]}; use fewer calibration_folds"
+                    )
+                inner_prep = PosePCA(pca).fit(features[train[a]])
+                zi = inner_prep.transform(features)
+                fit_set = _per_class(train[a], labels, train_per_class, inner_rng)
+                val_set = _per_class(train[b], labels, calibration_per_class, inner_rng)
+                splits.append(
+                    (zi[fit_set], data.labels[fit_set], zi[val_set], data.labels[val_set])
+                )
+            temps, inner_fits = _fit_temperatures(
+                splits, k, latent_dim, fit_steps, seed, windows=windows,
+                forgettings=forgettings, state_prior=state_prior, progress=progress,
+            )  # fmt: skip
+            table.meta["calibration_fits"] += inner_fits
         table.meta["folds"].append(
             {
                 "test persons": sorted(set(persons[test].tolist())),
@@ -469,9 +618,10 @@ def msrc12_recognition(
                 if prep.explained_variance_ratio_ is None
                 else round(float(sum(prep.explained_variance_ratio_)), 4),
                 "fit": fit.summary(),
+                "temperatures": temps,
             }
         )
-        methods = _methods(model, z_train, y_train, table.meta, **settings)
+        methods = _methods(model, z_train, y_train, table.meta, temperatures=temps, **settings)
         for name, pred, ms, credible in _decide(methods, z_test, progress):
             r = results.setdefault(name, {"all": [], "end": [], "ms": [], "cover": []})
             r["all"].append(100.0 * float((pred == y_test[:, None]).double().mean()))
@@ -598,6 +748,12 @@ def main(argv: list[str]) -> int:
         default="class",
         help="the IDDM's prior of a window's first state (default class)",
     )
+    parser.add_argument(
+        "--no-calibration",
+        action="store_true",
+        help="evidence temperature 1 (the thesis's inference) instead of one fitted by "
+        "cross-validation within the training data",
+    )
     parser.add_argument("--quick", action="store_true", help="small smoke-test sizes")
     parser.add_argument("--out", type=output_file, help="write the table as JSON")
     parser.add_argument("--figure", type=output_file, help="save the confusion matrices")
@@ -627,6 +783,10 @@ def main(argv: list[str]) -> int:
         )
         if args.latent_dim is not None:
             kwargs["latent_dim"] = args.latent_dim
+        if args.no_calibration:
+            kwargs["calibration_folds"] = None
+        elif quick:
+            kwargs["calibration_folds"] = 2
         table = action_recognition(
             seed=args.seed, state_prior=args.state_prior, progress=not quick, **kwargs
         )
@@ -637,6 +797,7 @@ def main(argv: list[str]) -> int:
             "folds": args.folds or 5,
             "train_per_class": args.train_per_class or 10,
             "test_per_class": args.test_per_class,
+            "calibration_folds": None if args.no_calibration else 2,
         }
         if quick:
             kwargs.update(
@@ -648,6 +809,7 @@ def main(argv: list[str]) -> int:
                 windows=(4,),
                 forgettings=(0.2,),
                 subsample=6,
+                calibration_per_class=1,
             )
         table = msrc12_recognition(args.data, seed=args.seed, progress=not quick, **kwargs)
         table.meta["data"] = str(args.data)

@@ -39,13 +39,14 @@ from tqdm.auto import tqdm
 
 from ..baselines import LastFrameForecaster, RidgeAR
 from ..datasets.walkers import Standardizer, Walkers, load_walkers
+from ..inference.calibration import calibration
 from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..models import GPDM, HGPDM
 from .style_recognition import chunked_forecast, forecast_windows
 from .table import ResultTable
 
-__all__ = ["METHODS", "calibration", "main", "walker_folds", "walkers"]
+__all__ = ["METHODS", "main", "walker_folds", "walkers"]
 
 SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 METHODS = (
@@ -98,31 +99,6 @@ def walker_folds(
             train += [idx[(f * b + b + i) % n] for i in range(k)]
         out.append((sorted(train), sorted(test)))
     return out
-
-
-def calibration(posterior: torch.Tensor, truth: torch.Tensor, level: float = 0.9) -> dict:
-    """Calibration of a categorical posterior ``[W, K]`` against true classes ``[W]``.
-
-    Returns ``coverage``: how often the smallest set of classes with posterior mass >= ``level``
-    holds the truth (a calibrated posterior gives about ``level``), ``set_size`` its mean size,
-    and ``ece``: the expected calibration error of the top class over 10 equal-width bins.
-    """
-    p = posterior.double()
-    order = p.argsort(-1, descending=True)
-    cum = p.gather(-1, order).cumsum(-1)
-    size = (cum < level).sum(-1) + 1  # classes needed to reach the level
-    rank = (order == truth[:, None]).double().argmax(-1)
-    coverage = float((rank < size).double().mean())
-    conf, top = p.max(-1)
-    correct = (top == truth).double()
-    bins = torch.clamp((conf * 10).long(), max=9)
-    ece = sum(
-        float((bins == b).double().mean())
-        * abs(float(correct[bins == b].mean() - conf[bins == b].mean()))
-        for b in range(10)
-        if bool((bins == b).any())
-    )
-    return {"coverage": coverage, "set_size": float(size.double().mean()), "ece": ece}
 
 
 def _rmse(pred: torch.Tensor, truth: torch.Tensor, keep: torch.Tensor | None = None) -> float:

@@ -2,6 +2,7 @@
 Bayes (Ch. 2.3), the MAP baseline (conditional GPDM), and batch and online intention inference
 (Algorithms 3.1-3.2)."""
 
+from .calibration import calibration, fit_temperature, temper
 from .filtering import (
     DEFAULT_OUTLIER_SD,
     FilterResult,
@@ -43,6 +44,9 @@ __all__ = [
     "SharedTransition",
     "batch_bound",
     "batch_bound_terms",
+    "calibration",
+    "fit_temperature",
+    "temper",
     "class_state_prior",
     "expected_log_conditional",
     "infer_intention",

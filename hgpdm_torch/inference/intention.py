@@ -65,7 +65,8 @@ from ..expectations import Term, kernel_leaves, split_terms, term_psi1_grad, ter
 from ..gp import GPPosterior
 from ..linalg import CholeskyError, psd_cholesky, symmetrize
 from ..models import HGPDM
-from ..validation import as_tensor, check_choice, check_probability
+from ..validation import as_tensor, check_choice
+from .calibration import check_temperature, intention_log_prior
 from .filtering import (
     DEFAULT_OUTLIER_SD,
     ObservationCheck,
@@ -196,16 +197,6 @@ def intention_grid(model: HGPDM, intentions: Any = None, num: int = 25) -> torch
                 f"discrete intentions must be integer codes in [0, {model.num_values - 1}]"
             )
     return values
-
-
-def _log_prior(prior: Any, k: int, dtype: torch.dtype) -> torch.Tensor:
-    if prior is None:
-        return torch.full((k,), -math.log(k), dtype=dtype)
-    p = as_tensor(prior, "prior", ndim=1, dtype=dtype)
-    if p.shape[0] != k:
-        raise ValueError(f"prior must have K = {k} entries (one per intention), got {p.shape[0]}")
-    check_probability(p, "prior")
-    return p.clamp_min(torch.finfo(dtype).tiny).log()
 
 
 def _posterior_as(post: GPPosterior, dtype: torch.dtype) -> GPPosterior:
@@ -782,6 +773,10 @@ class OnlineIntentionFilter:
             the first observation is scored under each value's prior ``p(x_1 | g)``
             (:func:`class_state_prior`), ``B_1(g) = log p(g) + log q(z_1 | g)``, and ``q(x_1)``
             is the moment-matched mixture of the K posteriors; see :func:`infer_intention`.
+        temperature: ``T > 0``; every step's evidence counts as ``E_t(g) / T``
+            (:mod:`~hgpdm_torch.inference.calibration`): 1 is the thesis's recursion, ``T > 1``
+            a less confident belief (choose it with
+            :func:`~hgpdm_torch.inference.calibration.fit_temperature` on held-out streams).
         dtype: computation dtype (default the model's; float32 halves memory traffic).
         inducing: pseudo-inputs of a sparse transition GP (Sec. 3.3.3; see
             :class:`SharedTransition`), or ``None`` for the exact GP.
@@ -823,6 +818,7 @@ class OnlineIntentionFilter:
         mu0: Any = None,
         Sigma0: Any = None,
         state_prior: str = "marginal",
+        temperature: float = 1.0,
         dtype: torch.dtype | None = None,
         inducing: int | None = None,
         inducing_values: int | None = None,
@@ -858,7 +854,7 @@ class OnlineIntentionFilter:
             _posterior_as(trans, self.dtype) if mixing == "gaussian" else None
         )
         self.values = self.transition.values
-        self.log_prior = _log_prior(prior, len(values), self.dtype)
+        self.log_prior = intention_log_prior(prior, len(values), self.dtype)
         check_choice(state_prior, "state_prior", STATE_PRIORS)
         self.state_prior = state_prior
         if state_prior == "class":
@@ -868,6 +864,7 @@ class OnlineIntentionFilter:
             mu0 = Sigma0 = None  # an unstarted stream stores the marginal prior
         self.mu0, self.Sigma0 = _state_prior(model, mu0, Sigma0, self.dtype)
         self.forgetting = eps
+        self.temperature = check_temperature(temperature)
         self.batch_size = int(batch_size)
         self.evidence = evidence
         self.mixing, self.relinearize = mixing, bool(relinearize) or mixing == "gaussian"
@@ -1130,7 +1127,7 @@ class OnlineIntentionFilter:
         mk = self.class_mu0.expand(B, K, -1)
         Pk = self.class_Sigma0.expand(B, K, -1, -1)
         mean, cov, ll = self.measure(mk, Pk, z[:, None, :].expand(-1, K, -1))
-        new = log_belief + ll
+        new = log_belief + ll / self.temperature
         new = new - torch.logsumexp(new, -1, keepdim=True)
         mean, cov = _mix(new.exp(), mean, cov)
         return mean, cov, new
@@ -1144,6 +1141,7 @@ class OnlineIntentionFilter:
         else:
             mf, Pf, evidence = self._bound_step(m, P, log_belief, z)
         new = (1.0 - self.forgetting) * log_belief
+        evidence = evidence / self.temperature
         new = new + torch.where(observed[:, None], evidence, torch.zeros_like(evidence))
         new = new - torch.logsumexp(new, -1, keepdim=True)
         if self.evidence == "predictive":
@@ -1311,6 +1309,7 @@ def infer_intention(
     mu0: Any = None,
     Sigma0: Any = None,
     state_prior: str = "marginal",
+    temperature: float = 1.0,
     chunk_size: int | None = None,
     outlier_sd: float | None = DEFAULT_OUTLIER_SD,
     progress: bool = False,
@@ -1342,6 +1341,11 @@ def infer_intention(
             (:func:`class_state_prior`), so that where a window's movement is, not only how it
             moves, is evidence about g. On real gestures (MSRC-12) ``"class"`` recognises far
             better (README, action recognition).
+        temperature: ``T > 0``: the posterior is ``p(g) exp(B'(g) / T)`` normalised, with
+            ``B'`` the bound without ``log p(g)`` (:mod:`~hgpdm_torch.inference.calibration`);
+            1 is Algorithm 3.1. A uniform prior keeps the ranking (and the decisions); ``T``
+            chosen by :func:`~hgpdm_torch.inference.calibration.fit_temperature` on held-out
+            windows calibrates the credible sets.
         chunk_size: positive int, windows processed together; default ``2^24 / (K N^2)``
             bounds the ``[K, chunk, N, N]`` moment-matching temporaries to about 128 MB each
             (float64).
@@ -1360,6 +1364,7 @@ def infer_intention(
     if window is not None and (not isinstance(window, int) or window < 1):
         raise ValueError(f"window must be a positive int or None, got {window!r}")
     chunk_size = _check_chunk_size(chunk_size)
+    temperature = check_temperature(temperature)
     trans, meas = model.transition_posterior(), model.measurement_posterior()
     found = ObservationCheck.from_measurement(meas, outlier_sd).first_bad(z)
     if found is not None:
@@ -1368,7 +1373,7 @@ def infer_intention(
         where = f"window {windows}, step {index[-1]}" if windows else f"step {index[-1]}"
         raise _bad_observation(f"z{list(index)} ({where})", why)
     z = z.to(dtype)
-    log_prior = _log_prior(prior, len(values), dtype)
+    log_prior = intention_log_prior(prior, len(values), dtype)
     m0, S0 = _first_state_prior(model, values, mu0, Sigma0, state_prior, dtype)
     if state_prior == "class":  # [K, 1, ...] broadcasts against the windows in batch_bound
         m0, S0 = m0[:, None], S0[:, None]
@@ -1392,7 +1397,7 @@ def infer_intention(
             ).mT
             for i in range(0, batch.shape[0], chunk_size)
         ]
-        score = torch.cat(parts, 0) + log_prior  # [windows, K]
+        score = torch.cat(parts, 0) / temperature + log_prior  # [windows, K]
         if tag is None:
             out[:, 0] = score
         elif tag[0] == "full":

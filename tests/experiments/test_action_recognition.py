@@ -35,8 +35,9 @@ def test_loader_subsamples_the_real_data():
 def test_table_is_consistent_with_its_confusion_matrices():
     pytest.importorskip("aeon")
     table = action_recognition(
-        fit_steps=5, windows=(4,), forgettings=(0.2,), max_train=2, max_test=1, subsample=5
-    )
+        fit_steps=5, windows=(4,), forgettings=(0.2,), max_train=2, max_test=1, subsample=5,
+        calibration_folds=2,
+    )  # fmt: skip
     methods = table.column("method")
     assert methods[:2] == ["IDDM batch n=4", "IDDM online eps=0.2"]
     assert {"SVM n=5", "GPC n=5"} <= set(methods)
@@ -48,6 +49,18 @@ def test_table_is_consistent_with_its_confusion_matrices():
         assert row["CPU ms/decision"] > 0
         check_coverage(row)
     assert table.meta["fits"][0]["steps"] <= 5
+    temps = table.meta["temperatures"]
+    assert set(temps) == {"IDDM batch n=4", "IDDM online eps=0.2"}
+    assert all(t > 0 for t in temps.values()) and len(table.meta["calibration_fits"]) == 2
+    # a temperature with a uniform prior keeps the batch ranking: the same decisions as T = 1
+    plain = action_recognition(
+        fit_steps=5, windows=(4,), forgettings=(0.2,), max_train=2, max_test=1, subsample=5,
+        calibration_folds=None,
+    )  # fmt: skip
+    assert plain.meta["temperatures"] == {}
+    assert plain.meta["confusion"]["IDDM batch n=4"] == table.meta["confusion"]["IDDM batch n=4"]
+    with pytest.raises(ValueError, match="calibration_folds"):
+        action_recognition(max_train=2, max_test=1, subsample=5, calibration_folds=3)
 
 
 def check_coverage(row: dict) -> None:

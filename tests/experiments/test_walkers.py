@@ -1,4 +1,4 @@
-"""The Walkers experiment (real CMU walks): folds, calibration measures, a small real run."""
+"""The Walkers experiment (real CMU walks): folds and a small real run."""
 
 from __future__ import annotations
 
@@ -6,9 +6,8 @@ import math
 from pathlib import Path
 
 import pytest
-import torch
 
-from hgpdm_torch.experiments.walkers import METHODS, calibration, main, walker_folds, walkers
+from hgpdm_torch.experiments.walkers import METHODS, main, walker_folds, walkers
 
 CMU = Path("../shared/data/cmu")
 
@@ -30,22 +29,6 @@ def test_folds_are_grouped_balanced_and_cover_every_trial():
         walker_folds(subject, folds=0)
     with pytest.raises(ValueError, match="train_per_subject"):
         walker_folds(subject, train_per_subject=0)
-
-
-def test_calibration_against_hand_computed_values():
-    truth = torch.tensor([0, 1, 1, 0])
-    onehot = torch.nn.functional.one_hot(truth, 2).double()
-    assert calibration(onehot, truth) == {"coverage": 1.0, "set_size": 1.0, "ece": 0.0}
-    # Confident and wrong on one window of four: the 90% set misses it once.
-    post = onehot.clone()
-    post[3] = torch.tensor([0.0, 1.0])
-    cal = calibration(post, truth)
-    assert cal["coverage"] == 0.75 and cal["ece"] == pytest.approx(0.25)
-    # 0.8 on the top class, right 3 times in 4: the 90% set needs both classes; ECE |0.75-0.8|.
-    post = torch.tensor([[0.8, 0.2], [0.2, 0.8], [0.2, 0.8], [0.2, 0.8]])
-    cal = calibration(post, truth)
-    assert cal["coverage"] == 1.0 and cal["set_size"] == 2.0
-    assert cal["ece"] == pytest.approx(0.05)
 
 
 @pytest.mark.skipif(not CMU.is_dir(), reason="../shared/data/cmu absent: real-data test skipped")
