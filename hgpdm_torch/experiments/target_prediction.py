@@ -15,7 +15,11 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
 - for the selected model: batch IDDM (Algorithm 3.1, window 4), online IDDM (Algorithm 3.2,
   ``eps = 0.2``), GP regression with ARD on a window chosen by validation, and the median
   (Fig. 3.7), plus ridge regression on a window (not in the thesis; a linear read-out of the
-  raw observations): MAE +- SEM in cm and the CPU time per observation.
+  raw observations): MAE +- SEM in cm and the CPU time per observation;
+- how often the online belief's 90% credible set over the grid holds the grid value nearest to
+  the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
+  on the cross-validation folds' held-out beliefs (:func:`~hgpdm_torch.inference.fit_temperature`;
+  a row of its own, posterior-mean MAE included).
 """
 
 from __future__ import annotations
@@ -30,13 +34,14 @@ from sklearn.cross_decomposition import PLSRegression
 from tqdm.auto import tqdm
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
+from ..inference.calibration import calibration, fit_temperature
 from ..inference.intention import OnlineIntentionFilter, infer_intention
 from ..models import IDDM
 from ..validation import as_tensor, check_choice
 from .arguments import output_file, random_seed
 from .table import ResultTable
 
-__all__ = ["HORIZONS_MS", "main", "supervised_init", "target_prediction"]
+__all__ = ["HORIZONS_MS", "grid_index", "main", "supervised_init", "target_prediction"]
 
 #: Prediction times before the opponent's hit [ms] and their observation indices (T = 6
 #: observations, the last at the hit).
@@ -97,32 +102,57 @@ def _fit_iddm(obs, targets, kernel: str, dx: int, steps: int, seed: int, init: s
 
 
 def _online(
-    model, obs, grid, forgetting: float, inducing: int | None = None
-) -> tuple[torch.Tensor, float]:
-    """Posterior-mean target after each observation ``[n, T]`` and CPU ms per observation."""
+    model,
+    obs,
+    grid,
+    forgetting: float,
+    inducing: int | None = None,
+    temperature: float = 1.0,
+) -> tuple[torch.Tensor, float, torch.Tensor]:
+    """Posterior-mean target after each observation ``[n, T]``, CPU ms per observation and
+    the log beliefs over the grid ``[n, T, K]``."""
     f = OnlineIntentionFilter(
-        model, grid, forgetting=forgetting, batch_size=obs.shape[0], inducing=inducing
+        model,
+        grid,
+        forgetting=forgetting,
+        batch_size=obs.shape[0],
+        inducing=inducing,
+        temperature=temperature,
     )
-    means = []
+    means, logs = [], []
     start = time.process_time()
     for t in range(obs.shape[1]):
-        means.append(f.update(obs[:, t]).mean[:, 0])
+        belief = f.update(obs[:, t])
+        means.append(belief.mean[:, 0])
+        logs.append(belief.log_prob)
     ms = 1e3 * (time.process_time() - start) / obs.numel() * obs.shape[-1]
-    return torch.stack(means, 1), ms
+    return torch.stack(means, 1), ms, torch.stack(logs, 1)
 
 
-def _cv_mae(obs, y, folds, kernel, dx, steps, seed, init, grid, forgetting) -> float:
+def grid_index(targets: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Index of the grid value nearest to each target (``[...]`` -> ``[...]`` int64): the
+    value a credible set over the grid must hold to cover the target."""
+    return (targets[..., None] - grid).abs().argmin(-1)
+
+
+def _cv_mae(
+    obs, y, folds, kernel, dx, steps, seed, init, grid, forgetting
+) -> tuple[float, torch.Tensor, torch.Tensor]:
     """Cross-validated online-IDDM MAE [cm] over the four horizons, pooled over the held-out plays
     of all folds: every training play is validated once, at every horizon (the 80 ms error of
-    a single 25% split of 100 plays left the selection to noise, SEM ~ 6 cm)."""
-    errors = []
+    a single 25% split of 100 plays left the selection to noise, SEM ~ 6 cm). Also returns the
+    held-out log beliefs ``[n, 4, K]`` at the horizons and the grid index of each play's target
+    ``[n, 4]`` (to calibrate the selected model's evidence temperature)."""
+    errors, logs, truths = [], [], []
     for held in folds:
         keep = torch.ones(len(y), dtype=torch.bool)
         keep[held] = False
         model = _fit_iddm(obs[keep], y[keep], kernel, dx, steps, seed, init)
-        mean, _ = _online(model, obs[held][:, : _STEPS[-1] + 1], grid, forgetting)
+        mean, _, log_prob = _online(model, obs[held][:, : _STEPS[-1] + 1], grid, forgetting)
         errors.append(100.0 * (mean[:, list(_STEPS)] - y[held, None]).abs())
-    return float(torch.cat(errors).mean())
+        logs.append(log_prob[:, list(_STEPS)])
+        truths.append(grid_index(y[held], grid)[:, None].expand(-1, len(_STEPS)))
+    return float(torch.cat(errors).mean()), torch.cat(logs), torch.cat(truths)
 
 
 def target_prediction(
@@ -167,33 +197,54 @@ def target_prediction(
     table = ResultTable(
         "Table 3.2 / Fig. 3.7: table-tennis target prediction, MAE +- SEM [cm]",
         ["part", "method", "kernel", "Dx", "CV MAE", *(f"{h} ms" for h in HORIZONS_MS),
-         "CPU ms/obs"],  # fmt: skip
+         "90% set coverage [%]", "CPU ms/obs"],  # fmt: skip
         meta={"seed": seed, "init": init, "n_train": n_train, "n_test": n_test, "target_std_cm":
               100 * float(y_test.std()), "grid": [-lim, lim, grid_size], "mae": {}},
     )  # fmt: skip
     configs = [(k, d) for k in kernels for d in latent_dims]
     best, best_val = None, float("inf")
     for kernel, dx in tqdm(configs, disable=not progress, desc="model selection"):
-        val_mae = _cv_mae(obs[train], y[train], folds, kernel, dx, fit_steps, seed, init, grid,
-                          forgetting)  # fmt: skip
+        val_mae, val_logs, val_truth = _cv_mae(
+            obs[train], y[train], folds, kernel, dx, fit_steps, seed, init, grid, forgetting
+        )
         model = _fit_iddm(obs[train], y[train], kernel, dx, fit_steps, seed, init)
-        mean, ms = _online(model, obs_test, grid, forgetting)
+        mean, ms, log_prob = _online(model, obs_test, grid, forgetting)
         scores = [_mae_sem(mean[:, s], y_test) for s in _STEPS]
         table.meta["mae"][f"online {kernel} Dx={dx}"] = scores
         table.add(**_row("selection", "IDDM online", kernel, dx, val_mae, scores, ms))
         if val_mae < best_val:
-            best, best_val, best_model, best_online = (kernel, dx), val_mae, model, (mean, ms)
+            best, best_val, best_model = (kernel, dx), val_mae, model
+            best_online, best_val_logs = (mean, ms, log_prob), (val_logs, val_truth)
     table.meta["selected"] = {"kernel": best[0], "Dx": best[1]}
     table.meta["fit"] = best_model.fit_result.summary()
     # the same filter on the selected model's own training plays: the gap to the test MAE is
     # how much of the dynamics' dependence on g is memorised rather than generalised
-    own, _ = _online(best_model, obs[train][:, : _STEPS[-1] + 1], grid, forgetting)
+    own, _, _ = _online(best_model, obs[train][:, : _STEPS[-1] + 1], grid, forgetting)
     table.meta["train_mae_online"] = [_mae_sem(own[:, s], y[train]) for s in _STEPS]
-    mean, ms = best_online
+    # 90% credible sets over the grid on the test plays, at T = 1 and at the evidence
+    # temperature fitted on the held-out beliefs of the cross-validation folds
+    temperature = fit_temperature(*best_val_logs)
+    truth = grid_index(y_test, grid)[:, None].expand(-1, len(_STEPS))
+    mean, ms, log_prob = best_online
+    cal = calibration(log_prob[:, list(_STEPS)].exp(), truth)
     scores = [_mae_sem(mean[:, s], y_test) for s in _STEPS]
-    table.add(**_row("comparison", f"IDDM online eps={forgetting}", *best, None, scores, ms))
+    table.add(
+        **_row("comparison", f"IDDM online eps={forgetting}", *best, None, scores, ms),
+        **{"90% set coverage [%]": round(100 * cal["coverage"], 1)},
+    )
+    mean_t, ms_t, log_t = _online(best_model, obs_test, grid, forgetting, temperature=temperature)
+    cal_t = calibration(log_t[:, list(_STEPS)].exp(), truth)
+    scores_t = [_mae_sem(mean_t[:, s], y_test) for s in _STEPS]
+    table.meta["mae"]["online calibrated"] = scores_t
+    table.meta["temperature"] = temperature
+    table.meta["calibration"] = {"T=1": cal, "fitted T": cal_t}
+    name = f"IDDM online eps={forgetting}, T={temperature:.3g} (CV)"
+    table.add(
+        **_row("comparison", name, *best, None, scores_t, ms_t),
+        **{"90% set coverage [%]": round(100 * cal_t["coverage"], 1)},
+    )
     for m in inducing:
-        sparse, ms_sparse = _online(best_model, obs_test, grid, forgetting, inducing=m)
+        sparse, ms_sparse, _ = _online(best_model, obs_test, grid, forgetting, inducing=m)
         scores_sparse = [_mae_sem(sparse[:, s], y_test) for s in _STEPS]
         table.meta["mae"][f"online sparse M={m}"] = scores_sparse
         name = f"IDDM online eps={forgetting}, sparse M={m}"

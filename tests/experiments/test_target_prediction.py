@@ -7,6 +7,7 @@ import torch
 
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
+    grid_index,
     supervised_init,
     target_prediction,
 )
@@ -31,8 +32,16 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert any("sparse M=30" in m for m in methods)
     assert any(m.startswith("ridge") for m in methods)
     assert len(table.meta["train_mae_online"]) == len(HORIZONS_MS)
-    for name in ("online", "online sparse M=30", "batch", "gpr", "ridge", "median"):
+    for name in (
+        "online", "online calibrated", "online sparse M=30", "batch", "gpr", "ridge", "median",
+    ):  # fmt: skip
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
+    # the credible sets are scored at T = 1 and at the temperature fitted on the CV folds
+    t = table.meta["temperature"]
+    assert t > 0 and any(m.endswith(f"T={t:.3g} (CV)") for m in methods)
+    covered = [r["90% set coverage [%]"] for r in table.rows if "90% set coverage [%]" in r]
+    assert len(covered) == 2 and all(0 <= c <= 100 for c in covered)
+    assert set(table.meta["calibration"]) == {"T=1", "fitted T"}
     # the median row equals an independent recomputation on the same strokes
     strokes = sample_strokes(22, generator=torch.Generator().manual_seed(0))
     y = strokes.targets
@@ -58,6 +67,12 @@ def test_supervised_init_keeps_a_low_variance_target_direction(generator):
     centred = obs.reshape(n * T, 3) - obs.reshape(n * T, 3).mean(0)
     pc1 = centred @ torch.linalg.svd(centred, full_matrices=False)[2][0]
     assert torch.corrcoef(torch.stack([pc1, frames_g]))[0, 1].abs() < 0.5
+
+
+def test_grid_index_is_the_nearest_value():
+    grid = torch.linspace(-1.0, 1.0, 5)  # -1, -0.5, 0, 0.5, 1
+    y = torch.tensor([-2.0, -0.7, -0.2, 0.1, 0.74, 3.0])
+    assert grid_index(y, grid).tolist() == [0, 1, 2, 2, 3, 4]
 
 
 def test_supervised_init_rejects_bad_input():
