@@ -307,7 +307,8 @@ class WindowSVM:
 
     Args:
         window: window size w.
-        C, gamma: ``SVC`` parameters.
+        C: the ``SVC`` regularisation parameter.
+        gamma: the ``SVC`` RBF kernel width (``"scale"``, ``"auto"`` or a float).
     """
 
     def __init__(self, window: int = 5, *, C: float = 10.0, gamma: str | float = "scale") -> None:
@@ -338,8 +339,10 @@ class WindowGPC:
 
     Args:
         window: window size w.
-        steps: Adam steps on the marginal likelihood; lr: its learning rate.
-        samples: posterior samples for the class probabilities; seed: their seed.
+        steps: Adam steps on the marginal likelihood.
+        lr: Adam learning rate.
+        samples: posterior samples for the class probabilities.
+        seed: seed of the posterior samples.
     """
 
     def __init__(

@@ -580,7 +580,8 @@ def psi2(
 
     Args:
         kernel: ``k_a``.
-        mu, Sigma: ``[..., D]``, ``[..., D, D]``.
+        mu: ``[..., D]`` input mean.
+        Sigma: ``[..., D, D]`` input covariance.
         X: ``[..., N, D + Dg]`` training inputs.
         g: ``[..., Dg]`` known trailing input columns, or ``None``.
         kernel_b: ``k_b``; default ``k_a``. E.g. the two parts of a sum kernel.

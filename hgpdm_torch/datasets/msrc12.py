@@ -459,7 +459,8 @@ def load_msrc12_folder(
     Args:
         folder: the folder of recordings.
         fps: frame rate of the windows.
-        before, after: seconds before and after the action point.
+        before: seconds before the action point.
+        after: seconds after the action point.
         gestures: keep only these gesture ids (default: all found).
         method: ``"linear"`` or ``"nearest"``.
         max_gap: longest gap (s) between tracked frames a window may span.

@@ -109,7 +109,8 @@ def kl_divergence(p: object, q: object) -> float:
     mass that ``p`` has.
 
     Args:
-        p, q: ``[A]`` probability vectors.
+        p: ``[A]`` probability vector.
+        q: ``[A]`` probability vector.
     """
     p_ = check_strategy(p, None, "p")
     q_ = check_strategy(q, p_.shape[0], "q")
@@ -674,7 +675,8 @@ def two_sample_z_test(
     always or never in both sets has ``sigma = 0`` and no evidence of change: ``z = 0``.
 
     Args:
-        counts_x, counts_y: ``[Aj]`` action counts of the two sets, each non-empty.
+        counts_x: ``[Aj]`` action counts of the first set, non-empty.
+        counts_y: ``[Aj]`` action counts of the second set, non-empty.
         alpha: significance level of each test, in (0, 1).
 
     Returns:
@@ -711,7 +713,8 @@ class AdaptiveLearner:
         n_min: block size ``N_min``.
         alpha: significance level of each two-sample test.
         change_detection: whether to run the tests.
-        tol, max_iter: settings of the :class:`DeltaSafeResponder`.
+        tol: solver tolerance of the :class:`DeltaSafeResponder`.
+        max_iter: solver iteration limit of the :class:`DeltaSafeResponder`.
         generator: randomness of :meth:`act`, taken once so that successive calls draw fresh
             actions: a NumPy or seeded torch generator, or an int seed. ``None`` (default) for
             a learner that only computes strategies; :meth:`act` then raises.
@@ -830,7 +833,8 @@ def delta_safe_tree(
         delta: confidence parameter in (0, 1).
         method: ``"subgradient"`` (:class:`DeltaSafeResponder`) or ``"exact"``
             (:func:`solve_delta_safe`).
-        tol, max_iter: solver settings.
+        tol: solver tolerance.
+        max_iter: solver iteration limit.
     """
     if not isinstance(game, FiniteStageGame):
         raise TypeError(f"game must be a FiniteStageGame, got {type(game).__name__}")

@@ -330,9 +330,11 @@ def action_recognition(
         subsample: keep every n-th frame (3: ~3.3 Hz).
         latent_dim: ``Dx`` of the IDDM (linear measurement kernel, discrete intention).
         fit_steps: L-BFGS steps of the MAP fit.
-        windows: batch window sizes; forgettings: online ``eps`` values.
+        windows: batch window sizes.
+        forgettings: online ``eps`` values.
         baseline_window: window of SVM, GPC and HMM.
-        max_train, max_test: use only the first recordings of each class (smoke runs).
+        max_train: use only the first training recordings of each class (smoke runs).
+        max_test: use only the first test recordings of each class (smoke runs).
         state_prior: the IDDM's first-state prior, ``"class"`` (default) or ``"marginal"``
             (:func:`~hgpdm_torch.inference.infer_intention`).
         calibration_folds: the IDDM rows' evidence temperatures come from this many stratified
@@ -482,7 +484,10 @@ def msrc12_recognition(
         max_persons: use only the first persons (sorted ids; smoke runs).
         latent_dim: ``Dx`` of the IDDM (at most the fold's PCA dimension ``Dz``: the latent
             states start from a PCA of the observations); fit_steps: its L-BFGS steps.
-        windows, forgettings, baseline_window, state_prior: as :func:`action_recognition`.
+        windows: as :func:`action_recognition`.
+        forgettings: as :func:`action_recognition`.
+        baseline_window: as :func:`action_recognition`.
+        state_prior: as :func:`action_recognition`.
         calibration_folds: the IDDM rows' evidence temperatures of each fold come from this
             many person folds of its training persons (:func:`_fit_temperatures`: for each,
             a PCA and an IDDM on ``train_per_class`` instances per gesture of the other

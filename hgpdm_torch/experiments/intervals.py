@@ -99,7 +99,8 @@ def paired_difference_interval(
     few dozen pairs.
 
     Args:
-        first, second: ``[n]`` successes (bool or 0/1) on the same ``n >= 1`` rallies.
+        first: ``[n]`` successes (bool or 0/1) of the first player on ``n >= 1`` rallies.
+        second: ``[n]`` successes of the second player on the same rallies.
         confidence: the interval's level.
 
     Returns:

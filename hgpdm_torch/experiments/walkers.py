@@ -134,7 +134,8 @@ def walkers(
         lengths: window lengths T.
         latent_dim: Dx of both models.
         fit_steps: maximum MAP steps per fit.
-        folds, train_per_subject: see :func:`walker_folds`.
+        folds: see :func:`walker_folds`.
+        train_per_subject: see :func:`walker_folds`.
         stride: step between windows.
         model_options: further constructor arguments of both models (e.g.
             ``{"back_constraint": "kernel"}``, ``{"learn_noise": True}``).

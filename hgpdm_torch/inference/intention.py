@@ -767,8 +767,8 @@ class OnlineIntentionFilter:
         relinearize: (``"bound"``) score ``Q`` with the transition moment matched at the smoothed
             ``q(x_{t-1} | z_{1:t})`` (exactly DESIGN.md's formula, twice the cost) instead of
             the filtered ``q(x_{t-1} | z_{1:t-1})``. ``mixing="gaussian"`` always does.
-        mu0, Sigma0: prior of the first state (default: the training latents' mean and
-            covariance).
+        mu0: ``[Dx]`` mean of the first state's prior (default: the training latents' mean).
+        Sigma0: ``[Dx, Dx]`` its covariance (default: the training latents' covariance).
         state_prior: ``"marginal"`` (``mu0``, ``Sigma0``) or, for a discrete g, ``"class"``:
             the first observation is scored under each value's prior ``p(x_1 | g)``
             (:func:`class_state_prior`), ``B_1(g) = log p(g) + log q(z_1 | g)``, and ``q(x_1)``
@@ -1288,8 +1288,9 @@ def batch_bound(
         z: ``[W, T, Dz]`` windows (NaN rows missing; other bad rows raise, see
             :func:`~hgpdm_torch.inference.filtering.filter_sequence`).
         g: ``[K, Dg]`` intention values (codes).
-        mu0, Sigma0: ``[Dx]``, ``[Dx, Dx]`` prior of the first state (or ``[K, 1, Dx]``,
-            ``[K, 1, Dx, Dx]``: one per intention value).
+        mu0: ``[Dx]`` mean of the first state's prior (or ``[K, 1, Dx]``: one per intention
+            value).
+        Sigma0: ``[Dx, Dx]`` its covariance (or ``[K, 1, Dx, Dx]``).
         outlier_sd: plausibility threshold of the observation check (``None``: finiteness only).
 
     Returns:
@@ -1334,8 +1335,9 @@ def infer_intention(
         window: if given, a sliding window: the belief at every step ``t`` from
             ``z_{max(1, t-window+1):t}`` (output ``[..., T, K]``).
         prior: ``[K]`` prior probabilities (default uniform).
-        mu0, Sigma0: prior of the first state of each window (default: the training latents'
-            empirical mean and covariance, as a window may start anywhere in a movement).
+        mu0: ``[Dx]`` mean of the prior of each window's first state (default: the training
+            latents' empirical mean, as a window may start anywhere in a movement).
+        Sigma0: ``[Dx, Dx]`` its covariance (default: the training latents' empirical one).
         state_prior: ``"marginal"`` (the prior above, shared by all g) or, for a discrete g,
             ``"class"``: ``p(x_1 | g)`` from the training latents of each value
             (:func:`class_state_prior`), so that where a window's movement is, not only how it

@@ -86,7 +86,9 @@ class MAPInference(VariationalInference):
         candidate its own problem), from the same initial states.
 
         Args:
-            z, values, init: as :meth:`VariationalInference.infer`.
+            z: as :meth:`VariationalInference.infer`.
+            values: as :meth:`VariationalInference.infer`.
+            init: as :meth:`VariationalInference.infer`.
             steps: maximum Levenberg-Marquardt iterations.
             progress: unused (kept for the interface of :meth:`VariationalInference.infer`).
         """

@@ -35,7 +35,8 @@ def ar1_residual_forecast(
     Args:
         z: ``[..., T, Dz]`` the window (NaN rows are missing; the last row must be observed).
         reconstruction: ``[..., T, Dz]`` the model's unconditioned predictions of those rows.
-        mean, var: ``[..., Dz]`` the model's forecast of row ``T + steps`` (marginal).
+        mean: ``[..., Dz]`` the model's forecast mean of row ``T + steps``.
+        var: ``[..., Dz]`` its marginal variance.
         steps: how many frames after the window's last row the forecast is.
 
     Returns:

@@ -547,7 +547,8 @@ class VariationalInference:
             loc: ``[..., K, T, Dx]`` means of q(x), one set per candidate g.
             scale_tril: ``[..., K, T, Dx, Dx]`` lower Cholesky factors of the covariances.
             values: ``[K]`` (or ``[..., K]``) candidate codes of a discrete g (default all K).
-            g_loc, g_scale_tril: ``[..., Dg]``, ``[..., Dg, Dg]``: q(g) of a continuous g.
+            g_loc: ``[..., Dg]`` mean of q(g) of a continuous g.
+            g_scale_tril: ``[..., Dg, Dg]`` Cholesky factor of the covariance of q(g).
 
         Returns:
             ``[..., K]`` F for each candidate (``K = 1`` without a discrete g).

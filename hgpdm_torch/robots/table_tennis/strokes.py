@@ -135,7 +135,12 @@ class Quintic:
     Args:
         t0: start time (s).
         duration: ``T > 0`` (s).
-        q0, v0, a0, q1, v1, a1: ``[7]`` boundary values at ``t0`` and ``t0 + T``.
+        q0: ``[7]`` joint positions at ``t0``.
+        v0: ``[7]`` joint velocities at ``t0``.
+        a0: ``[7]`` joint accelerations at ``t0``.
+        q1: ``[7]`` joint positions at ``t0 + T``.
+        v1: ``[7]`` joint velocities at ``t0 + T``.
+        a1: ``[7]`` joint accelerations at ``t0 + T``.
     """
 
     def __init__(

@@ -156,7 +156,8 @@ def evaluate(
         trial: the opponent's stroke.
         action: ``"forehand"``, ``"middle"`` or ``"backhand"``.
         start_time: movement initiation relative to the opponent's hit [s] (negative: before).
-        scene_config, stroke_config: settings (defaults when ``None``).
+        scene_config: scene settings (defaults when ``None``).
+        stroke_config: stroke settings (defaults when ``None``).
 
     Raises:
         ValueError: unknown action, or a start time at or after the ball reaches the plane.
@@ -277,7 +278,8 @@ def reward_table(
         executor: an :class:`hgpdm_torch.parallel.Executor` to run the jobs on (local processes
             or a Ray cluster); left open for the caller to reuse.
         cache_dir: cache folder.
-        scene_config, stroke_config: simulation settings.
+        scene_config: scene simulation settings.
+        stroke_config: stroke simulation settings.
         progress: show a tqdm bar over the trials still to simulate.
 
     Returns:
