@@ -214,7 +214,7 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
     model = _fit_iddm(obs[train], y[train], *SELECTED, 10 if quick else 40, seed, "pls")
     lim = strokes_limit(y)
     grid = torch.linspace(-lim, lim, 13 if quick else 25)
-    mean, _ = _online(model, obs[test], grid, 0.2)
+    mean, _, _ = _online(model, obs[test], grid, 0.2)
     iddm = f"IDDM online eps=0.2 ({SELECTED[0]}, Dx={SELECTED[1]})"
     add("baseline", "observed, filtered", iddm, n_train,
         {h: mean[:, s].numpy() for h, s in zip(HORIZONS, STEPS, strict=True)})  # fmt: skip

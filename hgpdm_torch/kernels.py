@@ -21,6 +21,7 @@ hyperparameters.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 
 import gpytorch
 import torch
@@ -61,7 +62,8 @@ class IntentionRBFKernel(Kernel):
     Args:
         x_dim: number of latent dims ``Dx`` (the first columns of the input).
         g_dim: number of intention dims ``Dg`` (the last columns).
-        lengthscale_x_prior, lengthscale_g_prior: optional gpytorch priors.
+        lengthscale_x_prior: optional gpytorch prior of the latent length scale.
+        lengthscale_g_prior: optional gpytorch prior of the intention length scale.
         lengthscale_constraint: constraint of both length scales (default ``Positive()``).
 
     Shapes: inputs ``[..., N, Dx + Dg]``; output ``[..., N, M]`` (or ``[..., N]`` with diag).
@@ -84,15 +86,21 @@ class IntentionRBFKernel(Kernel):
         self.x_dim, self.g_dim = int(x_dim), int(g_dim)
         constraint = lengthscale_constraint or Positive()
         for part, prior in (("x", lengthscale_x_prior), ("g", lengthscale_g_prior)):
+            if prior is not None and not isinstance(prior, Prior):
+                raise TypeError(
+                    f"lengthscale_{part}_prior must be a gpytorch Prior or None, "
+                    f"got {type(prior).__name__}"
+                )
             name = f"raw_lengthscale_{part}"
             self.register_parameter(name, torch.nn.Parameter(torch.zeros(*self.batch_shape, 1, 1)))
             self.register_constraint(name, constraint)
             if prior is not None:
+                # partials of module-level functions, not lambdas: the kernel stays picklable
                 self.register_prior(
                     f"lengthscale_{part}_prior",
                     prior,
-                    lambda m, p=part: getattr(m, f"lengthscale_{p}"),
-                    lambda m, v, p=part: setattr(m, f"lengthscale_{p}", v),
+                    partial(_part_lengthscale, part),
+                    partial(_set_part_lengthscale, part),
                 )
 
     def _get(self, part: str) -> torch.Tensor:
@@ -143,6 +151,16 @@ class IntentionRBFKernel(Kernel):
         return torch.exp(-0.5 * d2)
 
 
+def _part_lengthscale(part: str, kernel: IntentionRBFKernel) -> torch.Tensor:
+    """Prior closure of :class:`IntentionRBFKernel`: the length scale of ``part`` (x or g)."""
+    return kernel._get(part)
+
+
+def _set_part_lengthscale(part: str, kernel: IntentionRBFKernel, value: torch.Tensor) -> None:
+    """Setting closure of :class:`IntentionRBFKernel` (``sample_from_prior``)."""
+    kernel._set(part, value)
+
+
 class DiscreteIntentionKernel(Kernel):
     r"""Block kernel for a discrete intention: ``k([x, g], [x', g']) = delta(g, g') k_x(x, x')``.
 
@@ -153,6 +171,9 @@ class DiscreteIntentionKernel(Kernel):
         base_kernel: kernel over the latent state (e.g. ``ScaleKernel(RBFKernel()) +
             LinearKernel()``); it must not set ``active_dims``.
         num_values: number of values K of g; codes are ``0 .. K-1``.
+        **kwargs: of gpytorch's ``Kernel`` (``active_dims``, ...). The kernel has no parameters
+            of its own: its ``batch_shape`` is the base kernel's (a ``batch_shape`` given here
+            must equal it), so that indexing a batch kernel (``kernel[i]``) indexes the base.
 
     Shapes: inputs ``[..., N, Dx + 1]``; output ``[..., N, M]`` (or ``[..., N]`` with diag).
     """
@@ -164,9 +185,26 @@ class DiscreteIntentionKernel(Kernel):
             raise TypeError(f"base_kernel must be a gpytorch Kernel, got {type(base_kernel)}")
         if int(num_values) < 1:
             raise ValueError(f"num_values must be >= 1, got {num_values}")
+        batch_shape = kwargs.pop("batch_shape", None)
+        if batch_shape is not None and torch.Size(batch_shape) != base_kernel.batch_shape:
+            raise ValueError(
+                f"batch_shape {tuple(batch_shape)} differs from the base kernel's "
+                f"{tuple(base_kernel.batch_shape)}; give the base kernel the batch shape"
+            )
         super().__init__(**kwargs)
         self.base_kernel = base_kernel
         self.num_values = int(num_values)
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The base kernel's batch shape (this kernel has no parameters of its own)."""
+        return self.base_kernel.batch_shape
+
+    @batch_shape.setter
+    def batch_shape(self, value: torch.Size) -> None:
+        # gpytorch's Kernel.__init__ / expand_batch / __getitem__ store a shape here; the base
+        # kernel holds the real one, so this copy is never read.
+        self._batch_shape = torch.Size(value)
 
     def forward(
         self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False, **params: object
@@ -198,9 +236,9 @@ class DenseLinearKernel(LinearKernel):
     def forward(
         self, x1: torch.Tensor, x2: torch.Tensor, diag: bool = False, **params: object
     ) -> torch.Tensor:
-        v = self.variance
+        v = self.variance  # [*batch, 1, D or 1]
         if diag:
-            return (x1 * x2 * v.squeeze(-2)).sum(-1)
+            return (x1 * x2 * v).sum(-1)
         return (x1 * v) @ x2.transpose(-1, -2)
 
 
@@ -210,18 +248,30 @@ def _rbf_lengthscale(inverse_width: float) -> float:
     return float(inverse_width) ** -0.5
 
 
-def measurement_kernel(kind: str, beta1: float = 1.0) -> Kernel:
+def measurement_kernel(kind: str | Kernel, beta1: float = 1.0) -> Kernel:
     """Measurement kernel ``k_z`` without its noise term.
 
     Args:
         kind: ``"rbf"`` for Eq. 1 (isotropic RBF, unit signal variance, inverse squared width
             ``beta1``) or ``"linear"`` for Eq. 2 (``x^T x'``, variance fixed to 1 because the
-            output scales W carry the signal variance).
-        beta1: initial inverse squared width for ``"rbf"``; ignored for ``"linear"``.
+            output scales W carry the signal variance); or a gpytorch ``Kernel`` over latent
+            states, returned as it is (its own priors and constraints apply).
+        beta1: initial inverse squared width for ``"rbf"``; ignored otherwise.
 
     Returns:
         A gpytorch kernel over latent states ``[..., N, Dx]``.
+
+    Raises:
+        TypeError: ``kind`` is neither a str nor a gpytorch Kernel.
+        ValueError: ``kind`` is an unknown name.
     """
+    if isinstance(kind, Kernel):
+        return kind
+    if not isinstance(kind, str):
+        raise TypeError(
+            f"measurement kernel must be one of {MEASUREMENT_KERNELS} or a gpytorch Kernel, "
+            f"got {type(kind).__name__}"
+        )
     check_choice(kind, "measurement kernel", MEASUREMENT_KERNELS)
     if kind == "rbf":
         k = RBFKernel()

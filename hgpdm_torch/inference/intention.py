@@ -51,6 +51,7 @@ Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import numbers
 from collections.abc import Callable
@@ -662,7 +663,7 @@ def _measurement_update(posterior: GPPosterior, dtype: torch.dtype):
         return LinearMeasurement(posterior, dtype).update
     except TypeError:
         post = _posterior_as(posterior, dtype)
-        return lambda mu, P, z: gp_adf_update(post, mu, P, z)
+        return functools.partial(gp_adf_update, post)  # picklable, unlike a lambda
 
 
 # ------------------------------------------------------------------------------------------

@@ -20,14 +20,14 @@ from __future__ import annotations
 import copy
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gpytorch
 import torch
 from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.kernels import Kernel
-from gpytorch.priors import NormalPrior
+from gpytorch.priors import NormalPrior, Prior
 
 from ..fitting import FitResult, OptimizerLike, fit_map
 from ..gp import GPPosterior
@@ -45,6 +45,49 @@ _FIT_OPTIONS = {"ftol", "gtol", "patience", "max_eval", "restarts", "restart_sca
 #: the parameters and never needs jitter escalation (which would make it discontinuous).
 NOISE_FLOOR = 1e-6
 SequencesLike = Sequence[Any] | torch.Tensor
+#: Hyperparameters with a prior in Eq. 6, the keys of the ``priors`` argument of :class:`GPDM`.
+PRIOR_NAMES = ("beta1", "measurement_noise", "scales", "transition_noise")
+
+
+# Prior closures are module-level functions, not lambdas, so that models pickle (torch.save of the
+# whole model, copy.deepcopy, multiprocessing). Each maps the module holding the prior to the log
+# of the hyperparameter: the priors of Eq. 6 are log-normal, i.e. normal on these logs.
+def _log_beta1(kernel: Kernel) -> torch.Tensor:
+    """``log beta_1`` of an RBF measurement kernel (``beta_1 = lengthscale^-2``)."""
+    return kernel.lengthscale.pow(-2).log()
+
+
+def _log_measurement_noise(model: GPDM) -> torch.Tensor:
+    return model.measurement_noise.log()
+
+
+def _log_scales(model: GPDM) -> torch.Tensor:
+    """``log w_d`` of the varying observed dims (a constant channel's scale is not modelled)."""
+    return model.scales[model.varying].log()
+
+
+def _log_transition_noise(model: GPDM) -> torch.Tensor:
+    return model.transition_noise.log()
+
+
+def _check_priors(priors: Mapping[str, Prior | None] | None) -> dict[str, Prior | None]:
+    """Validate the ``priors`` argument; returns the given entries (a copy)."""
+    if priors is None:
+        return {}
+    if not isinstance(priors, Mapping):
+        raise TypeError(
+            f"priors must be a dict mapping some of {PRIOR_NAMES} to gpytorch priors (or None), "
+            f"got {type(priors).__name__}"
+        )
+    unknown = [k for k in priors if k not in PRIOR_NAMES]
+    if unknown:
+        raise ValueError(f"unknown key(s) {unknown} in priors; expected some of {PRIOR_NAMES}")
+    for key, prior in priors.items():
+        if prior is not None and not isinstance(prior, Prior):
+            raise TypeError(
+                f"priors[{key!r}] must be a gpytorch Prior or None, got {type(prior).__name__}"
+            )
+    return dict(priors)
 
 
 def _check_sequences(sequences: SequencesLike, dtype: torch.dtype) -> list[torch.Tensor]:
@@ -86,7 +129,18 @@ class GPDM(gpytorch.Module):
         sequences: J observed sequences, each ``[T_j, Dz]`` with ``T_j >= 2`` (a list; lengths may
             differ), or a ``[J, T, Dz]`` tensor. No transition crosses a sequence boundary.
         latent_dim: ``Dx``.
-        measurement: measurement kernel, ``"rbf"`` (Eq. 1) or ``"linear"`` (Eq. 2).
+        measurement: measurement kernel, ``"rbf"`` (Eq. 1), ``"linear"`` (Eq. 2), or a gpytorch
+            ``Kernel`` over ``[..., Dx]`` latent states (used as it is, its own priors included
+            in the loss; noise and output scales W are added as for the named kernels, the noise
+            starting at 0.01). The moment-matching inference supports the kernels of
+            :mod:`hgpdm_torch.expectations`. ``model.measurement`` is the name, or ``"custom"``.
+        priors: priors of the hyperparameters of Eq. 6, replacing the defaults key by key:
+            ``"beta1"`` (width of the ``"rbf"`` measurement kernel), ``"measurement_noise"``,
+            ``"scales"`` (each w_d of a varying dim) and ``"transition_noise"`` (alpha_4, in the
+            loss only while it is learned). Each is a gpytorch ``Prior`` over the **natural log**
+            of the hyperparameter, or ``None`` for none; the defaults
+            (:meth:`default_priors`) are ``NormalPrior(0, 1)``, and
+            ``NormalPrior(log alpha[3], NOISE_PRIOR_SD)`` for alpha_4.
         alpha: transition hyperparameters ``[alpha_1, alpha_2, alpha_3, alpha_4]``
             (default alpha-bar of Sec. 2.4.1).
         learn_alpha: learn the transition kernel's alpha_1..3 (and alpha_4) with the other
@@ -123,8 +177,9 @@ class GPDM(gpytorch.Module):
         sequences: SequencesLike,
         latent_dim: int = 3,
         *,
-        measurement: str = "rbf",
+        measurement: str | Kernel = "rbf",
         alpha: Sequence[float] = ALPHA_BAR,
+        priors: Mapping[str, Prior | None] | None = None,
         learn_alpha: bool = False,
         learn_noise: bool = False,
         learn_measurement_width: bool = True,
@@ -135,17 +190,41 @@ class GPDM(gpytorch.Module):
         super().__init__()
         if not isinstance(latent_dim, int) or latent_dim < 1:
             raise ValueError(f"latent_dim must be a positive int, got {latent_dim!r}")
-        check_choice(measurement, "measurement", ("rbf", "linear"))
+        if isinstance(measurement, Kernel):
+            name = "custom"
+        elif isinstance(measurement, str):
+            name = check_choice(measurement, "measurement", ("rbf", "linear"))
+        else:
+            raise TypeError(
+                "measurement must be 'rbf', 'linear' or a gpytorch Kernel, got "
+                f"{type(measurement).__name__}"
+            )
         alpha = tuple(float(a) for a in alpha)
         if len(alpha) != 4 or not all(a > 0 for a in alpha):
             raise ValueError(f"alpha must be 4 positive numbers [a1, a2, a3, a4], got {alpha}")
+        given_priors = _check_priors(priors)
+        if given_priors.get("beta1") is not None and name != "rbf":
+            raise ValueError(
+                f"priors['beta1'] applies to measurement='rbf' only, got measurement={name!r}; "
+                "give a kernel of your own its priors when you build it"
+            )
+        hyper_priors = {**self.default_priors(alpha[3]), **given_priors}
         seqs = _check_sequences(sequences, dtype)
         self.latent_dim = latent_dim
-        self.measurement = measurement
+        self.measurement = name
         self.alpha_init = alpha
+        #: what :meth:`save` cannot rebuild from the configuration (custom kernel, priors)
+        self._unsaveable = [
+            what
+            for what, custom in (
+                ("measurement kernel", name == "custom"),
+                ("priors", bool(given_priors)),
+            )
+            if custom
+        ]
         self._config: dict[str, Any] = {
             "latent_dim": latent_dim,
-            "measurement": measurement,
+            "measurement": name if name != "custom" else None,
             "alpha": list(alpha),
             "learn_alpha": bool(learn_alpha),
             "learn_noise": bool(learn_noise),
@@ -179,21 +258,17 @@ class GPDM(gpytorch.Module):
             self.latent_map = make_back_constraint(back_constraint, inputs, latent)
 
         # Measurement: beta (kernel width for "rbf", and noise) and the output scales W carry
-        # log-normal priors, i.e. 1/2 ||log beta||^2 + 1/2 ||log w||^2 in Eq. 6.
+        # log-normal priors, i.e. 1/2 ||log beta||^2 + 1/2 ||log w||^2 in Eq. 6 (by default).
         self.measurement_kernel = measurement_kernel(measurement)
-        if measurement == "rbf":
+        if name == "rbf":
             self.measurement_kernel.raw_lengthscale.requires_grad_(bool(learn_measurement_width))
-            self.measurement_kernel.register_prior(
-                "beta1_prior", NormalPrior(0.0, 1.0), lambda k: k.lengthscale.pow(-2).log()
-            )
+            self._register_log_prior(self.measurement_kernel, "beta1", hyper_priors, _log_beta1)
         self.register_parameter(
             "raw_measurement_noise", torch.nn.Parameter(torch.zeros((), dtype=dtype))
         )
         self.register_constraint("raw_measurement_noise", GreaterThan(NOISE_FLOOR))
-        self.measurement_noise = 0.01 if measurement == "rbf" else 0.1
-        self.register_prior(
-            "measurement_noise_prior", NormalPrior(0.0, 1.0), lambda m: m.measurement_noise.log()
-        )
+        self.measurement_noise = 0.1 if name == "linear" else 0.01
+        self._register_log_prior(self, "measurement_noise", hyper_priors, _log_measurement_noise)
         # Constant channels (e.g. fixed joints) carry no information about x: the measurement GP
         # models the others and predicts a constant channel's value exactly. "Constant" is
         # relative to the channel's magnitude, so data in small units are not mistaken for it.
@@ -205,9 +280,7 @@ class GPDM(gpytorch.Module):
         self.register_parameter("raw_scales", torch.nn.Parameter(torch.zeros_like(std)))
         self.register_constraint("raw_scales", Positive())
         self.scales = torch.where(varying, 1.0 / std.clamp_min(1e-300), torch.ones_like(std))
-        self.register_prior(
-            "scales_prior", NormalPrior(0.0, 1.0), lambda m: m.scales[m.varying].log()
-        )
+        self._register_log_prior(self, "scales", hyper_priors, _log_scales)
 
         self.transition_kernel = self.build_transition_kernel()
         self.register_parameter(
@@ -215,16 +288,38 @@ class GPDM(gpytorch.Module):
         )
         self.register_constraint("raw_transition_noise", GreaterThan(NOISE_FLOOR))
         self.transition_noise = alpha[3]
-        self.register_prior(
-            "transition_noise_prior",
-            NormalPrior(math.log(alpha[3]), self.NOISE_PRIOR_SD),
-            lambda m: m.transition_noise.log(),
-        )
+        self._register_log_prior(self, "transition_noise", hyper_priors, _log_transition_noise)
         self.learn_alpha = learn_alpha
         self.learn_noise = learn_noise or learn_alpha
         self.to(dtype)
 
     # ----------------------------------------------------------------- construction hooks
+    @classmethod
+    def default_priors(cls, alpha4: float = ALPHA_BAR[3]) -> dict[str, Prior]:
+        """The default priors of Eq. 6 over the log of each hyperparameter (new objects).
+
+        Args:
+            alpha4: the initial process noise ``alpha[3]``, the centre of its prior.
+
+        Returns:
+            ``{"beta1", "measurement_noise", "scales": NormalPrior(0, 1), "transition_noise":
+            NormalPrior(log alpha4, NOISE_PRIOR_SD)}``.
+        """
+        return {
+            "beta1": NormalPrior(0.0, 1.0),
+            "measurement_noise": NormalPrior(0.0, 1.0),
+            "scales": NormalPrior(0.0, 1.0),
+            "transition_noise": NormalPrior(math.log(alpha4), cls.NOISE_PRIOR_SD),
+        }
+
+    @staticmethod
+    def _register_log_prior(
+        module: gpytorch.Module, key: str, priors: Mapping[str, Prior | None], closure: Any
+    ) -> None:
+        """Register ``priors[key]`` (if not None) as ``<key>_prior`` of ``module``."""
+        if priors[key] is not None:
+            module.register_prior(f"{key}_prior", priors[key], closure)
+
     def build_transition_kernel(self) -> Kernel:
         """The transition kernel ``k_x`` without noise; override to use another kernel."""
         return transition_kernel(self.transition_kind, self.latent_dim, alpha=self.alpha_init)
@@ -582,13 +677,18 @@ class GPDM(gpytorch.Module):
 
         Raises:
             TypeError: the model's class is not registered.
-            ValueError: the model uses a custom back-constraint module, which the configuration
-                cannot hold.
+            ValueError: the model uses a custom back-constraint module, measurement kernel or
+                priors, which the configuration cannot hold.
         """
+        unsaveable = list(self._unsaveable)
         if self.latent_map is not None and self._config["back_constraint"] is None:
+            unsaveable.insert(0, "back-constraint module")
+        if unsaveable:
             raise ValueError(
                 "save() rebuilds the model from its configuration, which cannot hold a custom "
-                "back-constraint module; save model.state_dict() with torch.save instead"
+                f"{' or '.join(unsaveable)}; save the whole model with torch.save(model, path) "
+                "(load it with torch.load(path, weights_only=False), trusted files only) or "
+                "its state_dict instead"
             )
         from .persistence import save_model  # persistence imports this module
 

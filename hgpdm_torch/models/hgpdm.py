@@ -88,8 +88,8 @@ class HGPDM(GPDM):
             :func:`~hgpdm_torch.kernels.transition_kernel`). ``0`` (default) is the thesis's
             independent dynamics per value; ``rho > 0`` lets values with few training sequences
             borrow the shape of the dynamics from the others (not in the thesis).
-        **kwargs: see :class:`GPDM` (``measurement``, ``alpha``, ``learn_alpha``, ``init``,
-            ``dtype``).
+        **kwargs: see :class:`GPDM` (``measurement``, ``alpha``, ``priors``, ``learn_alpha``,
+            ``init``, ``dtype``).
 
     The transition kernel is ``delta(g, g') [alpha_1 RBF(x) + alpha_3 x^T x']`` for a discrete g and
     ``alpha_1 RBF([x, g]) + alpha_3 x^T x' + alpha_3^g g g'`` for a continuous g (Sec. 2.2.1);
