@@ -205,7 +205,8 @@ def fit_beliefs(
     Args:
         obs: ``[n, T_obs, Dz]`` observations; targets: ``[n]`` true targets.
         steps_at: observation index of each decision time (:func:`decision_indices`).
-        train, test: trial indices of the split.
+        train: training trial indices of the split.
+        test: test trial indices of the split.
         config: latent size, optimiser steps, target grid and forgetting factor.
     """
     gen = torch.Generator().manual_seed(config.seed)
@@ -467,16 +468,14 @@ def run_experiment(
 
 def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[Path]:
     """Bar charts in the layout of Fig. 4.6 and Fig. 4.7 (PNG files in ``out``)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # a bare Figure leaves the pyplot backend alone
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     n = fig6.meta.get("valid trials")
     paths = []
-    fig, ax = plt.subplots(figsize=(9, 4))
+    fig = Figure(figsize=(9, 4))
+    ax = fig.subplots()
     names = fig6.column("method")
     colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:purple", "tab:orange", "tab:green"]
     ax.bar(range(len(names)), fig6.column("returns"), yerr=fig6.column("SEM"), color=colours)
@@ -489,8 +488,8 @@ def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[
     fig.tight_layout()
     paths.append(out / "fig4_6_returns.png")
     fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
     episodes = fig7.column("episodes")
     x = torch.arange(len(episodes), dtype=torch.float64)
     for shift, name, colour in ((-0.2, "LSPI", "tab:orange"), (0.2, "MCP", "tab:green")):
@@ -504,7 +503,6 @@ def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[
     fig.tight_layout()
     paths.append(out / "fig4_7_sample_efficiency.png")
     fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
     return paths
 
 

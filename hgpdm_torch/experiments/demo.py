@@ -382,10 +382,7 @@ def run_demo(
 def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     """Save the return rates with their 95% intervals, one played rally in 3-D and its belief
     over the target (PNGs)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # a bare Figure leaves the pyplot backend alone
 
     from ..robots.table_tennis.draw import MOVEMENT_COLORS, draw_stroke, draw_table
     from ..robots.wam import WAM
@@ -398,7 +395,8 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     lows, highs = table.column("95% low"), table.column("95% high")
     errors = [[r - lo for r, lo in zip(rates, lows, strict=True)],
               [hi - r for r, hi in zip(rates, highs, strict=True)]]  # fmt: skip
-    fig, ax = plt.subplots(figsize=(8.5, 4.0))
+    fig = Figure(figsize=(8.5, 4.0))
+    ax = fig.subplots()
     colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:orange", "tab:green"]
     bars = ax.bar(range(len(names)), rates, color=colours[: len(names)], yerr=errors, capsize=4,
                   error_kw={"lw": 1, "ecolor": "k"})  # fmt: skip
@@ -419,12 +417,11 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     fig.tight_layout()
     paths.append(out / "return_rates.png")
     fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
 
     # the first returned rally (else the first one) and the belief that led to it
     j = next((k for k, r in enumerate(result.rallies) if r.outcome.success), 0)
     rally = result.rallies[j]
-    fig = plt.figure(figsize=(11, 4.2))
+    fig = Figure(figsize=(11, 4.2))
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     draw_table(ax3)
     draw_stroke(ax3, rally.outcome, WAM(), color=MOVEMENT_COLORS[rally.action], label=rally.action)
@@ -443,7 +440,6 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     fig.tight_layout()
     paths.append(out / "rally.png")
     fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
     return paths
 
 
