@@ -38,6 +38,49 @@ def _option(argv: list[str], name: str, default: int) -> int:
     return default
 
 
+def _executor_times(trials, reference, n_exec: int, ray: bool = True) -> list[dict]:
+    """Wall-clock time of the reward table of the first ``n_exec`` trials, cold cache, in this
+    process, on 2 local processes and (``ray``) on a local Ray instance with 2 CPUs (if Ray is
+    installed); each table is checked against ``reference`` (the one-process table)."""
+    from hgpdm_torch.parallel import ProcessExecutor, RayExecutor, SerialExecutor
+    from hgpdm_torch.robots.table_tennis.trials import Trials, reward_table
+
+    ball = trials.ball_after_hit
+    subset = Trials(
+        trials.obs[:n_exec],
+        trials.obs_times,
+        trials.targets[:n_exec],
+        trials.hit_times[:n_exec],
+        type(ball)(*(f[:n_exec] for f in ball)),
+    )
+    out: list[dict] = []
+    makers = [("1 process", SerialExecutor), ("2 local processes", lambda: ProcessExecutor(2))]
+    try:
+        if ray:
+            import ray as _  # noqa: F401
+
+            makers.append(("local Ray, 2 CPUs", lambda: RayExecutor("local", 2)))
+    except ImportError:
+        print("Ray not installed: the Ray row is skipped")
+    for name, make in makers:
+        with tempfile.TemporaryDirectory() as cache:
+            start = time.perf_counter()
+            with make() as ex:  # start-up (process pool, Ray instance) included
+                table = reward_table(subset, executor=ex, cache_dir=cache, progress=False)
+            wall = time.perf_counter() - start
+        out.append(
+            {
+                "executor": name,
+                "trials": n_exec,
+                "wall s": wall,
+                "same table": bool((table == reference[:n_exec]).all()),
+            }
+        )
+    for e in out:
+        e["x serial"] = out[0]["wall s"] / e["wall s"]
+    return out
+
+
 def main(argv: list[str]) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
@@ -85,6 +128,8 @@ def main(argv: list[str]) -> int:
         table = reward_table(trials, cache_dir=cache, progress=not quick)
         table_s = time.process_time() - t0
     table_per_s = n * per_trial / table_s
+    # quick: one trial, no Ray instance (tests/test_parallel.py runs a real one)
+    executors = _executor_times(trials, table, n_exec=min(n, 1 if quick else 12), ray=not quick)
 
     result = ResultTable(
         "Table tennis: opponent sampler and robot strokes (SAPIEN, one process, CPU s)",
@@ -129,6 +174,8 @@ def main(argv: list[str]) -> int:
             m: [round(float(r), 3) for r in rates[i]] for i, m in enumerate(MOVEMENTS)
         },
         "best_movement_success": float((table > 0).any(1).double().mean()),
+        "executors": executors,
+        "load_average": os.getloadavg(),
         **environment(),
     }
     print(result)
@@ -139,6 +186,11 @@ def main(argv: list[str]) -> int:
         f"{agree} of {strokes}; reward table of {n} trials: {table_s:.1f} CPU s"
     )
     print("success rate by movement (rows) and start time (columns):", result.meta["success_rate"])
+    for e in executors:
+        print(
+            f"reward table of {e['trials']} trials on {e['executor']}: {e['wall s']:.1f} s wall "
+            f"(x{e['x serial']:.2f} serial's speed), same table: {e['same table']}"
+        )
     result.to_json(RESULTS / ("table_tennis_quick.json" if quick else "table_tennis.json"))
     return 0
 
