@@ -66,7 +66,7 @@ import torch
 from gpytorch.kernels import AdditiveKernel, Kernel, LinearKernel, RBFKernel, ScaleKernel
 
 from .kernels import DiscreteIntentionKernel, IntentionRBFKernel
-from .linalg import psd_cholesky
+from .linalg import cholesky_logdet, psd_cholesky
 from .validation import as_tensor
 
 __all__ = [
@@ -332,7 +332,7 @@ def _rbf_factor(
     eye = torch.eye(w.shape[-1], dtype=Sigma.dtype, device=Sigma.device)
     B = eye + s[:, None] * Sigma * s[None, :]
     L = psd_cholesky(B, name="I + S^1/2 Sigma S^1/2")  # >= I up to roundoff in Sigma
-    logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    logdet = cholesky_logdet(L)
     return s, L, logdet
 
 

@@ -9,7 +9,6 @@ use ``torch.cholesky_solve``; no explicit inverse is formed.
 from __future__ import annotations
 
 import contextlib
-import math
 from collections.abc import Iterator
 
 import torch
@@ -109,8 +108,9 @@ def psd_cholesky(a: torch.Tensor, *, name: str = "matrix", escalate: bool = True
 
 
 def cholesky_logdet(chol: torch.Tensor) -> torch.Tensor:
-    """``log|A|`` from the lower Cholesky factor of A. Shapes: ``[..., n, n] -> [...]``."""
-    return 2.0 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    """``log|A| = 2 sum_i log|L_ii|`` from a lower-triangular factor ``L`` of ``A = L L^T`` (a
+    Cholesky factor; the signs of its diagonal do not matter). Shapes: ``[..., n, n] -> [...]``."""
+    return 2.0 * chol.diagonal(dim1=-2, dim2=-1).abs().log().sum(-1)
 
 
 class _GaussianNLL(torch.autograd.Function):
@@ -118,15 +118,13 @@ class _GaussianNLL(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, cov: torch.Tensor, y: torch.Tensor, name: str) -> torch.Tensor:  # type: ignore[override]
+        from .gaussian import LOG_2PI  # here: gaussian.py builds on this module
+
         chol = psd_cholesky(cov, name=name, escalate=False)
         alpha = torch.cholesky_solve(y, chol)
         n, d = y.shape
         ctx.save_for_backward(chol, alpha)
-        return (
-            0.5 * d * cholesky_logdet(chol)
-            + 0.5 * (y * alpha).sum()
-            + 0.5 * n * d * math.log(2.0 * math.pi)
-        )
+        return 0.5 * d * cholesky_logdet(chol) + 0.5 * (y * alpha).sum() + 0.5 * n * d * LOG_2PI
 
     @staticmethod
     @once_differentiable

@@ -48,17 +48,16 @@ from typing import NamedTuple
 import torch
 from scipy import stats
 
+from ..gaussian import conditional, log_density_terms, mixture_moments
 from ..inference.filtering import _as_observations, _bad_observation
 from ..inference.intention import OnlineIntentionFilter
-from ..linalg import psd_cholesky, symmetrize
+from ..linalg import cholesky_logdet, psd_cholesky, symmetrize
 from ..models import HGPDM
 from ..validation import as_tensor, check_choice
 from .lspi import LinearQ
 from .stopping import WAIT, _belief_vector, belief_vector
 
 __all__ = ["Belief", "MCPDecision", "MonteCarloPlanner", "ParticleUpdate"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 def _check_filter(belief_filter: object) -> None:
@@ -265,7 +264,7 @@ class MonteCarloPlanner:
             )
         )
         L = psd_cholesky(Sz, name="predicted observation covariance")
-        gain_t = torch.cholesky_solve(Cxz.transpose(-1, -2), L)  # S^-1 C^T  [K, Dz, Dx]
+        gain_t, post_cov = conditional(cov, Cxz, L)  # S^-1 C^T  [K, Dz, Dx]
         log_prob = belief.log_prob.to(f.dtype)
         log_prob = log_prob - torch.logsumexp(log_prob, -1)
         eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device).expand_as(L)
@@ -278,12 +277,12 @@ class MonteCarloPlanner:
             pred_cov=cov,
             z_mean=mz,
             z_chol=L,
-            z_logdet=2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1),
+            z_logdet=cholesky_logdet(L),
             gain=gain_t.permute(1, 0, 2).reshape(dz, -1),
             gain_offset=((mz[:, None, :] @ gain_t)[:, 0] - mean).reshape(-1),
             white=white.permute(1, 0, 2).reshape(dz, -1),
             white_offset=(mz[:, None, :] @ white).reshape(-1),
-            post_cov=symmetrize(cov - Cxz @ gain_t),
+            post_cov=post_cov,
             x_chol=psd_cholesky(P[0], name="belief covariance"),
             mean=m[0],
         )
@@ -351,22 +350,20 @@ class MonteCarloPlanner:
             z = z.masked_fill(missing[:, None], 0.0)
         mu = (z @ shared.gain - shared.gain_offset).view(num, K, dx)  # filtered means per g
         w = (z @ shared.white - shared.white_offset).view(num, K, dz)  # whitened innovations
-        evidence = -0.5 * (w.pow(2).sum(-1) + shared.z_logdet + dz * _LOG_2PI)  # [I, K]
+        evidence = log_density_terms(w.pow(2).sum(-1), shared.z_logdet, dz)  # [I, K]
         if skip:
             mu = torch.where(missing[:, None, None], shared.pred_mean, mu)
             evidence = evidence.masked_fill(missing[:, None], 0.0)
         log_prob = (1.0 - self.filter.forgetting) * shared.log_prob + evidence
         log_prob = log_prob - torch.logsumexp(log_prob, -1, keepdim=True)
         p = log_prob.exp()  # [I, K]
-        mean = (p[..., None] * mu).sum(1)
-        d = mu - mean[:, None, :]
-        # mixture covariance: sum_k p_k (P_k + d_k d_k^T), with P_k shared by all particles
+        # mixture covariance: sum_k p_k P_k + Cov_p[mu_k], with P_k shared by all particles
+        mean, spread = mixture_moments(p, mu)
         cov = (p @ shared.post_cov.reshape(K, dx * dx)).view(num, dx, dx)
         if skip:
             predicted = (p @ shared.pred_cov.reshape(K, dx * dx)).view(num, dx, dx)
             cov = torch.where(missing[:, None, None], predicted, cov)
-        cov = cov + (p[..., None, None] * d[..., :, None] * d[..., None, :]).sum(1)
-        return mean, symmetrize(cov), log_prob
+        return mean, symmetrize(cov + spread), log_prob
 
     def _stop_values(self, vectors: torch.Tensor) -> torch.Tensor:
         return self.q.values(self.features(vectors))[..., WAIT + 1 :]

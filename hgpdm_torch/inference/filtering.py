@@ -46,6 +46,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..expectations import check_gaussian
+from ..gaussian import conditional, independent_joint, log_density, rts_step
 from ..gp import GPPosterior
 from ..linalg import psd_cholesky, symmetrize
 from ..validation import as_tensor
@@ -347,13 +348,10 @@ def gp_adf_update(
         joint_cov=Sigma_pred[..., :, :dm],
     )
     L = psd_cholesky(Sz, name="predicted observation covariance")
-    r = torch.where(missing[..., None], mz, z) - mz  # zero innovation where z is missing
-    gain_t = torch.cholesky_solve(Csz.transpose(-1, -2), L)  # (Sz^-1 Czs)  [..., Dz, D]
-    mu = mu_pred + (r[..., None, :] @ gain_t)[..., 0, :]
-    Sigma = symmetrize(Sigma_pred - Csz @ gain_t)
-    w = torch.linalg.solve_triangular(L, r[..., :, None], upper=False)[..., 0]
-    logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    ll = -0.5 * (w.pow(2).sum(-1) + logdet + dz * math.log(2.0 * math.pi))
+    zr = torch.where(missing[..., None], mz, z)  # zero innovation where z is missing
+    gain_t, Sigma = conditional(Sigma_pred, Csz, L)  # (Sz^-1 Czs)  [..., Dz, D]
+    mu = mu_pred + ((zr - mz)[..., None, :] @ gain_t)[..., 0, :]
+    ll = log_density(zr, mz, L)
     keep = missing[..., None]
     mu = torch.where(keep, mu_pred.expand_as(mu), mu)
     Sigma = torch.where(keep[..., None], Sigma_pred.expand_as(Sigma), Sigma)
@@ -414,17 +412,7 @@ def filter_sequence(
         if g is None:
             raise ValueError("g_cov needs g, the prior mean of the intention")
         mg, Sg = check_gaussian(g, g_cov, "intention")
-        batch = torch.broadcast_shapes(mu.shape[:-1], Sigma.shape[:-2], mg.shape[:-1])
-        dx, dg = mu.shape[-1], mg.shape[-1]
-        mu = torch.cat([mu.expand(*batch, dx), mg.expand(*batch, dg)], -1)
-        zero = torch.zeros(*batch, dx, dg, dtype=mu.dtype, device=mu.device)
-        Sigma = torch.cat(
-            [
-                torch.cat([Sigma.expand(*batch, dx, dx), zero], -1),
-                torch.cat([zero.transpose(-1, -2), Sg.expand(*batch, dg, dg)], -1),
-            ],
-            dim=-2,
-        )
+        mu, Sigma = independent_joint(mu, Sigma, mg, Sg)
         known = None
     T = z.shape[-2]
     if T < 1:
@@ -474,14 +462,17 @@ def smooth(result: FilterResult) -> SmootherResult:
     m, P = result.mean[..., -1, :], result.cov[..., -1, :, :]
     means, covs, crosses = [m], [P], []
     for t in range(T - 2, -1, -1):
-        Pp = result.pred_cov[..., t + 1, :, :]
-        L = psd_cholesky(Pp, name=f"predicted covariance at step {t + 2}")
-        # J = C Pp^-1 (Eq. 27), via J^T = Pp^-1 C^T
-        J = torch.cholesky_solve(result.cross_cov[..., t, :, :].transpose(-1, -2), L)
-        J = J.transpose(-1, -2)
-        crosses.append(J @ P)  # Sigma_{t,t+1|T}
-        m = result.mean[..., t, :] + (J @ (m - result.pred_mean[..., t + 1, :])[..., None])[..., 0]
-        P = symmetrize(result.cov[..., t, :, :] + J @ (P - Pp) @ J.transpose(-1, -2))
+        m, P, C = rts_step(
+            result.mean[..., t, :],
+            result.cov[..., t, :, :],
+            result.pred_mean[..., t + 1, :],
+            result.pred_cov[..., t + 1, :, :],
+            result.cross_cov[..., t, :, :],
+            m,
+            P,
+            name=f"predicted covariance at step {t + 2}",
+        )
+        crosses.append(C)  # Sigma_{t,t+1|T}
         means.append(m)
         covs.append(P)
     D = result.mean.shape[-1]

@@ -62,6 +62,14 @@ from ..expectations import (
     term_psi1,
     term_psi2,
 )
+from ..gaussian import (
+    condition_gaussian,
+    entropy,
+    expected_log_density,
+    independent_joint,
+    log_density,
+    log_density_terms,
+)
 from ..gp import GPPosterior
 from ..linalg import CholeskyError, psd_cholesky, symmetrize
 from ..models import GPDM, HGPDM
@@ -81,7 +89,6 @@ __all__ = [
 _PRUNE_SAFETY = 3.0  # optimism factor of the LM pruning rule (see _map_states)
 _PRUNE_MAX_DAMPING = 1.0  # LM damping up to which the pruning rule trusts the step's gain
 _ROW_BLOCK_BYTES = 2**26  # per-row GP blocks up to this size, else one code at a time
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 # --------------------------------------------------------------------------------------------
@@ -155,8 +162,8 @@ class MeanFieldGuide(PyroModule):
 
     def entropy(self) -> torch.Tensor:
         """``H(q)`` ``[...]``: ``sum_t 1/2 log|2 pi e Sigma_t|`` (+ the entropy of q(g))."""
-        h = _gaussian_entropy(self.scale_tril).sum(-1)
-        return h + _gaussian_entropy(self.g_scale_tril) if self.has_g else h
+        h = entropy(self.scale_tril).sum(-1)
+        return h + entropy(self.g_scale_tril) if self.has_g else h
 
     def forward(self, *args: object, **kwargs: object) -> torch.Tensor | tuple[torch.Tensor, ...]:
         """Sample ``x [..., T, Dx]`` (site ``"x"``) and, with a continuous g, ``g [..., 1, Dg]``.
@@ -176,25 +183,6 @@ class MeanFieldGuide(PyroModule):
             return x, pyro.sample("g", qg)
 
 
-def _gaussian_entropy(scale_tril: torch.Tensor) -> torch.Tensor:
-    d = scale_tril.shape[-1]
-    logdet = scale_tril.diagonal(dim1=-2, dim2=-1).abs().log().sum(-1)
-    return 0.5 * d * (1.0 + _LOG_2PI) + logdet
-
-
-def _cross_entropy(
-    loc: torch.Tensor, cov: torch.Tensor, prior_mean: torch.Tensor, prior_chol: torch.Tensor
-) -> torch.Tensor:
-    """``H(N(loc, cov), N(prior_mean, L L^T))`` ``[...]``."""
-    d = loc.shape[-1]
-    diff = torch.linalg.solve_triangular(prior_chol, (loc - prior_mean)[..., None], upper=False)
-    a = torch.linalg.solve_triangular(prior_chol, cov, upper=False)
-    tr = torch.linalg.solve_triangular(prior_chol, a.transpose(-1, -2), upper=False)
-    logdet = 2.0 * prior_chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    quad = diff.pow(2).sum((-1, -2)) + tr.diagonal(dim1=-2, dim2=-1).sum(-1)
-    return 0.5 * (d * _LOG_2PI + logdet + quad)
-
-
 # --------------------------------------------------------------------------------------------
 # Expected squared error of a GP mean under a Gaussian input (App. 2.A terms (a)-(d))
 # --------------------------------------------------------------------------------------------
@@ -208,6 +196,12 @@ class _GaussianInputGP:
     """
 
     def __init__(self, post: GPPosterior, codes: torch.Tensor | None = None) -> None:
+        if post.noise.dim() != 0:
+            raise ValueError(
+                "variational inference needs one shared process noise; this model has a noise "
+                "per intention value (noise_per_value=True): use infer_intention or "
+                "OnlineIntentionFilter, or a model with noise_per_value=False"
+            )
         self.post = post
         with torch.no_grad():
             leaves = kernel_leaves(post.kernel, post.input_dim)
@@ -581,7 +575,7 @@ class VariationalInference:
         zc = (torch.nan_to_num(z) - h.offset)[..., None, :, :]  # [..., 1, T, Dz]
         var = self._h.var_at_mean(loc)[..., None] * h.scale.pow(2)  # [..., K, T, Dz]
         m, m2 = self._h.mean_moments(loc, cov)
-        ll_z = -0.5 * (torch.log(var) + _LOG_2PI + _sq_error(zc, None, m, m2) / var).sum(-1)
+        ll_z = log_density_terms(_sq_error(zc, None, m, m2) / var, torch.log(var), 1).sum(-1)
         ll_z = (ll_z * observed[..., None, :].to(ll_z.dtype)).sum(-1)
         # Eq. 17: transitions x_t -> x_{t+1} (with q(g) appended to the input if continuous)
         mu_in, cov_in = loc[..., :-1, :], cov[..., :-1, :, :]
@@ -593,14 +587,14 @@ class VariationalInference:
         nxt_var = cov[..., 1:, :, :].diagonal(dim1=-2, dim2=-1)
         err = _sq_error(loc[..., 1:, :], nxt_var, m, m2).sum(-1)
         dx = self.latent_dim
-        ll_x = (-0.5 * (dx * (torch.log(s2) + _LOG_2PI) + err / s2)).sum(-1)
-        # first state's cross-entropy and the entropy of q
-        ce1 = _cross_entropy(loc[..., 0, :], cov[..., 0, :, :], self.x1_mean, self._x1_chol)
-        F = ll_z + ll_x - ce1 + _gaussian_entropy(scale_tril).sum(-1)
+        ll_x = log_density_terms(err / s2, dx * torch.log(s2), dx).sum(-1)
+        # the first state's expected log prior (minus a cross-entropy) and the entropy of q
+        x1 = loc[..., 0, :], scale_tril[..., 0, :, :]
+        l1 = expected_log_density(*x1, self.x1_mean, self._x1_chol)
+        F = ll_z + ll_x + l1 + entropy(scale_tril).sum(-1)
         if g_loc is not None:
-            g_cov = g_scale_tril @ g_scale_tril.transpose(-1, -2)
-            ce_g = _cross_entropy(g_loc, g_cov, self.g_prior_mean, self._g_chol)
-            F = F + (_gaussian_entropy(g_scale_tril) - ce_g)[..., None]
+            lg = expected_log_density(g_loc, g_scale_tril, self.g_prior_mean, self._g_chol)
+            F = F + (entropy(g_scale_tril) + lg)[..., None]
         return F
 
     @staticmethod
@@ -609,14 +603,7 @@ class VariationalInference:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Input ``[x_t, g]`` under ``q(x_t) q(g)``: means ``[..., K, T, Dx + Dg]``, block cov."""
         g_cov = g_scale_tril @ g_scale_tril.transpose(-1, -2)
-        lead = mu.shape[:-1]
-        dx, dg = mu.shape[-1], g_loc.shape[-1]
-        mg = g_loc[..., None, None, :].expand(*lead, dg)
-        Sg = g_cov[..., None, None, :, :].expand(*lead, dg, dg)
-        zero = torch.zeros(*lead, dx, dg, dtype=mu.dtype, device=mu.device)
-        top = torch.cat([cov, zero], -1)
-        bottom = torch.cat([zero.transpose(-1, -2), Sg], -1)
-        return torch.cat([mu, mg], -1), torch.cat([top, bottom], -2)
+        return independent_joint(mu, cov, g_loc[..., None, None, :], g_cov[..., None, None, :, :])
 
     def guide_free_energy(
         self, z: object, guide: MeanFieldGuide, *, values: object = None
@@ -849,18 +836,14 @@ class VariationalInference:
         m, v = self._h.predict_point(x)
         var = v[..., None] * h.scale.pow(2)
         r = (torch.nan_to_num(z) - h.offset)[..., None, :, :] - m
-        lz = -0.5 * (torch.log(var) + _LOG_2PI + r.pow(2) / var).sum(-1)
+        lz = log_density_terms(r.pow(2) / var, torch.log(var), 1).sum(-1)
         lz = (lz * observed[..., None, :].to(lz.dtype)).sum(-1)
         inp = self._transition_inputs(x[..., :-1, :], g_loc)
         mx, vx = self._transition_gp(values).predict_point(inp)
         dx = self.latent_dim
         err = (x[..., 1:, :] - mx).pow(2).sum(-1)
-        lx = (-0.5 * (dx * (torch.log(vx) + _LOG_2PI) + err / vx)).sum(-1)
-        d = torch.linalg.solve_triangular(
-            self._x1_chol, (x[..., 0, :] - self.x1_mean)[..., None], upper=False
-        )
-        l1 = -0.5 * (d.pow(2).sum((-1, -2)) + 2 * self._x1_chol.diagonal().log().sum())
-        return lz + lx + l1 - 0.5 * dx * _LOG_2PI
+        lx = log_density_terms(err / vx, dx * torch.log(vx), dx).sum(-1)
+        return lz + lx + log_density(x[..., 0, :], self.x1_mean, self._x1_chol)
 
     def _precision_blocks(
         self,
@@ -1309,35 +1292,6 @@ class VariationalInference:
         rec, var = self.reconstruct(res)
         mean, var, _ = ar1_residual_forecast(z, rec[..., :-1, :], rec[..., -1, :], var[..., -1, :])
         return mean, var, res
-
-
-def condition_gaussian(
-    mean: torch.Tensor, cov: torch.Tensor, observed: torch.Tensor, values: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Condition ``N(mean, cov)`` on the entries where ``observed`` is true.
-
-    The observed set may differ across the batch: the observed block is solved with the
-    unobserved rows and columns replaced by the identity, which leaves them uncoupled.
-
-    Args:
-        mean: ``[..., n]``; cov: ``[..., n, n]``; observed: ``[..., n]`` bool;
-        values: ``[..., n]`` the observed values (other entries ignored).
-
-    Returns:
-        Conditional ``mean [..., n]`` (equal to ``values`` where observed) and ``cov [..., n, n]``
-        (zero in observed rows and columns).
-    """
-    o = observed.to(cov.dtype)
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
-    masked = cov * o[..., :, None] * o[..., None, :] + eye * (1.0 - o)[..., None, :]
-    L = psd_cholesky(symmetrize(masked), name="covariance of the observed entries")
-    r = (torch.where(observed, values, mean) - mean)[..., None]
-    co = cov * o[..., None, :]  # Cov[all, observed]
-    cond_mean = mean + (co @ torch.cholesky_solve(r, L))[..., 0]
-    cond_cov = cov - co @ torch.cholesky_solve(co.transpose(-1, -2), L)
-    cond_mean = torch.where(observed, values, cond_mean)
-    keep = (1.0 - o)[..., :, None] * (1.0 - o)[..., None, :]
-    return cond_mean, symmetrize(cond_cov * keep)
 
 
 def batched_lbfgs(

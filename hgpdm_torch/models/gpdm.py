@@ -30,6 +30,7 @@ from gpytorch.kernels import Kernel
 from gpytorch.priors import NormalPrior, Prior
 
 from ..fitting import FitResult, OptimizerLike, fit_map
+from ..gaussian import LOG_2PI
 from ..gp import GPPosterior
 from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
 from ..linalg import gaussian_nll
@@ -38,7 +39,6 @@ from .back_constraints import make_back_constraint
 
 __all__ = ["GPDM"]
 
-_LOG_2PI = math.log(2.0 * math.pi)
 _FIT_OPTIONS = {"ftol", "gtol", "patience", "max_eval", "restarts", "restart_scale", "seed", "warn"}
 #: Lower bound of both noise variances. It is the fixed jitter of the objective: it keeps the
 #: kernel matrices of Eq. 4-5 positive definite in float64, so the loss is a smooth function of
@@ -499,11 +499,21 @@ class GPDM(gpytorch.Module):
         nll = gaussian_nll(k, y, name="measurement kernel matrix K_z")
         return nll - m * self.scales[self.varying].log().sum()
 
-    def _gaussian_sequence_nll(self, inputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-        """``-log N(targets; 0, K_x(inputs) + alpha_4 I)`` per output column, summed (Eq. 5)."""
+    def _gaussian_sequence_nll(
+        self, inputs: torch.Tensor, targets: torch.Tensor, noise: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``-log N(targets; 0, K_x(inputs) + alpha_4 I)`` per output column, summed (Eq. 5);
+        ``noise`` replaces alpha_4 (default :attr:`transition_noise`)."""
+        noise = self.transition_noise if noise is None else noise
         k = self.transition_kernel(inputs).to_dense()
-        k = k + self.transition_noise * torch.eye(k.shape[0], dtype=k.dtype, device=k.device)
+        k = k + noise * torch.eye(k.shape[0], dtype=k.dtype, device=k.device)
         return gaussian_nll(k, targets, name="transition kernel matrix K_x")
+
+    def transition_block_noise(self, rows: torch.Tensor) -> torch.Tensor:
+        """Process noise alpha_4 of the block of transition pairs ``rows`` (one of
+        :meth:`transition_blocks`): :attr:`transition_noise` here; a subclass may give each
+        block its own (:class:`~hgpdm_torch.models.HGPDM` with ``noise_per_value``)."""
+        return self.transition_noise
 
     def transition_nll(self, latent: torch.Tensor | None = None) -> torch.Tensor:
         """``-log p(X | g)`` of Eq. 5: GP transitions plus the unit Gaussian on first states
@@ -512,10 +522,12 @@ class GPDM(gpytorch.Module):
         first = x[self.first_index]
         inputs, targets = self.transition_inputs(x), self.transition_targets(x)
         nll = sum(
-            self._gaussian_sequence_nll(inputs[rows], targets[rows])
+            self._gaussian_sequence_nll(
+                inputs[rows], targets[rows], self.transition_block_noise(rows)
+            )
             for rows in self.transition_blocks()
         )
-        return nll + 0.5 * first.pow(2).sum() + 0.5 * first.numel() * _LOG_2PI
+        return nll + 0.5 * first.pow(2).sum() + 0.5 * first.numel() * LOG_2PI
 
     def transition_blocks(self) -> list[torch.Tensor]:
         """Row sets of independent blocks of ``K_x`` (one block: all transitions).

@@ -57,9 +57,7 @@ def test_fitted_temperature_recovers_the_sampling_temperature(true_t):
     assert t == pytest.approx(true_t, rel=0.06)
     # against a dense grid of the same objective
     grid = torch.logspace(-1, 1, 2001, dtype=torch.float64)
-    nll = torch.stack(
-        [-temper(log_prob, float(g)).gather(-1, truth[:, None]).mean() for g in grid]
-    )
+    nll = torch.stack([-temper(log_prob, float(g)).gather(-1, truth[:, None]).mean() for g in grid])
     assert t == pytest.approx(float(grid[nll.argmin()]), rel=3e-3)
     # tempering at the fitted T calibrates the 90% sets: they hold the truth as often as the
     # mass they claim on average (>= 0.9: a set is the smallest reaching 0.9)
@@ -139,9 +137,7 @@ def test_batch_temperature_divides_the_bound(fitted, state_prior):
     model, z = fitted
     prior = torch.tensor([0.2, 0.3, 0.5], dtype=torch.float64)
     base = infer_intention(model, z, window=4, prior=prior, state_prior=state_prior)
-    hot = infer_intention(
-        model, z, window=4, prior=prior, state_prior=state_prior, temperature=2.5
-    )
+    hot = infer_intention(model, z, window=4, prior=prior, state_prior=state_prior, temperature=2.5)
     torch.testing.assert_close(
         hot.log_prob, temper(base.log_prob, 2.5, prior=prior), rtol=1e-10, atol=1e-10
     )
