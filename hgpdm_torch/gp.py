@@ -48,7 +48,13 @@ class GPPosterior:
         kernel: gpytorch kernel over ``[..., Din]`` inputs.
         train_inputs: ``[N, Din]`` training inputs.
         train_targets: ``[N, Dout]`` training targets (already centred; see ``offset``).
-        noise: white-noise variance on the training diagonal (scalar, > 0).
+        noise: white-noise variance on the training diagonal: a positive scalar, or ``[N]``
+            positive variances, one per training point (heteroscedastic noise, e.g. a process
+            noise per value of a discrete intention).
+        code_noise: optional ``[K]`` positive noise variance per code of a discrete intention
+            (the last input column; needs a top-level ``DiscreteIntentionKernel``): the noise
+            that ``include_noise=True`` adds at a test input of code k. Without it the noise
+            added is the scalar ``noise`` (a per-point ``noise`` then refuses ``include_noise``).
         scale: ``[Dout]`` per-output standard-deviation scale of the predictive variance
             (``1 / w_d`` for the H-GPDM measurement GP); default ones.
         offset: ``[Dout]`` constant added to the predictive mean; default zeros.
@@ -57,7 +63,8 @@ class GPPosterior:
             graph would keep memory alive across filter steps).
 
     Attributes:
-        chol: ``[N, N]`` lower Cholesky factor of ``K + noise I``.
+        chol: ``[N, N]`` lower Cholesky factor of ``K + noise I`` (``K + diag(noise)`` for a
+            per-point noise).
         weights: ``[N, Dout]`` ``(K + noise I)^-1 Y``.
     """
 
@@ -68,6 +75,7 @@ class GPPosterior:
         train_targets: torch.Tensor,
         noise: float | torch.Tensor,
         *,
+        code_noise: torch.Tensor | None = None,
         scale: torch.Tensor | None = None,
         offset: torch.Tensor | None = None,
         detach: bool = True,
@@ -82,8 +90,23 @@ class GPPosterior:
                 f"{tuple(x.shape)} and {tuple(y.shape)}"
             )
         noise = torch.as_tensor(noise, dtype=x.dtype, device=x.device)
-        if noise.dim() != 0 or not bool(noise > 0):
-            raise ValueError(f"noise must be a positive scalar, got {noise}")
+        if noise.shape not in ((), (x.shape[0],)) or not bool((noise > 0).all()):
+            raise ValueError(
+                f"noise must be a positive scalar or [N] = [{x.shape[0]}] positive variances, got "
+                f"{noise if noise.dim() == 0 else tuple(noise.shape)}"
+            )
+        if code_noise is not None:
+            code_noise = torch.as_tensor(code_noise, dtype=x.dtype, device=x.device)
+            if not isinstance(kernel, DiscreteIntentionKernel) or kernel.active_dims is not None:
+                raise ValueError(
+                    "code_noise needs a discrete intention (a top-level DiscreteIntentionKernel), "
+                    f"got a {type(kernel).__name__}"
+                )
+            if code_noise.shape != (kernel.num_values,) or not bool((code_noise > 0).all()):
+                raise ValueError(
+                    f"code_noise must be [K] = [{kernel.num_values}] positive variances, got "
+                    f"{code_noise.tolist() if code_noise.dim() == 1 else code_noise}"
+                )
         dout = y.shape[1]
         self.scale = self._vector(scale, "scale", dout, x, 1.0)
         self.offset = self._vector(offset, "offset", dout, x, 0.0)
@@ -93,9 +116,11 @@ class GPPosterior:
             kernel = copy.deepcopy(kernel)
             kernel.requires_grad_(False)
             x, y, noise = x.detach(), y.detach(), noise.detach()
+            code_noise = None if code_noise is None else code_noise.detach()
             self.scale, self.offset = self.scale.detach(), self.offset.detach()
         self.kernel = kernel
         self.train_inputs, self.train_targets, self.noise = x, y, noise
+        self.code_noise = code_noise
         self.detach = detach
         if detach:
             with torch.no_grad():
@@ -104,8 +129,11 @@ class GPPosterior:
     def _factorise(self) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.train_inputs
         k = self.kernel(x).to_dense()
-        eye = torch.eye(x.shape[0], dtype=x.dtype, device=x.device)
-        chol = psd_cholesky(k + self.noise * eye, name="training kernel matrix K + noise I")
+        if self.noise.dim():  # one variance per training point
+            k = k + torch.diag_embed(self.noise)
+        else:
+            k = k + self.noise * torch.eye(x.shape[0], dtype=x.dtype, device=x.device)
+        chol = psd_cholesky(k, name="training kernel matrix K + noise I")
         return chol, torch.cholesky_solve(self.train_targets, chol)
 
     @property
@@ -155,7 +183,8 @@ class GPPosterior:
         Args:
             x: ``[..., Din]`` test inputs (any leading batch dims).
             include_noise: add the training noise variance (scaled like the outputs), giving the
-                predictive distribution of a new noisy observation instead of the latent function.
+                predictive distribution of a new noisy observation instead of the latent function
+                (with ``code_noise``: the noise of each input's code, its last column).
 
         Returns:
             ``mean [..., Dout]`` and ``var [..., Dout]`` (the outputs are independent given x),
@@ -171,7 +200,7 @@ class GPPosterior:
         kxx = self.kernel(flat, diag=True)
         f_var = (kxx - v.pow(2).sum(0)).clamp_min(0.0)
         if include_noise:
-            f_var = f_var + self.noise
+            f_var = f_var + self._test_noise(flat[:, -1])
         var = f_var.unsqueeze(-1) * self.scale.pow(2)
         return mean.reshape(*lead, self.output_dim), var.reshape(*lead, self.output_dim)
 
@@ -227,7 +256,8 @@ class GPPosterior:
             g: ``[..., Din - D]`` known trailing input columns, or ``None`` (``D = Din``).
             include_noise: add the training noise variance (scaled like the outputs) to the
                 diagonal: the moments of a new noisy output (for the transition GP: the
-                process noise ``alpha_4``).
+                process noise ``alpha_4``; with ``code_noise``, that of the code ``g``, which
+                must then be given).
             joint_cov: optional ``[..., S, D]`` covariance ``Cov[s, x]`` of another variable
                 ``s`` jointly Gaussian with ``x``; the third output is then ``Cov[s, f]``.
                 ``joint_cov = Sigma`` gives the default.
@@ -272,13 +302,33 @@ class GPPosterior:
         mean, second, trace, grad = _moments(terms, mu, Sigma, X[..., :D], beta, kinv)
         var = (leaves_psi0(leaves, mu, Sigma, g_psi0) - trace).clamp_min(0.0)
         if include_noise:
-            var = var + self.noise
+            if self.code_noise is not None and g is None:
+                raise ValueError(
+                    "include_noise with a noise per code (code_noise) needs the code g of the input"
+                )
+            var = var + self._test_noise(None if g is None else g[..., -1])
         # beta^T psi2 beta and mean mean^T nearly cancel when the GP is almost exact (small
         # noise), so their difference is projected onto the PSD cone where rounding broke it.
         diag = torch.diag_embed(var[..., None] * self.scale.pow(2))
         cov = _psd_part(symmetrize(second - mean[..., :, None] * mean[..., None, :]), diag)
         io = (Sigma if joint_cov is None else joint_cov) @ grad
         return mean + self.offset, cov, io
+
+    def _test_noise(self, code: torch.Tensor | None) -> torch.Tensor:
+        """Noise variance of a new output at inputs of discrete code ``code [...]`` (any shape;
+        only used with ``code_noise``): ``code_noise[code]``, or the scalar ``noise``."""
+        if self.code_noise is not None:
+            c = code.round()
+            num = len(self.code_noise)
+            if bool((c != code).any()) or bool(((c < 0) | (c >= num)).any()):
+                raise ValueError(f"discrete intention codes g must be integers in [0, {num - 1}]")
+            return self.code_noise[c.long()]
+        if self.noise.dim():
+            raise ValueError(
+                "include_noise needs a scalar noise or a noise per code (code_noise); this "
+                "posterior has only a noise per training point"
+            )
+        return self.noise
 
     def _leaves(self) -> list[Leaf]:
         """Kernel leaves; cached when detached (the posterior is then a frozen snapshot)."""

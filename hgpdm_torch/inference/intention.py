@@ -63,8 +63,17 @@ from sklearn.cluster import KMeans
 from tqdm.auto import tqdm
 
 from ..expectations import Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
+from ..gaussian import (
+    conditional,
+    entropy,
+    expected_log_density,
+    independent_joint,
+    log_density_terms,
+    mixture_moments,
+    rts_step,
+)
 from ..gp import GPPosterior
-from ..linalg import CholeskyError, psd_cholesky, symmetrize
+from ..linalg import CholeskyError, cholesky_logdet, psd_cholesky, symmetrize
 from ..models import HGPDM
 from ..validation import as_tensor, check_choice
 from .calibration import check_temperature, intention_log_prior
@@ -93,7 +102,6 @@ __all__ = [
     "intention_grid",
 ]
 
-_LOG_2PI = math.log(2.0 * math.pi)
 #: What a failed update of one stream raises: a covariance that does not factorise
 #: (:func:`~hgpdm_torch.linalg.psd_cholesky`: ``CholeskyError``, or ``ValueError`` for NaN/inf),
 #: or a LAPACK failure. The online filter isolates the stream and restarts it.
@@ -138,10 +146,9 @@ class IntentionBelief:
         prob = log_prob.exp()
         if not continuous:
             return cls(prob, log_prob, values)
-        mean = prob @ values
         # centred second moment: E[g^2] - E[g]^2 would cancel for a grid far from 0
-        var = (prob[..., :, None] * (values - mean[..., None, :]).pow(2)).sum(-2)
-        return cls(prob, log_prob, values, mean, var.sqrt())
+        mean, cov = mixture_moments(prob, values)
+        return cls(prob, log_prob, values, mean, cov.diagonal(dim1=-2, dim2=-1).sqrt())
 
     def credible_set(self, level: float = 0.9) -> torch.Tensor:
         """``[..., K]`` mask of the smallest set of values holding at least ``level`` mass."""
@@ -209,6 +216,7 @@ def _posterior_as(post: GPPosterior, dtype: torch.dtype) -> GPPosterior:
         post.train_inputs.to(dtype),
         post.train_targets.to(dtype),
         post.noise.to(dtype),
+        code_noise=None if post.code_noise is None else post.code_noise.to(dtype),
         scale=post.scale.to(dtype),
         offset=post.offset.to(dtype),
     )
@@ -342,8 +350,8 @@ def expected_log_conditional(
     ``q_cov_out``/``q_cross`` ``None`` for an observed ``y``. Returns ``[...]``.
     """
     L = psd_cholesky(lin_cov_in, name="linearisation input covariance")
-    A = torch.cholesky_solve(lin_cross, L).transpose(-1, -2)  # C^T P^-1  [..., Dy, Dx]
-    V = symmetrize(lin_cov_out - A @ lin_cross)
+    At, V = conditional(lin_cov_out, lin_cross.transpose(-1, -2), L)
+    A = At.transpose(-1, -2)  # C^T P^-1  [..., Dy, Dx]
     LV = psd_cholesky(V, name="linearised conditional covariance")
     r = q_mean_out - lin_mean_out - (A @ (q_mean_in - lin_mean_in)[..., None])[..., 0]
     E = r[..., :, None] * r[..., None, :] + A @ q_cov_in @ A.transpose(-1, -2)
@@ -353,26 +361,12 @@ def expected_log_conditional(
     W = torch.linalg.solve_triangular(LV, symmetrize(E), upper=False)
     W = torch.linalg.solve_triangular(LV, W.transpose(-1, -2), upper=False)
     trace = W.diagonal(dim1=-2, dim2=-1).sum(-1)
-    logdet = 2.0 * LV.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    return -0.5 * (trace + logdet + V.shape[-1] * _LOG_2PI)
+    return log_density_terms(trace, cholesky_logdet(LV), V.shape[-1])
 
 
-def _expected_log_normal(
-    mean: torch.Tensor, cov: torch.Tensor, q_mean: torch.Tensor, q_cov: torch.Tensor
-) -> torch.Tensor:
-    """``E_{x ~ N(q_mean, q_cov)}[log N(x | mean, cov)]``; shapes ``[..., D]``, ``[..., D, D]``."""
-    L = psd_cholesky(cov, name="prior covariance")
-    r = torch.linalg.solve_triangular(L, (q_mean - mean)[..., None], upper=False)[..., 0]
-    W = torch.linalg.solve_triangular(L, psd_cholesky(q_cov, name="q covariance"), upper=False)
-    quad = r.pow(2).sum(-1) + W.pow(2).sum((-1, -2))
-    logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    return -0.5 * (quad + logdet + cov.shape[-1] * _LOG_2PI)
-
-
-def _gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
-    L = psd_cholesky(cov, name="smoothed covariance")
-    d = cov.shape[-1]
-    return 0.5 * d * (1.0 + _LOG_2PI) + L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+def _entropy(cov: torch.Tensor) -> torch.Tensor:
+    """Entropy ``[...]`` of ``N(., cov [..., D, D])``."""
+    return entropy(psd_cholesky(cov, name="smoothed covariance"))
 
 
 # ------------------------------------------------------------------------------------------
@@ -383,6 +377,11 @@ def _gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
 def _dtc(posterior: GPPosterior, Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """DTC weights ``[M, Dout]`` and variance matrix ``[M, M]`` on the pseudo-inputs ``Z``."""
     X, Y, noise = posterior.train_inputs, posterior.train_targets, posterior.noise
+    if noise.dim() or posterior.code_noise is not None:
+        raise ValueError(
+            "inducing (the sparse DTC transition GP) needs one shared process noise; this model "
+            "has a noise per intention value (noise_per_value=True): use inducing=None"
+        )
     with torch.no_grad():
         Kmm = posterior.kernel(Z).to_dense()
         Kmn = posterior.kernel(Z, X).to_dense()
@@ -530,7 +529,15 @@ class SharedTransition:
         self.weighted_beta = (self.phi[:, :, None, None] * self.beta).reshape(len(values), -1, dx)
         self.term = Term("rbf", term.coef.detach().to(dtype), term.weight.detach().to(dtype), None)
         self.coef = self.term.coef
-        self.noise = posterior.noise.to(dtype)
+        if posterior.code_noise is not None:  # alpha_4,k of each intention value: [K]
+            self.noise = posterior.code_noise[values[:, -1].round().long()].to(dtype)
+        elif posterior.noise.dim():
+            raise ValueError(
+                "SharedTransition needs a scalar process noise or one per intention code "
+                "(GPPosterior code_noise), got a noise per training point only"
+            )
+        else:
+            self.noise = posterior.noise.to(dtype)
 
     @property
     def num_values(self) -> int:
@@ -540,7 +547,8 @@ class SharedTransition:
     def moments(
         self, mu: torch.Tensor, Sigma: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``.
+        """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``
+        (``noise``: alpha_4, or the ``alpha_4,k`` of value k with a per-value process noise).
 
         Args:
             mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
@@ -650,10 +658,8 @@ class LinearMeasurement:
         mean = torch.where(keep, mu, mu + (A.transpose(-1, -2) @ a)[..., 0])
         cov = torch.where(keep[..., None], P, symmetrize(P - A.transpose(-1, -2) @ A))
         maha = a[..., 0].pow(2).sum(-1) + r_perp.pow(2).sum(-1) / v
-        logdet = (
-            2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1) + (dz - k) * v.log() + self.log_scale2
-        )
-        ll = -0.5 * (maha + logdet + dz * _LOG_2PI)
+        logdet = cholesky_logdet(L) + (dz - k) * v.log() + self.log_scale2
+        ll = log_density_terms(maha, logdet, dz)
         return mean, cov, torch.where(missing, torch.zeros_like(ll), ll)
 
 
@@ -669,22 +675,6 @@ def _measurement_update(posterior: GPPosterior, dtype: torch.dtype):
 # ------------------------------------------------------------------------------------------
 # Algorithm 3.2: online inference
 # ------------------------------------------------------------------------------------------
-
-
-def _mix(
-    prob: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, cross: torch.Tensor | None = None
-) -> tuple[torch.Tensor, ...]:
-    """Moment-match the mixture over K of Gaussians sharing one input (Sec. 3.4.2).
-
-    ``prob [B, K]``, ``mean [B, K, D]``, ``cov``/``cross [B, K, D, D]`` -> the mixture's mean,
-    covariance and (with ``cross``) ``Cov[x_{t-1}, x_t] = sum_k p_k C_k`` (the input mean is
-    shared by all k).
-    """
-    m = (prob[..., None] * mean).sum(-2)
-    d = mean - m[..., None, :]
-    w = prob[..., None, None]
-    S = symmetrize((w * (cov + d[..., :, None] * d[..., None, :])).sum(-3))
-    return (m, S) if cross is None else (m, S, (w * cross).sum(-3))
 
 
 def _finite_state(mean: torch.Tensor, cov: torch.Tensor, log_belief: torch.Tensor) -> torch.Tensor:
@@ -1130,7 +1120,7 @@ class OnlineIntentionFilter:
         mean, cov, ll = self.measure(mk, Pk, z[:, None, :].expand(-1, K, -1))
         new = log_belief + ll / self.temperature
         new = new - torch.logsumexp(new, -1, keepdim=True)
-        mean, cov = _mix(new.exp(), mean, cov)
+        mean, cov = mixture_moments(new.exp(), mean, cov)
         return mean, cov, new
 
     def _step(
@@ -1146,7 +1136,7 @@ class OnlineIntentionFilter:
         new = new + torch.where(observed[:, None], evidence, torch.zeros_like(evidence))
         new = new - torch.logsumexp(new, -1, keepdim=True)
         if self.evidence == "predictive":
-            mf, Pf = _mix(new.exp(), mf, Pf)
+            mf, Pf = mixture_moments(new.exp(), mf, Pf)
         return mf, Pf, new
 
     def _predictive_step(
@@ -1165,16 +1155,12 @@ class OnlineIntentionFilter:
         prob = log_belief.exp()
         if self.gaussian_transition is None:
             per_k = self.transition.moments(m, P)
-            mp, Pp, C = _mix(prob, *per_k)
+            mp, Pp, C = mixture_moments(prob, *per_k)
         else:
             mp, Pp, C = self._gaussian_prediction(prob, m, P)
         mf, Pf, _ = self.measure(mp, Pp, z)
-        # one-step GP-RTSS: J = Cov[x_{t-1}, x_t] Sigma_{t|t-1}^-1 (Eq. 27)
-        J = torch.cholesky_solve(C.transpose(-1, -2), psd_cholesky(Pp, name="prediction"))
-        J = J.transpose(-1, -2)
-        ms = m + (J @ (mf - mp)[..., None])[..., 0]
-        Ps = symmetrize(P + J @ (Pf - Pp) @ J.transpose(-1, -2))
-        Cs = J @ Pf  # Cov[x_{t-1}, x_t | z_{1:t}]
+        # one-step GP-RTSS (Eq. 26-27); Cs = Cov[x_{t-1}, x_t | z_{1:t}]
+        ms, Ps, Cs = rts_step(m, P, mp, Pp, C, mf, Pf, name="prediction")
         m_lin, P_lin = m, P
         if self.relinearize:
             m_lin, P_lin = ms, Ps
@@ -1189,15 +1175,8 @@ class OnlineIntentionFilter:
         self, prob: torch.Tensor, m: torch.Tensor, P: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Transition moment matched at ``[x, g]`` with ``g ~ N(mean, var)`` of the belief."""
-        mg = prob @ self.values
-        d = self.values - mg[:, None, :]
-        Sg = (prob[..., None, None] * d[..., :, None] * d[..., None, :]).sum(-3)
-        dx, dg = m.shape[-1], mg.shape[-1]
-        zero = P.new_zeros(P.shape[0], dx, dg)
-        mu = torch.cat([m, mg], -1)
-        Sigma = torch.cat(
-            [torch.cat([P, zero], -1), torch.cat([zero.transpose(-1, -2), Sg], -1)], -2
-        )
+        mu, Sigma = independent_joint(m, P, *mixture_moments(prob, self.values))
+        dx = m.shape[-1]
         mean, cov, io = self.gaussian_transition.predict_gaussian(
             mu, symmetrize(Sigma), include_noise=True
         )
@@ -1232,8 +1211,10 @@ def batch_bound_terms(
     fr = filter_sequence(trans, meas, z, mu0, Sigma0, g=gk, outlier_sd=outlier_sd)
     sm = smooth(fr)  # [K, W, T, ...]
     shape = (len(g), z.shape[0])
-    entropy = _gaussian_entropy(sm.cov[..., 0, :, :]).expand(shape)
-    state = _expected_log_normal(mu0, Sigma0, sm.mean[..., 0, :], sm.cov[..., 0, :, :])
+    q1_chol = psd_cholesky(sm.cov[..., 0, :, :], name="smoothed covariance")
+    h = entropy(q1_chol).expand(shape)
+    L0 = psd_cholesky(Sigma0, name="prior covariance")
+    state = expected_log_density(sm.mean[..., 0, :], q1_chol, mu0, L0)
     # E_q[log p(z_t | x_t)] over observed steps
     zm, zc, zx = meas.predict_gaussian(sm.mean, sm.cov, include_noise=True)
     observed = ~torch.isnan(z).all(-1)
@@ -1256,14 +1237,14 @@ def batch_bound_terms(
             ],
             -2,
         )
-        H = _gaussian_entropy(symmetrize(pair)) - _gaussian_entropy(P_in)
+        H = _entropy(symmetrize(pair)) - _entropy(P_in)
         transition = Q.sum(-1)
-        entropy = entropy + H.sum(-1)
+        h = h + H.sum(-1)
     return {
         "state": state.expand(shape),
         "measurement": measurement.expand(shape),
         "transition": transition.expand(shape),
-        "entropy": entropy,
+        "entropy": h,
     }
 
 

@@ -8,18 +8,23 @@ enters the transition GP as extra input columns: ``f([x_t, g]) -> x_{t+1}``. A d
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 from gpytorch.kernels import Kernel
+from scipy.optimize import minimize_scalar
 from sklearn.cluster import KMeans
 from tqdm.auto import trange
 
+from ..fitting import FitResult
+from ..gp import GPPosterior
 from ..kernels import transition_kernel
+from ..linalg import gaussian_nll
 from ..validation import as_tensor, check_choice
-from .gpdm import GPDM, SequencesLike, _check_sequences
+from .gpdm import GPDM, NOISE_FLOOR, SequencesLike, _check_sequences
 
 __all__ = ["HGPDM", "IDDM"]
 
@@ -88,6 +93,15 @@ class HGPDM(GPDM):
             :func:`~hgpdm_torch.kernels.transition_kernel`). ``0`` (default) is the thesis's
             independent dynamics per value; ``rho > 0`` lets values with few training sequences
             borrow the shape of the dynamics from the others (not in the thesis).
+        noise_per_value: give each value k of a discrete g (with ``sharing = 0``: independent
+            dynamics per value) its own process noise ``alpha_4,k`` (:attr:`value_noise`, a
+            ``[K]`` buffer saved with the model) instead of the shared ``alpha_4`` (not in the
+            thesis). The MAP fit runs with the current ``alpha_4,k`` (initially all
+            ``alpha[3]``); at its end :meth:`fit` calls :meth:`estimate_value_noise`, which sets
+            each ``alpha_4,k`` to the maximum-likelihood noise of value k's transitions with the
+            latents and the kernel fixed. Values whose recordings differ in loudness (standing vs
+            running) then no longer share one process noise, which otherwise biases the
+            transition evidence towards the loud values. Not with ``learn_noise``/``learn_alpha``.
         **kwargs: see :class:`GPDM` (``measurement``, ``alpha``, ``priors``, ``learn_alpha``,
             ``init``, ``dtype``).
 
@@ -98,6 +112,9 @@ class HGPDM(GPDM):
     """
 
     kinds = {"discrete": "discrete", "continuous": "continuous"}
+    #: whether each value of a discrete g has its own process noise (class default: models
+    #: pickled before the option existed have none)
+    noise_per_value = False
 
     def __init__(
         self,
@@ -109,9 +126,23 @@ class HGPDM(GPDM):
         num_values: int | None = None,
         alpha_g: Sequence[float] = (1.0, 0.1),
         sharing: float = 0.0,
+        noise_per_value: bool = False,
         **kwargs: Any,
     ) -> None:
         check_choice(intention, "intention", INTENTION_KINDS)
+        if not isinstance(noise_per_value, bool | np.bool_):
+            raise TypeError(f"noise_per_value must be a bool, got {noise_per_value!r}")
+        if noise_per_value and (
+            intention != "discrete"
+            or sharing
+            or kwargs.get("learn_noise")
+            or kwargs.get("learn_alpha")
+        ):
+            raise ValueError(
+                "noise_per_value=True needs a discrete intention with sharing=0 (independent "
+                "dynamics per value) and a fixed process noise (no learn_noise/learn_alpha); got "
+                f"intention={intention!r}, sharing={sharing!r}"
+            )
         if isinstance(sharing, bool) or not isinstance(sharing, int | float):
             raise TypeError(f"sharing must be a float in [0, 1), got {sharing!r}")
         if not 0.0 <= float(sharing) < 1.0:
@@ -131,6 +162,10 @@ class HGPDM(GPDM):
         self._config.update(
             intention=intention, num_values=k, alpha_g=list(self.alpha_g), sharing=self.sharing
         )
+        self.noise_per_value = bool(noise_per_value)
+        if self.noise_per_value:
+            self._config["noise_per_value"] = True
+            self.register_buffer("value_noise", self.transition_noise.detach().expand(k).clone())
 
     @property
     def transition_kind(self) -> str:  # type: ignore[override]
@@ -161,6 +196,82 @@ class HGPDM(GPDM):
             for k in range(self.num_values)
             if (rows := torch.nonzero(codes == k)[:, 0]).numel()
         ]
+
+    def transition_block_noise(self, rows: torch.Tensor) -> torch.Tensor:
+        """alpha_4 of a block of :meth:`transition_blocks`: with ``noise_per_value``, the
+        ``alpha_4,k`` of the block's value k, else the shared :attr:`transition_noise`."""
+        if not self.noise_per_value:
+            return self.transition_noise
+        return self.value_noise[self.intentions[self.seq_of_src[rows[0]], 0].long()]
+
+    def estimate_value_noise(self) -> torch.Tensor:
+        """Set each ``alpha_4,k`` (:attr:`value_noise`) to its maximum-likelihood value.
+
+        With the latents X and the transition kernel fixed, ``alpha_4,k`` maximises the GP
+        marginal likelihood ``N(X_out^k; 0, K_x(X_in^k) + alpha_4,k I)`` of value k's
+        transition pairs (its block of Eq. 5): a 1-D bounded search over ``log alpha_4,k``
+        (scipy's ``minimize_scalar``) between ``NOISE_FLOOR`` and ``||X_out^k||_2^2 / Dx``,
+        above which the likelihood decreases. A value without training transitions keeps its
+        noise. :meth:`fit` calls this at its end when ``noise_per_value=True``.
+
+        Returns:
+            The new ``[K]`` :attr:`value_noise`.
+
+        Raises:
+            ValueError: the model was not built with ``noise_per_value=True``.
+        """
+        if not self.noise_per_value:
+            raise ValueError("estimate_value_noise() needs a model built with noise_per_value=True")
+        with torch.no_grad():
+            x = self.latent.detach()
+            inputs, targets = self.transition_inputs(x), self.transition_targets(x)
+            new = self.value_noise.clone()
+            for rows in self.transition_blocks():
+                code = int(self.intentions[self.seq_of_src[rows[0]], 0])
+                k, y = self.transition_kernel(inputs[rows]).to_dense(), targets[rows]
+
+                def nll(log_noise: float, k: torch.Tensor = k, y: torch.Tensor = y) -> float:
+                    c = k + math.exp(log_noise) * torch.eye(len(k), dtype=k.dtype, device=k.device)
+                    return float(gaussian_nll(c, y, name="transition kernel matrix K_x"))
+
+                low = math.log(NOISE_FLOOR)
+                high = math.log(
+                    max(
+                        float(torch.linalg.matrix_norm(y, ord=2)) ** 2 / y.shape[1],
+                        2.0 * NOISE_FLOOR,
+                    )
+                )
+                best = minimize_scalar(
+                    nll, bounds=(low, high), method="bounded", options={"xatol": 1e-6}
+                )
+                new[code] = max(math.exp(best.x), NOISE_FLOOR)
+            self.value_noise.copy_(new)
+        return self.value_noise.clone()
+
+    def fit(self, steps: int = 100, **options: Any) -> FitResult:
+        """MAP fit (:meth:`GPDM.fit`, same arguments); with ``noise_per_value`` it ends with
+        :meth:`estimate_value_noise` (the fit itself runs with the noises it starts with)."""
+        result = super().fit(steps, **options)
+        if self.noise_per_value:
+            self.estimate_value_noise()
+        return result
+
+    def transition_posterior(self) -> GPPosterior:
+        """The transition GP ``[x_t, g] -> x_{t+1}`` (detached); with ``noise_per_value`` each
+        training pair carries the ``alpha_4,k`` of its value on the diagonal and predictions with
+        noise add that of the input's code (``code_noise``)."""
+        if not self.noise_per_value:
+            return super().transition_posterior()
+        with torch.no_grad():
+            x = self.latent.detach()
+            codes = self.intentions[self.seq_of_src, 0].long()
+            return GPPosterior(
+                self.transition_kernel,
+                self.transition_inputs(x),
+                self.transition_targets(x),
+                self.value_noise[codes],
+                code_noise=self.value_noise,
+            )
 
     def intention_codes(self) -> torch.Tensor:
         """``[J]`` integer codes of a discrete g."""

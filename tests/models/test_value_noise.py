@@ -1,0 +1,259 @@
+"""Per-value process noise of a discrete-g IDDM (``noise_per_value``), each part against an
+independent oracle: dense numpy GP formulas, numpy marginal likelihoods optimised on a grid,
+the shared-noise model, and GP-ADF through ``GPPosterior.predict_gaussian`` per code."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import minimize_scalar
+
+from hgpdm_torch.datasets import styled_movements
+from hgpdm_torch.gp import GPPosterior
+from hgpdm_torch.inference.filtering import filter_sequence
+from hgpdm_torch.inference.intention import OnlineIntentionFilter, SharedTransition
+from hgpdm_torch.kernels import transition_kernel
+from hgpdm_torch.models import HGPDM, IDDM, load_model
+from hgpdm_torch.models.gpdm import NOISE_FLOOR
+
+A1, A2 = 0.9, 0.3  # alpha_1, alpha_2 of the transition RBF below
+
+
+def np_kernel(xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
+    """``delta(g, g') a1 exp(-a2/2 |x - x'|^2)`` on ``[x, code]`` rows, in numpy."""
+    d2 = ((xa[:, None, :-1] - xb[None, :, :-1]) ** 2).sum(-1)
+    same = xa[:, None, -1] == xb[None, :, -1]
+    return same * A1 * np.exp(-0.5 * A2 * d2)
+
+
+def np_block_nll(k: np.ndarray, y: np.ndarray, noise: float) -> float:
+    """``-log N(y; 0, k + noise I)`` summed over the columns of ``y``, in numpy."""
+    c = k + noise * np.eye(len(k))
+    sign, logdet = np.linalg.slogdet(c)
+    assert sign > 0
+    n, d = y.shape
+    return (
+        0.5 * d * logdet
+        + 0.5 * float(np.sum(y * np.linalg.solve(c, y)))
+        + 0.5 * n * d * (math.log(2 * math.pi))
+    )
+
+
+@pytest.fixture(scope="module")
+def styles():
+    return styled_movements(3, 4, 14, 6, noise=0.02, seed=2)
+
+
+def make(styles, **kwargs) -> IDDM:
+    torch.manual_seed(0)
+    return IDDM(
+        styles.sequences, styles.labels, 3, intention="discrete", measurement="linear",
+        alpha=(A1, A2, 0.1, 1e-2), **kwargs,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def fitted(styles) -> IDDM:
+    model = make(styles, noise_per_value=True)
+    model.fit(15, warn=False)
+    return model
+
+
+# ----- GPPosterior with a noise per training point and per code ---------------------------------
+
+
+def test_posterior_with_per_point_noise_equals_dense_formula(generator):
+    n, dx, k = 14, 2, 3
+    x = torch.randn(n, dx, generator=generator)
+    codes = (torch.arange(n) % k).double()
+    X = torch.cat([x, codes[:, None]], 1)
+    Y = torch.sin(x) + 0.1 * codes[:, None]
+    noise = 0.01 + 0.2 * torch.rand(n, generator=generator)
+    code_noise = torch.tensor([0.03, 0.5, 0.002])
+    kernel = transition_kernel("iddm_discrete", dx, num_values=k, alpha=(A1, A2, 0.1, 1e-2))
+    post = GPPosterior(kernel, X, Y, noise, code_noise=code_noise)
+    xs = torch.cat([torch.randn(7, dx, generator=generator), (torch.arange(7) % k)[:, None]], 1)
+    Xn, Yn, xsn = X.numpy(), Y.numpy(), xs.double().numpy()
+    np.testing.assert_allclose(kernel(X).to_dense().detach().numpy(), np_kernel(Xn, Xn), 1e-12)
+    C = np_kernel(Xn, Xn) + np.diag(noise.numpy())
+    ks = np_kernel(xsn, Xn)
+    mean = ks @ np.linalg.solve(C, Yn)
+    var = A1 - np.einsum("ij,ji->i", ks, np.linalg.solve(C, ks.T))
+    m, v = post.predict(xs)
+    np.testing.assert_allclose(m.numpy(), mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(v.numpy(), var[:, None].repeat(dx, 1), rtol=1e-9, atol=1e-12)
+    _, vn = post.predict(xs, include_noise=True)
+    with_noise = var + code_noise.numpy()[xsn[:, -1].astype(int)]
+    np.testing.assert_allclose(vn.numpy(), with_noise[:, None].repeat(dx, 1), rtol=1e-9)
+    # moment matching at a point input (Sigma = 0), the code given as g: the same numbers
+    gm, gc, _ = post.predict_gaussian(
+        xs[:, :dx], torch.zeros(7, dx, dx), g=xs[:, dx:], include_noise=True
+    )
+    np.testing.assert_allclose(gm.numpy(), mean, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(
+        gc.diagonal(dim1=-2, dim2=-1).numpy(), with_noise[:, None].repeat(dx, 1), rtol=1e-7
+    )
+    # an [N] noise of equal entries is the scalar noise
+    same = GPPosterior(kernel, X, Y, torch.full((n,), 0.07))
+    scalar = GPPosterior(kernel, X, Y, 0.07)
+    torch.testing.assert_close(same.chol, scalar.chol, rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(same.predict(xs)[1], scalar.predict(xs)[1])
+
+
+def test_posterior_noise_arguments_are_validated(generator):
+    dx, k = 2, 3
+    X = torch.cat([torch.randn(6, dx, generator=generator), (torch.arange(6) % k)[:, None]], 1)
+    Y = torch.randn(6, dx, generator=generator)
+    kernel = transition_kernel("iddm_discrete", dx, num_values=k, alpha=(A1, A2, 0.1, 1e-2))
+    with pytest.raises(ValueError, match="noise"):
+        GPPosterior(kernel, X, Y, torch.ones(5))
+    with pytest.raises(ValueError, match="noise"):
+        GPPosterior(kernel, X, Y, torch.tensor([0.1, 0.1, 0.1, 0.1, 0.1, 0.0]))
+    with pytest.raises(ValueError, match="code_noise"):
+        GPPosterior(kernel, X, Y, 0.1, code_noise=torch.ones(2))
+    with pytest.raises(ValueError, match="code_noise"):
+        GPPosterior(kernel, X, Y, 0.1, code_noise=torch.tensor([0.1, -1.0, 0.1]))
+    rbf = transition_kernel("iddm_continuous", dx, g_dim=1, alpha=(A1, A2, 0.1, 1e-2))
+    with pytest.raises(ValueError, match="code_noise"):
+        GPPosterior(rbf, X, Y, 0.1, code_noise=torch.ones(3))
+    post = GPPosterior(kernel, X, Y, 0.1 + torch.rand(6, generator=generator))
+    with pytest.raises(ValueError, match="include_noise"):
+        post.predict(X, include_noise=True)
+    post = GPPosterior(kernel, X, Y, 0.1, code_noise=torch.ones(3))
+    with pytest.raises(ValueError, match="code"):
+        post.predict_gaussian(X, torch.zeros(6, dx + 1, dx + 1), include_noise=True)
+    with pytest.raises(ValueError, match="codes"):
+        post.predict(X + 0.5, include_noise=True)
+
+
+# ----- the model: equal noises are the shared model; the estimate; the loss -------------------
+
+
+def test_equal_value_noises_give_the_shared_model(styles):
+    shared, per = make(styles), make(styles, noise_per_value=True)
+    torch.testing.assert_close(per.value_noise, shared.transition_noise.expand(3))
+    assert per.transition_nll().item() == shared.transition_nll().item()
+    assert per.loss().item() == shared.loss().item()
+    gs = torch.autograd.grad(shared.loss(), shared.latent)[0]
+    gp = torch.autograd.grad(per.loss(), per.latent)[0]
+    torch.testing.assert_close(gp, gs, rtol=1e-12, atol=1e-12)
+    ps, pp = shared.transition_posterior(), per.transition_posterior()
+    xs = torch.cat([torch.randn(8, 3), (torch.arange(8) % 3)[:, None].double()], 1)
+    for a, b in zip(
+        ps.predict(xs, include_noise=True), pp.predict(xs, include_noise=True), strict=True
+    ):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+    z = torch.stack(shared.sequences()[:4])[:, :5]
+    beliefs = []
+    for model in (shared, per):
+        f = OnlineIntentionFilter(model, forgetting=0.1, batch_size=4)
+        beliefs.append(torch.stack([f.update(z[:, t]).prob for t in range(5)], 1))
+    torch.testing.assert_close(beliefs[1], beliefs[0], rtol=1e-10, atol=1e-12)
+
+
+def test_estimate_maximises_each_blocks_marginal_likelihood(fitted):
+    model = fitted
+    assert model.config()["noise_per_value"] is True
+    x = model.latent.detach().numpy()
+    src = model.src_index.numpy()
+    codes = model.intentions[model.seq_of_src, 0].numpy()
+    inputs = np.concatenate([x[src], codes[:, None]], 1)
+    targets = x[src + 1]
+    expected = []
+    for k in range(3):
+        rows = codes == k
+        K, y = np_kernel(inputs[rows], inputs[rows]), targets[rows]
+        grid = np.linspace(math.log(NOISE_FLOOR), math.log(10.0), 600)
+        best = grid[np.argmin([np_block_nll(K, y, math.exp(a)) for a in grid])]
+        step = grid[1] - grid[0]
+        res = minimize_scalar(
+            lambda a, K=K, y=y: np_block_nll(K, y, math.exp(a)),
+            bounds=(max(best - step, grid[0]), best + step), method="bounded",
+            options={"xatol": 1e-9},
+        )  # fmt: skip
+        expected.append(res.x)
+    np.testing.assert_allclose(model.value_noise.log().numpy(), expected, atol=1e-3)
+    assert float(model.value_noise.max() / model.value_noise.min()) > 1.5  # not all equal
+    # re-estimating is idempotent (latents and kernel fixed)
+    before = model.value_noise.clone()
+    torch.testing.assert_close(model.estimate_value_noise(), before, rtol=1e-4, atol=0)
+    model.value_noise.copy_(before)
+    # the transition term of the loss uses each block's own noise
+    first = x[model.first_index.numpy()]
+    nll = (
+        sum(
+            np_block_nll(
+                np_kernel(inputs[codes == k], inputs[codes == k]),
+                targets[codes == k],
+                float(model.value_noise[k]),
+            )
+            for k in range(3)
+        )
+        + 0.5 * float((first**2).sum())
+        + 0.5 * first.size * math.log(2 * math.pi)
+    )
+    assert float(model.transition_nll().detach()) == pytest.approx(nll, rel=1e-10)
+    # the posterior: each pair's own alpha_4 on the diagonal, each code's for new outputs
+    post = model.transition_posterior()
+    torch.testing.assert_close(post.noise, model.value_noise[torch.as_tensor(codes).long()])
+    torch.testing.assert_close(post.code_noise, model.value_noise)
+
+
+def test_value_noise_is_saved_and_loaded(fitted, tmp_path):
+    fitted.save(tmp_path / "m.pt")
+    loaded = load_model(tmp_path / "m.pt")
+    assert loaded.noise_per_value
+    torch.testing.assert_close(loaded.value_noise, fitted.value_noise, rtol=0, atol=0)
+    assert loaded.loss().item() == fitted.loss().item()
+
+
+def test_online_first_prediction_per_class_equals_gp_adf(fitted, styles):
+    model = fitted
+    trans, meas = model.transition_posterior(), model.measurement_posterior()
+    codes = torch.arange(3).double()[:, None]
+    f = OnlineIntentionFilter(
+        model, forgetting=0.0, batch_size=3, evidence="predictive", state_prior="marginal"
+    )
+    z = torch.stack([s[:2] for s in styles.sequences[:3]])
+    f.update(z[:, 0])
+    m1, P1 = f.mean.clone(), f.cov.clone()
+    # the per-class prediction from q(x_1 | z_1): SharedTransition vs GP-ADF per code
+    mean, cov, cross = f.transition.moments(m1, P1)
+    for k in range(3):
+        ref = trans.predict_gaussian(m1, P1, g=codes[k], include_noise=True)
+        for a, b in zip((mean[:, k], cov[:, k], cross[:, k]), ref, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+    assert not torch.allclose(cov[:, 0], cov[:, 1])
+    # a grid of some codes, in any order, takes each code's own noise
+    sub = SharedTransition(trans, torch.tensor([[2.0], [0.0]]))
+    torch.testing.assert_close(sub.noise, model.value_noise[[2, 0]])
+    for j, k in enumerate((2, 0)):
+        torch.testing.assert_close(sub.moments(m1, P1)[1][:, j], cov[:, k], rtol=1e-12, atol=0)
+    # the belief after z_2 is the GP-ADF evidence of each code (z_1's is the same for all)
+    belief = f.update(z[:, 1])
+    ll = filter_sequence(trans, meas, z, f.mu0, f.Sigma0, g=codes[:, None, :]).log_likelihood
+    torch.testing.assert_close(belief.prob, torch.softmax(ll.T, -1), rtol=1e-8, atol=1e-12)
+
+
+def test_bad_arguments_raise(styles, fitted):
+    seqs, labels = styles.sequences, styles.labels
+    with pytest.raises(ValueError, match="noise_per_value"):
+        IDDM(seqs, labels.double(), 3, intention="continuous", noise_per_value=True)
+    with pytest.raises(ValueError, match="noise_per_value"):
+        IDDM(seqs, labels, 3, sharing=0.3, noise_per_value=True)
+    with pytest.raises(ValueError, match="noise_per_value"):
+        HGPDM(seqs, labels, 3, learn_noise=True, noise_per_value=True)
+    with pytest.raises(TypeError, match="noise_per_value"):
+        IDDM(seqs, labels, 3, noise_per_value="yes")
+    with pytest.raises(ValueError, match="noise_per_value"):
+        make(styles).estimate_value_noise()
+    with pytest.raises(ValueError, match="inducing"):
+        OnlineIntentionFilter(fitted, batch_size=1, inducing=10)
+    # variational inference assumes one process noise: refused, not silently wrong
+    from hgpdm_torch.inference import VariationalInference
+
+    with pytest.raises(ValueError, match="noise_per_value"):
+        VariationalInference(fitted).infer(styles.sequences[0][:4])
