@@ -354,7 +354,10 @@ class MonteCarloPlanner:
         if skip:
             mu = torch.where(missing[:, None, None], shared.pred_mean, mu)
             evidence = evidence.masked_fill(missing[:, None], 0.0)
-        log_prob = (1.0 - self.filter.forgetting) * shared.log_prob + evidence
+        # the filter's recursion: B_t = (1 - eps) B_{t-1} + E_t / T
+        log_prob = (
+            1.0 - self.filter.forgetting
+        ) * shared.log_prob + evidence / self.filter.temperature
         log_prob = log_prob - torch.logsumexp(log_prob, -1, keepdim=True)
         p = log_prob.exp()  # [I, K]
         # mixture covariance: sum_k p_k P_k + Cov_p[mu_k], with P_k shared by all particles

@@ -595,6 +595,13 @@ def msrc12_recognition(
     if calibration_folds is not None:
         fewest = min(len(set(persons[train].tolist())) for train, _ in splits)
         _check_calibration_folds(calibration_folds, fewest, "training persons of a fold")
+        if calibration_per_class is not None and not (
+            isinstance(calibration_per_class, int) and calibration_per_class >= 1
+        ):
+            raise ValueError(
+                "calibration_per_class must be a positive int or None, got "
+                f"{calibration_per_class!r}"
+            )
     for fold, (train, test) in enumerate(tqdm(splits, disable=not progress, desc="folds")):
         shared = set(persons[train]) & set(persons[test])
         if shared:  # GroupKFold guarantees this; the table's validity rests on it
@@ -615,7 +622,7 @@ def msrc12_recognition(
         temps: dict[str, float] = {}
         if calibration_folds is not None:
             inner_rng = np.random.default_rng([seed, fold])  # the outer subsets stay as they were
-            splits = []
+            inner_splits = []
             for a, b in GroupKFold(n_splits=calibration_folds).split(train, groups=persons[train]):
                 lacking = sorted(set(range(k)) - set(labels[train[a]].tolist()))
                 if lacking:
@@ -627,11 +634,11 @@ def msrc12_recognition(
                 zi = inner_prep.transform(features)
                 fit_set = _per_class(train[a], labels, train_per_class, inner_rng)
                 val_set = _per_class(train[b], labels, calibration_per_class, inner_rng)
-                splits.append(
+                inner_splits.append(
                     (zi[fit_set], data.labels[fit_set], zi[val_set], data.labels[val_set])
                 )
             temps, inner_fits = _fit_temperatures(
-                splits, k, latent_dim, fit_steps, seed, windows=windows,
+                inner_splits, k, latent_dim, fit_steps, seed, windows=windows,
                 forgettings=forgettings, state_prior=state_prior, progress=progress,
             )  # fmt: skip
             table.meta["calibration_fits"] += inner_fits

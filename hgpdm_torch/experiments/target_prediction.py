@@ -130,9 +130,24 @@ def _online(
 
 
 def grid_index(targets: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Index of the grid value nearest to each target (``[...]`` -> ``[...]`` int64): the
-    value a credible set over the grid must hold to cover the target."""
-    return (targets[..., None] - grid).abs().argmin(-1)
+    """Index of the grid value nearest to each target: the value a credible set over the grid
+    must hold to cover the target.
+
+    Args:
+        targets: ``[...]`` finite targets.
+        grid: ``[K]`` finite grid values.
+
+    Returns:
+        ``[...]`` int64 indices into ``grid``.
+
+    Raises:
+        ValueError: a grid that is not 1-D and non-empty, or non-finite values.
+    """
+    targets = as_tensor(targets, "targets")
+    grid = as_tensor(grid, "grid", ndim=1)
+    if grid.numel() == 0:
+        raise ValueError("grid must hold at least one value")
+    return (targets[..., None] - grid.to(targets.dtype)).abs().argmin(-1)
 
 
 def _cv_mae(

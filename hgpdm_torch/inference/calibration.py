@@ -30,7 +30,7 @@ from scipy.optimize import minimize_scalar
 from ..validation import as_tensor, check_probability
 from .filtering import _real_scalar
 
-__all__ = ["calibration", "check_temperature", "fit_temperature", "temper"]
+__all__ = ["calibration", "check_temperature", "credible_set", "fit_temperature", "temper"]
 
 #: Search interval of :func:`fit_temperature` (inverse temperatures 1e-3 ... 1e3).
 TEMPERATURE_BOUNDS = (1e-3, 1e3)
@@ -110,6 +110,10 @@ def temper(log_prob: Any, temperature: float, *, prior: Any = None) -> torch.Ten
 
     Returns:
         ``[..., K]`` normalised log posterior.
+
+    Raises:
+        TypeError, ValueError: a bad temperature, ``log_prob`` with NaN or ``+inf``, or a prior
+            that is not a probability vector over the K values.
     """
     t = check_temperature(temperature)
     lp = _log_probabilities(log_prob)
@@ -165,24 +169,44 @@ def fit_temperature(
     return float(1.0 / res.x)
 
 
+def credible_set(prob: torch.Tensor, level: float = 0.9) -> torch.Tensor:
+    """``[..., K]`` bool mask of the smallest set of values holding at least ``level`` of the
+    mass of ``prob [..., K]`` (values ranked by probability; a value is in the set when the
+    mass ranked above it is below ``level``)."""
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    p, order = prob.sort(-1, descending=True)
+    keep = (p.cumsum(-1) - p) < level  # mass of the values ranked above
+    return torch.zeros_like(keep).scatter(-1, order, keep)
+
+
 def calibration(prob: Any, truth: Any, level: float = 0.9) -> dict[str, float]:
     """Calibration of posteriors ``prob [..., K]`` against true value indices ``truth [...]``.
 
+    Args:
+        prob: ``[..., K]`` probabilities (each row non-negative, summing to 1).
+        truth: ``[...]`` integer indices of the true values.
+        level: credible level of the sets (default 0.9).
+
     Returns:
-        ``coverage``: how often the smallest set of values with mass ``>= level`` holds the
-        truth (a calibrated posterior gives about ``level``); ``set_size``: its mean size;
-        ``ece``: expected calibration error of the top value over 10 equal-width confidence
-        bins; ``nll``: mean negative log probability of the truth.
+        ``coverage``: how often the :func:`credible_set` holds the truth (a calibrated
+        posterior gives at least ``level``, the mean mass of its sets); ``set_size``: its mean
+        size; ``ece``: expected calibration error of the top value over 10 equal-width
+        confidence bins; ``nll``: mean negative log probability of the truth.
+
+    Raises:
+        ValueError: rows that are not probability vectors, bad shapes or indices, or a level
+            outside (0, 1).
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
     p = as_tensor(prob, "prob", dtype=torch.float64)
+    if p.dim() < 1:
+        raise ValueError(f"prob must be [..., K], got shape {tuple(p.shape)}")
+    check_probability(p, "prob")
     lp, t = _probabilities(p.clamp_min(0).log(), truth)
     p = lp.exp()
-    order = p.argsort(-1, descending=True)
-    cum = p.gather(-1, order).cumsum(-1)
-    size = (cum - p.gather(-1, order) < level).sum(-1)  # values ranked before reaching level
-    rank = (order == t[:, None]).double().argmax(-1)
+    inside = credible_set(p, level)
     conf, top = p.max(-1)
     correct = (top == t).double()
     bins = torch.clamp((conf * 10).long(), max=9)
@@ -193,8 +217,8 @@ def calibration(prob: Any, truth: Any, level: float = 0.9) -> dict[str, float]:
         if bool((bins == b).any())
     )
     return {
-        "coverage": float((rank < size).double().mean()),
-        "set_size": float(size.double().mean()),
+        "coverage": float(inside.gather(-1, t[:, None]).double().mean()),
+        "set_size": float(inside.sum(-1).double().mean()),
         "ece": ece,
         "nll": float(-lp.gather(-1, t[:, None]).mean()),
     }

@@ -76,7 +76,7 @@ from ..gp import GPPosterior
 from ..linalg import CholeskyError, cholesky_logdet, psd_cholesky, symmetrize
 from ..models import HGPDM
 from ..validation import as_tensor, check_choice
-from .calibration import check_temperature, intention_log_prior
+from .calibration import check_temperature, credible_set, intention_log_prior
 from .filtering import (
     DEFAULT_OUTLIER_SD,
     ObservationCheck,
@@ -152,12 +152,7 @@ class IntentionBelief:
 
     def credible_set(self, level: float = 0.9) -> torch.Tensor:
         """``[..., K]`` mask of the smallest set of values holding at least ``level`` mass."""
-        if not 0.0 < level < 1.0:
-            raise ValueError(f"level must be in (0, 1), got {level}")
-        p, order = self.prob.sort(-1, descending=True)
-        before = p.cumsum(-1) - p  # mass of the values ranked above
-        keep = before < level
-        return torch.zeros_like(keep).scatter(-1, order, keep)
+        return credible_set(self.prob, level)
 
 
 # ------------------------------------------------------------------------------------------

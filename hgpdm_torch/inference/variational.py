@@ -196,12 +196,6 @@ class _GaussianInputGP:
     """
 
     def __init__(self, post: GPPosterior, codes: torch.Tensor | None = None) -> None:
-        if post.noise.dim() != 0:
-            raise ValueError(
-                "variational inference needs one shared process noise; this model has a noise "
-                "per intention value (noise_per_value=True): use infer_intention or "
-                "OnlineIntentionFilter, or a model with noise_per_value=False"
-            )
         self.post = post
         with torch.no_grad():
             leaves = kernel_leaves(post.kernel, post.input_dim)
@@ -446,6 +440,12 @@ class VariationalInference:
         self.kind = model.intention if isinstance(model, HGPDM) else "none"
         self.measurement = model.measurement_posterior()
         self.transition = model.transition_posterior()
+        if self.transition.noise.dim() != 0:
+            raise ValueError(
+                "variational inference needs one shared process noise; this model has a noise "
+                "per intention value (noise_per_value=True): use infer_intention or "
+                "OnlineIntentionFilter, or a model with noise_per_value=False"
+            )
         self.latent_dim = model.latent_dim
         self.obs_dim = model.obs_dim
         dtype = self.measurement.train_inputs.dtype

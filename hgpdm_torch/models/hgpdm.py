@@ -205,14 +205,19 @@ class HGPDM(GPDM):
         return self.value_noise[self.intentions[self.seq_of_src[rows[0]], 0].long()]
 
     def estimate_value_noise(self) -> torch.Tensor:
-        """Set each ``alpha_4,k`` (:attr:`value_noise`) to its maximum-likelihood value.
+        """Set each ``alpha_4,k`` (:attr:`value_noise`) to its MAP value.
 
         With the latents X and the transition kernel fixed, ``alpha_4,k`` maximises the GP
         marginal likelihood ``N(X_out^k; 0, K_x(X_in^k) + alpha_4,k I)`` of value k's
-        transition pairs (its block of Eq. 5): a 1-D bounded search over ``log alpha_4,k``
-        (scipy's ``minimize_scalar``) between ``NOISE_FLOOR`` and ``||X_out^k||_2^2 / Dx``,
-        above which the likelihood decreases. A value without training transitions keeps its
-        noise. :meth:`fit` calls this at its end when ``noise_per_value=True``.
+        transition pairs (its block of Eq. 5) times the log-normal prior
+        ``N(log alpha_4,k; log alpha_4, NOISE_PRIOR_SD^2)`` centred on the shared
+        :attr:`transition_noise` (the prior of a learned alpha_4): a 1-D bounded search over
+        ``log alpha_4,k`` (scipy's ``minimize_scalar``) between ``NOISE_FLOOR`` and
+        ``max(||X_out^k||_2^2 / Dx, alpha_4) e^(4 NOISE_PRIOR_SD)``. The prior matters for a value
+        with few pairs, whose likelihood alone is flat down to the floor (one pair fitted by
+        its own latents explains itself without noise); for many pairs the likelihood
+        dominates. A value without training transitions keeps the shared noise. :meth:`fit`
+        calls this at its end when ``noise_per_value=True``.
 
         Returns:
             The new ``[K]`` :attr:`value_noise`.
@@ -225,32 +230,38 @@ class HGPDM(GPDM):
         with torch.no_grad():
             x = self.latent.detach()
             inputs, targets = self.transition_inputs(x), self.transition_targets(x)
-            new = self.value_noise.clone()
+            centre = math.log(float(self.transition_noise))
+            sd = self.NOISE_PRIOR_SD
+            new = torch.full_like(self.value_noise, float(self.transition_noise))
             for rows in self.transition_blocks():
                 code = int(self.intentions[self.seq_of_src[rows[0]], 0])
                 k, y = self.transition_kernel(inputs[rows]).to_dense(), targets[rows]
 
-                def nll(log_noise: float, k: torch.Tensor = k, y: torch.Tensor = y) -> float:
+                def neg_log_post(
+                    log_noise: float, k: torch.Tensor = k, y: torch.Tensor = y
+                ) -> float:
                     c = k + math.exp(log_noise) * torch.eye(len(k), dtype=k.dtype, device=k.device)
-                    return float(gaussian_nll(c, y, name="transition kernel matrix K_x"))
+                    nll = float(gaussian_nll(c, y, name="transition kernel matrix K_x"))
+                    return nll + 0.5 * ((log_noise - centre) / sd) ** 2
 
+                scale = float(torch.linalg.matrix_norm(y, ord=2)) ** 2 / y.shape[1]
                 low = math.log(NOISE_FLOOR)
-                high = math.log(
-                    max(
-                        float(torch.linalg.matrix_norm(y, ord=2)) ** 2 / y.shape[1],
-                        2.0 * NOISE_FLOOR,
-                    )
-                )
+                high = max(math.log(max(scale, NOISE_FLOOR)), centre) + 4.0 * sd
                 best = minimize_scalar(
-                    nll, bounds=(low, high), method="bounded", options={"xatol": 1e-6}
+                    neg_log_post, bounds=(low, high), method="bounded", options={"xatol": 1e-6}
                 )
                 new[code] = max(math.exp(best.x), NOISE_FLOOR)
             self.value_noise.copy_(new)
         return self.value_noise.clone()
 
     def fit(self, steps: int = 100, **options: Any) -> FitResult:
-        """MAP fit (:meth:`GPDM.fit`, same arguments); with ``noise_per_value`` it ends with
-        :meth:`estimate_value_noise` (the fit itself runs with the noises it starts with)."""
+        """MAP fit (:meth:`GPDM.fit`, same arguments). With ``noise_per_value`` the latents are
+        fitted under the shared :attr:`transition_noise` (every ``alpha_4,k`` is reset to it
+        first, so repeated fits do not ratchet the noises down), then
+        :meth:`estimate_value_noise` sets the per-value noises."""
+        if self.noise_per_value:
+            with torch.no_grad():
+                self.value_noise.fill_(float(self.transition_noise))
         result = super().fit(steps, **options)
         if self.noise_per_value:
             self.estimate_value_noise()
@@ -280,11 +291,16 @@ class HGPDM(GPDM):
         return self.intentions[:, 0].long()
 
     def set_intentions(self, intentions: Any) -> None:
-        """Replace g of every training sequence (same kind and K)."""
+        """Replace g of every training sequence (same kind and K). With ``noise_per_value``
+        the per-value noises go back to the shared one (a code may now mean other sequences;
+        :meth:`fit` or :meth:`estimate_value_noise` sets them again)."""
         values, _ = _check_intentions(
             intentions, self.num_sequences, self.intention, self.num_values, self.latent.dtype
         )
         self.intentions.copy_(values.to(self.intentions.device))
+        if self.noise_per_value:
+            with torch.no_grad():
+                self.value_noise.fill_(float(self.transition_noise))
 
     def _rollout_inputs(self, x: torch.Tensor, g: Any) -> torch.Tensor:
         if g is None:

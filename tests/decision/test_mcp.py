@@ -91,8 +91,11 @@ def _belief(states, i, t):
     return Belief(mean[i, t], cov[i, t], log_prob[i, t])
 
 
-def test_batched_particle_update_equals_the_online_filter(model, pipeline, generator):
+@pytest.mark.parametrize("temperature", [1.0, 3.0])
+def test_batched_particle_update_equals_the_online_filter(model, pipeline, generator, temperature):
     f, basis, q, states = pipeline
+    if temperature != 1.0:  # the planner follows its filter's evidence temperature
+        f = OnlineIntentionFilter(model, GRID, forgetting=0.1, temperature=temperature)
     planner = MonteCarloPlanner(model, f, q, basis)
     belief = _belief(states, 3, 1)
     z = model.measurement_posterior().predict(belief.mean[None])[0] + 0.2 * torch.randn(
@@ -100,7 +103,7 @@ def test_batched_particle_update_equals_the_online_filter(model, pipeline, gener
     )
     mean, cov, log_prob, rejected = planner.step(belief, z)
     assert not bool(rejected.any())
-    ref = _filter_in(model, belief, 40)
+    ref = _filter_in(model, belief, 40, temperature=temperature)
     out = ref.update(z)
     torch.testing.assert_close(log_prob, out.log_prob, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(mean, ref.mean, rtol=1e-9, atol=1e-10)

@@ -183,3 +183,12 @@ def test_online_temperature_scales_each_steps_evidence(fitted, state_prior):
     for t in range(3):
         assert torch.equal(same.update(z[:, t]).log_prob, ref.update(z[:, t]).log_prob)
     assert prior.shape == (z.shape[0], 3)
+
+
+def test_calibration_refuses_what_is_not_a_probability():
+    truth = torch.tensor([1])
+    for bad in ([[-0.2, 1.2]], [[0.5, 0.5, 2.0]], [[math.nan, 1.0]]):
+        with pytest.raises(ValueError, match="prob"):
+            calibration(torch.tensor(bad), truth)
+    with pytest.raises(ValueError, match="level"):
+        calibration(torch.tensor([[0.5, 0.5]]), truth, level=1.0)

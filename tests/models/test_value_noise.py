@@ -163,14 +163,20 @@ def test_estimate_maximises_each_blocks_marginal_likelihood(fitted):
     inputs = np.concatenate([x[src], codes[:, None]], 1)
     targets = x[src + 1]
     expected = []
+    centre, sd = math.log(float(model.transition_noise)), model.NOISE_PRIOR_SD
+
+    def neg_log_post(a: float, K: np.ndarray, y: np.ndarray) -> float:
+        # block marginal likelihood times the log-normal prior centred on the shared alpha_4
+        return np_block_nll(K, y, math.exp(a)) + 0.5 * ((a - centre) / sd) ** 2
+
     for k in range(3):
         rows = codes == k
         K, y = np_kernel(inputs[rows], inputs[rows]), targets[rows]
         grid = np.linspace(math.log(NOISE_FLOOR), math.log(10.0), 600)
-        best = grid[np.argmin([np_block_nll(K, y, math.exp(a)) for a in grid])]
+        best = grid[np.argmin([neg_log_post(a, K, y) for a in grid])]
         step = grid[1] - grid[0]
         res = minimize_scalar(
-            lambda a, K=K, y=y: np_block_nll(K, y, math.exp(a)),
+            lambda a, K=K, y=y: neg_log_post(a, K, y),
             bounds=(max(best - step, grid[0]), best + step), method="bounded",
             options={"xatol": 1e-9},
         )  # fmt: skip
@@ -200,6 +206,30 @@ def test_estimate_maximises_each_blocks_marginal_likelihood(fitted):
     post = model.transition_posterior()
     torch.testing.assert_close(post.noise, model.value_noise[torch.as_tensor(codes).long()])
     torch.testing.assert_close(post.code_noise, model.value_noise)
+
+
+def test_fit_starts_from_the_shared_noise_and_few_pairs_keep_it(styles):
+    """Repeated fits do not ratchet the noises down; a value with one transition pair (whose
+    likelihood alone is flat down to the noise floor) stays near the shared alpha_4."""
+    a, b = make(styles, noise_per_value=True), make(styles, noise_per_value=True)
+    b.value_noise.fill_(1e-5)  # a stale estimate: fit must not start from it
+    a.fit(5, warn=False)
+    b.fit(5, warn=False)
+    torch.testing.assert_close(a.value_noise, b.value_noise, rtol=0, atol=0)
+    # one class with a single 2-frame sequence (one pair)
+    seqs = [*styles.sequences[:8], styles.sequences[8][:2]]
+    labels = torch.cat([styles.labels[:8], torch.tensor([2])])
+    assert set(labels[:8].tolist()) == {0, 1}
+    torch.manual_seed(0)
+    lone = IDDM(
+        seqs, labels, 3, intention="discrete", measurement="linear",
+        alpha=(A1, A2, 0.1, 1e-2), noise_per_value=True,
+    )  # fmt: skip
+    lone.fit(5, warn=False)
+    assert 1e-3 < float(lone.value_noise[2]) < 1e-1  # not NOISE_FLOOR (1e-6)
+    # relabelling resets the per-value noises to the shared one
+    lone.set_intentions(labels.flip(0))
+    assert torch.all(lone.value_noise == lone.transition_noise)
 
 
 def test_value_noise_is_saved_and_loaded(fitted, tmp_path):
@@ -256,4 +286,4 @@ def test_bad_arguments_raise(styles, fitted):
     from hgpdm_torch.inference import VariationalInference
 
     with pytest.raises(ValueError, match="noise_per_value"):
-        VariationalInference(fitted).infer(styles.sequences[0][:4])
+        VariationalInference(fitted)
