@@ -219,7 +219,9 @@ class _WorstCase:
                 break
             else:
                 u_hi = u
-            if abs(y) < 1e-13 or u_hi - u_lo < 1e-13 * max(1.0, abs(u)):
+            # y = KL(p || q) - eps for the q below, and the value moves by y times the KL
+            # multiplier (~ 1 / sqrt(eps), 500 at eps = 1e-6): stop at y's rounding level
+            if abs(y) < 1e-15 or u_hi - u_lo < 1e-13 * max(1.0, abs(u)):
                 break
             step = u - y / dy if dy < 0.0 else u_lo
             if not u_lo < step < u_hi:
