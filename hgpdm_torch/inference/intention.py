@@ -92,6 +92,7 @@ __all__ = [
     "IntentionBelief",
     "LinearMeasurement",
     "OnlineIntentionFilter",
+    "PRECISION_LIMIT",
     "SharedTransition",
     "STATE_PRIORS",
     "batch_bound",
@@ -680,6 +681,42 @@ def _finite_state(mean: torch.Tensor, cov: torch.Tensor, log_belief: torch.Tenso
     return torch.isfinite(mean.sum(-1) + cov.sum((-2, -1)) + log_belief.amax(-1))
 
 
+#: Largest rounding error of the transition moments in a filter's dtype, relative to the
+#: predictive spread, that :class:`OnlineIntentionFilter` accepts for a dtype other than its
+#: model's. Measured in float32: 0.03-1.2 on models whose float32 beliefs stay within 0.05 of
+#: float64 without a failed stream, ~1.4e3 with alpha-bar (alpha_4 = 1e-4), whose streams fail
+#: within a few updates. The check catches that breakdown; it does not promise 0.02.
+PRECISION_LIMIT = 10.0
+
+
+def _check_precision(model: HGPDM, reference: SharedTransition, low: SharedTransition) -> None:
+    """Refuse ``low``'s dtype where its transition moments at 8 training latents, with the
+    latents' covariance scaled by 1, 1e-2 and 1e-4, differ from ``reference``'s by more than
+    :data:`PRECISION_LIMIT` times the smallest predictive standard deviation (means) or
+    variance (covariances)."""
+    x = model.latent.detach().to(reference.inputs.dtype)
+    idx = torch.linspace(0, x.shape[0] - 1, min(8, x.shape[0])).round().long()
+    spread = torch.cov(x.T).reshape(x.shape[1], x.shape[1])
+    worst = 0.0
+    for scale in (1.0, 1e-2, 1e-4):
+        mu, P = x[idx], (scale * spread).expand(len(idx), -1, -1)
+        m_ref, c_ref, _ = reference.moments(mu, P)
+        m_low, c_low, _ = low.moments(mu.to(low.inputs.dtype), P.to(low.inputs.dtype))
+        var = torch.linalg.eigvalsh(c_ref)[..., 0].clamp_min(torch.finfo(c_ref.dtype).tiny)
+        err_c = (c_low.to(c_ref.dtype) - c_ref).abs().amax((-1, -2)) / var
+        err_m = (m_low.to(m_ref.dtype) - m_ref).abs().amax(-1) / var.sqrt()
+        worst = max(worst, float(err_c.max()), float(err_m.max()))
+    if not worst <= PRECISION_LIMIT:
+        name = str(low.inputs.dtype).removeprefix("torch.")
+        raise ValueError(
+            f"dtype={name} is not accurate enough for this model: its rounding error in the "
+            f"transition moments is {worst:.3g} times the predictive spread (limit "
+            f"{PRECISION_LIMIT}), because the weights (K + alpha_4 I)^-1 are too large for its "
+            f"digits (process noise alpha_4 = {float(model.transition_noise):.3g}); use the "
+            "model's dtype, or a model with a larger alpha_4"
+        )
+
+
 class OnlineIntentionFilter:
     r"""Online intention inference (Algorithm 3.2) for B independent streams at once.
 
@@ -763,7 +800,12 @@ class OnlineIntentionFilter:
             (:mod:`~hgpdm_torch.inference.calibration`): 1 is the thesis's recursion, ``T > 1``
             a less confident belief (choose it with
             :func:`~hgpdm_torch.inference.calibration.fit_temperature` on held-out streams).
-        dtype: computation dtype (default the model's; float32 halves memory traffic).
+        dtype: computation dtype (default the model's; float32 halves memory traffic). Another
+            dtype than the model's is refused (``ValueError``) where its rounding error in the
+            transition moments, at training latents and three state spreads, exceeds
+            :data:`PRECISION_LIMIT` times the predictive standard deviation (covariance:
+            variance): typically float32 with a small process noise alpha_4, whose weights
+            ``(K + alpha_4 I)^-1`` are too large for 7 digits.
         inducing: pseudo-inputs of a sparse transition GP (Sec. 3.3.3; see
             :class:`SharedTransition`), or ``None`` for the exact GP.
         inducing_values: distinct intention values among the pseudo-inputs (continuous g;
@@ -833,6 +875,12 @@ class OnlineIntentionFilter:
         self.transition = SharedTransition(
             trans, values, self.dtype, inducing=inducing, inducing_values=inducing_values
         )
+        if self.dtype != trans.train_inputs.dtype:
+            reference = SharedTransition(
+                trans, values, trans.train_inputs.dtype, inducing=inducing,
+                inducing_values=inducing_values,
+            )  # fmt: skip
+            _check_precision(model, reference, self.transition)
         meas = model.measurement_posterior()
         self.check = ObservationCheck.from_measurement(meas, outlier_sd)
         self.measure = _measurement_update(meas, self.dtype)

@@ -630,6 +630,21 @@ def test_float32_filter_tracks_float64(conditioned_model):
         torch.testing.assert_close(b.prob.double(), a.prob, rtol=0, atol=2e-2)
 
 
+def test_float32_is_refused_where_its_transition_moments_are_wrong():
+    """With alpha-bar's alpha_4 = 1e-4 the float32 moments err by ~1e3 times the predictive
+    spread (streams then fail within a few updates): the constructor refuses, naming why."""
+    data = targeted_movements(18, 10, 6, noise=0.02, seed=3)
+    torch.manual_seed(0)
+    model = IDDM(
+        data.sequences, data.labels, 3, intention="continuous", measurement="linear",
+        alpha_g=(4.0, 0.1),
+    )  # fmt: skip
+    model.fit(10, warn=False)
+    with pytest.raises(ValueError, match=r"dtype=float32 is not accurate enough.*alpha_4"):
+        OnlineIntentionFilter(model, GRID, dtype=torch.float32)
+    OnlineIntentionFilter(model, GRID)  # the model's own dtype is never checked
+
+
 def test_sparse_transition_is_exact_with_all_points_and_close_with_half(generator):
     n_seq, per, dx = 10, 6, 2
     kernel = transition_kernel("iddm_continuous", dx, alpha=(0.9, 0.5, 0.1, 5e-2))
