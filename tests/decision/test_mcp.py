@@ -416,3 +416,27 @@ def test_bad_input(model, pipeline):
     with pytest.raises(ValueError, match="num"):
         planner.project(belief, 0)
     assert isinstance(q, LinearQ)
+
+
+def test_planner_does_not_depend_on_the_default_dtype(model, pipeline):
+    """Every tensor of a decision takes its dtype from the model: with torch's default dtype
+    set to float32 the particle update and the decision are bit-identical."""
+    f, basis, q, states = pipeline
+    planner = MonteCarloPlanner(model, f, q, basis)
+    belief = _belief(states, 3, 1)
+    z = model.measurement_posterior().predict(belief.mean[None])[0].expand(8, -1)
+
+    def run():
+        update = planner.step(belief, z)
+        d = planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(5))
+        return [*update, d.q_stop, torch.tensor(d.q_wait, dtype=torch.float64)]
+
+    expected = run()
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float32)
+    try:
+        got = run()
+    finally:
+        torch.set_default_dtype(before)
+    for a, b in zip(expected, got, strict=True):
+        assert a.dtype == b.dtype and torch.equal(a, b)
