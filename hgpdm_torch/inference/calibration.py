@@ -71,8 +71,6 @@ def _probabilities(log_prob: Any, truth: Any) -> tuple[torch.Tensor, torch.Tenso
     """``log_prob [N, K]`` (float64, normalised) and ``truth [N]`` (int64) from any leading
     shape, with the checks shared by this module."""
     lp = _log_probabilities(log_prob, torch.float64)
-    if lp.dim() < 1 or lp.shape[-1] < 2:
-        raise ValueError(f"log_prob must be [..., K] with K >= 2, got shape {tuple(lp.shape)}")
     t = torch.as_tensor(truth)
     if t.is_floating_point() or t.dtype == torch.bool or t.is_complex():
         raise TypeError(f"truth must hold integer class indices, got {t.dtype}")

@@ -696,7 +696,7 @@ def _check_precision(model: HGPDM, reference: SharedTransition, low: SharedTrans
     variance (covariances)."""
     x = model.latent.detach().to(reference.inputs.dtype)
     idx = torch.linspace(0, x.shape[0] - 1, min(8, x.shape[0])).round().long()
-    spread = torch.cov(x.T).reshape(x.shape[1], x.shape[1])
+    _, spread = _state_prior(model, None, None, x.dtype)  # the training latents' covariance
     worst = 0.0
     for scale in (1.0, 1e-2, 1e-4):
         mu, P = x[idx], (scale * spread).expand(len(idx), -1, -1)
