@@ -46,6 +46,8 @@ from hgpdm_torch.decision import (
     lspi,
     nac,
 )
+from hgpdm_torch.decision.beliefs import decision_indices, fit_beliefs
+from hgpdm_torch.decision.policies import greedy_policy, mcp_policy
 from hgpdm_torch.experiments import anticipation as ant
 from hgpdm_torch.robots.table_tennis import DEFAULT_START_TIMES, make_trials, reward_table
 from hgpdm_torch.robots.table_tennis.strokes import MOVEMENTS
@@ -93,8 +95,8 @@ perm = idx[torch.randperm(len(idx), generator=torch.Generator().manual_seed(0))]
 n_test = len(idx) // 3
 test, train = perm[:n_test].sort().values, perm[n_test:].sort().values
 config = ant.AnticipationConfig.smoke() if SMOKE else ant.AnticipationConfig(centres=40)
-steps_at = ant.decision_indices(trials.obs_times, DEFAULT_START_TIMES)
-beliefs = ant.fit_beliefs(trials.obs, trials.targets, steps_at, train, test, config)
+steps_at = decision_indices(trials.obs_times, DEFAULT_START_TIMES)
+beliefs = fit_beliefs(trials.obs, trials.targets, steps_at, train, test, config)
 problem = StoppingProblem(beliefs.vectors(), rewards)
 train_p, test_p = problem.subset(train), problem.subset(test)
 basis = RadialBasis(config.centres, bias=True).fit(train_p.beliefs.flatten(0, 1))
@@ -169,9 +171,9 @@ plt.show()
 single = DEFAULT_START_TIMES.index(-0.24)
 rows = {f'always {m} @240ms': int((test_p.rewards[:, a, single] > 0).sum())
         for a, m in enumerate(MOVEMENTS)}
-rows['LSPI'] = ant.successes(test_p.run(ant.greedy_policy(q, basis, test_p)))
-rows['MCP'] = ant.successes(test_p.run(ant.mcp_policy(planner, beliefs, test,
-                                                      test_p.horizon, gen)))
+rows['LSPI'] = ant.successes(test_p.run(greedy_policy(q, basis, test_p)))
+rows['MCP'] = ant.successes(test_p.run(mcp_policy(planner, beliefs, test,
+                                                  test_p.horizon, gen)))
 allowed = torch.stack([test_p.allowed(t) for t in range(test_p.horizon)])
 probs = nac_result.policy.probs(basis(test_p.beliefs), allowed)
 rows['NAC'] = float(((1 + test_p.expected_reward(probs)) / 2).sum())

@@ -26,7 +26,9 @@ Protocol (Sec. 4.3.1-4.3.2, adapted where noted):
    Deterministic methods therefore have zero SEM.
 
 :func:`run_protocol` takes the observations and reward table directly (testable without the
-simulator); :func:`run_experiment` simulates them first; :func:`main` is the CLI.
+simulator); :func:`run_experiment` simulates them first; :func:`main` is the CLI. The belief
+fitting and the policies it compares are library code in :mod:`hgpdm_torch.decision.beliefs` and
+:mod:`hgpdm_torch.decision.policies`.
 """
 
 from __future__ import annotations
@@ -43,12 +45,12 @@ import torch
 from tqdm.auto import tqdm
 
 from ..decision.basis import RadialBasis
-from ..decision.lspi import LinearQ, lspi
-from ..decision.mcp import Belief, MonteCarloPlanner
+from ..decision.beliefs import decision_indices, fit_beliefs
+from ..decision.lspi import lspi
+from ..decision.mcp import MonteCarloPlanner
 from ..decision.nac import nac
-from ..decision.stopping import ACTIONS, WAIT, Episodes, Policy, StoppingProblem, belief_vector
-from ..inference.intention import OnlineIntentionFilter
-from ..models import IDDM
+from ..decision.policies import fixed_time_policy, greedy_policy, mcp_policy, stop_only_q
+from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
 from ..parallel import Executor, get_executor, ray_address_type
 from ..validation import as_tensor
 from .arguments import int_at_least, output_folder, positive_int, random_seed
@@ -58,18 +60,11 @@ from .target_prediction import supervised_init
 
 __all__ = [
     "AnticipationConfig",
-    "Beliefs",
     "connect",
-    "decision_indices",
-    "fit_beliefs",
-    "fixed_time_policy",
-    "greedy_policy",
     "main",
-    "mcp_policy",
     "plot_results",
     "run_experiment",
     "run_protocol",
-    "stop_only_q",
     "successes",
     "valid_trials",
 ]
@@ -146,133 +141,18 @@ class AnticipationConfig:
         ):
             raise ValueError(f"episodes must be positive ints, got {self.episodes!r}")
 
+    def initial_latents(self, obs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """Initial IDDM latents ``[n T, latent_dim]`` of training strokes ``obs [n, T, Dz]`` with
+        targets ``[n]``: partial least squares (:func:`~.target_prediction.supervised_init`); the
+        initialisation :func:`~hgpdm_torch.decision.beliefs.fit_beliefs` asks its config for."""
+        return supervised_init(obs, targets, self.latent_dim)
+
 
 def valid_trials(rewards: torch.Tensor) -> torch.Tensor:
     """``[n]`` mask of trials inside the overall hitting region: some movement started at some
     time returns the ball (``rewards [n, S, T]``)."""
     rewards = as_tensor(rewards, "rewards", ndim=3)
     return (rewards > 0).flatten(1).any(1)
-
-
-def decision_indices(obs_times: torch.Tensor, start_times: tuple[float, ...]) -> list[int]:
-    """For each decision (start) time, the index of the last observation available by then."""
-    obs_times = as_tensor(obs_times, "obs_times", ndim=1)
-    out = []
-    for s in start_times:
-        seen = torch.nonzero(obs_times <= s + 1e-9).flatten()
-        if seen.numel() == 0:
-            raise ValueError(f"no observation precedes the decision time {s}")
-        out.append(int(seen[-1]))
-    return out
-
-
-@dataclass
-class Beliefs:
-    """Beliefs of every trial under one fold's IDDM and the fold's split.
-
-    ``mean [n, T, Dx]``, ``cov [n, T, Dx, Dx]`` and ``log_prob [n, T, K]`` are the online
-    filter's latent state and target histogram after the observations available at each of the
-    ``T`` decision times; ``train``/``test`` index the trials.
-    """
-
-    model: IDDM
-    belief_filter: OnlineIntentionFilter
-    mean: torch.Tensor
-    cov: torch.Tensor
-    log_prob: torch.Tensor
-    train: torch.Tensor
-    test: torch.Tensor
-
-    def vectors(self) -> torch.Tensor:
-        """``[n, T, F]`` belief vectors (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
-        return belief_vector(self.mean, self.cov, self.log_prob.exp())
-
-    def belief(self, i: int, t: int) -> Belief:
-        """The planner's :class:`~hgpdm_torch.decision.mcp.Belief` of trial ``i`` at step ``t``."""
-        return Belief(self.mean[i, t], self.cov[i, t], self.log_prob[i, t])
-
-
-def fit_beliefs(
-    obs: torch.Tensor,
-    targets: torch.Tensor,
-    steps_at: list[int],
-    train: torch.Tensor,
-    test: torch.Tensor,
-    config: AnticipationConfig,
-) -> Beliefs:
-    """Fit an IDDM on (at most ``config.iddm_trials`` of) the training strokes and filter all.
-
-    Args:
-        obs: ``[n, T_obs, Dz]`` observations; targets: ``[n]`` true targets.
-        steps_at: observation index of each decision time (:func:`decision_indices`).
-        train: training trial indices of the split.
-        test: test trial indices of the split.
-        config: latent size, optimiser steps, target grid and forgetting factor.
-    """
-    gen = torch.Generator().manual_seed(config.seed)
-    chosen = train[torch.randperm(len(train), generator=gen)[: config.iddm_trials]]
-    model = IDDM(
-        [obs[i] for i in chosen.tolist()], targets[chosen], config.latent_dim,
-        intention="continuous", measurement="linear", alpha=config.alpha, alpha_g=config.alpha_g,
-        init=supervised_init(obs[chosen], targets[chosen], config.latent_dim),
-    )  # fmt: skip
-    model.fit(config.fit_steps)
-    grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
-    f = OnlineIntentionFilter(model, grid, forgetting=config.forgetting, batch_size=obs.shape[0])
-    means, covs, logs = [], [], []
-    with torch.no_grad():
-        for t in range(max(steps_at) + 1):
-            f.update(obs[:, t])
-            if t in steps_at:
-                means.append(f.mean.clone())
-                covs.append(f.cov.clone())
-                logs.append(f.log_belief.clone())
-    stack = [torch.stack(v, 1) for v in (means, covs, logs)]
-    return Beliefs(model, f, *stack, train, test)
-
-
-def stop_only_q(problem: StoppingProblem, step: int, basis: RadialBasis, ridge: float) -> LinearQ:
-    """Stopping values learned from the rewards at one step only (oracle timing: no waiting)."""
-    n, S = len(problem), problem.num_actions - 1
-    trial = torch.arange(n).repeat_interleave(S)
-    action = torch.arange(1, S + 1).repeat(n)
-    episodes = problem.episodes(trial, torch.full_like(trial, step), action)
-    return lspi(problem.transitions(episodes), features=basis, ridge=ridge).q
-
-
-def greedy_policy(q: LinearQ, basis: RadialBasis, problem: StoppingProblem) -> Policy:
-    """The greedy policy of ``q`` on the basis features (waiting only where allowed)."""
-    return lambda beliefs, t, idx: q.greedy(basis(beliefs), problem.allowed(t))
-
-
-def fixed_time_policy(q: LinearQ, basis: RadialBasis, step: int) -> Policy:
-    """Wait until ``step``, then start the movement with the largest stopping value."""
-
-    def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
-        if t < step:
-            return torch.full_like(idx, WAIT)
-        return q.values(basis(beliefs))[:, 1:].argmax(-1) + 1
-
-    return policy
-
-
-def mcp_policy(
-    planner: MonteCarloPlanner,
-    fold: Beliefs,
-    test: torch.Tensor,
-    horizon: int,
-    gen: torch.Generator | None = None,
-) -> Policy:
-    """Monte-Carlo planning (Algorithm 4.3) on the beliefs of the trials ``test``."""
-
-    def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
-        actions = [
-            planner.decide(fold.belief(int(test[i]), t), can_wait=t < horizon - 1, generator=gen)
-            for i in idx.tolist()
-        ]
-        return torch.tensor([d.action for d in actions], dtype=torch.long)
-
-    return policy
 
 
 def successes(episodes: Episodes) -> int:

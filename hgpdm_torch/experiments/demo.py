@@ -39,8 +39,10 @@ from pathlib import Path
 import torch
 
 from ..decision.basis import RadialBasis
+from ..decision.beliefs import decision_indices, fit_beliefs
 from ..decision.lspi import lspi
 from ..decision.mcp import MonteCarloPlanner
+from ..decision.policies import fixed_time_policy, greedy_policy, mcp_policy, stop_only_q
 from ..decision.stopping import StoppingProblem
 from ..parallel import Executor, available_cpus, get_executor, ray_address_type
 from . import anticipation as ant
@@ -243,7 +245,7 @@ def run_demo(
 
             clock = time.perf_counter()
             obs, targets = trials.obs, trials.targets
-            steps_at = ant.decision_indices(trials.obs_times, start_times)
+            steps_at = decision_indices(trials.obs_times, start_times)
             shared = None
             if watched:
                 seen = make_trials(watched, seed=seed + 1, progress=progress)
@@ -251,7 +253,7 @@ def run_demo(
                     raise RuntimeError("watched strokes must share the trials' observation times")
                 obs, targets = torch.cat([obs, seen.obs]), torch.cat([targets, seen.targets])
                 iddm_train = num_trials + torch.arange(watched)
-                shared = ant.fit_beliefs(obs, targets, steps_at, iddm_train, valid, config)
+                shared = fit_beliefs(obs, targets, steps_at, iddm_train, valid, config)
             t_fit = time.perf_counter() - clock
             if shared is not None:
                 say(f"fit: IDDM on {watched} watched strokes, beliefs filtered ({t_fit:.0f} s)")
@@ -275,7 +277,7 @@ def run_demo(
                 clock = time.perf_counter()
                 beliefs = shared
                 if beliefs is None:  # no watched strokes: this fold's IDDM on its training set
-                    beliefs = ant.fit_beliefs(obs, targets, steps_at, train, valid, config)
+                    beliefs = fit_beliefs(obs, targets, steps_at, train, valid, config)
                     t_fit += time.perf_counter() - clock
                     clock = time.perf_counter()
                 vectors = beliefs.vectors()[:num_trials]
@@ -288,12 +290,12 @@ def run_demo(
                     won[f"always {name} @240ms"][at] = test_p.rewards[:, a, single] > 0
                 for s in ant.ORACLE_TIMES:
                     step = start_times.index(s)
-                    q_t = ant.stop_only_q(train_p, step, basis, config.ridge)
-                    episodes = test_p.run(ant.fixed_time_policy(q_t, basis, step))
+                    q_t = stop_only_q(train_p, step, basis, config.ridge)
+                    episodes = test_p.run(fixed_time_policy(q_t, basis, step))
                     won[f"best movement @{round(-1000 * s)}ms"][at] = episodes.reward > 0
                 enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
                 q = lspi(enumerated, features=basis, ridge=config.ridge).q
-                won["LSPI"][at] = test_p.run(ant.greedy_policy(q, basis, test_p)).reward > 0
+                won["LSPI"][at] = test_p.run(greedy_policy(q, basis, test_p)).reward > 0
                 planner = MonteCarloPlanner(
                     beliefs.model, beliefs.belief_filter, q, basis,
                     num_particles=config.particles, confidence=config.confidence,
@@ -302,7 +304,7 @@ def run_demo(
                 clock = time.perf_counter()
                 # the MCP player's decisions on this fold's rallies (positions in `valid` of
                 # the fold's trials index the beliefs)
-                decided = test_p.run(ant.mcp_policy(planner, beliefs, test, test_p.horizon, gen))
+                decided = test_p.run(mcp_policy(planner, beliefs, test, test_p.horizon, gen))
                 t_plan += time.perf_counter() - clock
                 decisions += int((decided.stop_step + 1).sum())
                 stop_step[at], stop_action[at] = decided.stop_step, decided.stop_action

@@ -445,3 +445,21 @@ def test_numpy_and_tensor_scalars_elsewhere() -> None:
         two_sample_z_test([1, 2, 3], [3, 2, 1], alpha=np.float64(math.nan))
     with pytest.raises(ValueError, match="action"):
         AdaptiveLearner(RPS_REWARD).observe(torch.tensor(0.5))
+
+
+def test_opponent_package_re_exports_each_concept_module() -> None:
+    """``hgpdm_torch.decision.opponent`` re-exports exactly the public names of its modules."""
+    import importlib
+    import pkgutil
+
+    import hgpdm_torch.decision.opponent as package
+
+    names: dict[str, object] = {}
+    for info in pkgutil.iter_modules(package.__path__):
+        module = importlib.import_module(f"{package.__name__}.{info.name}")
+        assert module.__doc__
+        for name in getattr(module, "__all__", ()):
+            assert name not in names
+            names[name] = getattr(module, name)
+    assert set(package.__all__) == set(names)
+    assert all(getattr(package, name) is obj for name, obj in names.items())

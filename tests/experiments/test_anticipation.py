@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from hgpdm_torch.datasets import targeted_movements
+from hgpdm_torch.decision.beliefs import decision_indices
 from hgpdm_torch.experiments.anticipation import (
     AnticipationConfig,
-    decision_indices,
     plot_results,
     run_protocol,
     valid_trials,

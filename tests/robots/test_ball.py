@@ -484,3 +484,23 @@ def test_absurd_durations_are_refused_before_any_work() -> None:
         B.aim_through_bounce([0.0, 1.6, 1.0], 0.0, -1.0, 50.0)
     # the caps themselves are allowed
     assert B.simulate(state, B.MAX_DURATION, 0.05).times.shape == (201,)
+
+
+def test_ball_module_re_exports_each_concept_module() -> None:
+    """``ball`` is the public face of the ``ball_*`` modules: it re-exports exactly their public
+    names, each the very object of its home module, and no ``ball_*`` module imports ``ball``."""
+    import importlib
+    from pathlib import Path
+
+    homes = sorted(Path(B.__file__).parent.glob("ball_*.py"))
+    assert len(homes) == 8
+    names: dict[str, object] = {}
+    for path in homes:
+        module = importlib.import_module(f"hgpdm_torch.robots.table_tennis.{path.stem}")
+        assert module.__doc__ and module.__all__
+        assert "table_tennis.ball import" not in path.read_text()
+        for name in module.__all__:
+            assert name not in names
+            names[name] = getattr(module, name)
+    assert set(B.__all__) | {"Floats"} == set(names)
+    assert all(getattr(B, name) is obj for name, obj in names.items())

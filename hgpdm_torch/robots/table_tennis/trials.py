@@ -168,13 +168,14 @@ def evaluate(
 
 
 def _simulation_fingerprint() -> str:
-    """Hash of the simulation's source files (ball, scene, strokes, arm, URDF).
+    """Hash of the simulation's source files (the ball modules, scene, strokes, arm, URDF).
 
     Part of the cache key, so that a table computed by an older version of the simulation is
     never returned for the current one.
     """
     here = Path(__file__).parent
     files = [here / f"{m}.py" for m in ("ball", "geometry", "scene", "strokes")]
+    files += sorted(here.glob("ball_*.py"))  # the ball's concepts, re-exported by ball.py
     files += [here.parent / "wam.py", here.parent / "assets" / "wam7.urdf"]
     h = hashlib.sha256()
     for f in files:

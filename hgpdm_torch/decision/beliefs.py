@@ -1,0 +1,133 @@
+"""Beliefs at decision times: an IDDM fitted on training strokes, filtered over every trial.
+
+Anticipatory action selection (thesis Sec. 4.3) decides at a few times before the opponent's hit.
+:func:`fit_beliefs` fits an IDDM (continuous target g, linear measurement kernel) on training
+strokes and runs the online filter (Algorithm 3.2) over all trials; :class:`Beliefs` holds every
+trial's latent state and target histogram after the observations available at each decision time
+(:func:`decision_indices`), the input of the policies in :mod:`~hgpdm_torch.decision.policies`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+
+from ..inference.intention import OnlineIntentionFilter
+from ..models import IDDM
+from ..validation import as_tensor
+from .mcp import Belief
+from .stopping import belief_vector
+
+__all__ = ["BeliefConfig", "Beliefs", "decision_indices", "fit_beliefs"]
+
+
+def decision_indices(obs_times: torch.Tensor, start_times: tuple[float, ...]) -> list[int]:
+    """For each decision (start) time, the index of the last observation available by then."""
+    obs_times = as_tensor(obs_times, "obs_times", ndim=1)
+    out = []
+    for s in start_times:
+        seen = torch.nonzero(obs_times <= s + 1e-9).flatten()
+        if seen.numel() == 0:
+            raise ValueError(f"no observation precedes the decision time {s}")
+        out.append(int(seen[-1]))
+    return out
+
+
+@dataclass
+class Beliefs:
+    """Beliefs of every trial under one fold's IDDM and the fold's split.
+
+    ``mean [n, T, Dx]``, ``cov [n, T, Dx, Dx]`` and ``log_prob [n, T, K]`` are the online
+    filter's latent state and target histogram after the observations available at each of the
+    ``T`` decision times; ``train``/``test`` index the trials.
+    """
+
+    model: IDDM
+    belief_filter: OnlineIntentionFilter
+    mean: torch.Tensor
+    cov: torch.Tensor
+    log_prob: torch.Tensor
+    train: torch.Tensor
+    test: torch.Tensor
+
+    def vectors(self) -> torch.Tensor:
+        """``[n, T, F]`` belief vectors (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
+        return belief_vector(self.mean, self.cov, self.log_prob.exp())
+
+    def belief(self, i: int, t: int) -> Belief:
+        """The planner's :class:`~hgpdm_torch.decision.mcp.Belief` of trial ``i`` at step ``t``."""
+        return Belief(self.mean[i, t], self.cov[i, t], self.log_prob[i, t])
+
+
+class BeliefConfig(Protocol):
+    """The settings :func:`fit_beliefs` reads, e.g. those of an
+    :class:`~hgpdm_torch.experiments.anticipation.AnticipationConfig`.
+
+    Attributes:
+        seed: seeds the choice of the IDDM's training strokes.
+        iddm_trials: training strokes the IDDM is fitted on (all when larger).
+        latent_dim: the IDDM's latent dimension.
+        alpha: the IDDM's transition kernel parameters.
+        alpha_g: the IDDM's g kernel parameters.
+        fit_steps: optimiser steps of the IDDM's fit.
+        grid_size: K, targets in the belief histogram, evenly over ``+-grid_max``.
+        grid_max: the largest target of the grid.
+        forgetting: the online filter's forgetting factor.
+    """
+
+    seed: int
+    iddm_trials: int
+    latent_dim: int
+    alpha: tuple[float, float, float, float]
+    alpha_g: tuple[float, float]
+    fit_steps: int
+    grid_size: int
+    grid_max: float
+    forgetting: float
+
+    def initial_latents(self, obs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """Initial latent states ``[n T, latent_dim]`` of the training strokes ``obs [n, T, Dz]``
+        with targets ``[n]``."""
+
+
+def fit_beliefs(
+    obs: torch.Tensor,
+    targets: torch.Tensor,
+    steps_at: list[int],
+    train: torch.Tensor,
+    test: torch.Tensor,
+    config: BeliefConfig,
+) -> Beliefs:
+    """Fit an IDDM on (at most ``config.iddm_trials`` of) the training strokes and filter all.
+
+    Args:
+        obs: ``[n, T_obs, Dz]`` observations; targets: ``[n]`` true targets.
+        steps_at: observation index of each decision time (:func:`decision_indices`).
+        train: training trial indices of the split.
+        test: test trial indices of the split.
+        config: latent size, optimiser steps, target grid, forgetting factor and the latents'
+            initialisation (:class:`BeliefConfig`, e.g. an
+            :class:`~hgpdm_torch.experiments.anticipation.AnticipationConfig`).
+    """
+    gen = torch.Generator().manual_seed(config.seed)
+    chosen = train[torch.randperm(len(train), generator=gen)[: config.iddm_trials]]
+    model = IDDM(
+        [obs[i] for i in chosen.tolist()], targets[chosen], config.latent_dim,
+        intention="continuous", measurement="linear", alpha=config.alpha, alpha_g=config.alpha_g,
+        init=config.initial_latents(obs[chosen], targets[chosen]),
+    )  # fmt: skip
+    model.fit(config.fit_steps)
+    grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
+    f = OnlineIntentionFilter(model, grid, forgetting=config.forgetting, batch_size=obs.shape[0])
+    means, covs, logs = [], [], []
+    with torch.no_grad():
+        for t in range(max(steps_at) + 1):
+            f.update(obs[:, t])
+            if t in steps_at:
+                means.append(f.mean.clone())
+                covs.append(f.cov.clone())
+                logs.append(f.log_belief.clone())
+    stack = [torch.stack(v, 1) for v in (means, covs, logs)]
+    return Beliefs(model, f, *stack, train, test)
