@@ -26,6 +26,7 @@ from benchmarks._common import RESULTS, environment
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.variational import VariationalInference, window_mask
+from hgpdm_torch.inference.variational.laplace import map_states
 from hgpdm_torch.models import HGPDM
 
 
@@ -64,7 +65,7 @@ def run(per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTa
         t_batch = (time.perf_counter() - start) / len(zs)
         zz, obs = window_mask(batch, 12)
         x0 = vb.initial_guess(zz, vb.values)[0]
-        _, lm = vb._map_states(zz, obs, x0, vb.values, None, max_iter=30, prune=50.0)
+        _, lm = map_states(vb.window, zz, obs, x0, vb.values, None, max_iter=30, prune=50.0)
         t_old = None
         if old:
             start = time.perf_counter()

@@ -12,17 +12,24 @@ evidence of g; it ignores the uncertainty of the states (the point of the VB met
 Forecasts and recovered rows are the GP means ``m_z(x_t)`` at the MAP states.
 
 :class:`MAPInference` has the interface of
-:class:`~hgpdm_torch.inference.variational.VariationalInference` (it shares its GPs, priors,
-initialisation and Levenberg-Marquardt solver) and works for a GPDM (no g) and an H-GPDM alike.
+:class:`~hgpdm_torch.inference.variational.VariationalInference` and shares, by composition, its
+window model (GPs, priors, log joint:
+:class:`~hgpdm_torch.inference.variational.window.WindowModel`), initialisation and
+Levenberg-Marquardt solver; it works for a GPDM (no g) and an H-GPDM alike.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
-from .variational import VariationalInference, window_mask
+from ..models import GPDM
+from .variational.initial import initial_guess
+from .variational.laplace import map_states
+from .variational.prediction import forecast
+from .variational.window import WindowModel, window_mask
 
 __all__ = ["MAPInference", "MAPResult"]
 
@@ -54,24 +61,52 @@ class MAPResult:
         return self.latent.gather(-3, i)[..., 0, :, :]
 
 
-class MAPInference(VariationalInference):
+class MAPInference:
     """MAP estimate of the test latents (conditional GPDM), for a GPDM or an H-GPDM.
 
-    Args: as :class:`~hgpdm_torch.inference.variational.VariationalInference` (a continuous g
-    is not supported: the thesis compares MAP only for known or discrete g).
+    Built on the same :class:`~hgpdm_torch.inference.variational.window.WindowModel` (GPs,
+    priors, log joint) as :class:`~hgpdm_torch.inference.variational.VariationalInference`, with
+    its initial states and its Levenberg-Marquardt solver.
+
+    Args:
+        model: a fitted :class:`~hgpdm_torch.models.GPDM` or an
+            :class:`~hgpdm_torch.models.HGPDM` with a discrete g (a continuous g is not
+            supported: the thesis compares MAP only for known or discrete g).
+        x1_prior: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
+        g_prior: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
+
+    Attributes:
+        window: the shared window model.
+        model, kind, values, measurement, transition, latent_dim, obs_dim: the window model's.
     """
 
-    def __init__(self, model, **kwargs) -> None:  # noqa: ANN001 - same as the base class
-        super().__init__(model, **kwargs)
-        if self.kind == "continuous":
+    def __init__(
+        self,
+        model: GPDM,
+        *,
+        x1_prior: tuple[object, object] | None = None,
+        g_prior: object = None,
+    ) -> None:
+        self.window = w = WindowModel(model, x1_prior=x1_prior, g_prior=g_prior)
+        if w.kind == "continuous":
             raise ValueError("MAPInference supports a GPDM or a discrete g, not a continuous g")
+        self.model, self.kind, self.values = w.model, w.kind, w.values
+        self.measurement, self.transition = w.measurement, w.transition
+        self.latent_dim, self.obs_dim = w.latent_dim, w.obs_dim
 
     def log_joint(self, z: object, x: torch.Tensor, *, values: object = None) -> torch.Tensor:
         """FIC log joint ``[..., K]`` of states ``x [..., K, T, Dx]`` and window ``z``."""
         z, observed = window_mask(z, self.obs_dim)
-        return self._log_joint(z.to(x.dtype), observed, x, self._candidates(values))
+        return self.window.log_joint(z.to(x.dtype), observed, x, self.window.candidates(values))
 
-    def infer(  # type: ignore[override]
+    def initial_guess(
+        self, z: torch.Tensor, values: torch.Tensor, init: str = "nearest"
+    ) -> tuple[torch.Tensor | None, ...]:
+        """Initial states, as VB's (:func:`~hgpdm_torch.inference.variational.initial.
+        initial_guess`): ``loc [..., K, T, Dx]`` first."""
+        return initial_guess(self.window, z, values, init)
+
+    def infer(
         self,
         z: object,
         *,
@@ -82,44 +117,46 @@ class MAPInference(VariationalInference):
     ) -> MAPResult:
         """Maximise the log joint over ``x_{1:T}`` for every candidate g (batched).
 
-        The optimiser is the Levenberg-Marquardt of VB's Laplace start (each window and
+        The optimiser is the Levenberg-Marquardt of VB's Laplace start
+        (:func:`~hgpdm_torch.inference.variational.laplace.map_states`; each window and
         candidate its own problem), from the same initial states.
 
         Args:
-            z: as :meth:`VariationalInference.infer`.
-            values: as :meth:`VariationalInference.infer`.
-            init: as :meth:`VariationalInference.infer`.
+            z: as :meth:`VariationalInference.infer
+                <hgpdm_torch.inference.variational.VariationalInference.infer>`.
+            values: as for VB.
             steps: maximum Levenberg-Marquardt iterations.
-            progress: unused (kept for the interface of :meth:`VariationalInference.infer`).
+            init: as for VB.
+            progress: unused (kept for the interface of VB's ``infer``).
         """
+        w = self.window
         z, observed = window_mask(z, self.obs_dim)
-        z = z.to(self.x1_mean.dtype)
+        z = z.to(w.x1_mean.dtype)
         if not isinstance(steps, int) or steps < 0:
             raise ValueError(f"steps must be a non-negative int, got {steps!r}")
-        values = self._candidates(values)
-        loc = self.initial_guess(z, values, init)[0]
-        x, history = self._map_states(z, observed, loc, values, None, max_iter=steps)
+        values = w.candidates(values)
+        loc = initial_guess(w, z, values, init)[0]
+        x, history = map_states(w, z, observed, loc, values, None, max_iter=steps)
         with torch.no_grad():
-            lj = self._log_joint(z, observed, x, values)
+            lj = w.log_joint(z, observed, x, values)
             if not bool(torch.isfinite(lj).all()):
                 raise FloatingPointError("the MAP log joint is not finite after optimisation")
-            log_prior = self.log_g_prior[values] if self.kind == "discrete" else self.log_g_prior
             return MAPResult(
                 values=values,
                 log_joint=lj,
-                posterior=torch.softmax(lj + log_prior, -1),
+                posterior=torch.softmax(lj + w.log_prior(values), -1),
                 g_ml=lj.argmax(-1),
                 latent=x,
                 history=history,
             )
 
-    def reconstruct(self, result: MAPResult) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]
+    def reconstruct(self, result: MAPResult) -> tuple[torch.Tensor, torch.Tensor]:
         """GP predictive mean ``[..., T, Dz]`` and variance of every row at the MAP states."""
         with torch.no_grad():
-            m, v = self._h.predict_point(result.ml_state())
+            m, v = self.window.h.predict_point(result.ml_state())
             return m + self.measurement.offset, v[..., None] * self.measurement.scale.pow(2)
 
-    def predict_observations(  # type: ignore[override]
+    def predict_observations(
         self, z: object, result: MAPResult
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """GP predictive mean and variance of every row at the MAP states of the ML g.
@@ -132,3 +169,15 @@ class MAPInference(VariationalInference):
         m, var = self.reconstruct(result)
         keep = observed[..., None]
         return torch.where(keep, z, m), torch.where(keep, torch.zeros_like(var), var)
+
+    def forecast(
+        self, z: object, *, residual: str | None = None, **infer_kwargs: Any
+    ) -> tuple[torch.Tensor, torch.Tensor, MAPResult]:
+        """Forecast ``z_{T+1}``: the GP mean at the MAP states of a window with a missing row
+        appended (:func:`~hgpdm_torch.inference.variational.prediction.forecast`; ``residual``
+        and ``infer_kwargs`` as there).
+
+        Returns:
+            ``mean [..., Dz]``, ``var [..., Dz]`` of the next observation, and the result.
+        """
+        return forecast(self, z, residual=residual, **infer_kwargs)

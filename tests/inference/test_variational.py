@@ -162,12 +162,12 @@ def test_free_energy_gradcheck(hgpdm, shared, styles, iddm):
 def test_point_predictions_equal_gp_posterior(name, generator, request):
     vb = VariationalInference(request.getfixturevalue(name))
     x = torch.randn(7, 2, generator=generator)
-    m, v = vb._h.predict_point(x)
+    m, v = vb.window.h.predict_point(x)
     ref_m, ref_v = vb.measurement.predict(x, include_noise=True)
     torch.testing.assert_close(m + vb.measurement.offset, ref_m)
     torch.testing.assert_close(v[:, None] * vb.measurement.scale.pow(2), ref_v)
     codes = torch.tensor([0, 1])
-    f = vb._transition_gp(codes)
+    f = vb.window.transition_gp(codes)
     mf, vf = f.predict_point(x[:, None, None, :].expand(7, 2, 1, 2))
     ref = vb.transition.predict(
         torch.cat([x[:, None, :].expand(7, 2, 2), codes[:, None].expand(7, 2, 1).to(x.dtype)], -1),
@@ -328,17 +328,17 @@ def test_precision_blocks_equal_jacobian_of_whitened_residuals(hgpdm, styles):
     code = torch.ones(3, 1)
     vz = h.predict(x0, include_noise=True)[1]
     vx = f.predict(torch.cat([x0[:-1], code], -1), include_noise=True)[1]
-    L1 = torch.linalg.cholesky(vb.x1_cov)
+    L1, m1 = torch.linalg.cholesky(vb.window.x1_cov), vb.window.x1_mean
 
     def residuals(x):
-        r1 = torch.linalg.solve_triangular(L1, (x[0] - vb.x1_mean)[:, None], upper=False)[:, 0]
+        r1 = torch.linalg.solve_triangular(L1, (x[0] - m1)[:, None], upper=False)[:, 0]
         rx = (x[1:] - f.predict(torch.cat([x[:-1], code], -1))[0]) / vx.sqrt()
         rz = (torch.nan_to_num(z) - h.predict(x)[0]) / vz.sqrt()
         return torch.cat([r1, rx.flatten(), rz[observed].flatten()])
 
     J = torch.autograd.functional.jacobian(residuals, x0).reshape(-1, 8)
-    diag, off = vb._precision_blocks(observed, x0[None], torch.tensor([1]), None)
-    torch.testing.assert_close(vb._dense(diag, off)[0], J.T @ J)
+    diag, off = vb.window.precision_blocks(observed, x0[None], torch.tensor([1]), None)
+    torch.testing.assert_close(vb.window.dense(diag, off)[0], J.T @ J)
 
 
 def test_laplace_start_is_near_the_optimum_of_the_free_energy(hgpdm, styles):
@@ -426,9 +426,9 @@ def test_pruning_keeps_a_candidate_that_starts_far_off(planted):
     values = vb.values
     x0 = vb.initial_guess(z, values)[0]
     start, _ = vb.laplace(z, observed, x0, values, prune=None)  # the others start converged
-    k = int((-vb._log_joint(z, observed, start, values)).argmin())  # the best candidate ...
+    k = int((-vb.window.log_joint(z, observed, start, values)).argmin())  # the best candidate ...
     start[k] = x0[k] + 2.0  # ... starts far off
-    f0 = -vb._log_joint(z, observed, start, values)
+    f0 = -vb.window.log_joint(z, observed, start, values)
     assert float(f0[k]) > float(f0.min()) + 1000.0
     ref, _ = vb.laplace(z, observed, start, values, prune=None)
     out, _ = vb.laplace(z, observed, start, values, prune=50.0)
@@ -438,7 +438,7 @@ def test_pruning_keeps_a_candidate_that_starts_far_off(planted):
 def test_lm_by_code_equals_per_row_blocks_and_broadcasts(planted, monkeypatch):
     """Rows of one code on its shared GP block (the large-block path) give the per-row result;
     windows broadcast against one set of initial states; a bad prune is refused."""
-    import hgpdm_torch.inference.variational as V
+    import hgpdm_torch.inference.variational.laplace as V
 
     _, test, model = planted
     vb = VariationalInference(model)
@@ -450,7 +450,7 @@ def test_lm_by_code_equals_per_row_blocks_and_broadcasts(planted, monkeypatch):
     assert rows.shape == (3, *x0.shape)
     # equal up to LM's stopping tolerance (roundoff in other batch shapes can move a stop by a
     # step below 1e-3 nats)
-    lj = [vb._log_joint(z[:, None], observed[:, None], x[:, :, None], vb.values[:, None])
+    lj = [vb.window.log_joint(z[:, None], observed[:, None], x[:, :, None], vb.values[:, None])
           for x in (rows, grouped)]  # fmt: skip
     torch.testing.assert_close(lj[1], lj[0], rtol=0, atol=1e-3)
     torch.testing.assert_close(grouped, rows, rtol=0, atol=1e-3)

@@ -1,0 +1,146 @@
+r"""A GP posterior evaluated at Gaussian inputs, in the form the VB free energy needs (thesis
+App. 2.A).
+
+Under ``x ~ N(mu, Sigma)`` the expected squared error of a GP mean ``m(x) = k(x, X) beta`` is
+
+    E[||y - m(x)||^2] = ||y - psi1 beta||^2 + sum_d (beta_d^T psi2 beta_d - (psi1 beta_d)^2)
+                        [+ tr Var[y] for a Gaussian target y = x_{t+1}],
+
+with the kernel expectations ``psi1 = E[k(x, X)]`` and ``psi2 = E[k(X, x) k(x, X)]`` of
+:mod:`hgpdm_torch.expectations` (App. 2.A's ``l`` and ``Q``, terms (a)-(d) of Eq. 16-17), and the
+GP's predictive variance at a point (the plug-in ``sigma^2(mu_t)`` of Eq. 15-17).
+
+Shapes: ``N`` training points, ``D`` input dim, ``Dout`` output dim; ``...`` leading batch dims.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+
+from ...expectations import (
+    kernel_leaves,
+    leaves_psi0,
+    split_terms,
+    term_k,
+    term_psi1,
+    term_psi2,
+)
+from ...gp import GPPosterior
+
+__all__ = ["GaussianInputGP", "expected_sq_error"]
+
+
+class GaussianInputGP:
+    """A GP posterior in the form the free energy needs: all input columns Gaussian.
+
+    ``X [..., N, D]``, ``beta [..., N, Dout]``, ``kinv [..., N, N]`` and a 0/1 ``mask [..., N]``
+    (padding of per-code blocks), where ``...`` broadcasts against the inputs' batch dims.
+    """
+
+    def __init__(self, post: GPPosterior, codes: torch.Tensor | None = None) -> None:
+        self.post = post
+        with torch.no_grad():
+            leaves = kernel_leaves(post.kernel, post.input_dim)
+        if codes is None:
+            self.X, self.beta, self.kinv, self.mask = (
+                post.train_inputs,
+                post.weights,
+                post.kinv,
+                None,
+            )
+            self.leaves = leaves
+        elif post.blocks() is not None:
+            # Block-diagonal K_x of a discrete g: code c reads only its own block (exact).
+            X, beta, kinv, mask = (b[codes] for b in post.blocks())
+            d = X.shape[-1] - 1
+            self.X, self.beta, self.kinv, self.mask = X[..., :d], beta, kinv, mask
+            self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
+        else:
+            # A discrete g in a kernel that is not block-diagonal (shared dynamics): every code
+            # reads all training points; the code only sets the terms' per-point factors.
+            d = post.input_dim - 1
+            self.X, self.beta, self.kinv, self.mask = (
+                post.train_inputs[..., :d],
+                post.weights,
+                post.kinv,
+                None,
+            )
+            g = codes[..., None].to(post.train_inputs.dtype)
+            self.terms = split_terms(leaves, post.train_inputs, g, d)
+            # k(x, x) at equal codes: delta(g, g) = 1
+            self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
+            self.dim = d
+            return
+        self.dim = self.X.shape[-1]
+        self.terms = [
+            t if self.mask is None else replace(t, factor=self.mask)
+            for t in split_terms(self.leaves, self.X, None, self.dim)
+        ]
+
+    def expected_kernel(
+        self, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+    ) -> torch.Tensor:
+        """``E[k(x, X_i)]`` ``[..., N]`` at ``x ~ N(mu, Sigma)`` for any points ``X [..., N, D]``.
+
+        Only for a GP without per-point factors (the measurement GP).
+        """
+        return sum(term_psi1(t, mu, Sigma, X) for t in self.terms)
+
+    def predict_point(
+        self, mu: torch.Tensor, *, jacobian: bool = False
+    ) -> tuple[torch.Tensor, ...]:
+        """Centred predictive mean ``[..., Dout]`` and variance ``[...]`` at points ``mu``.
+
+        The variance ``k(mu, mu) - k(mu, X) K^-1 k(X, mu) + noise`` is the plug-in of Eq. 15 / 17
+        (unscaled; multiply by ``scale^2`` per output). Differentiable in ``mu``. With
+        ``jacobian=True`` also returns ``d mean / d mu`` ``[..., Dout, D]``, from the kernel
+        gradients of :func:`~hgpdm_torch.expectations.term_k`.
+        """
+        k, dk = 0.0, 0.0
+        for t in self.terms:
+            p, gr = term_k(t, mu, self.X, grad=jacobian)
+            if jacobian:
+                dk = dk + (gr if t.factor is None else t.factor[..., None, :] * gr)
+            k = k + (p if t.factor is None else t.factor * p)
+        quad = ((k[..., None, :] @ self.kinv)[..., 0, :] * k).sum(-1)
+        kxx = leaves_psi0(self.leaves, mu, torch.zeros_like(mu).diag_embed(), None)
+        mean = (k[..., None, :] @ self.beta)[..., 0, :]
+        var = (kxx - quad).clamp_min(0.0) + self.post.noise
+        if not jacobian:
+            return mean, var
+        return mean, var, (dk @ self.beta).transpose(-1, -2)
+
+    def var_at_mean(self, mu: torch.Tensor) -> torch.Tensor:
+        """Plug-in predictive variance at ``mu`` (Eq. 15 / 17), ``[...]``."""
+        return self.predict_point(mu)[1]
+
+    def mean_moments(
+        self, mu: torch.Tensor, Sigma: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``E[m_d(x)]`` and ``E[m_d(x)^2]`` of the centred GP mean, each ``[..., Dout]``.
+
+        ``E[m] = psi1 beta`` and ``E[m_d^2] = beta_d^T psi2 beta_d`` summed over kernel terms and
+        term pairs (App. 2.A terms (a)-(d)).
+        """
+        fbeta = [
+            self.beta if t.factor is None else t.factor[..., None] * self.beta for t in self.terms
+        ]
+        mean, second = 0.0, 0.0
+        for i, (a, fa) in enumerate(zip(self.terms, fbeta, strict=True)):
+            p1 = term_psi1(a, mu, Sigma, self.X)
+            mean = mean + (p1[..., None, :] @ fa)[..., 0, :]
+            for j in range(i, len(self.terms)):
+                q = term_psi2(a, self.terms[j], mu, Sigma, self.X)
+                s = ((q @ fbeta[j]) * fa).sum(-2)
+                second = second + (2.0 * s if j > i else s)  # pair (j, i) is the transpose
+        return mean, second
+
+
+def expected_sq_error(
+    y: torch.Tensor, y_var: torch.Tensor | None, mean: torch.Tensor, second: torch.Tensor
+) -> torch.Tensor:
+    """``E[(y_d - m_d)^2]`` per dim for independent ``y`` (mean y, variances y_var) and m."""
+    err = y.pow(2) - 2.0 * y * mean + second
+    return err if y_var is None else err + y_var

@@ -1,0 +1,166 @@
+r"""Prediction from the variational posterior of a window: forecasting and gap recovery (thesis
+Sec. 2.3.2, App. 2.B).
+
+Each ``q(x_t)`` gives the moment-matched ``q(z_t) = int p(z_t | x_t) q(x_t) dx_t``; under the
+FIC factorisation the rows of the window covary through the GP only, with cross-time covariances
+(independent ``x_s, x_t`` under the mean-field q)
+
+    Cov[z_s,d, z_t,e] = delta_de scale_d^2 (E[k(x_s, x_t)] - l_s^T K^-1 l_t),   l_t = E[k(X, x_t)],
+
+which makes the joint Gaussian ``q(z_{1:T})``; conditioning it on the observed rows
+(:func:`~hgpdm_torch.gaussian.condition_gaussian`) forecasts and recovers the missing ones.
+:func:`forecast` appends a missing row to a window and predicts it, for any engine with
+``infer``, ``predict_observations`` and ``reconstruct`` (VB and the MAP baseline).
+
+Shapes: ``T`` window length, ``Dx`` latent dim, ``Dz`` observation dim; ``...`` leading batch
+dims.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import torch
+
+from ...gaussian import condition_gaussian
+from ...linalg import symmetrize
+from ...validation import as_tensor, check_choice
+from ..residual import ar1_residual_forecast
+from .window import WindowModel
+
+__all__ = [
+    "Forecaster",
+    "forecast",
+    "observation_joint",
+    "observation_marginals",
+    "predict_observations",
+]
+
+
+def observation_marginals(
+    window: WindowModel, mean: torch.Tensor, cov: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Moment-matched ``q(z_t) = int p(z_t | x_t) q(x_t) dx_t`` per time step (FIC).
+
+    Shapes: ``mean [..., T, Dx]``, ``cov [..., T, Dx, Dx]`` -> ``[..., T, Dz]``,
+    ``[..., T, Dz, Dz]`` (observation noise included).
+    """
+    m, S, _ = window.measurement.predict_gaussian(mean, cov, include_noise=True)
+    return m, S
+
+
+def observation_joint(
+    window: WindowModel, mean: torch.Tensor, cov: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""Gaussian ``q(z_{1:T})`` with cross-time covariances (Sec. 2.3.2, App. 2.B).
+
+    Diagonal blocks are the moment-matched ``Cov[z_t]``; for ``s != t`` (independent
+    ``x_s, x_t`` under q, so the means do not covary)::
+
+        Cov[z_s,d, z_t,e] = delta_de scale_d^2 (E[k(x_s, x_t)] - l_s^T K^-1 l_t),
+
+    with ``l_t = E[k(X, x_t)]`` and ``E[k(x_s, x_t)]`` the expectation of ``k(x, mu_t)`` at
+    ``x ~ N(mu_s, Sigma_s + Sigma_t)`` (exact for stationary and linear kernels alike).
+
+    Shapes: ``mean [..., T, Dx]``, ``cov [..., T, Dx, Dx]`` -> ``mean [..., T, Dz]`` and
+    ``cov [..., T * Dz, T * Dz]`` (time-major).
+    """
+    m, S = observation_marginals(window, mean, cov)
+    T, dz = m.shape[-2:]
+    gp = window.h
+    lt = gp.expected_kernel(mean, cov, gp.X)  # [..., T, N]
+    ls_kinv_lt = (lt @ gp.kinv) @ lt.transpose(-1, -2)  # [..., T, T]
+    pair = cov[..., :, None, :, :] + cov[..., None, :, :, :]
+    c = gp.expected_kernel(mean[..., :, None, :], pair, mean[..., None, :, None, :])[..., 0]
+    cross = c - ls_kinv_lt  # [..., T, T]
+    scale2 = window.measurement.scale.pow(2)
+    full = cross[..., :, None, :, None] * torch.diag(scale2)[:, None, :]
+    eye_t = torch.eye(T, dtype=m.dtype, device=m.device)
+    full = full * (1.0 - eye_t)[:, None, :, None]
+    full = full + S[..., :, :, None, :].mul(eye_t[:, None, :, None])
+    return m, symmetrize(full.reshape(*full.shape[:-4], T * dz, T * dz))
+
+
+def predict_observations(
+    window: WindowModel,
+    z: torch.Tensor,
+    observed: torch.Tensor,
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    *,
+    joint: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Predict every row of a window from ``q(x) = N(mean, cov)`` (Sec. 2.3.2).
+
+    With ``joint=True`` from ``q(z_missing | z_observed)`` (:func:`observation_joint`
+    conditioned on the observed rows, which are returned unchanged with variance 0); with
+    ``joint=False`` from the per-step marginals ``q(z_t)`` (FIC).
+
+    Args:
+        window: the model's :class:`~hgpdm_torch.inference.variational.window.WindowModel`.
+        z: ``[..., T, Dz]`` window (NaN rows missing), observed: ``[..., T]`` its mask.
+        mean: ``[..., T, Dx]``, cov: ``[..., T, Dx, Dx]`` q(x).
+
+    Returns:
+        ``mean [..., T, Dz]`` and ``var [..., T, Dz]``.
+    """
+    with torch.no_grad():
+        if not joint:
+            m, S = observation_marginals(window, mean, cov)
+            return m, S.diagonal(dim1=-2, dim2=-1)
+        m, S = observation_joint(window, mean, cov)
+        T, dz = z.shape[-2:]
+        obs = observed[..., :, None].expand(*observed.shape, dz).reshape(*observed.shape[:-1], -1)
+        cm, cS = condition_gaussian(
+            m.reshape(*m.shape[:-2], T * dz),
+            S,
+            obs,
+            torch.nan_to_num(z).reshape(*z.shape[:-2], T * dz),
+        )
+        var = cS.diagonal(dim1=-2, dim2=-1)
+        return cm.reshape(*cm.shape[:-1], T, dz), var.reshape(*cm.shape[:-1], T, dz)
+
+
+class Forecaster(Protocol):
+    """An inference engine :func:`forecast` can drive (VB or the MAP baseline)."""
+
+    def infer(self, z: object, **kwargs: Any) -> Any: ...
+
+    def predict_observations(self, z: object, result: Any) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+    def reconstruct(self, result: Any) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+def forecast(
+    engine: Forecaster, z: object, *, residual: str | None = None, **infer_kwargs: Any
+) -> tuple[torch.Tensor, torch.Tensor, Any]:
+    """Forecast ``z_{T+1}`` from a window ``z_{1:T}`` (Sec. 2.3.2, Tables 2.1-2.4 protocol).
+
+    Runs ``engine.infer`` on ``z_{1:T}`` with a missing row appended and predicts that row with
+    ``engine.predict_observations`` (the ML value of g, conditioned on the observed rows).
+
+    Args:
+        engine: the inference engine.
+        z: ``[..., T, Dz]`` windows (NaN marks missing values).
+        residual: ``None`` (the thesis's forecast) or ``"ar1"``: the window's deviation from
+            ``engine.reconstruct`` continues as an AR(1) process whose coefficient is estimated
+            from the window (:func:`~hgpdm_torch.inference.residual.ar1_residual_forecast`); for
+            new recordings that sit off the training manifold.
+        **infer_kwargs: passed to ``engine.infer``.
+
+    Returns:
+        ``mean [..., Dz]``, ``var [..., Dz]`` of the next observation, and the result of
+        ``engine.infer``.
+    """
+    if residual is not None:
+        check_choice(residual, "residual", ("ar1",))
+    z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+    nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype, device=z.device)
+    window = torch.cat([z, nan], -2)
+    res = engine.infer(window, **infer_kwargs)
+    if residual is None:
+        m, v = engine.predict_observations(window, res)
+        return m[..., -1, :], v[..., -1, :], res
+    rec, var = engine.reconstruct(res)
+    mean, var, _ = ar1_residual_forecast(z, rec[..., :-1, :], rec[..., -1, :], var[..., -1, :])
+    return mean, var, res
