@@ -1,7 +1,11 @@
-"""Run every benchmark module in this folder: ``python -m benchmarks [--quick] [NAME ...]``.
+"""Run every benchmark module in this folder: ``python -m benchmarks [OPTIONS] [NAME ...]``.
 
 Each benchmark is a module ``benchmarks/<name>.py`` with ``main(argv: list[str]) -> int`` that
-prints a table and writes ``benchmarks/results/<name>.json``; ``--quick`` is a smoke mode.
+prints a table and writes ``benchmarks/results/<name>.json``. Options, passed on to every
+module: ``--quick`` (smoke mode); and for ``online_intention``, ``hgpdm_fit``,
+``moment_matching``, ``mcp`` and ``variational``: ``--device DEVICE`` (e.g. ``cuda``),
+``--dtype {float64,float32}`` and ``--gpu-sizes`` (the accelerator problem sizes); see
+:func:`benchmarks._common.parse_options`.
 """
 
 from __future__ import annotations
@@ -12,9 +16,22 @@ import sys
 from pathlib import Path
 
 
+def _split(argv: list[str]) -> tuple[list[str], list[str]]:
+    """Benchmark names and the options passed on to each (``--device``/``--dtype`` take a
+    value)."""
+    names, options, rest = [], [], iter(argv)
+    for arg in rest:
+        if arg in ("--device", "--dtype"):
+            options += [arg, next(rest, "")]
+        elif arg.startswith("-"):
+            options.append(arg)
+        else:
+            names.append(arg)
+    return names, options
+
+
 def main(argv: list[str]) -> int:
-    quick = [a for a in argv if a == "--quick"]
-    names = [a for a in argv if not a.startswith("-")]
+    names, options = _split(argv)
     folder = Path(__file__).parent
     found = sorted(
         m.name for m in pkgutil.iter_modules([str(folder)]) if not m.name.startswith("_")
@@ -26,7 +43,7 @@ def main(argv: list[str]) -> int:
     status = 0
     for name in names or found:
         print(f"== benchmarks.{name}")
-        status |= int(importlib.import_module(f"benchmarks.{name}").main(quick) or 0)
+        status |= int(importlib.import_module(f"benchmarks.{name}").main(options) or 0)
     return status
 
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import argparse
 import platform
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -12,12 +14,20 @@ import torch
 RESULTS = Path(__file__).parent / "results"
 
 
-def best_of(fn: Callable[[], object], repeats: int) -> float:
-    """Smallest wall-clock time of ``repeats`` calls of ``fn`` (seconds)."""
+def best_of(fn: Callable[[], object], repeats: int, device: torch.device | None = None) -> float:
+    """Smallest wall-clock time of ``repeats`` calls of ``fn`` (seconds), waiting for the queued
+    work of ``device`` (an accelerator) before each reading of the clock."""
+
+    def sync() -> None:
+        if device is not None and device.type == "cuda":
+            torch.cuda.synchronize(device)
+
     times = []
     for _ in range(repeats):
+        sync()
         start = time.perf_counter()
         fn()
+        sync()
         times.append(time.perf_counter() - start)
     return min(times)
 
@@ -29,3 +39,69 @@ def environment() -> dict[str, object]:
         "machine": platform.processor() or platform.machine(),
         "threads": torch.get_num_threads(),
     }
+
+
+@dataclass(frozen=True)
+class Options:
+    """Command-line options shared by the benchmarks (:func:`parse_options`)."""
+
+    quick: bool
+    device: torch.device
+    dtype: torch.dtype
+    gpu_sizes: bool
+
+    def results_file(self, name: str) -> Path:
+        """``results/<name>[_gpu][_<device>_<dtype>][_quick].json``: the default CPU float64
+        run keeps its historical file name; other runs do not overwrite it (and smoke runs
+        stay ``*_quick.json``, which git ignores)."""
+        tag = "_gpu" if self.gpu_sizes else ""
+        if self.device.type != "cpu" or self.dtype != torch.float64:
+            tag += f"_{self.device.type}_{str(self.dtype).removeprefix('torch.')}"
+        tag += "_quick" if self.quick else ""
+        return RESULTS / f"{name}{tag}.json"
+
+    def meta(self) -> dict[str, object]:
+        """What the result's ``meta`` records about the run (with :func:`environment`)."""
+        return {
+            **environment(),
+            "quick": self.quick,
+            "device": str(self.device),
+            "dtype": str(self.dtype).removeprefix("torch."),
+            "gpu sizes": self.gpu_sizes,
+        }
+
+    def synchronize(self) -> None:
+        """Wait for the device's queued work (a no-op on the CPU), before reading a clock."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def clock(self) -> float:
+        """Seconds: CPU time of the process on the CPU (closer to an idle core's time on a
+        shared machine), wall time after a synchronisation on an accelerator."""
+        if self.device.type == "cpu":
+            return time.process_time()
+        self.synchronize()
+        return time.perf_counter()
+
+
+def parse_options(argv: list[str], prog: str) -> Options:
+    """Parse ``[--quick] [--device DEVICE] [--dtype {float64,float32}] [--gpu-sizes]``.
+
+    ``--gpu-sizes`` selects the problem sizes meant for an accelerator (each benchmark's
+    docstring lists them); without it the CPU sizes are run, on any device.
+    """
+    parser = argparse.ArgumentParser(prog=prog)
+    parser.add_argument("--quick", action="store_true", help="smoke mode: tiny sizes")
+    parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    parser.add_argument("--dtype", default="float64", choices=sorted(DTYPES))
+    parser.add_argument(
+        "--gpu-sizes", action="store_true", help="the accelerator problem sizes (see docstring)"
+    )
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda needs CUDA, which torch cannot find here")
+    return Options(args.quick, device, DTYPES[args.dtype], args.gpu_sizes)
+
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32}

@@ -3,6 +3,10 @@
 ``python -m benchmarks hgpdm_fit [--quick]``. Writes ``benchmarks/results/hgpdm_fit.json``.
 Each time is also given relative to one dense float64 Cholesky of an N x N matrix measured in the
 same process (the unavoidable core of Eq. 6), so the ratio is comparable across machines.
+
+Options (:func:`benchmarks._common.parse_options`): ``--device`` and ``--dtype`` (the model's);
+``--gpu-sizes``: the GPDM (no g) loss + gradient at N = 1,000, 2,000, 5,000, 10,000 frames (no
+fit).
 """
 
 from __future__ import annotations
@@ -11,24 +15,29 @@ import time
 
 import torch
 
-from benchmarks._common import RESULTS, best_of, environment
+from benchmarks._common import Options, best_of, parse_options
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.experiments.table import ResultTable
-from hgpdm_torch.models import HGPDM
+from hgpdm_torch.models import GPDM, HGPDM
 
 
-def run(sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:
+def run(opts: Options, sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:
+    dtype, device = opts.dtype, opts.device
+    kind = "GPDM (no g)" if opts.gpu_sizes else "H-GPDM (discrete g, K=4)"
     table = ResultTable(
-        "H-GPDM MAP learning cost (discrete g, K=4, Dx=3, Dz=12, float64, 1 thread)",
+        f"{kind} MAP learning cost (Dx=3, Dz=12, {str(dtype).removeprefix('torch.')}, "
+        f"1 thread, device {device})",
         ["N frames", "loss+grad [ms]", "x Cholesky", "fit [s]", "fit steps"],
-        meta={
-            **environment(),
-        },
+        meta=opts.meta(),
     )
     for n in sizes:
         length = 25
         data = styled_movements(4, max(n // (4 * length), 1), length, 12, seed=0)
-        model = HGPDM(data.sequences, data.labels, 3)
+        seqs = [s.to(device) for s in data.sequences]
+        if opts.gpu_sizes:
+            model = GPDM(seqs, 3, dtype=dtype)
+        else:
+            model = HGPDM(seqs, data.labels, 3, dtype=dtype)
         n_frames = model.observations.shape[0]
 
         def loss_grad(model=model):
@@ -37,10 +46,10 @@ def run(sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:
 
         loss_grad()
         reps = 5 if n_frames <= 500 else 2
-        t_eval = best_of(loss_grad, reps)
-        a = torch.randn(n_frames, n_frames, dtype=torch.float64)
-        spd = a @ a.T + n_frames * torch.eye(n_frames, dtype=torch.float64)
-        t_chol = best_of(lambda spd=spd: torch.linalg.cholesky(spd), reps)
+        t_eval = best_of(loss_grad, reps, device)
+        a = torch.randn(n_frames, n_frames, dtype=dtype, device=device)
+        spd = a @ a.T + n_frames * torch.eye(n_frames, dtype=dtype, device=device)
+        t_chol = best_of(lambda spd=spd: torch.linalg.cholesky(spd), reps, device)
         row = {"N frames": n_frames, "loss+grad [ms]": 1e3 * t_eval, "x Cholesky": t_eval / t_chol}
         if n_frames <= fit_max_n:
             start = time.perf_counter()
@@ -52,12 +61,14 @@ def run(sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:
 
 
 def main(argv: list[str]) -> int:
-    quick = "--quick" in argv
+    opts = parse_options(argv, "python -m benchmarks hgpdm_fit")
     torch.set_num_threads(1)
-    if quick:
-        table = run([100, 200], fit_steps=5, fit_max_n=200)
+    if opts.quick:
+        table = run(opts, [100, 200], fit_steps=5, fit_max_n=200)
+    elif opts.gpu_sizes:
+        table = run(opts, [1000, 2000, 5000, 10000], fit_steps=0, fit_max_n=0)
     else:
-        table = run([100, 250, 500, 1000, 2000], fit_steps=50, fit_max_n=1000)
+        table = run(opts, [100, 250, 500, 1000, 2000], fit_steps=50, fit_max_n=1000)
     print(table.to_markdown())
-    table.to_json(RESULTS / ("hgpdm_fit_quick.json" if quick else "hgpdm_fit.json"))
+    table.to_json(opts.results_file("hgpdm_fit"))
     return 0

@@ -19,6 +19,13 @@ machine is closer to what an idle core gives than the wall time:
   and the mean particles used;
 - ``points``: ``full`` with the literal sampling chain of Algorithm 4.2 (GP predictions at the
   particles instead of the moment-matched observation distribution).
+
+Options (:func:`benchmarks._common.parse_options`): ``--device`` and ``--dtype`` (the filter's
+and the planner's computation dtype; the value function is learned on the CPU in float64, then
+moved; a dtype other than float64 uses the process noise alpha_4 = 1e-2 instead of
+alpha-bar's 1e-4, which float32 cannot resolve); ``--gpu-sizes``: N = 500 with I = 500,
+1,000, 2,000, 5,000 and 10,000 particles (one chunk each). With ``--device cuda`` the
+``cpu`` columns are wall time after a synchronisation.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from functools import partial
 
 import torch
 
-from benchmarks._common import RESULTS, environment
+from benchmarks._common import Options, parse_options
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import lspi
@@ -37,16 +44,22 @@ from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
 from hgpdm_torch.decision.stopping import StoppingProblem, belief_vector
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.intention import OnlineIntentionFilter
+from hgpdm_torch.kernels import ALPHA_BAR
 from hgpdm_torch.models import IDDM
 
 DX, DZ, LENGTH, PARTICLES = 3, 15, 6, 500
 
 
-def _setup(n_points: int, k: int):
-    """Model, filter, planners and the beliefs to decide on, for ~n_points transition points."""
+def _setup(opts: Options, n_points: int, k: int, particles: int):
+    """Model, filter, planners (``particles`` per decision, in one chunk on an accelerator) and
+    the beliefs to decide on, for ~n_points transition points, on ``opts.device``."""
     num = max(2, round(n_points / (LENGTH - 1)))
     data = targeted_movements(num, LENGTH, DZ, seed=0)
-    model = IDDM(data.sequences, data.labels, DX, intention="continuous", measurement="linear")
+    # float32 needs a larger process noise: the filter refuses alpha-bar's alpha_4 = 1e-4 there
+    alpha = ALPHA_BAR if opts.dtype == torch.float64 else (*ALPHA_BAR[:3], 1e-2)
+    model = IDDM(
+        data.sequences, data.labels, DX, intention="continuous", measurement="linear", alpha=alpha
+    )
     grid = torch.linspace(-1.0, 1.0, k)
     f = OnlineIntentionFilter(model, grid, forgetting=0.1, batch_size=num)
     z = torch.stack(data.sequences)
@@ -66,31 +79,46 @@ def _setup(n_points: int, k: int):
     problem = StoppingProblem(beliefs, rewards.expand(num, 3, T))
     basis = RadialBasis(min(100, num * T), seed=0).fit(beliefs.reshape(-1, beliefs.shape[-1]))
     q = lspi(problem.transitions(problem.enumerate_episodes(), unique=True), features=basis).q
+    device = opts.device
+    model = model.to(device)
+    f = OnlineIntentionFilter(model, grid.to(device), forgetting=0.1, dtype=opts.dtype)
+    q.weights = q.weights.to(device, opts.dtype)
+    for name in ("mean", "std", "centres"):
+        setattr(basis, name, getattr(basis, name).to(device, opts.dtype))
+    mean, cov, log_prob = (v.to(device) for v in (mean, cov, log_prob))
     states = [Belief(mean[i, t], cov[i, t], log_prob[i, t]) for i in range(num) for t in range(T)]
-    planner = MonteCarloPlanner(model, f, q, basis, num_particles=PARTICLES)
-    literal = MonteCarloPlanner(model, f, q, basis, num_particles=PARTICLES, sampling="points")
+    chunk = particles if device.type != "cpu" else 100
+    options = {"num_particles": particles, "chunk_size": chunk, "min_particles": min(100, chunk)}
+    planner = MonteCarloPlanner(model, f, q, basis, **options)
+    literal = MonteCarloPlanner(model, f, q, basis, sampling="points", **options)
     n_trans = model.transition_posterior().train_inputs.shape[0]
     return n_trans, planner, literal, states
 
 
-def _mean_time(fn, states, repeats: int) -> tuple[float, float]:
-    """Best over repeats of the mean wall and CPU time [ms] of ``fn`` over the states."""
+def _mean_time(opts: Options, fn, states, repeats: int) -> tuple[float, float]:
+    """Best over repeats of the mean wall and CPU time [ms] of ``fn`` over the states (on an
+    accelerator both are wall time after a synchronisation)."""
     wall = cpu = float("inf")
     for _ in range(repeats):
-        w0, c0 = time.perf_counter(), time.process_time()
+        opts.synchronize()
+        w0, c0 = time.perf_counter(), opts.clock()
         for s in states:
             fn(s)
+        c1 = opts.clock()
         wall = min(wall, (time.perf_counter() - w0) / len(states))
-        cpu = min(cpu, (time.process_time() - c0) / len(states))
+        cpu = min(cpu, (c1 - c0) / len(states))
     return 1e3 * wall, 1e3 * cpu
 
 
-def run(sizes: list[int], k: int, num_states: int, repeats: int) -> ResultTable:
+def run(
+    opts: Options, sizes: list[int], particles: list[int], k: int, num_states: int, repeats: int
+) -> ResultTable:
     table = ResultTable(
-        f"MCP decision time per step (I = {PARTICLES} particles, K = {k}, Dx = {DX}, Dz = {DZ}, "
-        "float64, 1 thread)",
+        f"MCP decision time per step (I particles, K = {k}, Dx = {DX}, Dz = {DZ}, "
+        f"{str(opts.dtype).removeprefix('torch.')}, 1 thread, device {opts.device})",
         [
             "N",
+            "I",
             "shared cpu [ms]",
             "full wall [ms]",
             "full cpu [ms]",
@@ -99,15 +127,15 @@ def run(sizes: list[int], k: int, num_states: int, repeats: int) -> ResultTable:
             "points cpu [ms]",
         ],
         meta={
-            **environment(),
+            **opts.meta(),
             "load average": os.getloadavg()[0],
             "states timed": num_states,
             "repeats (best of)": repeats,
             "target": "full <= 10 ms",
         },
     )
-    for n in sizes:
-        n_trans, planner, literal, states = _setup(n, k)
+    for n, num in ((n, num) for n in sizes for num in particles):
+        n_trans, planner, literal, states = _setup(opts, n, k, num)
         states = states[:: max(1, len(states) // num_states)][:num_states]
         gen = torch.Generator().manual_seed(0)
         full_run = partial(planner.decide, early_stop=False, generator=gen)
@@ -115,14 +143,15 @@ def run(sizes: list[int], k: int, num_states: int, repeats: int) -> ResultTable:
         points_run = partial(literal.decide, early_stop=False, generator=gen)
         with torch.no_grad():
             planner.decide(states[0], generator=gen)  # warm-up
-            _, shared = _mean_time(planner._shared, states, repeats)
-            full = _mean_time(full_run, states, repeats)
+            _, shared = _mean_time(opts, planner._shared, states, repeats)
+            full = _mean_time(opts, full_run, states, repeats)
             used = [early_run(s).particles for s in states]
-            _, early = _mean_time(early_run, states, repeats)
-            _, points = _mean_time(points_run, states, repeats)
+            _, early = _mean_time(opts, early_run, states, repeats)
+            _, points = _mean_time(opts, points_run, states, repeats)
         table.add(
             **{
                 "N": n_trans,
+                "I": num,
                 "shared cpu [ms]": shared,
                 "full wall [ms]": full[0],
                 "full cpu [ms]": full[1],
@@ -136,13 +165,16 @@ def run(sizes: list[int], k: int, num_states: int, repeats: int) -> ResultTable:
 
 
 def main(argv: list[str]) -> int:
-    quick = "--quick" in argv
+    opts = parse_options(argv, "python -m benchmarks mcp")
     torch.set_num_threads(1)
     torch.set_default_dtype(torch.float64)
-    if quick:
-        table = run([50], k=9, num_states=5, repeats=1)
+    if opts.quick:
+        table = run(opts, [50], [PARTICLES], k=9, num_states=5, repeats=1)
+    elif opts.gpu_sizes:
+        sizes = [500, 1000, 2000, 5000, 10000]
+        table = run(opts, [500], sizes, k=25, num_states=40, repeats=3)
     else:
-        table = run([100, 250, 500], k=25, num_states=40, repeats=3)
+        table = run(opts, [100, 250, 500], [PARTICLES], k=25, num_states=40, repeats=3)
     print(table.to_markdown())
-    table.to_json(RESULTS / ("mcp_quick.json" if quick else "mcp.json"))
+    table.to_json(opts.results_file("mcp"))
     return 0

@@ -14,13 +14,16 @@ float64, one thread. For each (N, B, K):
   (B streams batched, K calls), each redoing the N x N work; ``x faster`` = loop / shared;
 - ``filter step``: one :func:`gp_adf_predict` + :func:`gp_adf_update` (linear measurement,
   Dz = 4) for K x B distinct state Gaussians, as in :func:`filter_sequence` with all K at once.
+
+Options (:func:`benchmarks._common.parse_options`): ``--device``, ``--dtype`` and
+``--gpu-sizes``: N = 500, K = 25, B = 1, 4, 16, ..., 1024 streams.
 """
 
 from __future__ import annotations
 
 import torch
 
-from benchmarks._common import RESULTS, best_of, environment
+from benchmarks._common import Options, best_of, parse_options
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.inference.filtering import gp_adf_predict, gp_adf_update
@@ -29,7 +32,7 @@ from hgpdm_torch.kernels import measurement_kernel, transition_kernel
 DX, DZ = 3, 4
 
 
-def _posteriors(kind: str, n: int, k: int, gen: torch.Generator):
+def _posteriors(opts: Options, kind: str, n: int, k: int, gen: torch.Generator):
     kernel = transition_kernel(kind, DX, num_values=k, alpha=(0.9, 0.5, 0.1, 1e-3))
     x = torch.randn(n, DX, generator=gen, dtype=torch.float64)
     if kind == "iddm_discrete":
@@ -39,30 +42,38 @@ def _posteriors(kind: str, n: int, k: int, gen: torch.Generator):
         g_col = torch.rand(n, 1, generator=gen, dtype=torch.float64) * 2 - 1
         values = torch.linspace(-1, 1, k, dtype=torch.float64)[:, None]
     y = torch.tanh(x) + 0.3 * g_col
-    trans = GPPosterior(kernel, torch.cat([x, g_col], -1), y, 1e-3)
     c = torch.randn(DX, DZ, generator=gen, dtype=torch.float64)
-    meas = GPPosterior(measurement_kernel("linear"), x, x @ c, 1e-2)
+    x, g_col, y, c, values = (v.to(opts.device, opts.dtype) for v in (x, g_col, y, c, values))
+    kernel = kernel.to(opts.device, opts.dtype)
+    trans = GPPosterior(kernel, torch.cat([x, g_col], -1), y, 1e-3)
+    linear = measurement_kernel("linear").to(opts.device, opts.dtype)
+    meas = GPPosterior(linear, x, x @ c, 1e-2)
     return trans, meas, values
 
 
-def run(sizes: list[int], configs: list[tuple[int, int]], repeats: int) -> ResultTable:
+def run(
+    opts: Options, sizes: list[int], configs: list[tuple[int, int]], repeats: int
+) -> ResultTable:
     table = ResultTable(
-        "Moment matching (Dx=3, float64, 1 thread): predict_gaussian for B streams x K "
-        "intentions, shared vs a per-intention loop, and one GP-ADF filter step",
+        f"Moment matching (Dx=3, {str(opts.dtype).removeprefix('torch.')}, 1 thread, device "
+        f"{opts.device}): predict_gaussian for B streams x K intentions, shared vs a "
+        "per-intention loop, and one GP-ADF filter step",
         ["kernel", "N", "B", "K", "shared [ms]", "loop [ms]", "x faster", "filter step [ms]"],
-        meta={
-            **environment(),
-            "repeats (best of)": repeats,
-        },
+        meta={**opts.meta(), "repeats (best of)": repeats},
     )
+
+    def randn(*shape: int) -> torch.Tensor:  # drawn on the CPU: the same data on every device
+        return torch.randn(*shape, generator=gen, dtype=torch.float64).to(opts.device, opts.dtype)
+
     gen = torch.Generator().manual_seed(0)
     for kind in ("iddm_continuous", "iddm_discrete"):
         for n in sizes:
             for b, k in configs:
-                trans, meas, values = _posteriors(kind, n, k, gen)
-                mu = 0.3 * torch.randn(b, 1, DX, generator=gen, dtype=torch.float64)
-                a = 0.2 * torch.randn(b, 1, DX, DX, generator=gen, dtype=torch.float64)
-                sigma = a @ a.transpose(-1, -2) + 0.01 * torch.eye(DX, dtype=torch.float64)
+                trans, meas, values = _posteriors(opts, kind, n, k, gen)
+                mu = 0.3 * randn(b, 1, DX)
+                a = 0.2 * randn(b, 1, DX, DX)
+                eye = torch.eye(DX, dtype=opts.dtype, device=opts.device)
+                sigma = a @ a.transpose(-1, -2) + 0.01 * eye
                 g = values[None]  # [1, K, 1]
 
                 def shared(mu=mu, sigma=sigma, g=g, trans=trans):
@@ -75,11 +86,9 @@ def run(sizes: list[int], configs: list[tuple[int, int]], repeats: int) -> Resul
                         )
 
                 # K x B distinct states, as after the first step of a filter over all K
-                mu_kb = mu[:, 0].expand(k, b, DX) + 0.01 * torch.randn(
-                    k, b, DX, generator=gen, dtype=torch.float64
-                )
+                mu_kb = mu[:, 0].expand(k, b, DX) + 0.01 * randn(k, b, DX)
                 sig_kb = sigma[:, 0].expand(k, b, DX, DX)
-                z = torch.randn(b, DZ, generator=gen, dtype=torch.float64)
+                z = randn(b, DZ)
 
                 def step(
                     mu_kb=mu_kb, sig_kb=sig_kb, g=values[:, None], z=z, trans=trans, meas=meas
@@ -89,9 +98,9 @@ def run(sizes: list[int], configs: list[tuple[int, int]], repeats: int) -> Resul
 
                 with torch.no_grad():
                     shared(), loop(), step()  # warm-up (and kinv cache)
-                    t_shared = best_of(shared, repeats)
-                    t_loop = best_of(loop, repeats)
-                    t_step = best_of(step, repeats)
+                    t_shared = best_of(shared, repeats, opts.device)
+                    t_loop = best_of(loop, repeats, opts.device)
+                    t_step = best_of(step, repeats, opts.device)
                 table.add(
                     **{
                         "kernel": kind,
@@ -109,12 +118,14 @@ def run(sizes: list[int], configs: list[tuple[int, int]], repeats: int) -> Resul
 
 
 def main(argv: list[str]) -> int:
-    quick = "--quick" in argv
+    opts = parse_options(argv, "python -m benchmarks moment_matching")
     torch.set_num_threads(1)
-    if quick:
-        table = run([50, 100], [(1, 5), (4, 5)], repeats=2)
+    if opts.quick:
+        table = run(opts, [50, 100], [(1, 5), (4, 5)], repeats=2)
+    elif opts.gpu_sizes:
+        table = run(opts, [500], [(b, 25) for b in (1, 4, 16, 64, 256, 1024)], repeats=5)
     else:
-        table = run([100, 250, 500], [(1, 1), (1, 25), (8, 25)], repeats=5)
+        table = run(opts, [100, 250, 500], [(1, 1), (1, 25), (8, 25)], repeats=5)
     print(table.to_markdown())
-    table.to_json(RESULTS / ("moment_matching_quick.json" if quick else "moment_matching.json"))
+    table.to_json(opts.results_file("moment_matching"))
     return 0

@@ -2,7 +2,8 @@
 
 ``python -m benchmarks variational [--quick]``. Writes ``benchmarks/results/variational.json``.
 Target (issue 4): <= 100 ms per window at T = 5 and 10, K = 4, N = 300 training frames, one
-core. Reported per window length T:
+core. ``--device`` and ``--dtype`` (:func:`benchmarks._common.parse_options`) choose where and in
+which precision the model (fitted on the CPU) runs. Reported per window length T:
 
 - ``single [ms]``: one window per call (median over windows);
 - ``batched [ms]``: all windows in one call, divided by their number;
@@ -22,7 +23,7 @@ import time
 
 import torch
 
-from benchmarks._common import RESULTS, environment
+from benchmarks._common import Options, parse_options
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.variational import VariationalInference, window_mask
@@ -30,33 +31,35 @@ from hgpdm_torch.inference.variational.laplace import map_states
 from hgpdm_torch.models import HGPDM
 
 
-def run(per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTable:
+def run(opts: Options, per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTable:
     table = ResultTable(
-        "VB inference (Alg. 2.2) per window: K=4, Dx=3, Dz=12, rbf measurement, float64, "
-        "1 thread; Laplace start (LM) + closed-form F",
+        "VB inference (Alg. 2.2) per window: K=4, Dx=3, Dz=12, rbf measurement, "
+        f"{str(opts.dtype).removeprefix('torch.')}, 1 thread, device {opts.device}; Laplace "
+        "start (LM) + closed-form F",
         ["N", "T", "single [ms]", "batched [ms]", "old [ms]", "speed-up", "LM iters", "accuracy"],
-        meta={
-            **environment(),
-        },
+        meta=opts.meta(),
     )
     data = styled_movements(4, per_style + 1, 38, 12, seed=0)
     train, test = data.split(1.0 / (per_style + 1), seed=0)
-    model = HGPDM(train.sequences, train.labels, 3)
+    model = HGPDM(train.sequences, train.labels, 3, dtype=opts.dtype)
     model.fit(60)
+    model = model.to(opts.device)
     vb = VariationalInference(model)
     N = model.observations.shape[0]
     for T in lengths:
         zs, ys = [], []
         for seq, label in zip(test.sequences, test.labels, strict=True):
             for i in range(0, seq.shape[0] - T, 6):
-                zs.append(seq[i : i + T])
+                zs.append(seq[i : i + T].to(opts.device, opts.dtype))
                 ys.append(int(label))
         zs, ys = zs[:windows], torch.tensor(ys[:windows])
         vb.infer(zs[0])  # warm-up
         single = []
         for z in zs:
+            opts.synchronize()
             start = time.perf_counter()
             vb.infer(z)
+            opts.synchronize()
             single.append(time.perf_counter() - start)
         single.sort()
         batch = torch.stack(zs)
@@ -81,7 +84,7 @@ def run(per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTa
                 "old [ms]": None if t_old is None else 1e3 * t_old,
                 "speed-up": None if t_old is None else t_old / t_single,
                 "LM iters": len(lm) - 1,
-                "accuracy": float((res.g_ml == ys).double().mean()),
+                "accuracy": float((res.g_ml.cpu() == ys).double().mean()),
             }
         )
         print(table.rows[-1], flush=True)
@@ -89,14 +92,14 @@ def run(per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTa
 
 
 def main(argv: list[str]) -> int:
-    quick = "--quick" in argv
+    opts = parse_options(argv, "python -m benchmarks variational")
     torch.set_num_threads(1)
     torch.set_default_dtype(torch.float64)
-    if quick:
-        table = run(1, [5], windows=2, old=False)
+    if opts.quick:
+        table = run(opts, 1, [5], windows=2, old=False)
     else:
-        table = run(2, [5, 10], windows=24, old=True)
+        table = run(opts, 2, [5, 10], windows=24, old=True)
     table.meta["single: median over windows"] = True
     print(table.to_markdown())
-    table.to_json(RESULTS / ("variational_quick.json" if quick else "variational.json"))
+    table.to_json(opts.results_file("variational"))
     return 0

@@ -37,6 +37,7 @@ _EXPORTS: dict[str, str] = {
     "load_model": ".models",
     "measurement_kernel": ".kernels",
     "models": ".models",
+    "settings": ".settings",
     "transition_kernel": ".kernels",
 }
 

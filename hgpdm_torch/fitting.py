@@ -255,11 +255,11 @@ def _run(
         nonlocal cached
         if cached:  # the optimizer's first call of a step: reuse the evaluation just made
             cached = False
-            return torch.as_tensor(history[-1])
+            return torch.tensor(history[-1], device="cpu")  # a host scalar: no device copy
         value = obj.evaluate()
         if value is None:
             raise FloatingPointError("trial point failed")
-        return torch.as_tensor(value)
+        return torch.tensor(value, device="cpu")
 
     def attempt() -> float | None:
         """One optimizer step; the loss after it, or ``None`` if a trial point failed."""
@@ -377,7 +377,7 @@ def _perturbed_starts(
             b
             + scale
             * b.std().nan_to_num(1.0).clamp_min(1e-3)
-            * torch.randn(b.shape, generator=gen, dtype=b.dtype).to(b.device)
+            * torch.randn(b.shape, generator=gen, dtype=b.dtype, device=gen.device).to(b.device)
             if b.numel() > 1
             else b.clone()
             for b in base

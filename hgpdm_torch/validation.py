@@ -44,7 +44,8 @@ def as_tensor(
         t = value
     elif isinstance(value, np.ndarray | Sequence | float | int):
         try:
-            t = torch.as_tensor(np.asarray(value, dtype=np.float64))
+            # on the CPU, as NumPy data is, whatever torch's default device
+            t = torch.as_tensor(np.asarray(value, dtype=np.float64), device="cpu")
         except (TypeError, ValueError) as err:
             raise TypeError(
                 f"{name} must be numeric array-like, got {type(value).__name__}"

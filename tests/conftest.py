@@ -1,4 +1,5 @@
-"""Shared pytest configuration: float64 by default, seeded RNG, CUDA skip marker."""
+"""Shared pytest configuration: float64 by default, seeded RNG, CUDA skip marker, the ``device``
+fixture."""
 
 from __future__ import annotations
 
@@ -16,10 +17,18 @@ SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     if torch.cuda.is_available():
         return
-    skip_gpu = pytest.mark.skip(reason="needs CUDA")
+    skip_gpu = pytest.mark.skip(reason="needs CUDA: torch.cuda.is_available() is False")
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip_gpu)
+
+
+@pytest.fixture(params=["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def device(request: pytest.FixtureRequest) -> torch.device:
+    """Each device a test runs on: ``cpu``, and ``cuda`` (marked ``gpu``: skipped, with the
+    reason printed by ``-rs``, where CUDA is not available). Tests compare the result on it with
+    the CPU float64 one."""
+    return torch.device(request.param)
 
 
 @pytest.fixture

@@ -28,3 +28,14 @@ def test_quick_mode_runs_and_writes_results(name, capsys):
     table = json.loads(out.read_text())
     assert table["rows"] and table["columns"]
     assert "|" in capsys.readouterr().out  # the printed Markdown table
+
+
+@pytest.mark.parametrize("name", ["online_intention", "hgpdm_fit", "moment_matching", "mcp"])
+def test_device_and_dtype_options(name, capsys):
+    """``--device cpu --dtype float32`` runs and writes its own file, not the float64 one."""
+    module = importlib.import_module(f"benchmarks.{name}")
+    assert module.main(["--quick", "--device", "cpu", "--dtype", "float32"]) == 0
+    out = Path(benchmarks.__file__).parent / "results" / f"{name}_cpu_float32_quick.json"
+    table = json.loads(out.read_text())
+    assert table["rows"] and table["meta"]["dtype"] == "float32"
+    assert "|" in capsys.readouterr().out

@@ -48,6 +48,7 @@ from typing import NamedTuple
 import torch
 from scipy import stats
 
+from .. import settings
 from ..gaussian import conditional, log_density_terms, mixture_moments
 from ..inference.filtering import _as_observations, _bad_observation
 from ..inference.intention import OnlineIntentionFilter
@@ -149,6 +150,16 @@ class _Shared:
     post_cov: torch.Tensor  # [K, Dx, Dx]  P - C S^-1 C^T
     x_chol: torch.Tensor  # [Dx, Dx]  chol of Cov[x_t] (for sampling="points")
     mean: torch.Tensor  # [Dx]
+
+
+def _randn(
+    shape: tuple[int, ...] | torch.Size, generator: torch.Generator | None, like: torch.Tensor
+) -> torch.Tensor:
+    """Standard normal draws of ``shape`` in ``like``'s dtype and on its device, drawn on the
+    generator's device: a seeded CPU generator gives the same particles on every device."""
+    draw_on = like.device if generator is None else generator.device
+    out = torch.randn(shape, generator=generator, dtype=like.dtype, device=draw_on)
+    return out.to(like.device)
 
 
 class MonteCarloPlanner:
@@ -257,12 +268,11 @@ class MonteCarloPlanner:
         mean, cov, _ = f.transition.moments(m, P)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
         gp_dtype = self.measurement.train_inputs.dtype
-        mz, Sz, Cxz = (
-            v.to(f.dtype)
-            for v in self.measurement.predict_gaussian(
+        with settings.internal_step():  # the filter's own predictions
+            moments = self.measurement.predict_gaussian(
                 mean.to(gp_dtype), cov.to(gp_dtype), include_noise=True
             )
-        )
+        mz, Sz, Cxz = (v.to(f.dtype) for v in moments)
         L = psd_cholesky(Sz, name="predicted observation covariance")
         gain_t, post_cov = conditional(cov, Cxz, L)  # S^-1 C^T  [K, Dz, Dx]
         log_prob = belief.log_prob.to(f.dtype)
@@ -292,20 +302,22 @@ class MonteCarloPlanner:
     ) -> torch.Tensor:
         """``z^i_{t+1} [I, Dz]`` (Algorithm 4.2, lines 3-5)."""
         f = self.filter
-        g = torch.multinomial(shared.prob, num, replacement=True, generator=generator)  # [I]
+        prob = shared.prob
+        draw_on = prob.device if generator is None else generator.device
+        g = torch.multinomial(prob.to(draw_on), num, replacement=True, generator=generator)
+        g = g.to(prob.device)  # [I]
         dz = shared.z_mean.shape[-1]
-        dtype = shared.z_mean.dtype
         if self.sampling == "moments":
-            eps = torch.randn(num, dz, 1, generator=generator, dtype=dtype)
+            eps = _randn((num, dz, 1), generator, shared.z_mean)
             return shared.z_mean[g] + (shared.z_chol[g] @ eps)[..., 0]
         dx = shared.mean.shape[0]
-        x = shared.mean + torch.randn(num, dx, generator=generator, dtype=dtype) @ shared.x_chol.T
+        x = shared.mean + _randn((num, dx), generator, shared.mean) @ shared.x_chol.T
         gx = torch.cat([x, f.values[g]], -1).to(self.transition.train_inputs.dtype)
         m, v = self.transition.predict(gx, include_noise=True)
-        x1 = m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=m.dtype)
+        x1 = m + v.sqrt() * _randn(m.shape, generator, m)
         m, v = self.measurement.predict(x1, include_noise=True)
-        z = m + v.sqrt() * torch.randn(m.shape, generator=generator, dtype=m.dtype)
-        return z.to(dtype)
+        z = m + v.sqrt() * _randn(m.shape, generator, m)
+        return z.to(shared.z_mean.dtype)
 
     def step(self, belief: Belief, z: torch.Tensor) -> ParticleUpdate:
         """The online filter's update of one belief on many observations at once.

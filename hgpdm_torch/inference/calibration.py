@@ -71,7 +71,7 @@ def _probabilities(log_prob: Any, truth: Any) -> tuple[torch.Tensor, torch.Tenso
     """``log_prob [N, K]`` (float64, normalised) and ``truth [N]`` (int64) from any leading
     shape, with the checks shared by this module."""
     lp = _log_probabilities(log_prob, torch.float64)
-    t = torch.as_tensor(truth)
+    t = torch.as_tensor(truth, device=lp.device)
     if t.is_floating_point() or t.dtype == torch.bool or t.is_complex():
         raise TypeError(f"truth must hold integer class indices, got {t.dtype}")
     if t.shape != lp.shape[:-1]:
@@ -86,11 +86,14 @@ def _probabilities(log_prob: Any, truth: Any) -> tuple[torch.Tensor, torch.Tenso
     return lp - torch.logsumexp(lp, -1, keepdim=True), t.reshape(-1).long()
 
 
-def intention_log_prior(prior: Any, k: int, dtype: torch.dtype) -> torch.Tensor:
-    """``[K]`` normalised log prior over K intention values (default uniform)."""
+def intention_log_prior(
+    prior: Any, k: int, dtype: torch.dtype, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """``[K]`` normalised log prior over K intention values (default uniform), in ``dtype`` on
+    ``device`` (default: ``prior``'s device, else torch's default device)."""
     if prior is None:
-        return torch.full((k,), -math.log(k), dtype=dtype)
-    p = as_tensor(prior, "prior", ndim=1, dtype=dtype)
+        return torch.full((k,), -math.log(k), dtype=dtype, device=device)
+    p = as_tensor(prior, "prior", ndim=1, dtype=dtype, device=device)
     if p.shape[0] != k:
         raise ValueError(f"prior must have K = {k} entries (one per intention), got {p.shape[0]}")
     check_probability(p, "prior")
@@ -115,7 +118,7 @@ def temper(log_prob: Any, temperature: float, *, prior: Any = None) -> torch.Ten
     """
     t = check_temperature(temperature)
     lp = _log_probabilities(log_prob)
-    log_prior = intention_log_prior(prior, lp.shape[-1], lp.dtype)
+    log_prior = intention_log_prior(prior, lp.shape[-1], lp.dtype, lp.device)
     out = log_prior + (lp - log_prior) / t
     return out - torch.logsumexp(out, -1, keepdim=True)
 
@@ -153,7 +156,7 @@ def fit_temperature(
     lo, hi = (float(b) for b in bounds)
     if not (0 < lo < hi and math.isfinite(hi)):
         raise ValueError(f"bounds must satisfy 0 < low < high < inf, got {bounds!r}")
-    log_prior = intention_log_prior(prior, lp.shape[-1], lp.dtype)
+    log_prior = intention_log_prior(prior, lp.shape[-1], lp.dtype, lp.device)
     # evidence relative to the prior; -inf (a value the posterior excludes) stays -inf at any T
     evidence = (lp - log_prior).clamp_min(-1e300)
 

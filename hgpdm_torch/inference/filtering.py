@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .. import settings
 from ..expectations import check_gaussian
 from ..gaussian import conditional, independent_joint, log_density, rts_step
 from ..gp import GPPosterior
@@ -419,16 +420,17 @@ def filter_sequence(
         raise ValueError("z must hold at least one time step")
     means, covs, pmeans, pcovs, crosses = [], [], [], [], []
     ll = torch.zeros((), dtype=mu.dtype, device=mu.device)
-    for t in tqdm(range(T), disable=not progress, desc="GP-ADF", leave=False):
-        if t > 0:
-            mu, Sigma, C = gp_adf_predict(transition, mu, Sigma, g=known)
-            crosses.append(C)
-        pmeans.append(mu)
-        pcovs.append(Sigma)
-        mu, Sigma, step_ll = gp_adf_update(measurement, mu, Sigma, z[..., t, :])
-        ll = ll + step_ll
-        means.append(mu)
-        covs.append(Sigma)
+    with settings.internal_step():  # the state is checked once above, per step under debug
+        for t in tqdm(range(T), disable=not progress, desc="GP-ADF", leave=False):
+            if t > 0:
+                mu, Sigma, C = gp_adf_predict(transition, mu, Sigma, g=known)
+                crosses.append(C)
+            pmeans.append(mu)
+            pcovs.append(Sigma)
+            mu, Sigma, step_ll = gp_adf_update(measurement, mu, Sigma, z[..., t, :])
+            ll = ll + step_ll
+            means.append(mu)
+            covs.append(Sigma)
     batch = torch.broadcast_shapes(*(m.shape[:-1] for m in means + pmeans))
     D = mu.shape[-1]
 

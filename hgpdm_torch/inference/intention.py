@@ -62,6 +62,7 @@ import torch
 from sklearn.cluster import KMeans
 from tqdm.auto import tqdm
 
+from .. import settings
 from ..expectations import Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
 from ..gaussian import (
     conditional,
@@ -173,15 +174,16 @@ def intention_grid(model: HGPDM, intentions: Any = None, num: int = 25) -> torch
     """
     if not isinstance(model, HGPDM):
         raise TypeError(f"model must be an HGPDM/IDDM, got {type(model).__name__}")
-    dtype = model.latent.dtype
+    dtype, device = model.latent.dtype, model.latent.device
     if intentions is None:
         if model.intention == "discrete":
-            return torch.arange(model.num_values, dtype=dtype)[:, None]
+            return torch.arange(model.num_values, dtype=dtype, device=device)[:, None]
         if model.intention_dim != 1:
             raise ValueError("a multi-dimensional continuous g needs an explicit intentions grid")
         g = model.intentions[:, 0]
-        return torch.linspace(float(g.min()), float(g.max()), int(num), dtype=dtype)[:, None]
-    values = as_tensor(intentions, "intentions", dtype=dtype)
+        grid = torch.linspace(float(g.min()), float(g.max()), int(num), dtype=dtype, device=device)
+        return grid[:, None]
+    values = as_tensor(intentions, "intentions", dtype=dtype, device=device)
     if values.dim() == 1:
         values = values[:, None]
     if values.dim() != 2 or values.shape[0] == 0:
@@ -224,12 +226,12 @@ def _state_prior(
     """Prior of the first latent state: default the empirical marginal of the training latents
     (a window may start anywhere in a movement, not only at its first frame)."""
     x = model.latent.detach()
-    mu = x.mean(0) if mu0 is None else as_tensor(mu0, "mu0", ndim=1, dtype=x.dtype)
+    mu = x.mean(0) if mu0 is None else as_tensor(mu0, "mu0", ndim=1, dtype=x.dtype, device=x.device)
     if Sigma0 is None:
         d = x - x.mean(0)
         Sigma = d.T @ d / max(x.shape[0] - 1, 1)
     else:
-        Sigma = as_tensor(Sigma0, "Sigma0", ndim=2, dtype=x.dtype)
+        Sigma = as_tensor(Sigma0, "Sigma0", ndim=2, dtype=x.dtype, device=x.device)
     dx = model.latent_dim
     if mu.shape != (dx,) or Sigma.shape != (dx, dx):
         raise ValueError(
@@ -408,17 +410,18 @@ def _pseudo_inputs(
     if discrete or num_values >= u:
         centres, cluster = uniq, group
     else:
-        counts = torch.bincount(group, minlength=u).double().numpy()
+        counts = torch.bincount(group, minlength=u).double().cpu().numpy()
         km = KMeans(n_clusters=num_values, n_init=4, random_state=0)
-        km.fit(uniq.double().numpy(), sample_weight=counts)
-        centres = torch.as_tensor(km.cluster_centers_, dtype=X.dtype)
-        cluster = torch.as_tensor(km.labels_, dtype=torch.long)[group]
+        km.fit(uniq.double().cpu().numpy(), sample_weight=counts)
+        centres = torch.as_tensor(km.cluster_centers_, dtype=X.dtype, device=X.device)
+        cluster = torch.as_tensor(km.labels_, dtype=torch.long, device=X.device)[group]
     # the same number of points per value: groups are padded to the largest one
     per = max(1, m // len(centres))
     keep = []
     for c in range(len(centres)):
         members = torch.nonzero(cluster == c).flatten()
-        pick = torch.linspace(0, len(members) - 1, min(per, len(members))).round().long()
+        pick = torch.linspace(0, len(members) - 1, min(per, len(members)), device=X.device)
+        pick = pick.round().long()
         keep.append(members[pick])
     keep = torch.cat(keep)
     return torch.cat([X[keep, :dx], centres[cluster[keep]]], 1)
@@ -506,8 +509,8 @@ class SharedTransition:
         size = int(counts.max())
         order = torch.argsort(group, stable=True)
         starts = torch.cumsum(counts, 0) - counts
-        rank = torch.arange(n) - starts[group[order]]
-        pad = torch.full((u_count, size), n, dtype=torch.long)
+        rank = torch.arange(n, device=X.device) - starts[group[order]]
+        pad = torch.full((u_count, size), n, dtype=torch.long, device=X.device)
         pad[group[order], rank] = order
         flat = pad.reshape(-1)
         real = flat < n
@@ -695,7 +698,7 @@ def _check_precision(model: HGPDM, reference: SharedTransition, low: SharedTrans
     :data:`PRECISION_LIMIT` times the smallest predictive standard deviation (means) or
     variance (covariances)."""
     x = model.latent.detach().to(reference.inputs.dtype)
-    idx = torch.linspace(0, x.shape[0] - 1, min(8, x.shape[0])).round().long()
+    idx = torch.linspace(0, x.shape[0] - 1, min(8, x.shape[0]), device=x.device).round().long()
     _, spread = _state_prior(model, None, None, x.dtype)  # the training latents' covariance
     worst = 0.0
     for scale in (1.0, 1e-2, 1e-4):
@@ -888,7 +891,7 @@ class OnlineIntentionFilter:
             _posterior_as(trans, self.dtype) if mixing == "gaussian" else None
         )
         self.values = self.transition.values
-        self.log_prior = intention_log_prior(prior, len(values), self.dtype)
+        self.log_prior = intention_log_prior(prior, len(values), self.dtype, values.device)
         check_choice(state_prior, "state_prior", STATE_PRIORS)
         self.state_prior = state_prior
         if state_prior == "class":
@@ -917,11 +920,11 @@ class OnlineIntentionFilter:
         """Stream indices ``[S]`` (int64, in ``[0, B)``) from indices or a ``[B]`` bool mask."""
         B = self.batch_size
         try:
-            idx = torch.as_tensor(streams)
+            idx = torch.as_tensor(streams, device=self.mean.device)
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(f"streams must be stream indices or a [B] bool mask: {err}") from err
         if idx.numel() == 0:
-            return torch.zeros(0, dtype=torch.long)
+            return idx.new_zeros(0, dtype=torch.long)
         if idx.dtype == torch.bool:
             if idx.shape != (B,):
                 raise ValueError(f"a streams mask must have shape [B] = [{B}], got {idx.shape}")
@@ -944,13 +947,14 @@ class OnlineIntentionFilter:
         """
         if streams is None:
             B, dx, K = self.batch_size, self.mu0.shape[0], self.num_values
-            self.mean = torch.empty(B, dx, dtype=self.dtype)
-            self.cov = torch.empty(B, dx, dx, dtype=self.dtype)
-            self.log_belief = torch.empty(B, K, dtype=self.dtype)
-            self.started = torch.zeros(B, dtype=torch.bool)
-            self.steps = torch.zeros(B, dtype=torch.long)
-            self.rejected_count = torch.zeros(B, dtype=torch.long)
-            self.reset_count = torch.zeros(B, dtype=torch.long)
+            like = self.mu0  # the state lives on the model's device, in the filter's dtype
+            self.mean = like.new_empty(B, dx, dtype=self.dtype)
+            self.cov = like.new_empty(B, dx, dx, dtype=self.dtype)
+            self.log_belief = like.new_empty(B, K, dtype=self.dtype)
+            self.started = like.new_zeros(B, dtype=torch.bool)
+            self.steps = like.new_zeros(B, dtype=torch.long)
+            self.rejected_count = like.new_zeros(B, dtype=torch.long)
+            self.reset_count = like.new_zeros(B, dtype=torch.long)
             idx: Any = slice(None)
         else:
             idx = self._stream_index(streams)
@@ -1002,7 +1006,7 @@ class OnlineIntentionFilter:
             if self.strict:
                 raise _bad_observation(self._where(b), self.check.reason(z[b]))
             z = z.masked_fill(rejected[:, None], math.nan)
-        z = z.to(self.dtype)
+        z = z.to(self.mean.device, self.dtype)
         # the update works on copies, written back at the end: a strict error changes nothing
         mean, cov, log_belief = self.mean.clone(), self.cov.clone(), self.log_belief.clone()
         started = self.started.clone()
@@ -1101,7 +1105,8 @@ class OnlineIntentionFilter:
             return fn(*args)
         except _NUMERICAL_ERRORS as err:
             error = err
-        bad = self._bisect(fn, args, torch.arange(len(active)), active, rows.start, error)
+        pos = torch.arange(len(active), device=active.device)
+        bad = self._bisect(fn, args, pos, active, rows.start, error)
         if len(bad) == 0:  # no stream fails on its own: not a failure of a stream
             raise error
         failed[rows.start + bad[active[bad]]] = True
@@ -1149,6 +1154,7 @@ class OnlineIntentionFilter:
         log_belief[streams] = self.log_prior
         started[streams] = False
 
+    @settings.internal_step()  # the prior was checked when set
     def _initialise(
         self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -1166,6 +1172,7 @@ class OnlineIntentionFilter:
         mean, cov = mixture_moments(new.exp(), mean, cov)
         return mean, cov, new
 
+    @settings.internal_step()  # the state is the filter's own; finiteness is checked in update
     def _step(
         self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -1259,7 +1266,8 @@ def batch_bound_terms(
     L0 = psd_cholesky(Sigma0, name="prior covariance")
     state = expected_log_density(sm.mean[..., 0, :], q1_chol, mu0, L0)
     # E_q[log p(z_t | x_t)] over observed steps
-    zm, zc, zx = meas.predict_gaussian(sm.mean, sm.cov, include_noise=True)
+    with settings.internal_step():  # the smoother's own marginals
+        zm, zc, zx = meas.predict_gaussian(sm.mean, sm.cov, include_noise=True)
     observed = ~torch.isnan(z).all(-1)
     zz = torch.where(observed[..., None], z, zm)
     lz = expected_log_conditional(sm.mean, sm.cov, zm, zc, zx, sm.mean, sm.cov, zz, None, None)
@@ -1267,7 +1275,10 @@ def batch_bound_terms(
     transition = torch.zeros_like(measurement)
     if z.shape[-2] > 1:
         m_in, P_in = sm.mean[..., :-1, :], sm.cov[..., :-1, :, :]
-        pm, pc, px = trans.predict_gaussian(m_in, P_in, g=g[:, None, None, :], include_noise=True)
+        with settings.internal_step():
+            pm, pc, px = trans.predict_gaussian(
+                m_in, P_in, g=g[:, None, None, :], include_noise=True
+            )
         Q = expected_log_conditional(
             m_in, P_in, pm, pc, px, m_in, P_in,
             sm.mean[..., 1:, :], sm.cov[..., 1:, :, :], sm.cross_cov,
@@ -1400,7 +1411,7 @@ def infer_intention(
         where = f"window {windows}, step {index[-1]}" if windows else f"step {index[-1]}"
         raise _bad_observation(f"z{list(index)} ({where})", why)
     z = z.to(dtype)
-    log_prior = intention_log_prior(prior, len(values), dtype)
+    log_prior = intention_log_prior(prior, len(values), dtype, values.device)
     m0, S0 = _first_state_prior(model, values, mu0, Sigma0, state_prior, dtype)
     if state_prior == "class":  # [K, 1, ...] broadcasts against the windows in batch_bound
         m0, S0 = m0[:, None], S0[:, None]
@@ -1416,7 +1427,7 @@ def infer_intention(
         full = flat.unfold(1, w, 1).transpose(-1, -2)  # [F, T - w + 1, w, Dz]
         jobs = [(full.reshape(-1, w, z.shape[-1]), ("full", w))]
         jobs += [(flat[:, :t], ("start", t)) for t in range(1, w)]
-    out = torch.empty(flat.shape[0], T if window else 1, len(values), dtype=dtype)
+    out = values.new_empty(flat.shape[0], T if window else 1, len(values))
     for batch, tag in tqdm(jobs, disable=not progress, desc="batch intention", leave=False):
         parts = [
             batch_bound(

@@ -66,9 +66,7 @@ class KernelBackConstraint(torch.nn.Module):
         self.kernel.lengthscale = lengthscale
         self.kernel.raw_lengthscale.requires_grad_(False)
         self.ridge = float(ridge)
-        self.weights = torch.nn.Parameter(
-            torch.zeros(inputs.shape[0], latent_dim, dtype=inputs.dtype)
-        )
+        self.weights = torch.nn.Parameter(inputs.new_zeros(inputs.shape[0], latent_dim))
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         """``[..., Dz] -> [..., Dx]``."""

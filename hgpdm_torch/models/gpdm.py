@@ -233,16 +233,23 @@ class GPDM(gpytorch.Module):
         }
 
         z = torch.cat(seqs, dim=0)
-        lengths = torch.tensor([s.shape[0] for s in seqs])
+        device = z.device  # the model is built where its data are (and moves with .to)
+        lengths = torch.tensor([s.shape[0] for s in seqs], device=device)
         starts = torch.cumsum(lengths, 0) - lengths
-        src = torch.cat([torch.arange(s, s + n - 1) for s, n in zip(starts, lengths, strict=True)])
+        src = torch.cat(
+            [
+                torch.arange(s, s + n - 1, device=device)
+                for s, n in zip(starts.tolist(), lengths.tolist(), strict=True)
+            ]
+        )
         self.register_buffer("observations", z)
         self.register_buffer("obs_mean", z.mean(0))
         self.register_buffer("lengths", lengths)
         self.register_buffer("first_index", starts)
         self.register_buffer("src_index", src)
         self.register_buffer(
-            "seq_of_src", torch.repeat_interleave(torch.arange(len(seqs)), lengths - 1)
+            "seq_of_src",
+            torch.repeat_interleave(torch.arange(len(seqs), device=device), lengths - 1),
         )
 
         latent = self._initial(init, z - z.mean(0))
@@ -264,7 +271,7 @@ class GPDM(gpytorch.Module):
             self.measurement_kernel.raw_lengthscale.requires_grad_(bool(learn_measurement_width))
             self._register_log_prior(self.measurement_kernel, "beta1", hyper_priors, _log_beta1)
         self.register_parameter(
-            "raw_measurement_noise", torch.nn.Parameter(torch.zeros((), dtype=dtype))
+            "raw_measurement_noise", torch.nn.Parameter(z.new_zeros((), dtype=dtype))
         )
         self.register_constraint("raw_measurement_noise", GreaterThan(NOISE_FLOOR))
         self.measurement_noise = 0.1 if name == "linear" else 0.01
@@ -284,14 +291,14 @@ class GPDM(gpytorch.Module):
 
         self.transition_kernel = self.build_transition_kernel()
         self.register_parameter(
-            "raw_transition_noise", torch.nn.Parameter(torch.zeros((), dtype=dtype))
+            "raw_transition_noise", torch.nn.Parameter(z.new_zeros((), dtype=dtype))
         )
         self.register_constraint("raw_transition_noise", GreaterThan(NOISE_FLOOR))
         self.transition_noise = alpha[3]
         self._register_log_prior(self, "transition_noise", hyper_priors, _log_transition_noise)
         self.learn_alpha = learn_alpha
         self.learn_noise = learn_noise or learn_alpha
-        self.to(dtype)
+        self.to(device=device, dtype=dtype)  # the kernels' parameters too
 
     # ----------------------------------------------------------------- construction hooks
     @classmethod
@@ -351,7 +358,7 @@ class GPDM(gpytorch.Module):
         if isinstance(init, str):
             check_choice(init, "init", ("pca",))
             return self.initial_latents(centred)
-        x = as_tensor(init, "init", ndim=2, dtype=centred.dtype)
+        x = as_tensor(init, "init", ndim=2, dtype=centred.dtype, device=centred.device)
         if x.shape != (centred.shape[0], self.latent_dim):
             raise ValueError(
                 f"init must have shape [M, Dx] = [{centred.shape[0]}, {self.latent_dim}], "

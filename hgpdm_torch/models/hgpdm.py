@@ -158,7 +158,7 @@ class HGPDM(GPDM):
         self.intention_dim = values.shape[1]
         self.alpha_g = tuple(float(a) for a in alpha_g)
         super().__init__(sequences, latent_dim, **kwargs)
-        self.register_buffer("intentions", values)
+        self.register_buffer("intentions", values.to(self.observations.device))
         self._config.update(
             intention=intention, num_values=k, alpha_g=list(self.alpha_g), sharing=self.sharing
         )
@@ -376,7 +376,7 @@ class HGPDM(GPDM):
         kwargs.pop("intention", None)
         model = cls(
             sequences,
-            torch.zeros(len(sequences), dtype=torch.long),
+            [0] * len(sequences),
             latent_dim,
             intention="discrete",
             num_values=num_styles,
@@ -393,7 +393,7 @@ class HGPDM(GPDM):
             feats = []
             for lat in model.latent_sequences():
                 step = lat[1:] - lat[:-1]
-                feats.append(torch.cat([lat.mean(0), step.pow(2).mean(0).sqrt()]).numpy())
+                feats.append(torch.cat([lat.mean(0), step.pow(2).mean(0).sqrt()]).cpu().numpy())
             km = KMeans(num_styles, n_init=10, random_state=int(rng.integers(2**31)))
             codes = km.fit_predict(np.stack(feats))
         model.set_intentions(codes)
