@@ -161,6 +161,24 @@ class GPPosterior:
             raise ValueError(f"{name} must have shape [{size}], got {tuple(v.shape)}")
         return v
 
+    def to_dtype(self, dtype: torch.dtype) -> GPPosterior:
+        """The same (detached) GP in another dtype, refactorised in it; ``self`` if it has it.
+
+        Kernel, data, noises, scale and offset are cast; the Cholesky factor is recomputed in
+        ``dtype`` (casting it would keep the rounding of the old dtype).
+        """
+        if self.train_inputs.dtype == dtype:
+            return self
+        return GPPosterior(
+            copy.deepcopy(self.kernel).to(dtype),
+            self.train_inputs.to(dtype),
+            self.train_targets.to(dtype),
+            self.noise.to(dtype),
+            code_noise=None if self.code_noise is None else self.code_noise.to(dtype),
+            scale=self.scale.to(dtype),
+            offset=self.offset.to(dtype),
+        )
+
     @property
     def input_dim(self) -> int:
         """``Din``, the number of input columns."""

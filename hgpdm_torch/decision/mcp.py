@@ -1,5 +1,9 @@
 r"""Monte-Carlo planning on IDDM beliefs (thesis Algorithms 4.2 and 4.3, Sec. 4.2.4).
 
+Any model the online filter runs on works (IDDM, H-GPDM, a subclass with a supported kernel, a
+plain GPDM as one intention value): the particles replay the filter's own transition moments
+(:mod:`~hgpdm_torch.inference.intention.transition`), the IDDM's fast path or the generic one.
+
 The value of waiting one step is estimated by particle projection (Algorithm 4.2)::
 
     Q(theta_t, wait) ~= 1/I sum_i max_{a != 0} Q^(theta^i_{t+1}, a; w)
@@ -53,7 +57,7 @@ from ..gaussian import conditional, log_density_terms, mixture_moments
 from ..inference.filtering import _as_observations, _bad_observation
 from ..inference.intention import OnlineIntentionFilter
 from ..linalg import cholesky_logdet, psd_cholesky, symmetrize
-from ..models import HGPDM
+from ..models import GPDM
 from ..validation import as_tensor, check_choice
 from .lspi import LinearQ
 from .stopping import WAIT, _belief_vector, belief_vector
@@ -166,7 +170,7 @@ class MonteCarloPlanner:
     """Anticipatory action selection by Monte-Carlo planning (Algorithms 4.2-4.3).
 
     Args:
-        model: the fitted IDDM (its measurement GP, and its transition GP for
+        model: the fitted IDDM, H-GPDM or GPDM (its measurement GP, and its transition GP for
             ``sampling="points"``).
         belief_filter: the online filter of this model whose belief update the particles replay
             (its ``evidence`` must be ``"predictive"``; its grid, forgetting factor and shared
@@ -184,7 +188,7 @@ class MonteCarloPlanner:
 
     def __init__(
         self,
-        model: HGPDM,
+        model: GPDM,
         belief_filter: OnlineIntentionFilter,
         q: LinearQ,
         features: Callable[[torch.Tensor], torch.Tensor],
@@ -195,8 +199,8 @@ class MonteCarloPlanner:
         chunk_size: int = 100,
         sampling: str = "moments",
     ) -> None:
-        if not isinstance(model, HGPDM):
-            raise TypeError(f"model must be an IDDM/HGPDM, got {type(model).__name__}")
+        if not isinstance(model, GPDM):
+            raise TypeError(f"model must be a GPDM/HGPDM/IDDM, got {type(model).__name__}")
         _check_filter(belief_filter)
         if belief_filter.mu0.shape[0] != model.latent_dim or belief_filter.obs_dim != model.obs_dim:
             raise ValueError(

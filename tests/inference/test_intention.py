@@ -15,6 +15,7 @@ from hgpdm_torch.datasets import styled_movements, targeted_movements
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.inference.filtering import filter_sequence, gp_adf_update, smooth
 from hgpdm_torch.inference.intention import (
+    GenericTransition,
     IntentionBelief,
     LinearMeasurement,
     OnlineIntentionFilter,
@@ -104,12 +105,15 @@ def test_shared_transition_equals_predict_gaussian(kind, generator):
 
 
 def test_shared_transition_needs_the_iddm_kernel(generator):
+    """The fast path refuses the H-GPDM's kernel (linear terms); the filter then takes the
+    generic path unless told to take the shared one."""
     data = targeted_movements(4, 6, 4, seed=0)
     model = HGPDM(data.sequences, data.labels, 2, intention="continuous")
     with pytest.raises(TypeError, match="IDDM transition kernel"):
         SharedTransition(model.transition_posterior(), GRID[:, None])
     with pytest.raises(TypeError, match="IDDM transition kernel"):
-        OnlineIntentionFilter(model, GRID)
+        OnlineIntentionFilter(model, GRID, transition="shared")
+    assert isinstance(OnlineIntentionFilter(model, GRID).transition, GenericTransition)
 
 
 def test_linear_measurement_equals_gp_adf_update(continuous_model, generator):
@@ -283,7 +287,7 @@ def test_one_intention_reduces_to_gp_adf(continuous_model, options):
 
 def test_bound_step_smooths_one_step_like_gp_rtss(continuous_model, monkeypatch):
     """The q(x_{t-1}, x_t) that scores Q_{t-1} is GP-RTSS of z_{1:t} one step back."""
-    import hgpdm_torch.inference.intention as mod
+    import hgpdm_torch.inference.intention.online as mod
 
     model = continuous_model
     z = model.sequences()[1][:4]

@@ -1,0 +1,138 @@
+"""The intention grid and the belief over it: set-up shared by batch and online inference.
+
+Both algorithms score K values of the intention ``g`` (:func:`intention_grid`: the codes of a
+discrete g, or a grid over a continuous one; a plain :class:`~hgpdm_torch.models.GPDM` has no g
+and is one value) and report an :class:`IntentionBelief` over them.
+
+Shapes: ``K`` intention values, ``Dg`` intention dims, ``Dz`` observed dims.
+"""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from ...gaussian import mixture_moments
+from ...models import GPDM, HGPDM
+from ...validation import as_tensor
+from ..calibration import credible_set
+from ..filtering import _as_observations
+
+__all__ = ["IntentionBelief", "intention_grid"]
+
+
+@dataclass
+class IntentionBelief:
+    """A posterior over K intention values.
+
+    Attributes:
+        prob: ``[..., K]`` posterior probabilities.
+        log_prob: ``[..., K]`` their logs (normalised).
+        values: ``[K, Dg]`` the intention values (codes for a discrete g).
+        mean: ``[..., Dg]`` posterior mean of a continuous g (``None`` for a discrete g).
+        std: ``[..., Dg]`` posterior standard deviation of a continuous g (or ``None``).
+        rejected: (:meth:`OnlineIntentionFilter.update` only, else ``None``) ``[B]`` bool
+            (``[]`` for one ``[Dz]`` observation): the stream's observation of this update was
+            bad (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`) and was treated as
+            missing.
+        reset_streams: (:meth:`OnlineIntentionFilter.update` only) ``[B]`` bool: the stream
+            failed numerically in this update (or held a non-finite state) and was restarted
+            at the prior.
+    """
+
+    prob: torch.Tensor
+    log_prob: torch.Tensor
+    values: torch.Tensor
+    mean: torch.Tensor | None = None
+    std: torch.Tensor | None = None
+    rejected: torch.Tensor | None = None
+    reset_streams: torch.Tensor | None = None
+
+    @classmethod
+    def from_log(
+        cls, log_weights: torch.Tensor, values: torch.Tensor, continuous: bool
+    ) -> IntentionBelief:
+        """Normalise unnormalised log weights ``[..., K]`` over ``values [K, Dg]``."""
+        log_prob = log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
+        prob = log_prob.exp()
+        if not continuous:
+            return cls(prob, log_prob, values)
+        # centred second moment: E[g^2] - E[g]^2 would cancel for a grid far from 0
+        mean, cov = mixture_moments(prob, values)
+        return cls(prob, log_prob, values, mean, cov.diagonal(dim1=-2, dim2=-1).sqrt())
+
+    def credible_set(self, level: float = 0.9) -> torch.Tensor:
+        """``[..., K]`` mask of the smallest set of values holding at least ``level`` mass."""
+        return credible_set(self.prob, level)
+
+
+def intention_grid(model: GPDM, intentions: Any = None, num: int = 25) -> torch.Tensor:
+    """The K intention values to score, ``[K, Dg]`` (codes ``[K, 1]`` for a discrete g).
+
+    Args:
+        model: a fitted :class:`~hgpdm_torch.models.HGPDM` / ``IDDM``, or a plain
+            :class:`~hgpdm_torch.models.GPDM`: no g, one value (``[1, 0]``, ``intentions=None``).
+        intentions: ``[K]`` or ``[K, Dg]`` values (continuous g) or integer codes (discrete g);
+            default: all codes, or ``num`` evenly spaced values over the training range
+            (``Dg = 1`` only).
+        num: default grid size for a continuous g.
+    """
+    if not isinstance(model, GPDM):
+        raise TypeError(f"model must be a GPDM/HGPDM/IDDM, got {type(model).__name__}")
+    dtype, device = model.latent.dtype, model.latent.device
+    if not isinstance(model, HGPDM):  # no exogenous variable: one value, no columns
+        if intentions is not None:
+            raise ValueError("a GPDM has no intention g: pass intentions=None (K = 1)")
+        return torch.zeros(1, 0, dtype=dtype, device=device)
+    if intentions is None:
+        if model.intention == "discrete":
+            return torch.arange(model.num_values, dtype=dtype, device=device)[:, None]
+        if model.intention_dim != 1:
+            raise ValueError("a multi-dimensional continuous g needs an explicit intentions grid")
+        g = model.intentions[:, 0]
+        grid = torch.linspace(float(g.min()), float(g.max()), int(num), dtype=dtype, device=device)
+        return grid[:, None]
+    values = as_tensor(intentions, "intentions", dtype=dtype, device=device)
+    if values.dim() == 1:
+        values = values[:, None]
+    if values.dim() != 2 or values.shape[0] == 0:
+        raise ValueError(
+            f"intentions must be a non-empty [K] or [K, Dg] grid, got {tuple(values.shape)}"
+        )
+    if values.shape[1] != model.intention_dim:
+        raise ValueError(
+            f"intentions must have Dg = {model.intention_dim} columns, got {values.shape[1]}"
+        )
+    if model.intention == "discrete":
+        codes = values[:, 0]
+        if bool((codes != codes.round()).any()) or bool(
+            ((codes < 0) | (codes >= model.num_values)).any()
+        ):
+            raise ValueError(
+                f"discrete intentions must be integer codes in [0, {model.num_values - 1}]"
+            )
+    return values
+
+
+def _check_observations(z: Any, dz: int, min_ndim: int) -> torch.Tensor:
+    """``z [..., Dz]`` as a floating tensor in its own precision (bad rows are kept: the caller
+    classifies them with an :class:`~hgpdm_torch.inference.filtering.ObservationCheck`)."""
+    z = _as_observations(z, min_ndim=min_ndim)
+    if z.shape[-1] != dz:
+        raise ValueError(f"z must have Dz = {dz} columns (the model's), got {z.shape[-1]}")
+    return z
+
+
+def _check_chunk_size(chunk_size: Any) -> int | None:
+    if chunk_size is None:
+        return None
+    if (
+        isinstance(chunk_size, bool)
+        or not isinstance(chunk_size, numbers.Integral)
+        or int(chunk_size) < 1
+    ):
+        raise ValueError(f"chunk_size must be a positive int or None, got {chunk_size!r}")
+    return int(chunk_size)

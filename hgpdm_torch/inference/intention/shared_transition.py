@@ -1,0 +1,265 @@
+r"""Moment matching of the IDDM transition for K intentions sharing one input Gaussian.
+
+The transition kernel of the IDDM is ``alpha_1 exp(-alpha_2/2 |x - x'|^2) phi(g, g')`` (``phi``
+an RBF in g, or ``delta`` for a discrete g). The online input ``q(x_{t-1})`` is shared by all K
+intentions, so the ``N x N`` expectation ``psi2`` over ``x`` is computed once per stream and
+step; and as ``g`` is constant within a training sequence, the N training points form U groups
+of equal ``g``. All K second moments and traces then follow from ``U x U`` group sums of
+``psi2``: ``beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv (beta_u^T psi2_uv beta_v)``, with no
+``N x N`` work per intention (DESIGN.md sec. 8). :class:`SharedTransition` does this, optionally
+on M < N pseudo-inputs (Sec. 3.3.3). Other kernels take the generic path of
+:mod:`~hgpdm_torch.inference.intention.transition`.
+
+Shapes: ``B`` streams, ``K`` intention values, ``Dx`` latent, ``Dg`` intention dims, ``N``
+transition training points, ``M`` pseudo-inputs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from sklearn.cluster import KMeans
+
+from ...expectations import Leaf, Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
+from ...gp import GPPosterior
+from ...linalg import psd_cholesky, symmetrize
+
+__all__ = ["SharedTransition"]
+
+
+def _dtc(posterior: GPPosterior, Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """DTC weights ``[M, Dout]`` and variance matrix ``[M, M]`` on the pseudo-inputs ``Z``."""
+    X, Y, noise = posterior.train_inputs, posterior.train_targets, posterior.noise
+    if noise.dim() or posterior.code_noise is not None:
+        raise ValueError(
+            "inducing (the sparse DTC transition GP) needs one shared process noise; this model "
+            "has a noise per intention value (noise_per_value=True): use inducing=None"
+        )
+    with torch.no_grad():
+        Kmm = posterior.kernel(Z).to_dense()
+        Kmn = posterior.kernel(Z, X).to_dense()
+    Lm = psd_cholesky(Kmm, name="inducing kernel matrix K_MM")
+    LA = psd_cholesky(noise * Kmm + Kmn @ Kmn.T, name="DTC matrix noise K_MM + K_MN K_NM")
+    weights = torch.cholesky_solve(Kmn @ Y, LA)
+    kinv = symmetrize(torch.cholesky_inverse(Lm) - noise * torch.cholesky_inverse(LA))
+    return weights, kinv
+
+
+def _pseudo_inputs(
+    X: torch.Tensor, dx: int, m: int, num_values: int | None, discrete: bool
+) -> torch.Tensor:
+    """M pseudo-inputs ``[<= M, Dx + Dg]`` for the sparse transition GP (Sec. 3.3.3).
+
+    The cost per step grows with the number of distinct intention values among the pseudo-inputs
+    (the groups of :class:`SharedTransition`), so they share ``num_values`` values: the training
+    intentions' K-means centres, weighted by their number of points (default
+    ``round(sqrt(M))``; the training values themselves when ``M >= N``, which gives the exact GP;
+    a discrete g always keeps its codes). Each value gets ``floor(M / values)`` (at least one)
+    training latents of its cluster, evenly spread over the cluster's points (all of them when
+    it has fewer), so there are at most M unless M is below the number of discrete codes.
+    """
+    uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
+    u = len(uniq)
+    if num_values is None:
+        num_values = max(1, round(math.sqrt(m))) if m < X.shape[0] else u
+    if discrete or num_values >= u:
+        centres, cluster = uniq, group
+    else:
+        counts = torch.bincount(group, minlength=u).double().cpu().numpy()
+        km = KMeans(n_clusters=num_values, n_init=4, random_state=0)
+        km.fit(uniq.double().cpu().numpy(), sample_weight=counts)
+        centres = torch.as_tensor(km.cluster_centers_, dtype=X.dtype, device=X.device)
+        cluster = torch.as_tensor(km.labels_, dtype=torch.long, device=X.device)[group]
+    # the same number of points per value: groups are padded to the largest one
+    per = max(1, m // len(centres))
+    keep = []
+    for c in range(len(centres)):
+        members = torch.nonzero(cluster == c).flatten()
+        pick = torch.linspace(0, len(members) - 1, min(per, len(members)), device=X.device)
+        pick = pick.round().long()
+        keep.append(members[pick])
+    keep = torch.cat(keep)
+    return torch.cat([X[keep, :dx], centres[cluster[keep]]], 1)
+
+
+def _group_terms(
+    leaves: list[Leaf], X: torch.Tensor, values: torch.Tensor, dx: int
+) -> tuple[torch.Tensor, torch.Tensor, list[Term]]:
+    """The distinct ``g`` of the inputs ``X [N, Dx + Dg]`` (``[U, Dg]``), each point's group
+    ``[N]``, and the kernel's terms split at them (factors ``[K, U]`` for the grid ``values``)."""
+    uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
+    terms = split_terms(leaves, torch.cat([uniq.new_zeros(len(uniq), dx), uniq], 1), values, dx)
+    return uniq, group, terms
+
+
+def _tensor_product(terms: list[Term]) -> bool:
+    """Whether the kernel is one RBF over ``x`` times a factor of ``g`` (the IDDM form)."""
+    return len(terms) == 1 and terms[0].kind == "rbf" and terms[0].factor is not None
+
+
+class SharedTransition:
+    r"""Moment matching of the IDDM transition GP at one input Gaussian for all K intentions.
+
+    For ``x ~ N(mu, Sigma)`` and each grid value ``g_k`` this gives exactly what
+    :meth:`GPPosterior.predict_gaussian` gives for ``[x, g_k]`` with ``include_noise=True`` (mean,
+    covariance and ``Cov[x, f]``, Eq. 29-31 and ``Q^x``), organised for speed:
+
+    - the kernel must be one RBF term over ``x`` times a factor of ``g`` (the IDDM tensor product
+      ``iddm_continuous`` or the block kernel ``iddm_discrete``); the ``x`` expectations
+      ``psi1, E[grad k], psi2`` come from :mod:`hgpdm_torch.expectations`;
+    - the training points are grouped by their ``g`` (U groups; padded to a common size L, with
+      zero weights on the padding), and ``phi [K, U]`` holds the ``g`` factor of grid value k
+      and group u. The second moments contract ``psi2`` with each group's weights, then with
+      ``phi``: ``O(N^2 Dx + K U N Dx)`` per stream instead of ``O(K N^2 Dx)``.
+
+    With ``inducing = M`` the GP is replaced by its sparse pseudo-input approximation (thesis
+    Sec. 3.3.3; the deterministic training conditional, DTC): with ``A = noise K_MM + K_MN K_NM``
+    the mean weights become ``A^-1 K_MN Y`` and ``K^-1`` in the variance becomes
+    ``K_MM^-1 - noise A^-1``. The M pseudo-inputs are training latents paired with
+    ``inducing_values`` intention values (K-means centres of the training g; all codes of a
+    discrete g), so the U groups above become ``inducing_values`` groups: the work per step falls
+    from ``O(N^2 Dx + K U N Dx)`` to ``O(M^2 Dx + K inducing_values M Dx)``.
+
+    Args:
+        posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``).
+        values: ``[K, Dg]`` intention grid (or codes).
+        dtype: computation dtype (the posterior's weights and ``K^-1`` are cast from it).
+        inducing: number of pseudo-inputs M (``None``: the exact GP).
+        inducing_values: number of distinct intention values among the pseudo-inputs for a
+            continuous g, at most M (default ``round(sqrt(M))``, or all training values when
+            ``M >= N``).
+    """
+
+    def __init__(
+        self,
+        posterior: GPPosterior,
+        values: torch.Tensor,
+        dtype: torch.dtype | None = None,
+        *,
+        inducing: int | None = None,
+        inducing_values: int | None = None,
+    ) -> None:
+        dtype = dtype or posterior.train_inputs.dtype
+        X = posterior.train_inputs
+        dx = X.shape[1] - values.shape[1]
+        leaves = kernel_leaves(posterior.kernel, X.shape[1])
+        weights, kinv = posterior.weights, posterior.kinv
+        if inducing is not None:
+            if isinstance(inducing, bool) or not isinstance(inducing, int) or inducing < 1:
+                raise ValueError(f"inducing must be a positive int or None, got {inducing!r}")
+            if inducing_values is not None and (
+                isinstance(inducing_values, bool)
+                or not isinstance(inducing_values, int)
+                or inducing_values < 1
+            ):
+                raise ValueError(
+                    f"inducing_values must be a positive int or None, got {inducing_values!r}"
+                )
+            if inducing_values is not None and inducing_values > inducing:
+                raise ValueError(
+                    f"inducing_values ({inducing_values}) cannot exceed inducing ({inducing}): "
+                    "each intention value needs at least one pseudo-input"
+                )
+            discrete = any(leaf.codes for leaf in leaves)
+            X = _pseudo_inputs(X, dx, inducing, inducing_values, discrete)
+            weights, kinv = _dtc(posterior, X)
+        elif inducing_values is not None:
+            raise ValueError("inducing_values needs inducing (the number of pseudo-inputs)")
+        uniq, group, terms = _group_terms(leaves, X, values, dx)
+        if not _tensor_product(terms):
+            raise TypeError(
+                "SharedTransition needs the IDDM transition kernel (one RBF over x times a factor "
+                "of g: 'iddm_continuous' or 'iddm_discrete' without sharing); got a kernel with "
+                f"{[t.kind for t in terms]} terms"
+            )
+        (term,) = terms
+        n, u_count = X.shape[0], len(uniq)
+        counts = torch.bincount(group, minlength=u_count)
+        size = int(counts.max())
+        order = torch.argsort(group, stable=True)
+        starts = torch.cumsum(counts, 0) - counts
+        rank = torch.arange(n, device=X.device) - starts[group[order]]
+        pad = torch.full((u_count, size), n, dtype=torch.long, device=X.device)
+        pad[group[order], rank] = order
+        flat = pad.reshape(-1)
+        real = flat < n
+        Xx = torch.cat([X[:, :dx], X.new_zeros(1, dx)])
+        beta = torch.cat([weights, weights.new_zeros(1, dx)])
+        kinv = torch.nn.functional.pad(kinv, (0, 1, 0, 1))
+        self.values = values.to(dtype)
+        self.dx, self.groups, self.group_size = dx, u_count, size
+        self.inputs = Xx[flat].to(dtype)  # [U L, Dx]
+        self.beta = beta[pad].to(dtype)  # [U, L, Dx]
+        self.kinv = kinv[flat[:, None], flat[None, :]].to(dtype)  # [U L, U L]
+        self.real = real
+        self.phi = term.factor.to(dtype)  # [K, U]
+        # phi_k(u_n) beta_n for every grid value k and padded point n: [K, U L, Dx]
+        self.weighted_beta = (self.phi[:, :, None, None] * self.beta).reshape(len(values), -1, dx)
+        self.term = Term("rbf", term.coef.detach().to(dtype), term.weight.detach().to(dtype), None)
+        self.coef = self.term.coef
+        if posterior.code_noise is not None:  # alpha_4,k of each intention value: [K]
+            self.noise = posterior.code_noise[values[:, -1].round().long()].to(dtype)
+        elif posterior.noise.dim():
+            raise ValueError(
+                "SharedTransition needs a scalar process noise or one per intention code "
+                "(GPPosterior code_noise), got a noise per training point only"
+            )
+        else:
+            self.noise = posterior.noise.to(dtype)
+
+    @property
+    def num_values(self) -> int:
+        """K."""
+        return self.phi.shape[0]
+
+    @staticmethod
+    def supports(posterior: GPPosterior, values: torch.Tensor) -> bool:
+        """Whether the kernel of ``posterior`` has the form this class needs (one RBF term over
+        ``x`` times a factor of ``g``: ``iddm_continuous``, or ``iddm_discrete`` without
+        sharing) for the grid ``values [K, Dg]`` (``Dg >= 1``).
+
+        Raises:
+            TypeError: a kernel that :mod:`hgpdm_torch.expectations` does not support at all.
+        """
+        if values.shape[-1] == 0:  # no g: nothing to share between intentions
+            return False
+        X = posterior.train_inputs
+        dx = X.shape[1] - values.shape[1]
+        leaves = kernel_leaves(posterior.kernel, X.shape[1])
+        return _tensor_product(_group_terms(leaves, X, values, dx)[2])
+
+    def moments(
+        self, mu: torch.Tensor, Sigma: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``
+        (``noise``: alpha_4, or the ``alpha_4,k`` of value k with a per-value process noise).
+
+        Args:
+            mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
+
+        Returns:
+            ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
+        """
+        b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
+        p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
+        q = term_psi2(self.term, self.term, mu, Sigma, self.inputs)  # [B, UL, UL]
+        phi, beta = self.phi, self.beta
+        m_u = torch.einsum("bul,ula->bua", p1.view(b, U, L), beta)
+        mean = torch.einsum("ku,bua->bka", phi, m_u)
+        g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
+        cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
+        T = (q * self.kinv).view(b, U, L, U, L).sum(2).sum(-1)  # [B, U, U]; strided sum first
+        trace = ((phi @ T) * phi).sum(-1)
+        # Cov[f] = beta_k^T (psi2 - psi1 psi1^T) beta_k: centring the N x N matrix first keeps
+        # float32 usable (beta is large when the noise is small) and gives the covariance
+        # without the cancellation of second moment minus squared mean.
+        q = torch.baddbmm(q, p1[:, :, None], p1[:, None, :], alpha=-1.0)
+        # sum_uv phi_ku phi_kv beta_u^T q_uv beta_v: contract each group's weights
+        # (block-sparse, O(N^2 Dx)), then phi over groups, then the rows
+        P1 = beta.transpose(1, 2) @ q.view(b, U, L, U * L)  # [B, U, Dx, UL]
+        P2 = (phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
+        cov = P2 @ self.weighted_beta  # [B, K, Dx, Dx]
+        var = (self.coef - trace).clamp_min(0.0) + self.noise
+        cov = symmetrize(cov) + torch.diag_embed(var[..., None].expand(b, -1, dx))
+        return mean, cov, cross

@@ -1,0 +1,201 @@
+r"""Transition moments of the online filter: ``x_{t+1} | x_t, g_k`` for all K grid values at
+one Gaussian ``q(x_t)`` per stream (Eq. 29-31 and ``Q^x`` of Sec. 3.3.1).
+
+The online filter (and the Monte-Carlo planner on it) needs, for B input Gaussians
+``x ~ N(mu_b, Sigma_b)`` and each intention value ``g_k``, the mean, covariance and ``Cov[x, x']``
+of ``x' = f(x, g_k) + noise``. Two objects give them with the same interface
+(:class:`TransitionMoments`):
+
+- :class:`~hgpdm_torch.inference.intention.shared_transition.SharedTransition`, the fast path
+  for the IDDM's tensor-product kernel (one ``N x N`` expectation per stream for all K values;
+  optionally sparse);
+- :class:`GenericTransition`, any transition kernel that :mod:`hgpdm_torch.expectations`
+  supports (the H-GPDM's with its linear terms, a discrete kernel with ``sharing > 0``, a user
+  kernel, a plain GPDM's without g): :meth:`GPPosterior.predict_gaussian
+  <hgpdm_torch.gp.GPPosterior.predict_gaussian>` of the model's transition GP at ``[x, g_k]``
+  with ``g_k`` known (zero variance).
+
+:func:`transition_moments` picks one (``transition="auto"``: the fast path where the kernel
+allows it). Both give the same moments where both apply (``tests/inference/
+test_generic_transition.py``: 1e-8 in float64).
+
+Shapes: ``B`` streams, ``K`` intention values, ``Dx`` latent, ``Dg`` intention dims (0 for a
+GPDM), ``N`` transition training points.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import torch
+
+from ... import settings
+from ...gp import GPPosterior
+from ...models import GPDM
+from ...validation import check_choice
+from .shared_transition import SharedTransition
+from .state_prior import _state_prior
+
+__all__ = [
+    "PRECISION_LIMIT",
+    "TRANSITIONS",
+    "GenericTransition",
+    "TransitionMoments",
+    "transition_moments",
+]
+
+#: The choices of :func:`transition_moments` (``OnlineIntentionFilter(transition=...)``).
+TRANSITIONS = ("auto", "shared", "generic")
+
+
+class TransitionMoments(Protocol):
+    """What the online filter needs of its transition (``SharedTransition``,
+    :class:`GenericTransition`).
+
+    Attributes:
+        values: ``[K, Dg]`` the intention grid, in the computation dtype.
+        inputs: ``[N', Dx(+Dg)]`` training (or pseudo-) inputs in the computation dtype; their
+            number sets the filter's default chunk size.
+    """
+
+    values: torch.Tensor
+    inputs: torch.Tensor
+
+    @property
+    def num_values(self) -> int: ...
+
+    def moments(
+        self, mu: torch.Tensor, Sigma: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+
+class GenericTransition:
+    r"""Transition moments for every K grid value by moment matching of the transition GP.
+
+    For ``x ~ N(mu, Sigma)`` and each grid value ``g_k`` this is
+    :meth:`GPPosterior.predict_gaussian <hgpdm_torch.gp.GPPosterior.predict_gaussian>` at the
+    input ``[x, g_k]`` with ``g_k`` known (zero variance) and ``include_noise=True``, called once
+    for all streams and values (``mu [B, 1, Dx]`` against ``g [1, K, Dg]``, so the ``x`` part of
+    every kernel term is shared by the K values, and a discrete g touches only its own training
+    points). Any kernel that :mod:`hgpdm_torch.expectations` supports works: the H-GPDM's RBF
+    plus linear terms, the discrete kernel with ``sharing > 0``, a user's. A plain GPDM has no
+    g (``values [1, 0]``): K = 1, and the filter is GP-ADF.
+
+    Args:
+        posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``).
+        values: ``[K, Dg]`` intention grid or codes (``[1, 0]`` for a model without g).
+        dtype: computation dtype (default the posterior's; another one refactorises the GP in it).
+    """
+
+    def __init__(
+        self, posterior: GPPosterior, values: torch.Tensor, dtype: torch.dtype | None = None
+    ) -> None:
+        dtype = dtype or posterior.train_inputs.dtype
+        dg = values.shape[-1]
+        if posterior.input_dim - dg != posterior.output_dim:
+            raise ValueError(
+                f"the transition GP maps [x, g] (Dx + Dg = {posterior.input_dim}) to x "
+                f"(Dx = {posterior.output_dim}); the grid has Dg = {dg} columns"
+            )
+        self.posterior = posterior.to_dtype(dtype)
+        self.values = values.to(dtype)
+        self.inputs = self.posterior.train_inputs
+        self._g = self.values[None] if dg else None  # [1, K, Dg]
+
+    @property
+    def num_values(self) -> int:
+        """K."""
+        return self.values.shape[0]
+
+    def moments(
+        self, mu: torch.Tensor, Sigma: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``.
+
+        Args:
+            mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
+
+        Returns:
+            ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
+        """
+        with settings.internal_step():  # the caller's own Gaussians
+            if self._g is None:  # no g: one value
+                mean, cov, cross = self.posterior.predict_gaussian(mu, Sigma, include_noise=True)
+                return mean[:, None], cov[:, None], cross[:, None]
+            return self.posterior.predict_gaussian(
+                mu[:, None], Sigma[:, None], g=self._g, include_noise=True
+            )
+
+
+def transition_moments(
+    posterior: GPPosterior,
+    values: torch.Tensor,
+    dtype: torch.dtype | None = None,
+    *,
+    transition: str = "auto",
+    inducing: int | None = None,
+    inducing_values: int | None = None,
+) -> TransitionMoments:
+    """The transition moments object for this GP and grid.
+
+    Args:
+        posterior: the transition GP (``model.transition_posterior()``).
+        values: ``[K, Dg]`` intention grid (``[1, 0]`` without g).
+        dtype: computation dtype.
+        transition: ``"shared"`` (:class:`SharedTransition`; ``TypeError`` unless the kernel
+            is the IDDM's), ``"generic"`` (:class:`GenericTransition`), or ``"auto"``: shared
+            where :meth:`SharedTransition.supports` the kernel, else generic.
+        inducing: pseudo-inputs of the sparse GP of :class:`SharedTransition` (shared path
+            only; ``ValueError`` on the generic one).
+        inducing_values: its distinct intention values (likewise).
+    """
+    check_choice(transition, "transition", TRANSITIONS)
+    if transition == "auto":
+        shared = SharedTransition.supports(posterior, values)
+        transition = "shared" if shared else "generic"
+    if transition == "shared":
+        return SharedTransition(
+            posterior, values, dtype, inducing=inducing, inducing_values=inducing_values
+        )
+    if inducing is not None or inducing_values is not None:
+        raise ValueError(
+            "inducing (the sparse DTC transition GP) needs the IDDM transition kernel "
+            "(transition='shared'); this transition takes the generic path: use inducing=None"
+        )
+    return GenericTransition(posterior, values, dtype)
+
+
+#: Largest rounding error of the transition moments in a filter's dtype, relative to the
+#: predictive spread, that :class:`OnlineIntentionFilter` accepts for a dtype other than its
+#: model's. Measured in float32: 0.03-1.2 on models whose float32 beliefs stay within 0.05 of
+#: float64 without a failed stream, ~1.4e3 with alpha-bar (alpha_4 = 1e-4), whose streams fail
+#: within a few updates. The check catches that breakdown; it does not promise 0.02.
+PRECISION_LIMIT = 10.0
+
+
+def _check_precision(model: GPDM, reference: TransitionMoments, low: TransitionMoments) -> None:
+    """Refuse ``low``'s dtype where its transition moments at 8 training latents, with the
+    latents' covariance scaled by 1, 1e-2 and 1e-4, differ from ``reference``'s by more than
+    :data:`PRECISION_LIMIT` times the smallest predictive standard deviation (means) or
+    variance (covariances)."""
+    x = model.latent.detach().to(reference.inputs.dtype)
+    idx = torch.linspace(0, x.shape[0] - 1, min(8, x.shape[0]), device=x.device).round().long()
+    _, spread = _state_prior(model, None, None, x.dtype)  # the training latents' covariance
+    worst = 0.0
+    for scale in (1.0, 1e-2, 1e-4):
+        mu, P = x[idx], (scale * spread).expand(len(idx), -1, -1)
+        m_ref, c_ref, _ = reference.moments(mu, P)
+        m_low, c_low, _ = low.moments(mu.to(low.inputs.dtype), P.to(low.inputs.dtype))
+        var = torch.linalg.eigvalsh(c_ref)[..., 0].clamp_min(torch.finfo(c_ref.dtype).tiny)
+        err_c = (c_low.to(c_ref.dtype) - c_ref).abs().amax((-1, -2)) / var
+        err_m = (m_low.to(m_ref.dtype) - m_ref).abs().amax(-1) / var.sqrt()
+        worst = max(worst, float(err_c.max()), float(err_m.max()))
+    if not worst <= PRECISION_LIMIT:
+        name = str(low.inputs.dtype).removeprefix("torch.")
+        raise ValueError(
+            f"dtype={name} is not accurate enough for this model: its rounding error in the "
+            f"transition moments is {worst:.3g} times the predictive spread (limit "
+            f"{PRECISION_LIMIT}), because the weights (K + alpha_4 I)^-1 are too large for its "
+            f"digits (process noise alpha_4 = {float(model.transition_noise):.3g}); use the "
+            "model's dtype, or a model with a larger alpha_4"
+        )

@@ -1,0 +1,246 @@
+"""The online filter on every model the toolkit fits: the generic transition moments
+(:class:`GenericTransition`, moment matching of the transition GP at ``[x, g_k]``) against the
+IDDM fast path (:class:`SharedTransition`) where both apply, Monte Carlo of the GP at points for
+the H-GPDM's kernels, GP-ADF (:func:`filter_sequence`) for a plain GPDM (K = 1), and the
+Monte-Carlo planner on an H-GPDM against the filter it replays."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hgpdm_torch.datasets import styled_movements, targeted_movements
+from hgpdm_torch.decision.lspi import LinearQ
+from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
+from hgpdm_torch.inference.filtering import filter_sequence
+from hgpdm_torch.inference.intention import (
+    GenericTransition,
+    OnlineIntentionFilter,
+    SharedTransition,
+    intention_grid,
+)
+from hgpdm_torch.models import GPDM, HGPDM, IDDM
+
+GRID = torch.linspace(-0.9, 0.9, 7)
+ALPHA = (0.9, 0.3, 0.1, 1e-3)
+
+
+@pytest.fixture(scope="module")
+def targets():
+    return targeted_movements(12, 10, 5, noise=0.02, seed=3)
+
+
+@pytest.fixture(scope="module")
+def styles():
+    return styled_movements(3, 4, 12, 5, noise=0.02, seed=1)
+
+
+def _fitted(model, steps=15):
+    model.fit(steps, warn=False)
+    return model
+
+
+@pytest.fixture(scope="module")
+def iddm_continuous(continuous_iddm) -> IDDM:
+    return continuous_iddm
+
+
+@pytest.fixture(scope="module")
+def iddm_discrete(styles) -> IDDM:
+    return _fitted(
+        IDDM(styles.sequences, styles.labels, 2, intention="discrete", measurement="linear",
+             alpha=ALPHA)
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def hgpdm_continuous(targets) -> HGPDM:
+    return _fitted(HGPDM(targets.sequences, targets.labels, 2, intention="continuous", alpha=ALPHA))
+
+
+@pytest.fixture(scope="module")
+def hgpdm_discrete(styles) -> HGPDM:
+    """Discrete g with ``sharing > 0``: a shared RBF + linear kernel plus a per-value one."""
+    return _fitted(
+        HGPDM(styles.sequences, styles.labels, 2, intention="discrete", sharing=0.3,
+              measurement="linear", alpha=ALPHA)
+    )  # fmt: skip
+
+
+def _grid(model):
+    return GRID if model.intention == "continuous" else None
+
+
+def _stream_data(model, streams=3, steps=6):
+    """``[streams, steps, Dz]`` training observations with a missing row."""
+    z = torch.stack([s[:steps] for s in model.sequences()[:streams]])
+    z[-1, 2] = float("nan")
+    return z
+
+
+def _run(f, z):
+    """Beliefs and ``q(x)`` of every step: ``[T, B, K]``, ``[T, B, Dx]``, ``[T, B, Dx, Dx]``."""
+    logs, means, covs = [], [], []
+    for t in range(z.shape[1]):
+        logs.append(f.update(z[:, t]).log_prob)
+        means.append(f.mean.clone())
+        covs.append(f.cov.clone())
+    return torch.stack(logs), torch.stack(means), torch.stack(covs)
+
+
+# ----- generic == shared where both apply ---------------------------------------------------
+
+
+@pytest.mark.parametrize("which", ["iddm_continuous", "iddm_discrete"])
+def test_generic_moments_equal_shared_ones(which, request, generator):
+    model = request.getfixturevalue(which)
+    post, values = model.transition_posterior(), intention_grid(model, _grid(model))
+    assert SharedTransition.supports(post, values)
+    dx = model.latent_dim
+    mu = model.latent[:4].detach() + 0.1 * torch.randn(4, dx, generator=generator)
+    A = torch.randn(4, dx, dx, generator=generator)
+    Sigma = 0.05 * A @ A.mT + 1e-4 * torch.eye(dx)
+    fast = SharedTransition(post, values).moments(mu, Sigma)
+    generic = GenericTransition(post, values).moments(mu, Sigma)
+    for a, b in zip(generic, fast, strict=True):
+        assert a.shape == b.shape == (4, len(values), dx, *a.shape[3:])
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("which", ["iddm_continuous", "iddm_discrete"])
+@pytest.mark.parametrize("evidence", ["predictive", "bound"])
+def test_generic_filter_equals_shared_filter(which, evidence, request):
+    """Several steps, three streams (one with a missing observation): beliefs and q(x)."""
+    model = request.getfixturevalue(which)
+    z = _stream_data(model)
+    out = {}
+    for path in ("shared", "generic"):
+        f = OnlineIntentionFilter(
+            model, _grid(model), forgetting=0.1, batch_size=3, evidence=evidence, transition=path
+        )
+        kind = {"shared": SharedTransition, "generic": GenericTransition}[path]
+        assert type(f.transition) is kind
+        out[path] = _run(f, z)
+    auto = OnlineIntentionFilter(model, _grid(model), batch_size=3, evidence=evidence)
+    assert isinstance(auto.transition, SharedTransition)  # the fast path where it applies
+    (log_g, mean_g, cov_g), (log_s, mean_s, cov_s) = out["generic"], out["shared"]
+    # beliefs as probabilities: the over-confident bound evidence drives log beliefs of
+    # unlikely values to -1e4, where equal moments still differ by a relative 1e-7
+    torch.testing.assert_close(log_g.exp(), log_s.exp(), rtol=0.0, atol=1e-8)
+    torch.testing.assert_close(mean_g, mean_s, rtol=1e-8, atol=1e-8)
+    torch.testing.assert_close(cov_g, cov_s, rtol=1e-8, atol=1e-8)
+    K = log_s.shape[-1]
+    assert float(log_s[-1].exp().max()) > 1.0 / K + 0.05  # the belief moved from the prior
+
+
+# ----- H-GPDM kernels: the generic path against the GP at points ------------------------------
+
+
+@pytest.mark.parametrize("which", ["hgpdm_continuous", "hgpdm_discrete"])
+def test_hgpdm_first_step_moments_match_monte_carlo(which, request, generator):
+    """The predictive moments of the first step equal (a) ``GPPosterior.predict_gaussian`` value
+    by value and (b) a dense Monte Carlo of the GP predictive at points (law of total
+    covariance), within 5 standard errors."""
+    model = request.getfixturevalue(which)
+    z = _stream_data(model, streams=2)
+    f = OnlineIntentionFilter(model, _grid(model), forgetting=0.1, batch_size=2)
+    assert isinstance(f.transition, GenericTransition)
+    f.update(z[:, 0])
+    mu, Sigma = f.mean.clone(), f.cov.clone()
+    mean, cov, cross = f.transition.moments(mu, Sigma)
+    post = model.transition_posterior()
+    for k, g in enumerate(f.values):
+        ref = post.predict_gaussian(mu, Sigma, g=g.expand(2, -1), include_noise=True)
+        for a, b in zip((mean[:, k], cov[:, k], cross[:, k]), ref, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    S = 100_000
+    for b in range(2):
+        x = torch.distributions.MultivariateNormal(mu[b], Sigma[b]).sample((S,))
+        for k in (0, len(f.values) - 1):
+            g = f.values[k].expand(S, -1)
+            m, v = post.predict(torch.cat([x, g], -1), include_noise=True)
+            dm, dxx = m - m.mean(0), x - x.mean(0)
+            second = dm[:, :, None] * dm[:, None, :] + torch.diag_embed(v)  # [S, Dx, Dx]
+            xc = dxx[:, :, None] * dm[:, None, :]
+            for est, samples in ((mean[b, k], m), (cov[b, k], second), (cross[b, k], xc)):
+                se = samples.std(0) / S**0.5
+                err = (samples.mean(0) - est).abs()
+                assert bool((err <= 5 * se + 1e-9).all()), (which, b, k, err.max(), se.max())
+
+
+@pytest.mark.parametrize("which", ["hgpdm_continuous", "hgpdm_discrete"])
+def test_hgpdm_filter_runs_and_learns(which, request):
+    model = request.getfixturevalue(which)
+    z = _stream_data(model)
+    f = OnlineIntentionFilter(model, _grid(model), forgetting=0.0, batch_size=3)
+    logs, means, covs = _run(f, z)
+    assert bool(torch.isfinite(logs).all() & torch.isfinite(means).all())
+    torch.testing.assert_close(logs.exp().sum(-1), torch.ones(logs.shape[:-1]))
+    assert float(logs[-1].exp().max()) < 1.0 or model.intention == "discrete"
+    assert not bool(f.reset_count.any())
+    # the bound evidence runs on the generic path too
+    bound = OnlineIntentionFilter(model, _grid(model), batch_size=3, evidence="bound")
+    assert bool(torch.isfinite(_run(bound, z)[0]).all())
+
+
+def test_generic_path_refuses_inducing_and_unknown_choices(hgpdm_continuous):
+    with pytest.raises(ValueError, match="inducing"):
+        OnlineIntentionFilter(hgpdm_continuous, GRID, inducing=10)
+    with pytest.raises(ValueError, match="transition"):
+        OnlineIntentionFilter(hgpdm_continuous, GRID, transition="fast")
+
+
+# ----- a plain GPDM: one value, GP-ADF ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("measurement", ["rbf", "linear"])
+def test_gpdm_filter_is_gp_adf(targets, measurement):
+    model = _fitted(GPDM(targets.sequences, 2, measurement=measurement, alpha=ALPHA))
+    z = _stream_data(model)
+    f = OnlineIntentionFilter(model, forgetting=0.3, batch_size=3)
+    assert isinstance(f.transition, GenericTransition) and f.values.shape == (1, 0)
+    logs, means, covs = _run(f, z)
+    assert bool((logs == 0).all())  # the belief over one value stays 1
+    fr = filter_sequence(
+        model.transition_posterior(), model.measurement_posterior(), z, f.mu0, f.Sigma0
+    )
+    torch.testing.assert_close(means, fr.mean.transpose(0, 1), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(covs, fr.cov.transpose(0, 1), rtol=1e-10, atol=1e-10)
+    with pytest.raises(ValueError, match="no intention"):
+        OnlineIntentionFilter(model, GRID)
+
+
+# ----- Monte-Carlo planning on an H-GPDM ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("which", ["hgpdm_continuous", "hgpdm_discrete"])
+def test_planner_on_hgpdm_replays_its_filter(which, request, generator):
+    model = request.getfixturevalue(which)
+    z = _stream_data(model, streams=1)
+    f = OnlineIntentionFilter(model, _grid(model), forgetting=0.1)
+    for t in range(3):
+        f.update(z[0, t])
+    belief = Belief.from_filter(f)
+    F = belief.vector().shape[0]
+    q = LinearQ(torch.randn(3, F + 1, generator=generator))
+
+    def features(v):
+        return torch.cat([torch.ones_like(v[..., :1]), v], -1)
+
+    planner = MonteCarloPlanner(model, f, q, features, num_particles=60, chunk_size=20)
+    I = 12
+    zi = z[0, 3] + 0.05 * torch.randn(I, model.obs_dim, generator=generator)
+    mean, cov, log_prob, _ = planner.step(belief, zi)
+    ref = OnlineIntentionFilter(model, _grid(model), forgetting=0.1, batch_size=I)
+    ref.update(torch.zeros(I, model.obs_dim))  # start the streams, then set the belief
+    ref.mean[:], ref.cov[:], ref.log_belief[:] = belief.mean, belief.cov, belief.log_prob
+    out = ref.update(zi)
+    torch.testing.assert_close(log_prob, out.log_prob, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(mean, ref.mean, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(cov, ref.cov, rtol=1e-9, atol=1e-10)
+    for sampling in ("moments", "points"):
+        planner = MonteCarloPlanner(model, f, q, features, num_particles=60, sampling=sampling)
+        r = planner.project(belief, generator=torch.Generator().manual_seed(0))
+        assert r.shape == (60,) and bool(torch.isfinite(r).all())
+        decision = planner.decide(belief, generator=torch.Generator().manual_seed(1))
+        assert decision.action in range(4)
