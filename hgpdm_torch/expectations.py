@@ -19,10 +19,11 @@ a continuous intention that is uncertain and correlated with ``x`` is simply par
 How it is organised (GPflow-style dispatch, on a normal form):
 
 1. :func:`kernel_leaves` dispatches on the gpytorch kernel type (``RBFKernel`` ARD or not,
-   ``LinearKernel``, ``ScaleKernel``, ``AdditiveKernel``, ``active_dims``, and our
-   ``IntentionRBFKernel`` and ``DiscreteIntentionKernel``) and rewrites the kernel as a sum of
-   :class:`Leaf` terms over all input columns: ``coef * exp(-1/2 sum_c w_c (x_c - x'_c)^2)`` or
-   ``coef * sum_c w_c x_c x'_c``, each times Kronecker deltas on code columns.
+   ``LinearKernel``, ``ScaleKernel``, ``AdditiveKernel``, ``ProductKernel``, ``active_dims``,
+   and our ``IntentionRBFKernel`` and ``DiscreteIntentionKernel``) and rewrites the kernel as a
+   sum of :class:`Leaf` terms over all input columns: ``coef * exp(-1/2 sum_c w_c (x_c - x'_c)^2)``
+   or ``coef * sum_c w_c x_c x'_c``, each times Kronecker deltas on code columns and, from a
+   product, times linear factors (``Leaf.factors``).
 2. :func:`split_terms` splits every leaf into a part over the Gaussian columns times a per-training-
    point factor from the known columns (:class:`Term`): e.g. the tensor-product kernel
    ``exp(-|x - x_i|^2/2l_x^2) exp(-|g - g_i|^2/2l_g^2)`` becomes an RBF over ``x`` times the factor
@@ -30,6 +31,16 @@ How it is organised (GPflow-style dispatch, on a normal form):
    (DESIGN sec. 8), and the discrete kernel's delta is a 0/1 factor.
 3. One function per quantity (:func:`term_psi1`, :func:`term_grad`, :func:`term_psi2`) dispatches
    on the term kinds ``"rbf"``, ``"linear"``, ``"const"`` (and pairs of kinds for psi2).
+
+Products (``ProductKernel``) distribute over the sums of their factors' leaves. Two RBF leaves
+multiply into one RBF leaf with the summed precisions,
+``exp(-1/2 sum_c a_c r_c^2) exp(-1/2 sum_c b_c r_c^2) = exp(-1/2 sum_c (a_c + b_c) r_c^2)``, on any
+columns and under any input covariance, so e.g. ``RBF(x) * RBF(g)`` is exactly the ARD RBF over
+``[x, g]`` with per-block length scales (the IDDM tensor product of Sec. 3.2.2). A product with a
+linear leaf keeps the linear part as a factor: it has closed-form expectations when at most one of
+its parts reads Gaussian columns, the others reading known columns only (``g``), where
+``E[k_x(x, X_i) f(g, X_i)] = f(g, X_i) E[k_x(x, X_i)]`` (likewise psi2 with ``f_i f_j`` and the
+gradients); a Gaussian input spanning two such parts raises.
 
 Closed forms (``s = sqrt(w)`` elementwise, ``B = I + diag(s) Sigma diag(s)``, ``d_i = X_i - mu``):
 
@@ -63,7 +74,14 @@ from dataclasses import dataclass, replace
 from functools import singledispatch
 
 import torch
-from gpytorch.kernels import AdditiveKernel, Kernel, LinearKernel, RBFKernel, ScaleKernel
+from gpytorch.kernels import (
+    AdditiveKernel,
+    Kernel,
+    LinearKernel,
+    ProductKernel,
+    RBFKernel,
+    ScaleKernel,
+)
 
 from .kernels import DiscreteIntentionKernel, IntentionRBFKernel
 from .linalg import cholesky_logdet, psd_cholesky
@@ -107,6 +125,10 @@ class Leaf:
             columns the term does not read.
         cols: the columns the term reads (structural, independent of the weight values).
         codes: columns holding discrete codes; the term is multiplied by ``delta(x_c, x'_c)``.
+        factors: linear leaves (unit ``coef``, no codes, no factors) the term is multiplied by,
+            from a ``ProductKernel`` (RBF parts of a product are merged into one RBF leaf, so
+            these are never RBFs). Each part must read known columns only, except at most one
+            part (this leaf or a factor) over the Gaussian columns (:func:`split_terms`).
     """
 
     kind: str
@@ -114,6 +136,11 @@ class Leaf:
     weight: torch.Tensor
     cols: frozenset[int]
     codes: tuple[int, ...] = ()
+    factors: tuple[Leaf, ...] = ()
+
+    def parts(self) -> list[Leaf]:
+        """The leaf without its factors, followed by its factors (whose product it is)."""
+        return [replace(self, factors=()), *self.factors] if self.factors else [self]
 
 
 def kernel_leaves(kernel: Kernel, input_dim: int) -> list[Leaf]:
@@ -171,7 +198,8 @@ def _rbf_leaf(lengthscale: torch.Tensor, cols: list[int], din: int, name: str) -
 def _leaves(kernel: Kernel, cols: list[int], din: int) -> list[Leaf]:
     raise TypeError(
         f"no Gaussian-input expectations for {type(kernel).__name__}; supported: RBFKernel, "
-        "LinearKernel, ScaleKernel, AdditiveKernel, IntentionRBFKernel, DiscreteIntentionKernel"
+        "LinearKernel, ScaleKernel, AdditiveKernel, ProductKernel, IntentionRBFKernel, "
+        "DiscreteIntentionKernel"
     )
 
 
@@ -210,6 +238,31 @@ def _(kernel: ScaleKernel, cols: list[int], din: int) -> list[Leaf]:
 @_leaves.register
 def _(kernel: AdditiveKernel, cols: list[int], din: int) -> list[Leaf]:
     return [leaf for k in kernel.kernels for leaf in _called(k, cols, din)]
+
+
+@_leaves.register
+def _(kernel: ProductKernel, cols: list[int], din: int) -> list[Leaf]:
+    # (sum_a leaf_a)(sum_b leaf_b) = sum_ab leaf_a leaf_b; each factor applies its active_dims
+    out = _called(kernel.kernels[0], cols, din)
+    for factor in kernel.kernels[1:]:
+        out = [_leaf_product(a, b) for a in out for b in _called(factor, cols, din)]
+    return out
+
+
+def _leaf_product(a: Leaf, b: Leaf) -> Leaf:
+    """The product of two leaves as one leaf: every RBF part merged into one RBF (precisions
+    add, exactly), the linear parts kept as unit-coefficient factors of the first part."""
+    parts = [*a.parts(), *b.parts()]
+    rbfs = [p for p in parts if p.kind == "rbf"]
+    linears = [replace(p, coef=torch.ones_like(p.coef), codes=()) for p in parts if p.kind != "rbf"]
+    coef, codes = a.coef * b.coef, (*a.codes, *b.codes)
+    if rbfs:
+        weight = torch.stack([p.weight for p in rbfs]).sum(0)
+        cols = frozenset().union(*(p.cols for p in rbfs))
+        head = Leaf("rbf", coef, weight, cols, codes)
+    else:
+        head = replace(linears.pop(0), coef=coef, codes=codes)
+    return replace(head, factors=tuple(linears))
 
 
 @_leaves.register
@@ -262,10 +315,15 @@ def split_terms(
     Returns:
         Terms with factors of shape ``[..., N]`` (batch of ``g`` and ``train_inputs``).
 
+    A leaf with product factors (:attr:`Leaf.factors`) becomes the terms of its one part over
+    the Gaussian columns (or of its first part when none is), each times the other parts'
+    known-column factors: ``E[k_x(x, X_i) f(g, X_i)] = f(g, X_i) E[k_x(x, X_i)]``.
+
     Raises:
-        ValueError: when a discrete code column lies among the Gaussian columns.
+        ValueError: when a discrete code column lies among the Gaussian columns, or when two
+            parts of a product (a linear factor and another part) both read Gaussian columns
+            (the input covariance couples them; only RBF x RBF products are closed-form there).
     """
-    Xg = train_inputs[..., dim:]
     terms: list[Term] = []
     for leaf in leaves:
         if any(c < dim for c in leaf.codes):
@@ -273,32 +331,81 @@ def split_terms(
                 "a discrete intention code column cannot be Gaussian: pass the code as the known "
                 f"input g (code column {min(leaf.codes)} < Gaussian dim {dim})"
             )
-        factor = None
-        for c in leaf.codes:
-            same = (g[..., c - dim, None] == Xg[..., c - dim]).to(Xg.dtype)
-            factor = same if factor is None else factor * same
-        wx, wg = leaf.weight[:dim], leaf.weight[dim:]
-        on_x, on_g = any(c < dim for c in leaf.cols), any(c >= dim for c in leaf.cols)
-        if leaf.kind == "rbf":
-            if on_g:
-                # exp(-1/2 sum_c w_c (g_c - X_ic)^2) for the known columns
-                f = torch.exp(-0.5 * ((g[..., None, :] - Xg).pow(2) * wg).sum(-1))
-                factor = f if factor is None else factor * f
-            terms.append(Term("rbf" if on_x else "const", leaf.coef, wx, factor))
+        parts = leaf.parts()
+        if len(parts) == 1:
+            terms += _split_leaf(leaf, train_inputs, g, dim)
             continue
-        if on_x:
-            terms.append(Term("linear", leaf.coef, wx, factor))
+        head = _gaussian_part(parts, dim)
+        part_terms = _split_leaf(parts[head], train_inputs, g, dim)
+        for i, part in enumerate(parts):
+            if i != head:  # a part on known columns only: one const term, its factor
+                (known,) = _split_leaf(part, train_inputs, g, dim)
+                part_terms = [
+                    replace(
+                        t,
+                        coef=t.coef * known.coef,
+                        factor=known.factor if t.factor is None else t.factor * known.factor,
+                    )
+                    for t in part_terms
+                ]
+        terms += part_terms
+    return terms
+
+
+def _gaussian_part(parts: Sequence[Leaf], dim: int) -> int:
+    """Index of the one part of a product leaf that reads Gaussian columns (0 if none).
+
+    Raises:
+        ValueError: two parts read Gaussian columns.
+    """
+    on_x = [i for i, p in enumerate(parts) if any(c < dim for c in p.cols)]
+    if len(on_x) > 1:
+        cols = sorted(c for i in on_x for c in parts[i].cols if c < dim)
+        raise ValueError(
+            "no closed-form expectation for a product kernel whose factors (a linear factor and "
+            f"another) both read Gaussian input columns {cols}: the input covariance couples "
+            "them. Only RBF x RBF products are exact there; pass the other factor's columns as "
+            "the known input g"
+        )
+    return on_x[0] if on_x else 0
+
+
+def _split_leaf(
+    leaf: Leaf, train_inputs: torch.Tensor, g: torch.Tensor | None, dim: int
+) -> list[Term]:
+    """The terms of one leaf without product factors (see :func:`split_terms`)."""
+    Xg = train_inputs[..., dim:]
+    factor = None
+    for c in leaf.codes:
+        same = (g[..., c - dim, None] == Xg[..., c - dim]).to(Xg.dtype)
+        factor = same if factor is None else factor * same
+    wx, wg = leaf.weight[:dim], leaf.weight[dim:]
+    on_x, on_g = any(c < dim for c in leaf.cols), any(c >= dim for c in leaf.cols)
+    if leaf.kind == "rbf":
         if on_g:
-            f = (Xg * wg) @ g[..., :, None]
-            f = f.squeeze(-1)
-            terms.append(Term("const", leaf.coef, wx, f if factor is None else factor * f))
+            # exp(-1/2 sum_c w_c (g_c - X_ic)^2) for the known columns
+            f = torch.exp(-0.5 * ((g[..., None, :] - Xg).pow(2) * wg).sum(-1))
+            factor = f if factor is None else factor * f
+        return [Term("rbf" if on_x else "const", leaf.coef, wx, factor)]
+    terms: list[Term] = []
+    if on_x:
+        terms.append(Term("linear", leaf.coef, wx, factor))
+    if on_g:
+        f = (Xg * wg) @ g[..., :, None]
+        f = f.squeeze(-1)
+        terms.append(Term("const", leaf.coef, wx, f if factor is None else factor * f))
     return terms
 
 
 def leaves_psi0(
     leaves: Sequence[Leaf], mu: torch.Tensor, Sigma: torch.Tensor, g: torch.Tensor | None
 ) -> torch.Tensor:
-    """``E[k(x~, x~)]``, ``x~ = [x, g]``, from leaves; only ``diag(Sigma)`` matters. ``[...]``."""
+    """``E[k(x~, x~)]``, ``x~ = [x, g]``, from leaves; only ``diag(Sigma)`` matters. ``[...]``.
+
+    An RBF part is 1 at ``x~ = x~'`` (``delta(g, g) = 1`` for code columns too), a linear part
+    ``sum_c w_c E[x~_c^2]``; the parts of a product multiply (exact as at most one part reads
+    Gaussian columns, :func:`split_terms`).
+    """
     second = Sigma.diagonal(dim1=-2, dim2=-1) + mu.pow(2)  # E[x_c^2]
     if g is not None:
         batch = torch.broadcast_shapes(second.shape[:-1], g.shape[:-1])
@@ -307,10 +414,14 @@ def leaves_psi0(
         )
     out = torch.zeros(second.shape[:-1], dtype=mu.dtype, device=mu.device)
     for leaf in leaves:
-        if leaf.kind == "rbf":
-            out = out + leaf.coef  # delta(g, g) = 1 for code columns too
-        else:
-            out = out + leaf.coef * (second * leaf.weight).sum(-1)
+        parts = leaf.parts()
+        if len(parts) > 1:
+            _gaussian_part(parts, mu.shape[-1])
+        value = leaf.coef
+        for part in parts:
+            if part.kind == "linear":  # callers may have cut the weights to the Gaussian columns
+                value = value * (second * part.weight[: second.shape[-1]]).sum(-1)
+        out = out + value
     return out
 
 
@@ -628,6 +739,10 @@ def psi0_cross(
     leaves = kernel_leaves(kernel, mu1.shape[-1])
     if any(leaf.codes for leaf in leaves):
         raise ValueError("psi0_cross does not support discrete intention kernels")
+    if any(leaf.factors for leaf in leaves):
+        raise ValueError(
+            "psi0_cross does not support products with a linear factor (only RBF x RBF products)"
+        )
     out = 0.0
     for leaf in leaves:
         t = Term(leaf.kind, leaf.coef, leaf.weight, None)

@@ -2,12 +2,16 @@
 
 Inputs of every transition kernel are the concatenation ``[x, g]`` of a latent state
 (``Dx`` columns) and the exogenous variable (``Dg`` columns; for a discrete g one column holding
-the integer code). gpytorch's ``RBFKernel``, ``LinearKernel``, ``ScaleKernel`` and
-``AdditiveKernel`` express most terms; this module adds only what they cannot:
+the integer code). gpytorch's ``RBFKernel``, ``LinearKernel``, ``ScaleKernel``,
+``AdditiveKernel`` and ``ProductKernel`` express most terms. This module adds:
 
 - :class:`IntentionRBFKernel`: ``exp(-a_x/2 ||x - x'||^2 - a_g/2 ||g - g'||^2)``, one width for
   all latent dims and one for all intention dims (Sec. 2.2.1; the IDDM tensor product of Sec.
-  3.2.2 is ``alpha_1`` times this kernel).
+  3.2.2 is ``alpha_1`` times this kernel). :func:`intention_rbf` builds the same kernel as
+  gpytorch's ``RBFKernel(active_dims=x) * RBFKernel(active_dims=g)`` (equal to an ulp, with
+  identical Gaussian-input expectations, and loading this kernel's state dicts);
+  :func:`transition_kernel` still uses the former, whose Gram matrix the saved models' numbers
+  were computed with.
 - :class:`DiscreteIntentionKernel`: ``delta(g, g') k(x, x')`` (Sec. 2.2.1, discrete g).
 
 White-noise terms (``beta_2`` in Eq. 1, ``beta_1`` in Eq. 2, ``alpha_4``) act on training points
@@ -26,7 +30,14 @@ from functools import partial
 import gpytorch
 import torch
 from gpytorch.constraints import Interval, Positive
-from gpytorch.kernels import AdditiveKernel, Kernel, LinearKernel, RBFKernel, ScaleKernel
+from gpytorch.kernels import (
+    AdditiveKernel,
+    Kernel,
+    LinearKernel,
+    ProductKernel,
+    RBFKernel,
+    ScaleKernel,
+)
 from gpytorch.priors import Prior
 
 from .validation import check_choice
@@ -38,6 +49,7 @@ __all__ = [
     "IntentionRBFKernel",
     "MEASUREMENT_KERNELS",
     "TRANSITION_KERNELS",
+    "intention_rbf",
     "measurement_kernel",
     "set_requires_grad",
     "transition_kernel",
@@ -58,6 +70,9 @@ class IntentionRBFKernel(Kernel):
 
     so ``alpha_2^x = l_x^{-2}`` and ``alpha_2^g = l_g^{-2}`` in the thesis's notation. Wrap it in a
     ``ScaleKernel`` for the signal variance ``alpha_1``.
+
+    :func:`intention_rbf` builds the same kernel from gpytorch's ``RBFKernel`` and
+    ``ProductKernel`` (equal to an ulp, with identical Gaussian-input expectations).
 
     Args:
         x_dim: number of latent dims ``Dx`` (the first columns of the input).
@@ -242,6 +257,50 @@ class DenseLinearKernel(LinearKernel):
         return (x1 * v) @ x2.transpose(-1, -2)
 
 
+def intention_rbf(
+    x_dim: int, g_dim: int, lengthscale_x: float = 1.0, lengthscale_g: float = 1.0
+) -> ProductKernel:
+    r"""The continuous-g RBF ``RBF(x) * RBF(g)`` over ``[x, g]`` inputs, as gpytorch kernels.
+
+    .. math:: k([x, g], [x', g']) = \exp(-\|x - x'\|^2 / (2 l_x^2))
+              \exp(-\|g - g'\|^2 / (2 l_g^2))
+
+    ``kernels[0]`` is an isotropic ``RBFKernel`` on the first ``x_dim`` columns, ``kernels[1]``
+    one on the last ``g_dim`` columns (``alpha_2^x = l_x^{-2}``, ``alpha_2^g = l_g^{-2}``). The
+    parameters have the shapes of :class:`IntentionRBFKernel`'s, and a state dict of that kernel
+    (``raw_lengthscale_x``, ``raw_lengthscale_g`` and their constraints' buffers) loads into
+    this one (a load-state-dict pre-hook renames them), giving the same kernel to an ulp.
+
+    Shapes: inputs ``[..., N, x_dim + g_dim]``; output ``[..., N, M]``.
+    """
+    if x_dim < 1 or g_dim < 1:
+        raise ValueError(f"x_dim and g_dim must be >= 1, got {x_dim} and {g_dim}")
+    rbf_x = RBFKernel(active_dims=torch.arange(x_dim))
+    rbf_g = RBFKernel(active_dims=torch.arange(x_dim, x_dim + g_dim))
+    rbf_x.lengthscale, rbf_g.lengthscale = lengthscale_x, lengthscale_g
+    kernel = ProductKernel(rbf_x, rbf_g)
+    kernel.register_load_state_dict_pre_hook(_load_intention_rbf_state)
+    return kernel
+
+
+def _load_intention_rbf_state(
+    module: ProductKernel, state_dict: dict[str, torch.Tensor], prefix: str, *args: object
+) -> None:
+    """Load-state-dict pre-hook of :func:`intention_rbf`: rename the entries of an
+    :class:`IntentionRBFKernel` state dict (length scale ``x`` -> factor 0, ``g`` -> factor 1)
+    and add the factors' ``active_dims`` buffers, which that kernel did not have."""
+    if f"{prefix}raw_lengthscale_x" not in state_dict:
+        return
+    for part, index in (("x", 0), ("g", 1)):
+        for suffix in ("", "_constraint.lower_bound", "_constraint.upper_bound"):
+            old = f"{prefix}raw_lengthscale_{part}{suffix}"
+            if old in state_dict:
+                state_dict[f"{prefix}kernels.{index}.raw_lengthscale{suffix}"] = state_dict.pop(old)
+        state_dict.setdefault(
+            f"{prefix}kernels.{index}.active_dims", module.kernels[index].active_dims
+        )
+
+
 def _rbf_lengthscale(inverse_width: float) -> float:
     if not inverse_width > 0:
         raise ValueError(f"RBF inverse squared width must be positive, got {inverse_width}")
@@ -370,6 +429,8 @@ def transition_kernel(
         return style if rho == 0.0 else AdditiveKernel(base(rho, cols), style)
     if g_dim < 1:
         raise ValueError(f"g_dim must be >= 1, got {g_dim}")
+    # IntentionRBFKernel, not its gpytorch equal intention_rbf(): their Gram matrices differ by
+    # an ulp, which K^-1 (condition ~1e5) amplifies past 1e-12 in the models' results
     rbf = IntentionRBFKernel(x_dim, g_dim)
     rbf.lengthscale_x = _rbf_lengthscale(a2)
     rbf.lengthscale_g = _rbf_lengthscale(float(alpha_g[0]))

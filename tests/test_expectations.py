@@ -16,7 +16,7 @@ from gpytorch.kernels import AdditiveKernel, LinearKernel, MaternKernel, RBFKern
 from scipy import integrate
 
 from hgpdm_torch import expectations as ex
-from hgpdm_torch.kernels import IntentionRBFKernel, transition_kernel
+from hgpdm_torch.kernels import IntentionRBFKernel, intention_rbf, transition_kernel
 
 
 def gauss_hermite(mu: torch.Tensor, Sigma: torch.Tensor, n: int):
@@ -48,6 +48,18 @@ def close(actual, expected, rtol=1e-6):
     actual = actual.detach()
     atol = 1e-9 * float(expected.abs().max()) + 1e-300
     torch.testing.assert_close(actual, expected, rtol=rtol, atol=atol)
+
+
+def check_quadrature(kernel, mu, Sigma, X, g=None, nodes=None):
+    """psi0, psi1, psi2 and x_psi1 against Gauss-Hermite quadrature of the gpytorch kernel, with
+    the known trailing columns ``g`` (or none)."""
+    x, w = gauss_hermite(mu, Sigma, nodes or NODES[mu.shape[-1]])
+    xg = x if g is None else torch.cat([x, g.expand(len(x), g.shape[-1])], -1)
+    K = dense(kernel, xg, X)
+    close(ex.psi0(kernel, mu, Sigma, g=g), w @ dense(kernel, xg, diag=True))
+    close(ex.psi1(kernel, mu, Sigma, X, g=g), w @ K)
+    close(ex.psi2(kernel, mu, Sigma, X, g=g), torch.einsum("n,ni,nj->ij", w, K, K))
+    close(ex.x_psi1(kernel, mu, Sigma, X, g=g), torch.einsum("n,nd,ni->di", w, x, K))
 
 
 # ----- kernels under test: (name, builder(D) -> kernel, g_dim known) ----------------------------
@@ -118,13 +130,7 @@ def test_against_gauss_hermite(name, D):
     if name in ("active_dims", "intention_uncertain") and D == 1:
         pytest.skip("needs at least two columns")
     kernel = KERNELS[name](D)
-    mu, Sigma, X = setup(D, seed=10 * D)
-    x, w = gauss_hermite(mu, Sigma, NODES[D])
-    K = dense(kernel, x, X)
-    close(ex.psi0(kernel, mu, Sigma), w @ dense(kernel, x, diag=True))
-    close(ex.psi1(kernel, mu, Sigma, X), w @ K)
-    close(ex.psi2(kernel, mu, Sigma, X), torch.einsum("n,ni,nj->ij", w, K, K))
-    close(ex.x_psi1(kernel, mu, Sigma, X), torch.einsum("n,nd,ni->di", w, x, K))
+    check_quadrature(kernel, *setup(D, seed=10 * D))
 
 
 def _pair(kind: str, D: int):
@@ -168,13 +174,7 @@ def test_known_intention_columns(kind):
         col = torch.randn(N, 1, generator=gen)
         g = torch.tensor([0.4])
     X = torch.cat([X, col], -1)
-    x, w = gauss_hermite(mu, Sigma, 40)
-    xg = torch.cat([x, g.expand(len(x), 1)], -1)
-    K = dense(kernel, xg, X)
-    close(ex.psi0(kernel, mu, Sigma, g=g), w @ dense(kernel, xg, diag=True))
-    close(ex.psi1(kernel, mu, Sigma, X, g=g), w @ K)
-    close(ex.psi2(kernel, mu, Sigma, X, g=g), torch.einsum("n,ni,nj->ij", w, K, K))
-    close(ex.x_psi1(kernel, mu, Sigma, X, g=g), torch.einsum("n,nd,ni->di", w, x, K))
+    check_quadrature(kernel, mu, Sigma, X, g, nodes=40)
     if "discrete" in kind:  # points of other codes are masked out exactly
         assert torch.all(ex.psi1(kernel, mu, Sigma, X, g=g)[col[:, 0] != 1] == 0)
 
@@ -379,3 +379,127 @@ def test_bad_inputs_raise():
         ex.psi1(discrete, mu, Sigma, X)  # the code column may not be Gaussian
     with pytest.raises(ValueError, match="IntentionRBFKernel"):
         ex.psi1(IntentionRBFKernel(2, 1), mu, Sigma, X)
+
+
+# ----- products (gpytorch ProductKernel) --------------------------------------------------------
+
+
+def _dims(*cols):
+    return torch.tensor(cols)
+
+
+def _rbf(cols, ls):
+    k = RBFKernel(active_dims=_dims(*cols), ard_num_dims=len(cols))
+    k.lengthscale = torch.as_tensor(ls, dtype=torch.float64).expand(len(cols))
+    return k
+
+
+def _linear(cols, variance):
+    k = LinearKernel(active_dims=_dims(*cols))
+    k.variance = variance
+    return k
+
+
+def _products():
+    """Products over 4 columns ``[x0, x1, g0, g1]``; ``g`` known unless ``all_gaussian``."""
+    scaled = ScaleKernel(_rbf([0, 1], [0.8, 1.3]) * _linear([2, 3], 0.6))
+    scaled.outputscale = 1.4
+    return {
+        # RBF x RBF, overlapping columns: one RBF with the summed precisions (any covariance)
+        "rbf_rbf_overlap": (_rbf([0, 1, 2], [0.9, 1.1, 1.4]) * _rbf([1, 2, 3], [1.2, 0.7, 2.0])),
+        "rbf_x_linear_g": scaled,
+        "linear_x_rbf_g": _linear([0, 1], 0.5) * _rbf([2, 3], [0.9, 1.6]),
+        "linear_x_linear_g": _linear([0, 1], 0.5) * _linear([2, 3], 0.8),
+        "linear_g_first": _linear([2, 3], 0.8) * _linear([0, 1], 0.5),
+        # a sum times a factor distributes; a linear kernel over [x, g] splits into two terms
+        "sum_times_rbf_g": (
+            AdditiveKernel(_rbf([0, 1], [1.0, 0.8]), _linear([0, 1, 2], 0.3))
+            * _rbf([3], [1.2])
+            * _linear([2], 0.7)
+        ),
+        "product_plus_linear": AdditiveKernel(
+            _rbf([0, 1], [1.0, 0.8]) * _rbf([2, 3], [1.5, 0.6]), _linear([0, 3], 0.4)
+        ),
+    }
+
+
+PRODUCTS = _products()
+
+
+@pytest.mark.parametrize("name", list(PRODUCTS))
+def test_products_with_known_columns_against_gauss_hermite(name):
+    """``E[k_x(x, X_i) f(g, X_i)] = f(g, X_i) E[k_x(x, X_i)]`` (and psi2, x_psi1, psi0)."""
+    kernel = PRODUCTS[name]
+    gen = torch.Generator().manual_seed(21)
+    mu, Sigma = 0.4 * torch.randn(2, generator=gen), random_cov(2, gen)
+    X, g = torch.randn(6, 4, generator=gen), torch.tensor([0.3, -0.7])
+    check_quadrature(kernel, mu, Sigma, X, g)
+
+
+def test_rbf_products_with_all_columns_gaussian_against_gauss_hermite():
+    """RBF x RBF is exact under any covariance, here coupling both factors' columns."""
+    overlap = _rbf([0, 1], [0.9, 1.1]) * _rbf([1, 2], [1.2, 0.7])
+    for kernel in (overlap, _rbf([0], [0.9]) * _rbf([1, 2], [1.3, 0.7])):
+        mu, Sigma, X = setup(3, seed=4)
+        check_quadrature(kernel, mu, Sigma, X)
+    ard = RBFKernel(ard_num_dims=3)  # the last kernel is this ARD RBF
+    ard.lengthscale = torch.tensor([0.9, 1.3, 0.7])
+    args = (mu, Sigma, mu.flip(0), 0.5 * Sigma)
+    close(ex.psi0_cross(kernel, *args), ex.psi0_cross(ard, *args).detach())
+
+
+def test_products_whose_factors_share_gaussian_columns_raise():
+    """A linear factor and another factor both on Gaussian columns: no closed form, clear error."""
+    mu, Sigma, X = setup(3, seed=5)
+    coupled = _rbf([0, 1], [1.0, 1.0]) * _linear([2], 0.5)  # all three columns Gaussian
+    for fn in (ex.psi1, ex.psi2, ex.x_psi1):
+        with pytest.raises(ValueError, match="couples them"):
+            fn(coupled, mu, Sigma, X)
+    with pytest.raises(ValueError, match="couples them"):
+        ex.psi0(_linear([0], 0.5) * _linear([1], 0.5), mu, Sigma)
+    with pytest.raises(ValueError, match="linear factor"):
+        ex.psi0_cross(coupled, mu, Sigma, mu, Sigma)
+    # the same kernel with its linear factor's column known is fine
+    ex.psi2(coupled, mu[:2], Sigma[:2, :2], X, g=torch.tensor([0.2]))
+
+
+def test_product_form_of_the_intention_rbf_gives_identical_expectations():
+    """``intention_rbf`` (RBF(x) * RBF(g)) against IntentionRBFKernel: the same leaves, so the
+    same expectations bit for bit, with g known or part of the Gaussian."""
+    old = ScaleKernel(IntentionRBFKernel(2, 1))
+    old.base_kernel.lengthscale_x, old.base_kernel.lengthscale_g, old.outputscale = 0.8, 1.6, 0.7
+    new = ScaleKernel(intention_rbf(2, 1, 0.8, 1.6))
+    new.outputscale = 0.7
+    (a,), (b,) = ex.kernel_leaves(old, 3), ex.kernel_leaves(new, 3)
+    assert (a.kind, a.cols, a.codes, a.factors) == (b.kind, b.cols, b.codes, b.factors)
+    assert torch.equal(a.weight, b.weight) and torch.equal(a.coef, b.coef)
+    mu, Sigma, X = setup(3, seed=6)
+    g = torch.tensor([0.4])
+    for fn in (ex.psi1, ex.psi2, ex.x_psi1):
+        assert torch.equal(fn(old, mu, Sigma, X), fn(new, mu, Sigma, X))
+        assert torch.equal(
+            fn(old, mu[:2], Sigma[:2, :2], X, g=g), fn(new, mu[:2], Sigma[:2, :2], X, g=g)
+        )
+    assert torch.equal(ex.psi0(old, mu, Sigma), ex.psi0(new, mu, Sigma))
+
+
+def test_product_intention_kernel_takes_the_shared_transition_path():
+    """SharedTransition accepts ``alpha_1 RBF(x) * RBF(g)`` and matches predict_gaussian."""
+    from hgpdm_torch.gp import GPPosterior
+    from hgpdm_torch.inference.intention import SharedTransition
+
+    gen = torch.Generator().manual_seed(8)
+    kernel = ScaleKernel(intention_rbf(2, 1, 0.9, 0.7))
+    kernel.outputscale = 0.8
+    g = torch.randn(3, 1, generator=gen).repeat(4, 1)
+    X = torch.cat([torch.randn(12, 2, generator=gen), g], 1)
+    post = GPPosterior(kernel, X, torch.randn(12, 2, generator=gen), 0.05)
+    values = torch.linspace(-1.0, 1.0, 4)[:, None]
+    assert SharedTransition.supports(post, values)
+    mu, Sigma = 0.3 * torch.randn(2, 2, generator=gen), random_cov(2, gen)[None].expand(2, 2, 2)
+    mean, cov, cross = SharedTransition(post, values).moments(mu, Sigma)
+    for k, v in enumerate(values):
+        m, c, io = post.predict_gaussian(mu, Sigma, g=v.expand(2, 1), include_noise=True)
+        torch.testing.assert_close(mean[:, k], m)
+        torch.testing.assert_close(cov[:, k], c)
+        torch.testing.assert_close(cross[:, k], io)

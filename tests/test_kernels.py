@@ -11,6 +11,7 @@ from hgpdm_torch.kernels import (
     DenseLinearKernel,
     DiscreteIntentionKernel,
     IntentionRBFKernel,
+    intention_rbf,
     measurement_kernel,
     transition_kernel,
 )
@@ -130,3 +131,42 @@ def test_discrete_kernel_and_posterior_refuse_codes_outside_the_values(code):
         post.predict(torch.tensor([[0.1, 0.2, code]], dtype=torch.float64))
     with pytest.raises(ValueError, match="codes g"):
         post.kernel(good, torch.tensor([[0.0, 0.0, code]], dtype=torch.float64)).to_dense()
+
+
+def test_intention_rbf_product_equals_the_bespoke_kernel(generator):
+    """gpytorch's RBF(x) * RBF(g) (a ProductKernel) is IntentionRBFKernel to an ulp."""
+    old = IntentionRBFKernel(3, 2)
+    old.lengthscale_x, old.lengthscale_g = 0.7, 1.9
+    new = intention_rbf(3, 2, 0.7, 1.9)
+    assert isinstance(new, gpytorch.kernels.ProductKernel)
+    assert [type(k) for k in new.kernels] == [gpytorch.kernels.RBFKernel] * 2
+    x1, x2 = torch.randn(40, 5, generator=generator), torch.randn(6, 5, generator=generator)
+    for a, b in ((x1, x2), (x1, x1)):
+        torch.testing.assert_close(new(a, b).to_dense(), old(a, b).to_dense(), rtol=0, atol=1e-14)
+    torch.testing.assert_close(new(x1, diag=True), old(x1, diag=True), rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="x_dim and g_dim"):
+        intention_rbf(0, 1)
+
+
+@pytest.mark.parametrize("kind", ["iddm_continuous", "continuous"])
+def test_intention_rbf_loads_the_bespoke_kernels_state_dict(kind, generator):
+    """A state dict holding IntentionRBFKernel entries (a transition kernel of a saved model)
+    loads into the product form, nested at any prefix, with the same Gram matrix."""
+    old = transition_kernel(kind, 2, g_dim=1, alpha=(0.8, 1.7, 0.3, 1e-3), alpha_g=(2.5, 0.4))
+    with torch.no_grad():
+        for p in old.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=generator))
+    new = transition_kernel(kind, 2, g_dim=1)
+    scaled = new if kind == "iddm_continuous" else new.kernels[0]
+    scaled.base_kernel = intention_rbf(2, 1)
+    state = old.state_dict()
+    assert any("raw_lengthscale_x" in key for key in state)
+    missing, unexpected = new.load_state_dict(state)
+    assert not missing and not unexpected
+    x = torch.randn(9, 3, generator=generator)
+    torch.testing.assert_close(new(x).to_dense(), old(x).to_dense(), rtol=0, atol=1e-14)
+    lx, lg = (k.lengthscale for k in scaled.base_kernel.kernels)
+    ref = old if kind == "iddm_continuous" else old.kernels[0]
+    assert torch.equal(lx, ref.base_kernel.lengthscale_x)
+    assert torch.equal(lg, ref.base_kernel.lengthscale_g)
+    new.load_state_dict(new.state_dict())  # its own state dict still loads (no renaming)

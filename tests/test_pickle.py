@@ -23,6 +23,7 @@ from hgpdm_torch.kernels import (
     DenseLinearKernel,
     DiscreteIntentionKernel,
     IntentionRBFKernel,
+    intention_rbf,
     measurement_kernel,
     transition_kernel,
 )
@@ -156,6 +157,7 @@ KERNELS: dict[str, tuple[Callable[[], gpytorch.kernels.Kernel], torch.Tensor]] =
         ),
         torch.cat([_X, _TARGET], -1),
     ),
+    "intention_rbf": (lambda: intention_rbf(2, 1), torch.cat([_X, _TARGET], -1)),
     "DiscreteIntentionKernel": (
         lambda: DiscreteIntentionKernel(measurement_kernel("rbf"), 3),
         torch.cat([_X, _CODES], -1),
@@ -206,3 +208,13 @@ def test_kernel_round_trip_keeps_the_gram_matrix_and_priors(name, trip):
         priors, other_priors, strict=True
     ):
         assert torch.equal(prior2.log_prob(closure2(module2)), prior.log_prob(closure(module)))
+
+
+@pytest.mark.parametrize("trip", ROUND_TRIPS)
+def test_intention_rbf_keeps_its_state_dict_upgrade(trip):
+    """The copied product kernel still loads an IntentionRBFKernel state dict (its pre-hook)."""
+    old = _with_random_hyperparameters(IntentionRBFKernel(2, 1).to(torch.float64))
+    new = ROUND_TRIPS[trip](intention_rbf(2, 1).to(torch.float64))
+    new.load_state_dict(old.state_dict())
+    x = torch.cat([_X, _TARGET], -1)
+    torch.testing.assert_close(new(x).to_dense(), old(x).to_dense(), rtol=0, atol=1e-15)
