@@ -22,8 +22,8 @@ machine is closer to what an idle core gives than the wall time:
 
 Options (:func:`benchmarks._common.parse_options`): ``--device`` and ``--dtype`` (the filter's
 and the planner's computation dtype; the value function is learned on the CPU in float64, then
-moved; a dtype other than float64 uses the process noise alpha_4 = 1e-2 instead of
-alpha-bar's 1e-4, which float32 cannot resolve); ``--gpu-sizes``: N = 500 with I = 500,
+moved; a dtype other than float64 uses the process noise alpha_4 = ``FLOAT32_NOISE`` (0.1)
+instead of alpha-bar's 1e-4, which float32 cannot resolve); ``--gpu-sizes``: N = 500 with I = 500,
 1,000, 2,000, 5,000 and 10,000 particles (one chunk each). With ``--device cuda`` the
 ``cpu`` columns are wall time after a synchronisation.
 """
@@ -36,7 +36,7 @@ from functools import partial
 
 import torch
 
-from benchmarks._common import Options, parse_options
+from benchmarks._common import FLOAT32_NOISE, Options, parse_options
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import lspi
@@ -55,8 +55,8 @@ def _setup(opts: Options, n_points: int, k: int, particles: int):
     the beliefs to decide on, for ~n_points transition points, on ``opts.device``."""
     num = max(2, round(n_points / (LENGTH - 1)))
     data = targeted_movements(num, LENGTH, DZ, seed=0)
-    # float32 needs a larger process noise: the filter refuses alpha-bar's alpha_4 = 1e-4 there
-    alpha = ALPHA_BAR if opts.dtype == torch.float64 else (*ALPHA_BAR[:3], 1e-2)
+    # float32 needs a larger process noise (FLOAT32_NOISE): the filter refuses smaller ones there
+    alpha = ALPHA_BAR if opts.dtype == torch.float64 else (*ALPHA_BAR[:3], FLOAT32_NOISE)
     model = IDDM(
         data.sequences, data.labels, DX, intention="continuous", measurement="linear", alpha=alpha
     )

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from benchmarks._common import Options, parse_options
+from benchmarks._common import FLOAT32_NOISE, Options, parse_options
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
@@ -43,15 +43,15 @@ N_SEQ, FRAMES, DZ, DX, K = 100, 6, 15, 4, 25
 
 
 def build_model(
-    fit_steps: int, device: torch.device | str = "cpu"
+    fit_steps: int, device: torch.device | str = "cpu", noise: float = 1e-2
 ) -> tuple[IDDM, torch.Tensor, torch.Tensor]:
-    """The thesis-sized IDDM (fitted on the CPU, then moved to ``device``), the intention grid
-    and test streams ``[S, T, Dz]``."""
+    """The thesis-sized IDDM (process noise ``noise``; fitted on the CPU, then moved to
+    ``device``), the intention grid and test streams ``[S, T, Dz]``."""
     data = targeted_movements(N_SEQ + 40, FRAMES + 6, DZ, noise=0.05, seed=0)
     seqs = [s[:FRAMES] for s in data.sequences[:N_SEQ]]
     model = IDDM(
         seqs, data.labels[:N_SEQ], DX, intention="continuous", measurement="linear",
-        alpha=(0.9, 0.3, 0.1, 1e-2), alpha_g=(4.0, 0.1),
+        alpha=(0.9, 0.3, 0.1, noise), alpha_g=(4.0, 0.1),
     )  # fmt: skip
     model.fit(fit_steps)
     grid = torch.linspace(-1.2, 1.2, K, dtype=torch.float64)
@@ -130,7 +130,10 @@ def batch_window(opts: Options, model, grid, streams, repeats: int) -> float:
 def run(opts: Options) -> ResultTable:
     torch.set_num_threads(1)
     quick = opts.quick
-    model, grid, streams = build_model(2 if quick else 30, opts.device)
+    steps = 2 if quick else 30
+    model64, grid, streams = build_model(steps, opts.device)
+    model32 = build_model(steps, opts.device, FLOAT32_NOISE)[0]
+    model = model32 if opts.dtype == torch.float32 else model64
     n = int(model.src_index.numel())
     table = ResultTable(
         f"IDDM intention inference, N={n}, Dz={DZ}, Dx={DX}, K={K}, 1 CPU thread, "
@@ -146,14 +149,19 @@ def run(opts: Options) -> ResultTable:
             "x exact loop",
             "|d mean| vs exact [cm]",
         ],  # fmt: skip
-        meta={**opts.meta(), "command": "python -m benchmarks online_intention"},
+        meta={
+            **opts.meta(),
+            "command": "python -m benchmarks online_intention",
+            "alpha_4": {"float64": 1e-2, "float32": FLOAT32_NOISE},
+        },  # fmt: skip
     )
     repeats = 3 if quick else 40
     # float32 only for the default evidence: the Q bound's conditional covariance
     # S - C^T P^-1 C cancels to the process noise and is not reliable in float32
     rows = [("predictive", opts.dtype), ("predictive", torch.float32), ("bound", torch.float64)]
     for evidence, dtype in dict.fromkeys(rows):  # without a repeated float32 row
-        p50, p99 = single_stream(opts, model, grid, streams, dtype, evidence, repeats)
+        timed = model32 if dtype == torch.float32 else model64
+        p50, p99 = single_stream(opts, timed, grid, streams, dtype, evidence, repeats)
         name = "online" if evidence == "predictive" else "online (Q bound, thesis)"
         table.add(**{
             "algorithm": name, "dtype": str(dtype).removeprefix("torch."), "B": 1,

@@ -56,13 +56,20 @@ from .measurement import LinearMeasurement
 from .online import OnlineIntentionFilter
 from .shared_transition import SharedTransition
 from .state_prior import STATE_PRIORS, class_state_prior
-from .transition import PRECISION_LIMIT, TRANSITIONS, GenericTransition, transition_moments
+from .transition import (
+    EVIDENCE_LIMIT,
+    PRECISION_LIMIT,
+    TRANSITIONS,
+    GenericTransition,
+    transition_moments,
+)
 
 __all__ = [
     "GenericTransition",
     "IntentionBelief",
     "LinearMeasurement",
     "OnlineIntentionFilter",
+    "EVIDENCE_LIMIT",
     "PRECISION_LIMIT",
     "SharedTransition",
     "STATE_PRIORS",

@@ -133,11 +133,16 @@ class OnlineIntentionFilter(IsolatedStreams):
             a less confident belief (choose it with
             :func:`~hgpdm_torch.inference.calibration.fit_temperature` on held-out streams).
         dtype: computation dtype (default the model's; float32 halves memory traffic). Another
-            dtype than the model's is refused (``ValueError``) where its rounding error in the
-            transition moments, at training latents and three state spreads, exceeds
-            :data:`PRECISION_LIMIT` times the predictive standard deviation (covariance:
-            variance): typically float32 with a small process noise alpha_4, whose weights
-            ``(K + alpha_4 I)^-1`` are too large for 7 digits.
+            dtype than the model's is refused (``ValueError``, naming the cause) where, at
+            training latents and three state spreads, its rounding error in the transition
+            moments exceeds :data:`PRECISION_LIMIT` times the predictive standard deviation
+            (covariance: variance), or its rounding error in the evidence ``log q(z_t | g)``
+            (differences between grid values; measurement update plus transition moments, for
+            the next frame's observation and a distant frame's) exceeds
+            :data:`EVIDENCE_LIMIT` = 0.1 nats: typically float32 with a small process noise
+            alpha_4 or a measurement GP with an RBF kernel, whose weights
+            ``(K + noise I)^-1`` are too large for 7 digits. An accepted float32 filter keeps
+            its beliefs within about 0.02 of float64's.
         transition: how the transition moments of the K values are computed
             (:func:`~hgpdm_torch.inference.intention.transition.transition_moments`):
             ``"shared"``, the fast path for the IDDM's tensor-product kernel (one RBF over x
@@ -218,14 +223,14 @@ class OnlineIntentionFilter(IsolatedStreams):
         self.transition = transition_moments(
             trans, values, self.dtype, transition=transition, **sparse
         )
-        if self.dtype != trans.train_inputs.dtype:
-            reference = transition_moments(
-                trans, values, trans.train_inputs.dtype, transition=transition, **sparse
-            )
-            _check_precision(model, reference, self.transition)
         meas = model.measurement_posterior()
         self.check = ObservationCheck.from_measurement(meas, outlier_sd)
         self.measure = _measurement_update(meas, self.dtype)
+        own = trans.train_inputs.dtype
+        if self.dtype != own:
+            reference = transition_moments(trans, values, own, transition=transition, **sparse)
+            measure = _measurement_update(meas, own)
+            _check_precision(model, reference, self.transition, measure, self.measure)
         self.gaussian_transition = trans.to_dtype(self.dtype) if mixing == "gaussian" else None
         self.values = self.transition.values
         self.log_prior = intention_log_prior(prior, len(values), self.dtype, values.device)

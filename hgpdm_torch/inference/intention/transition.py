@@ -25,6 +25,7 @@ GPDM), ``N`` transition training points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import torch
@@ -37,6 +38,7 @@ from .shared_transition import SharedTransition
 from .state_prior import _state_prior
 
 __all__ = [
+    "EVIDENCE_LIMIT",
     "PRECISION_LIMIT",
     "TRANSITIONS",
     "GenericTransition",
@@ -168,34 +170,106 @@ def transition_moments(
 #: Largest rounding error of the transition moments in a filter's dtype, relative to the
 #: predictive spread, that :class:`OnlineIntentionFilter` accepts for a dtype other than its
 #: model's. Measured in float32: 0.03-1.2 on models whose float32 beliefs stay within 0.05 of
-#: float64 without a failed stream, ~1.4e3 with alpha-bar (alpha_4 = 1e-4), whose streams fail
-#: within a few updates. The check catches that breakdown; it does not promise 0.02.
+#: float64 on streams like the training ones, ~1.4e3 with alpha-bar (alpha_4 = 1e-4), whose
+#: streams fail within a few updates. This check catches that breakdown; the accuracy of the
+#: beliefs is :data:`EVIDENCE_LIMIT`'s.
 PRECISION_LIMIT = 10.0
 
+#: Largest rounding error, in nats, of the per-step evidence ``log q(z_t | g)`` (its differences
+#: between grid values: the part that moves the belief) that :class:`OnlineIntentionFilter`
+#: accepts for a dtype other than its model's. A near tie of two values moves by about a quarter
+#: of the error per step, and a stream far from the training data (an unseen class) makes large
+#: innovations that multiply the error of the predictive moments. Measured in float32 on
+#: IDDMs (discrete, 3 classes; continuous) against the largest float64 belief difference over
+#: held-out and unseen-class streams: 6e-4 nats -> 2e-4, 0.044 -> 0.006, 0.71 -> 0.032,
+#: 1.6 -> 0.044, 8 -> 1.0 (linear measurement, alpha_4 = 0.2 ... 1e-2); an RBF measurement GP
+#: errs by 20-2000 nats -> 1.0.
+EVIDENCE_LIMIT = 0.1
 
-def _check_precision(model: GPDM, reference: TransitionMoments, low: TransitionMoments) -> None:
-    """Refuse ``low``'s dtype where its transition moments at 8 training latents, with the
-    latents' covariance scaled by 1, 1e-2 and 1e-4, differ from ``reference``'s by more than
-    :data:`PRECISION_LIMIT` times the smallest predictive standard deviation (means) or
-    variance (covariances)."""
-    x = model.latent.detach().to(reference.inputs.dtype)
-    idx = torch.linspace(0, x.shape[0] - 1, min(8, x.shape[0]), device=x.device).round().long()
+
+def _evidence_spread(ll: torch.Tensor, ref: torch.Tensor) -> float:
+    """Largest ``max_k - min_k`` of ``ll - ref`` over the probes ``[..., K]`` (NaN -> inf)."""
+    d = ll.to(ref.dtype) - ref
+    err = float((d.amax(-1) - d.amin(-1)).max())
+    return err if err == err else float("inf")
+
+
+def _check_precision(
+    model: GPDM,
+    reference: TransitionMoments,
+    low: TransitionMoments,
+    measure_ref: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+    measure_low: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+) -> None:
+    """Refuse ``low``'s dtype where it is not accurate enough for this model.
+
+    At 8 training latents, with the latents' covariance scaled by 1, 1e-2 and 1e-4:
+
+    1. the transition moments must differ from ``reference``'s by at most
+       :data:`PRECISION_LIMIT` times the smallest predictive standard deviation (means) or
+       variance (covariances);
+    2. the evidence of the predictive step, ``log q(z | g_k)`` by ``measure_ref`` /
+       ``measure_low`` (the measurement updates in the two dtypes) for the observation of the
+       next frame and for that of a distant one (a large innovation, as an unseen class makes),
+       must differ between grid values from the reference's by at most :data:`EVIDENCE_LIMIT`
+       nats (the filter's evidence: ``low``'s moments through ``measure_low``). The message
+       names the measurement GP as the cause where its update alone errs by half of that.
+    """
+    ref_dtype, low_dtype = reference.inputs.dtype, low.inputs.dtype
+    x = model.latent.detach().to(ref_dtype)
+    n = x.shape[0]
+    idx = torch.linspace(0, n - 1, min(8, n), device=x.device).round().long()
     _, spread = _state_prior(model, None, None, x.dtype)  # the training latents' covariance
     worst = 0.0
+    probes = []
     for scale in (1.0, 1e-2, 1e-4):
         mu, P = x[idx], (scale * spread).expand(len(idx), -1, -1)
         m_ref, c_ref, _ = reference.moments(mu, P)
-        m_low, c_low, _ = low.moments(mu.to(low.inputs.dtype), P.to(low.inputs.dtype))
+        m_low, c_low, _ = low.moments(mu.to(low_dtype), P.to(low_dtype))
         var = torch.linalg.eigvalsh(c_ref)[..., 0].clamp_min(torch.finfo(c_ref.dtype).tiny)
         err_c = (c_low.to(c_ref.dtype) - c_ref).abs().amax((-1, -2)) / var
         err_m = (m_low.to(m_ref.dtype) - m_ref).abs().amax(-1) / var.sqrt()
         worst = max(worst, float(err_c.max()), float(err_m.max()))
+        probes.append((m_ref, c_ref, m_low, c_low))
+    name, own = (str(d).removeprefix("torch.") for d in (low_dtype, ref_dtype))
     if not worst <= PRECISION_LIMIT:
-        name = str(low.inputs.dtype).removeprefix("torch.")
         raise ValueError(
             f"dtype={name} is not accurate enough for this model: its rounding error in the "
             f"transition moments is {worst:.3g} times the predictive spread (limit "
             f"{PRECISION_LIMIT}), because the weights (K + alpha_4 I)^-1 are too large for its "
-            f"digits (process noise alpha_4 = {float(model.transition_noise):.3g}); use the "
-            "model's dtype, or a model with a larger alpha_4"
+            f"digits (process noise alpha_4 = {float(model.transition_noise.detach()):.3g}); use "
+            f"the model's dtype ({own}), or a model with a larger alpha_4"
+        )
+    # the evidence of every probe for the next frame's observation and a distant frame's
+    m_ref, c_ref, m_low, c_low = (torch.cat([p[i] for p in probes])[:, :, None] for i in range(4))
+    nxt = torch.where(torch.isin(idx, model.src_index), idx + 1, idx)
+    rows = torch.stack([nxt, (nxt + n // 2) % n], -1).repeat(len(probes), 1)  # [P, 2]
+    z = model.observations.detach().to(ref_dtype)[rows][:, None]  # [P, 1, 2, Dz]
+    with settings.internal_step():  # the filter's own kind of Gaussians
+        ll = measure_ref(m_ref, c_ref, z)[2]  # [P, K, 2]
+        z_low = z.to(low_dtype)
+        ll_meas = measure_low(m_ref.to(low_dtype), c_ref.to(low_dtype), z_low)[2]
+        ll_low = measure_low(m_low, c_low, z_low)[2]  # as the filter computes it
+    dims = (0, 2, 1)  # grid values last
+    err = _evidence_spread(ll_low.permute(dims), ll.permute(dims))
+    err_meas = _evidence_spread(ll_meas.permute(dims), ll.permute(dims))
+    if not err <= EVIDENCE_LIMIT:
+        if err_meas >= err / 2:
+            cause = (
+                "measurement GP, whose weights (K + sigma^2 I)^-1 are too large for its digits "
+                f"(observation noise sigma^2 = {float(model.measurement_noise.detach()):.3g})"
+            )
+            fix = "observation noise"
+        else:
+            cause = (
+                "transition GP, whose weights (K + alpha_4 I)^-1 are too large for its digits "
+                f"(process noise alpha_4 = {float(model.transition_noise.detach()):.3g})"
+            )
+            fix = "alpha_4"
+        raise ValueError(
+            f"dtype={name} is not accurate enough for this model: its rounding error in the "
+            f"evidence log q(z_t | g) differs between intention values by up to {err:.3g} nats "
+            f"(limit {EVIDENCE_LIMIT}; {err_meas:.3g} with exact transition moments), enough "
+            f"to flip a near-tied belief; most of it comes from the {cause}; use the model's "
+            f"dtype ({own}), or a model with a larger {fix}"
         )
