@@ -168,7 +168,7 @@ def evaluate(
 
 
 def _simulation_fingerprint() -> str:
-    """Hash of the simulation's source files (the ball modules, scene, strokes, arm, URDF).
+    """Hash of the simulation's source files (the ball and stroke modules, scene, arm, URDF).
 
     Part of the cache key, so that a table computed by an older version of the simulation is
     never returned for the current one.
@@ -176,6 +176,7 @@ def _simulation_fingerprint() -> str:
     here = Path(__file__).parent
     files = [here / f"{m}.py" for m in ("ball", "geometry", "scene", "strokes")]
     files += sorted(here.glob("ball_*.py"))  # the ball's concepts, re-exported by ball.py
+    files += sorted(here.glob("stroke_*.py"))  # the movements' concepts, re-exported by strokes.py
     files += [here.parent / "wam.py", here.parent / "assets" / "wam7.urdf"]
     h = hashlib.sha256()
     for f in files:
