@@ -3,9 +3,10 @@
 Each benchmark is a module ``benchmarks/<name>.py`` with ``main(argv: list[str]) -> int`` that
 prints a table and writes ``benchmarks/results/<name>.json``. Options, passed on to every
 module: ``--quick`` (smoke mode); and for ``online_intention``, ``hgpdm_fit``,
-``moment_matching``, ``mcp`` and ``variational``: ``--device DEVICE`` (e.g. ``cuda``),
-``--dtype {float64,float32}`` and ``--gpu-sizes`` (the accelerator problem sizes); see
-:func:`benchmarks._common.parse_options`.
+``moment_matching``, ``mcp`` and ``variational`` (:data:`DEVICE_AWARE`): ``--device DEVICE``
+(e.g. ``cuda``), ``--dtype {float64,float32}`` and ``--gpu-sizes`` (the accelerator problem
+sizes; see :func:`benchmarks._common.parse_options`). With any of these, only those benchmarks
+run, and naming another one is an error.
 """
 
 from __future__ import annotations
@@ -30,6 +31,11 @@ def _split(argv: list[str]) -> tuple[list[str], list[str]]:
     return names, options
 
 
+#: the benchmarks that take ``--device``/``--dtype``/``--gpu-sizes``; the others run on the CPU
+#: in float64 and would ignore them (and overwrite their CPU result files)
+DEVICE_AWARE = ("hgpdm_fit", "mcp", "moment_matching", "online_intention", "variational")
+
+
 def main(argv: list[str]) -> int:
     names, options = _split(argv)
     folder = Path(__file__).parent
@@ -40,6 +46,16 @@ def main(argv: list[str]) -> int:
     if unknown:
         print(f"unknown benchmarks {sorted(unknown)}; available: {found}", file=sys.stderr)
         return 2
+    if any(o in ("--device", "--dtype", "--gpu-sizes") for o in options):
+        unaware = sorted(set(names) - set(DEVICE_AWARE))
+        if unaware:
+            print(
+                f"{unaware} take no --device/--dtype/--gpu-sizes (they run on the CPU in "
+                f"float64); those options apply to {list(DEVICE_AWARE)}",
+                file=sys.stderr,
+            )
+            return 2
+        names = names or [n for n in found if n in DEVICE_AWARE]
     status = 0
     for name in names or found:
         print(f"== benchmarks.{name}")

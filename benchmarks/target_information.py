@@ -212,7 +212,7 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
     add("baseline", f"observed, sliding window {gpr.window}", "experiment WindowGPR", n_train,
         gpr_preds)  # fmt: skip
     model = _fit_iddm(obs[train], y[train], *SELECTED, 10 if quick else 40, seed, "pls")
-    lim = strokes_limit(y)
+    lim = strokes_limit(y[train])  # as the experiment: training targets only
     grid = torch.linspace(-lim, lim, 13 if quick else 25)
     mean, _, _ = _online(model, obs[test], grid, 0.2)
     iddm = f"IDDM online eps=0.2 ({SELECTED[0]}, Dx={SELECTED[1]})"

@@ -255,11 +255,13 @@ def _run(
         nonlocal cached
         if cached:  # the optimizer's first call of a step: reuse the evaluation just made
             cached = False
-            return torch.tensor(history[-1], device="cpu")  # a host scalar: no device copy
+            return torch.tensor(
+                history[-1], dtype=torch.float64, device="cpu"
+            )  # a host scalar: no device copy
         value = obj.evaluate()
         if value is None:
             raise FloatingPointError("trial point failed")
-        return torch.tensor(value, device="cpu")
+        return torch.tensor(value, dtype=torch.float64, device="cpu")
 
     def attempt() -> float | None:
         """One optimizer step; the loss after it, or ``None`` if a trial point failed."""

@@ -19,6 +19,7 @@ __all__ = [
     "cholesky_logdet",
     "gaussian_nll",
     "jitter",
+    "positive_definite",
     "psd_cholesky",
     "symmetrize",
 ]
@@ -53,6 +54,21 @@ def jitter(value: float) -> Iterator[None]:
 def symmetrize(a: torch.Tensor) -> torch.Tensor:
     """Return ``(a + a^T) / 2`` over the last two dimensions. Shapes: ``[..., n, n]``."""
     return 0.5 * (a + a.transpose(-1, -2))
+
+
+def positive_definite(a: torch.Tensor) -> torch.Tensor:
+    """``[...]`` bool mask of the covariances ``a [..., D, D]`` that are finite and positive
+    definite up to rounding: the Cholesky factor of their symmetric part plus the dtype's first
+    jitter times the mean variance exists (one batched ``cholesky_ex``, no host synchronisation).
+    A covariance that rounding has pushed slightly below zero in one direction passes; one with
+    a clearly negative eigenvalue, or NaN/inf entries, does not."""
+    d = a.shape[-1]
+    finite = torch.isfinite(a).all(-1).all(-1)
+    sym = symmetrize(torch.where(finite[..., None, None], a, torch.zeros_like(a)))
+    scale = sym.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(a.dtype).tiny)
+    eye = torch.eye(d, dtype=a.dtype, device=a.device)
+    shifted = sym + (_JITTER.get(a.dtype, 1e-6) * scale)[..., None, None] * eye
+    return finite & (torch.linalg.cholesky_ex(shifted).info == 0)
 
 
 def psd_cholesky(a: torch.Tensor, *, name: str = "matrix", escalate: bool = True) -> torch.Tensor:

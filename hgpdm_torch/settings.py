@@ -14,9 +14,12 @@ Gated (run only under ``debug``): the symmetry and positive-semi-definiteness ch
 ``eigvalsh`` and a host synchronisation) of the Gaussians that the filtering loops
 (``filter_sequence``, :class:`~hgpdm_torch.inference.intention.OnlineIntentionFilter`, batch
 intention inference, Monte-Carlo planning) pass from one step to the next. A covariance that
-rounding has made indefinite there still cannot pass silently: its Cholesky factor fails (a
-:class:`~hgpdm_torch.linalg.CholeskyError`, or a restarted stream in the online filter) or its
-moments are not finite (a ``ValueError``); ``debug`` names the step where it first happened.
+rounding has made indefinite there still cannot pass silently: the online filter checks every
+stream's state with one batched Cholesky (:func:`~hgpdm_torch.linalg.positive_definite`) inside
+the synchronisation each update makes anyway and restarts a stream whose state fails it, and
+``filter_sequence`` (which batch intention inference runs) checks all its covariances once at
+the end and raises a ``ValueError`` naming the first bad step; ``debug`` re-checks every input
+of the step functions, to find where it first happened.
 
 Example::
 

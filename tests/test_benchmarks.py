@@ -39,3 +39,13 @@ def test_device_and_dtype_options(name, capsys):
     table = json.loads(out.read_text())
     assert table["rows"] and table["meta"]["dtype"] == "float32"
     assert "|" in capsys.readouterr().out
+
+
+def test_device_options_only_go_to_benchmarks_that_take_them(capsys):
+    """``--device`` with a CPU-only benchmark is refused instead of silently running it on the
+    CPU and overwriting its result file."""
+    from benchmarks.__main__ import DEVICE_AWARE, main
+
+    assert "target_sweep" not in DEVICE_AWARE and "online_intention" in DEVICE_AWARE
+    assert main(["target_sweep", "--device", "cpu"]) == 2
+    assert "take no --device" in capsys.readouterr().err

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -63,3 +65,24 @@ def test_only_failed_batch_members_get_jitter(generator):
 def test_inf_entry_is_rejected_even_if_factorisable():
     with pytest.raises(ValueError, match="NaN or inf"):
         psd_cholesky(torch.tensor([[4.0, 1.0], [1.0, float("inf")]]))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_positive_definite_matches_the_eigenvalues(dtype):
+    """``positive_definite`` against ``eigvalsh``: clearly negative eigenvalues and NaN/inf fail,
+    PSD matrices with an exact zero eigenvalue and rounding-level negatives pass."""
+    from hgpdm_torch.linalg import positive_definite
+
+    gen = torch.Generator().manual_seed(0)
+    q, _ = torch.linalg.qr(torch.randn(50, 4, 4, generator=gen, dtype=torch.float64))
+    eig = torch.rand(50, 4, generator=gen, dtype=torch.float64) + 0.1
+    eig[:10, 0] = -torch.rand(10, generator=gen, dtype=torch.float64) - 1e-3  # clearly negative
+    eig[10:20, 0] = 0.0  # singular PSD
+    eig[20:30, 0] = -1e-14  # rounding level
+    a = (q * eig[:, None, :]) @ q.transpose(-1, -2)
+    a[30, 1, 2] = math.nan
+    a[31, 0, 0] = math.inf
+    expected = torch.ones(50, dtype=torch.bool)
+    expected[:10] = False
+    expected[30:32] = False
+    assert torch.equal(positive_definite(a.to(dtype)), expected)

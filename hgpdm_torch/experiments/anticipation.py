@@ -45,7 +45,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..decision.basis import RadialBasis
-from ..decision.beliefs import decision_indices, fit_beliefs
+from ..decision.beliefs import Beliefs, decision_indices, fit_beliefs
 from ..decision.lspi import lspi
 from ..decision.mcp import MonteCarloPlanner
 from ..decision.nac import nac
@@ -67,6 +67,14 @@ __all__ = [
     "run_protocol",
     "successes",
     "valid_trials",
+    # moved to hgpdm_torch.decision (beliefs, policies); still importable from here
+    "Beliefs",
+    "decision_indices",
+    "fit_beliefs",
+    "fixed_time_policy",
+    "greedy_policy",
+    "mcp_policy",
+    "stop_only_q",
 ]
 
 MOVEMENTS = ACTIONS[1:]

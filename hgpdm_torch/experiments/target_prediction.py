@@ -206,7 +206,7 @@ def target_prediction(
     obs, y = strokes.obs, strokes.targets
     train, test = slice(0, n_train), slice(n_train, n_train + n_test)
     folds = torch.arange(n_train).tensor_split(cv_folds)
-    lim = float(strokes_limit(y))
+    lim = float(strokes_limit(y[train]))  # training targets only (the test ones are unseen)
     grid = torch.linspace(-lim, lim, grid_size)
     obs_test, y_test = obs[test][:, : _STEPS[-1] + 1], y[test]
     table = ResultTable(

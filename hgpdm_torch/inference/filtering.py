@@ -49,7 +49,7 @@ from .. import settings
 from ..expectations import check_gaussian
 from ..gaussian import conditional, independent_joint, log_density, rts_step
 from ..gp import GPPosterior
-from ..linalg import psd_cholesky, symmetrize
+from ..linalg import positive_definite, psd_cholesky, symmetrize
 from ..validation import as_tensor
 
 __all__ = [
@@ -431,6 +431,17 @@ def filter_sequence(
             ll = ll + step_ll
             means.append(mu)
             covs.append(Sigma)
+    # one batched check of every filtered and predicted covariance (the per-step structure check
+    # runs only under settings.debug): a covariance that rounding made indefinite never returns
+    bad = [~positive_definite(torch.stack(torch.broadcast_tensors(*c))) for c in (covs, pcovs)]
+    for which, mask in zip(("filtered", "predicted"), bad, strict=True):
+        if bool(mask.any()):
+            step = int(torch.nonzero(mask.reshape(T, -1).any(-1))[0])
+            raise ValueError(
+                f"the {which} state covariance at step {step} is not positive definite (or not "
+                "finite): the GP-ADF moments lost their precision there; use float64, a larger "
+                "process noise, or settings.debug(True) to find the first bad step's input"
+            )
     batch = torch.broadcast_shapes(*(m.shape[:-1] for m in means + pmeans))
     D = mu.shape[-1]
 

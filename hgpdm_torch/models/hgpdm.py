@@ -36,17 +36,19 @@ def _check_intentions(
 ) -> tuple[torch.Tensor, int | None]:
     """Validate g per sequence; returns ``[J, Dg]`` values (codes for discrete) and K."""
     if kind == "discrete":
-        try:
-            g = torch.as_tensor(np.asarray(intentions))
+        try:  # a tensor as it is (on any device); anything else through NumPy, on the CPU
+            g = (
+                intentions.detach().cpu()
+                if isinstance(intentions, torch.Tensor)
+                else torch.as_tensor(np.asarray(intentions), device="cpu")
+            )
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(f"intentions must be a [J] vector of ints, got {intentions!r}") from err
         if not (
             g.is_floating_point()
             or g.dtype in (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
         ):
-            raise TypeError(
-                f"discrete intentions must be integers, got {np.asarray(intentions).dtype}"
-            )
+            raise TypeError(f"discrete intentions must be integers, got {g.dtype}")
         if g.dim() != 1 or g.is_floating_point() and not bool((g == g.round()).all()):
             raise ValueError(
                 f"discrete intentions must be a [J] vector of ints, got {tuple(g.shape)}"

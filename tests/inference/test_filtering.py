@@ -382,3 +382,25 @@ def test_fitted_continuous_iddm_infers_the_target():
         assert float(aug.cov[-1, -1, -1]) < 0.01  # from the prior variance 0.5
         per_g = filter_sequence(trans, meas, z, x0, P0, g=grid)
         assert abs(float(grid[per_g.log_likelihood.argmax(), 0, 0]) - target) <= 0.15
+
+
+def test_an_indefinite_filtered_covariance_raises_without_debug(generator, monkeypatch):
+    """A covariance that the updates made indefinite (injected at step 5) is not returned:
+    ``filter_sequence`` raises naming the step, with ``settings.debug`` off."""
+    import hgpdm_torch.inference.filtering as filtering
+
+    trans, meas = linear_system(generator)
+    z = torch.randn(2, 8, 3, generator=generator)
+    mu0, P0 = torch.tensor([0.5, -0.2]), torch.tensor([[0.6, 0.1], [0.1, 0.3]])
+    update, calls = filtering.gp_adf_update, []
+
+    def broken(*args, **kwargs):
+        mu, Sigma, ll = update(*args, **kwargs)
+        calls.append(None)
+        if len(calls) == 6:  # the update of step 5
+            Sigma = Sigma - 2.0 * torch.eye(2, dtype=Sigma.dtype)
+        return mu, Sigma, ll
+
+    monkeypatch.setattr(filtering, "gp_adf_update", broken)
+    with pytest.raises(ValueError, match="filtered state covariance at step 5"):
+        filter_sequence(trans, meas, z, mu0, P0)

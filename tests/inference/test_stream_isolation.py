@@ -142,15 +142,12 @@ def _set(stream: int, key: str, value, at: int = 3):
 @pytest.mark.parametrize(
     "how",
     [
-        "indefinite covariance",  # -10 I: the moment matching's Cholesky fails in the step
         "huge mean",  # 1e200: the step overflows
         "CholeskyError",  # the shared transition raises for this stream (monkeypatched)
     ],
 )
 def test_numerical_failure_restarts_only_that_stream(model, streams, clean, fresh, how):
-    dx = model.latent_dim
     value = {
-        "indefinite covariance": ("cov", -10.0 * torch.eye(dx)),
         "huge mean": ("mean", 1e200),
         "CholeskyError": ("mean", 777.0),
     }[how]
@@ -221,7 +218,7 @@ def test_the_normal_path_is_batched(model, streams):
     f.update(z)
     assert sizes == [CHUNK] * 7 + [1]
     sizes.clear()
-    f.cov[MID] = -10.0 * torch.eye(model.latent_dim)
+    f.mean[MID] = 1e200  # finite, so it passes the state check, but the step overflows
     f.update(streams[:, 2])
     assert len(sizes) <= 8 + 2 * math.ceil(math.log2(CHUNK)) + 2
     # the 6 other full chunks once, the failing one before and after its bisection
@@ -237,14 +234,17 @@ def test_strict_raises_and_leaves_the_filter_unchanged(model, streams):
     z[MID, 4] = 1e200
     with pytest.raises(ValueError, match=rf"z\[{MID}\] \(stream {MID}, step 2\).*channel 4"):
         f.update(z)
-    f.cov[LAST] = -10.0 * torch.eye(model.latent_dim)
-    before["cov"][LAST] = f.cov[LAST]
+    f.mean[LAST] = 1e200  # finite, so it passes the state check, but the step overflows
+    before["mean"][LAST] = f.mean[LAST]
     with pytest.raises(ValueError, match=rf"stream {LAST} at step 2 failed numerically"):
         f.update(streams[:, 2])
-    f.cov[LAST] = math.nan
-    before["cov"][LAST] = math.nan
-    with pytest.raises(ValueError, match=rf"stream {LAST} at step 2 holds a non-finite state"):
-        f.update(streams[:, 2])
+    f.mean[LAST] = before["mean"][LAST] = f.mean[0]
+    for bad in (torch.full_like(f.cov[LAST], math.nan), -10.0 * torch.eye(model.latent_dim)):
+        f.cov[LAST] = before["cov"][LAST] = bad
+        with pytest.raises(
+            ValueError, match=rf"stream {LAST} at step 2 holds a non-finite or indefinite state"
+        ):
+            f.update(streams[:, 2])
     for key, value in before.items():
         torch.testing.assert_close(getattr(f, key), value, rtol=0, atol=0, equal_nan=True)
     assert f.rejected_count.sum() == 0 and f.reset_count.sum() == 0
@@ -311,3 +311,15 @@ def test_threshold_is_relative_to_each_channel(generator):
         ObservationCheck.from_measurement(post, 0.0)
     with pytest.raises(TypeError, match="outlier_sd"):
         ObservationCheck.from_measurement(post, "100")
+
+
+def test_indefinite_state_restarts_its_stream(model, streams, clean, fresh):
+    """A stored covariance with a clearly negative eigenvalue but finite entries (which the
+    moment matching of a linear measurement would carry on with) restarts its stream like a
+    non-finite one, with ``settings.debug`` off."""
+    bad = torch.eye(model.latent_dim, dtype=streams.dtype)
+    bad[-1, -1] = -0.05
+    _, poisoned = run(model, streams, _set(MID, "cov", bad))
+    assert_same(poisoned, clean, others(MID))
+    assert_same(poisoned, fresh[3], [MID], first=3)
+    assert poisoned["reset"][:, 3].nonzero().flatten().tolist() == [MID]

@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from ...linalg import CholeskyError
+from ...linalg import CholeskyError, positive_definite
 from ..filtering import ObservationCheck, _bad_observation
 from .grid import IntentionBelief, _check_observations
 
@@ -34,12 +34,16 @@ _NUMERICAL_ERRORS = (CholeskyError, torch.linalg.LinAlgError, ValueError)
 _INIT_CHUNK = 4096
 
 
-def _finite_state(mean: torch.Tensor, cov: torch.Tensor, log_belief: torch.Tensor) -> torch.Tensor:
+def _usable_state(mean: torch.Tensor, cov: torch.Tensor, log_belief: torch.Tensor) -> torch.Tensor:
     """``[B]`` mask of streams whose mean ``[B, Dx]``, covariance ``[B, Dx, Dx]`` and log belief
     ``[B, K]`` are usable: the sum of the means, the covariance entries and the largest log
-    belief is finite. So no entry is NaN or +-inf (or so large, ~1e307, that the sum overflows)
-    except -inf log beliefs (zero probabilities), of which not all."""
-    return torch.isfinite(mean.sum(-1) + cov.sum((-2, -1)) + log_belief.amax(-1))
+    belief is finite (no entry is NaN or +-inf, or so large, ~1e307, that the sum overflows,
+    except -inf log beliefs, zero probabilities, of which not all), and the covariance is
+    positive definite up to rounding (:func:`~hgpdm_torch.linalg.positive_definite`). Both are
+    computed on the device and read with the one synchronisation per update the caller needs
+    anyway, so an indefinite state restarts its stream whether or not ``settings.debug`` is on."""
+    finite = torch.isfinite(mean.sum(-1) + cov.sum((-2, -1)) + log_belief.amax(-1))
+    return finite & positive_definite(cov)
 
 
 class IsolatedStreams:
@@ -157,6 +161,7 @@ class IsolatedStreams:
                 f"z must have shape [B, Dz] = [{self.batch_size}, {self.obs_dim}], got "
                 f"{tuple(z.shape)}"
             )
+        z = z.to(self.mean.device)  # the checks, flags and counts live on the filter's device
         _, rejected = self.check.classify(z)
         any_rejected = bool(rejected.any())
         if any_rejected:
@@ -168,10 +173,10 @@ class IsolatedStreams:
         # the update works on copies, written back at the end: a strict error changes nothing
         mean, cov, log_belief = self.mean.clone(), self.cov.clone(), self.log_belief.clone()
         started = self.started.clone()
-        broken = ~_finite_state(mean, cov, log_belief)
+        broken = ~_usable_state(mean, cov, log_belief)
         any_broken = bool(broken.any())
         if any_broken:
-            self._fail(int(torch.nonzero(broken)[0]), "holds a non-finite state")
+            self._fail(int(torch.nonzero(broken)[0]), "holds a non-finite or indefinite state")
             self._restart(broken, mean, cov, log_belief, started)
         failed = torch.zeros_like(broken)
         new = ~started
@@ -206,10 +211,10 @@ class IsolatedStreams:
                     target[rows] = value
         if num_new:
             started |= new & ~torch.isnan(z).all(-1)
-        failed |= ~_finite_state(mean, cov, log_belief)
+        failed |= ~_usable_state(mean, cov, log_belief)
         any_failed = bool(failed.any())
         if any_failed:
-            self._fail(int(torch.nonzero(failed)[0]), "gave a non-finite state")
+            self._fail(int(torch.nonzero(failed)[0]), "gave a non-finite or indefinite state")
             self._restart(failed, mean, cov, log_belief, started)
         for attr, value in (
             ("mean", mean), ("cov", cov), ("log_belief", log_belief), ("started", started),

@@ -20,8 +20,11 @@ in one batched optimisation:
 The closed form is the default because it is exact and deterministic: a batched quasi-Newton
 method with per-problem line searches converges in tens of iterations to the optimum that SVI's
 first-order steps (Adam) approach only over hundreds, and its results do not depend on a learning
-rate schedule. SVI reaches the same optimum (tests/inference/test_svi.py) and is there to run VB
-with Pyro's machinery (other guides, Monte-Carlo ELBOs).
+rate schedule. For a discrete g (and a GPDM) SVI reaches the same optimum with its default
+settings (tests/inference/test_svi.py). For a continuous g the Laplace start leaves q(g) at its
+prior, far from the optimum: with the defaults (300 steps) SVI stops tens of nats short, and it
+needs about 2,000 steps or ``lr=0.05``. SVI is there to run VB with Pyro's machinery (other
+guides, Monte-Carlo ELBOs).
 
 Shapes: ``T`` window length, ``K`` candidate values of g, ``Dx`` latent dim, ``Dz`` observation
 dim, ``Dg`` dim of a continuous g; ``...`` leading batch dims (e.g. windows).
@@ -217,7 +220,7 @@ class VariationalInference:
            "closed_form"``, the default: exact, deterministic and fast) or ``pyro.infer.SVI`` on
            the :class:`MeanFieldGuide` (``method="svi"``; its loss, closed-form F or Pyro's
            ``Trace_ELBO``, and learning rates in ``svi``), which reaches the same optimum with
-           more, first-order steps.
+           more, first-order steps (for a continuous g many more: see the module docstring).
 
         Without step 2 (``newton_steps=0``) L-BFGS alone stalls hundreds of nats below the
         optimum from a GP-RTSS start: F is stiff (process noise ``alpha_4 = 1e-4``), so a

@@ -58,8 +58,9 @@ class SVIOptions:
         loss: ``"closed_form"`` (``-F`` of Eq. 13 in closed form) or ``"trace_elbo"`` (Pyro's
             Monte-Carlo ELBO of :func:`pyro_model`).
         lr: initial Adam learning rate (``pyro.optim.ClippedAdam``); the default suits a start
-            near the optimum (the Laplace start of ``infer``): from far off (``newton_steps=0``)
-            use a larger one, e.g. 0.05.
+            near the optimum (the Laplace start of ``infer`` for a discrete g): from far off
+            (``newton_steps=0``, or a continuous g, whose q(g) the Laplace start leaves at its
+            prior) use a larger one, e.g. 0.05, or more steps.
         final_lr: learning rate after the last step (geometric decay from ``lr``): Adam's steps do
             not shrink with the gradient, so a decaying rate is what lets it settle in the stiff
             directions of F.
