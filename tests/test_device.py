@@ -31,7 +31,12 @@ from hgpdm_torch import expectations, settings
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.decision.lspi import LinearQ
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
-from hgpdm_torch.inference import OnlineIntentionFilter, VariationalInference, infer_intention
+from hgpdm_torch.inference import (
+    MAPInference,
+    OnlineIntentionFilter,
+    VariationalInference,
+    infer_intention,
+)
 from hgpdm_torch.inference.filtering import filter_sequence, smooth
 from hgpdm_torch.models import GPDM, HGPDM, IDDM
 
@@ -179,7 +184,13 @@ def planning(s: Setup) -> Results:
 
 
 def variational(s: Setup) -> Results:
-    return {"vb": VariationalInference(s.discrete).infer(s.z[:, :4]).log_evidence}
+    # a list window is built on the CPU: VB and MAP move it to the model's device and dtype
+    window = s.z[:, :4].cpu().float().tolist()
+    return {
+        "vb": VariationalInference(s.discrete).infer(s.z[:, :4]).log_evidence,
+        "vb list": VariationalInference(s.discrete).infer(window).log_evidence,
+        "map list": MAPInference(s.discrete).infer(window, steps=5).log_joint,
+    }
 
 
 CASES: list[Callable[[Setup], Results]] = [

@@ -96,7 +96,7 @@ class MAPInference:
 
     def log_joint(self, z: object, x: torch.Tensor, *, values: object = None) -> torch.Tensor:
         """FIC log joint ``[..., K]`` of states ``x [..., K, T, Dx]`` and window ``z``."""
-        z, observed = window_mask(z, self.obs_dim)
+        z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         return self.window.log_joint(z.to(x.dtype), observed, x, self.window.candidates(values))
 
     def initial_guess(
@@ -130,8 +130,7 @@ class MAPInference:
             progress: unused (kept for the interface of VB's ``infer``).
         """
         w = self.window
-        z, observed = window_mask(z, self.obs_dim)
-        z = z.to(w.x1_mean.dtype)
+        z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         if not isinstance(steps, int) or steps < 0:
             raise ValueError(f"steps must be a non-negative int, got {steps!r}")
         values = w.candidates(values)
@@ -165,7 +164,7 @@ class MAPInference:
             ``mean [..., T, Dz]`` (observed rows unchanged) and ``var [..., T, Dz]`` (zero on
             observed rows).
         """
-        z, observed = window_mask(z, self.obs_dim)
+        z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         m, var = self.reconstruct(result)
         keep = observed[..., None]
         return torch.where(keep, z, m), torch.where(keep, torch.zeros_like(var), var)

@@ -422,7 +422,7 @@ def test_pruning_keeps_a_candidate_that_starts_far_off(planted):
     a large predicted gain, so it is refined, not pruned, and reaches the unpruned optimum."""
     _, test, model = planted
     vb = VariationalInference(model)
-    z, observed = window_mask(test.sequences[0][:8], model.observations.shape[-1])
+    z, observed = window_mask(test.sequences[0][:8], vb.obs_dim, vb.window.x1_mean)
     values = vb.values
     x0 = vb.initial_guess(z, values)[0]
     start, _ = vb.laplace(z, observed, x0, values, prune=None)  # the others start converged
@@ -442,7 +442,9 @@ def test_lm_by_code_equals_per_row_blocks_and_broadcasts(planted, monkeypatch):
 
     _, test, model = planted
     vb = VariationalInference(model)
-    z, observed = window_mask(torch.stack([s[:6] for s in test.sequences[:3]]), 12)
+    z, observed = window_mask(
+        torch.stack([s[:6] for s in test.sequences[:3]]), 12, vb.window.x1_mean
+    )
     x0 = vb.initial_guess(z[0], vb.values)[0]  # [K, T, Dx], broadcast over the 3 windows
     rows, _ = vb.laplace(z, observed, x0, vb.values, prune=50.0)
     monkeypatch.setattr(V, "_ROW_BLOCK_BYTES", 0)

@@ -155,7 +155,7 @@ class VariationalInference:
         Returns:
             ``[..., K]`` F for each candidate (``K = 1`` without a discrete g).
         """
-        z, observed = window_mask(z, self.obs_dim)
+        z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         values = self.window.candidates(values)
         return self.window.free_energy(z, observed, loc, scale_tril, values, g_loc, g_scale_tril)
 
@@ -170,7 +170,7 @@ class VariationalInference:
         """Pyro model whose ELBO against ``guide`` is :meth:`free_energy`
         (:func:`~hgpdm_torch.inference.variational.svi.pyro_model`; an independent Monte-Carlo
         check of the closed form with ``pyro.infer.Trace_ELBO``)."""
-        z, observed = window_mask(z, self.obs_dim)
+        z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         pyro_model(self.window, z, observed, self.window.candidates(values), guide)
 
     # ------------------------------------------------------------------ Algorithm 2.2
@@ -250,8 +250,7 @@ class VariationalInference:
             :class:`VBResult`.
         """
         w = self.window
-        z, observed = window_mask(z, self.obs_dim)
-        z = z.to(w.x1_mean.dtype)
+        z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         for name, v in (("steps", steps), ("newton_steps", newton_steps)):
             if not isinstance(v, int) or v < 0:
                 raise ValueError(f"{name} must be a non-negative int, got {v!r}")
@@ -330,7 +329,7 @@ class VariationalInference:
         Returns:
             ``mean [..., T, Dz]`` (observed rows unchanged when ``joint``) and ``var [..., T, Dz]``.
         """
-        z, observed = window_mask(z, self.obs_dim)
+        z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         mean, cov = result.ml_state()
         return prediction.predict_observations(self.window, z, observed, mean, cov, joint=joint)
 

@@ -48,17 +48,18 @@ from .gaussian_input import GaussianInputGP, expected_sq_error
 __all__ = ["WindowModel", "window_mask"]
 
 
-def window_mask(z: object, obs_dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+def window_mask(z: object, obs_dim: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Validate a window ``z [..., T, Dz]`` whose NaN rows are missing observations.
 
     Returns:
-        ``z`` (float) and the ``[..., T]`` boolean mask of observed rows.
+        ``z`` on the device and in the dtype of ``like`` (the window model's), and the
+        ``[..., T]`` boolean mask of observed rows.
 
     Raises:
         ValueError: ``T < 2``, wrong ``Dz``, partially missing rows, or a window without any
             observed row.
     """
-    z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+    z = as_tensor(z, "z", min_ndim=2, allow_nan=True).to(like)
     if z.shape[-1] != obs_dim:
         raise ValueError(f"z must have Dz = {obs_dim} columns (the model's), got {z.shape[-1]}")
     if z.shape[-2] < 2:
