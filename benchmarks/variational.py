@@ -66,7 +66,7 @@ def run(opts: Options, per_style: int, lengths: list[int], windows: int, old: bo
         start = time.perf_counter()
         res = vb.infer(batch)
         t_batch = (time.perf_counter() - start) / len(zs)
-        zz, obs = window_mask(batch, 12)
+        zz, obs = window_mask(batch, 12, vb.window.x1_mean)
         x0 = vb.initial_guess(zz, vb.values)[0]
         _, lm = map_states(vb.window, zz, obs, x0, vb.values, None, max_iter=30, prune=50.0)
         t_old = None
