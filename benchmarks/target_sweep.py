@@ -1,6 +1,6 @@
 """Why the online IDDM does not reach 0.9 x GPR on target prediction (issue #14, item 4).
 
-``OMP_NUM_THREADS=1 python -m benchmarks target_sweep [--quick]`` (~40 min on a loaded 2-core
+``OMP_NUM_THREADS=1 python -m benchmarks target_sweep [--quick]`` (10-40 min on a loaded 2-core
 machine). Writes ``benchmarks/results/target_sweep.json`` (``..._quick.json`` with ``--quick``).
 
 Only the 100 *training* strokes of ``hgpdm target-prediction`` are used (the test strokes stay
@@ -41,7 +41,7 @@ from hgpdm_torch.experiments.target_prediction import (
 )
 from hgpdm_torch.inference import OnlineIntentionFilter
 from hgpdm_torch.inference.calibration import fit_temperature
-from hgpdm_torch.models import IDDM
+from hgpdm_torch.models import HGPDM, IDDM
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
 RESULTS = Path(__file__).parent / "results"
@@ -49,7 +49,7 @@ STEPS = [1, 2, 3, 4]  # observation index of 320, 240, 160, 80 ms before the hit
 BASE: dict[str, Any] = {
     "dx": 6, "kernel": "linear", "steps": 40, "alpha": (0.9, 0.3, 0.1, 1e-2),
     "alpha_g": (4.0, 0.1), "eps": 0.2, "features": None, "back_constraint": None,
-    "learn_alpha": False,
+    "learn_alpha": False, "model": IDDM,
 }  # fmt: skip
 #: (row name, changes to BASE)
 VARIANTS: list[tuple[str, dict[str, Any]]] = [
@@ -70,12 +70,19 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
     ("no forgetting (eps 0)", {"eps": 0.0}),
     ("forgetting eps 0.5", {"eps": 0.5}),
     ("racket features only (9)", {"features": slice(6, 15)}),
+    ("process noise 1e-1, g width x2", {"alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (1.0, 0.1)}),
+    # RBF + linear in x and g (the H-GPDM's continuous kernel; the filter's generic path)
+    ("H-GPDM transition (RBF + linear x, g)", {"model": HGPDM, "alpha_g": (4.0, 1.0)}),
+    (
+        "H-GPDM transition, process noise 1e-1",
+        {"model": HGPDM, "alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (4.0, 1.0)},
+    ),
 ]
 
 
 def _fit(obs: torch.Tensor, y: torch.Tensor, cfg: dict[str, Any], seed: int) -> IDDM:
     torch.manual_seed(seed)
-    model = IDDM(
+    model = cfg["model"](
         list(obs), y, cfg["dx"], intention="continuous", measurement=cfg["kernel"],
         alpha=cfg["alpha"], alpha_g=cfg["alpha_g"], learn_alpha=cfg["learn_alpha"],
         back_constraint=cfg["back_constraint"], init=supervised_init(obs, y, cfg["dx"]),
@@ -127,7 +134,12 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
             "T",
             "s",
         ],  # fmt: skip
-        meta={"seed": seed, "n_train": n_train, "folds": folds, "base": {**base, "features": None}},
+        meta={
+            "seed": seed,
+            "n_train": n_train,
+            "folds": folds,
+            "base": {**base, "features": None, "model": "IDDM"},
+        },
     )
 
     def keep_of(held: torch.Tensor) -> torch.Tensor:
