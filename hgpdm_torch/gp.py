@@ -13,6 +13,16 @@ so predictions of z divide the variance by ``w_d^2`` and leave the mean unscaled
 At a Gaussian input ``x ~ N(mu, Sigma)`` :meth:`GPPosterior.predict_gaussian` matches the first
 two moments of ``f(x)`` exactly (Sec. 3.3.1, Eq. 29-35; Deisenroth et al. 2012), from the kernel
 expectations of :mod:`hgpdm_torch.expectations`.
+
+Two more capabilities build on it (thesis Sec. 3.3.1-3.3.3):
+
+- :meth:`GPPosterior.sparse` gives the deterministic training conditional (DTC) on M
+  pseudo-inputs ``Z``, itself a ``GPPosterior`` whose ``weights`` and ``kinv`` live on ``Z``, so
+  that :meth:`~GPPosterior.predict` and :meth:`~GPPosterior.predict_gaussian` work on it
+  unchanged;
+- :meth:`GPPosterior.shared_moments` gives the moments at one input Gaussian shared by K known
+  values of the trailing input columns (an intention grid) for the IDDM's tensor-product kernel:
+  :class:`~hgpdm_torch.gp_shared.SharedTransition`, with no ``N x N`` work per value.
 """
 
 from __future__ import annotations
@@ -34,6 +44,7 @@ from .expectations import (
     term_psi2,
     term_psi2_factors,
 )
+from .gp_shared import SharedTransition
 from .kernels import DiscreteIntentionKernel
 from .linalg import psd_cholesky, symmetrize
 from .validation import as_tensor, check_shape
@@ -66,6 +77,10 @@ class GPPosterior:
         chol: ``[N, N]`` lower Cholesky factor of ``K + noise I`` (``K + diag(noise)`` for a
             per-point noise).
         weights: ``[N, Dout]`` ``(K + noise I)^-1 Y``.
+        kinv: ``[N, N]`` ``(K + noise I)^-1``.
+
+    A sparse posterior (:meth:`sparse`) has the same interface with ``N`` replaced by the ``M``
+    pseudo-inputs, which are its ``train_inputs``; it has no ``chol``.
     """
 
     def __init__(
@@ -214,13 +229,18 @@ class GPPosterior:
         flat = x.reshape(-1, self.input_dim).to(self.train_inputs.device)
         kxX = self._cross(flat)
         mean = kxX @ self.weights + self.offset
-        v = torch.linalg.solve_triangular(self.chol, kxX.transpose(0, 1), upper=False)
+        explained = self._explained_variance(kxX)
         kxx = self.kernel(flat, diag=True)
-        f_var = (kxx - v.pow(2).sum(0)).clamp_min(0.0)
+        f_var = (kxx - explained).clamp_min(0.0)
         if include_noise:
             f_var = f_var + self._test_noise(flat[:, -1])
         var = f_var.unsqueeze(-1) * self.scale.pow(2)
         return mean.reshape(*lead, self.output_dim), var.reshape(*lead, self.output_dim)
+
+    def _explained_variance(self, kxX: torch.Tensor) -> torch.Tensor:
+        """``diag(k(x, X) K^-1 k(X, x)) [P]`` for ``kxX [P, N]``, by a triangular solve."""
+        v = torch.linalg.solve_triangular(self.chol, kxX.transpose(0, 1), upper=False)
+        return v.pow(2).sum(0)
 
     @property
     def kinv(self) -> torch.Tensor:
@@ -230,10 +250,104 @@ class GPPosterior:
         product with an ``N x N`` matrix, which a solve cannot do in ``O(N^2)``).
         """
         if not self.detach:
-            return torch.cholesky_inverse(self.chol)
+            return self._inverse()
         if getattr(self, "_kinv", None) is None:
-            self._kinv = torch.cholesky_inverse(self.chol)
+            self._kinv = self._inverse()
         return self._kinv
+
+    def _inverse(self) -> torch.Tensor:
+        """:attr:`kinv`, uncached."""
+        return torch.cholesky_inverse(self.chol)
+
+    def _data(self) -> torch.Tensor:
+        """``[N, Din]`` the inputs of the data the posterior is conditioned on."""
+        return self.train_inputs
+
+    def sparse(self, inducing_inputs: torch.Tensor) -> GPPosterior:
+        r"""The sparse approximation of this GP on pseudo-inputs (DTC, thesis Sec. 3.3.3).
+
+        The deterministic training conditional keeps the data ``X [N, Din], Y [N, Dout]`` and
+        the kernel, and routes every prediction through the ``M`` pseudo-inputs ``Z``: with
+        ``K_MM = k(Z, Z)``, ``K_MN = k(Z, X)`` and ``A = noise K_MM + K_MN K_NM`` ``[M, M]``::
+
+            weights = A^-1 K_MN Y                         [M, Dout]
+            kinv    = K_MM^-1 - noise A^-1                [M, M]
+            mean(x) = k(x, Z) weights + offset
+            var(x)  = scale^2 (k(x, x) - k(x, Z) K_MM^-1 k(Z, x) + noise k(x, Z) A^-1 k(Z, x))
+
+        The result is a ``GPPosterior`` whose ``train_inputs`` are ``Z`` and whose ``weights``
+        and ``kinv`` are the ones above, so :meth:`predict`, :meth:`predict_gaussian` (every
+        option: known ``g``, batches of intentions, ``include_noise``, ``joint_cov``; a
+        discrete intention's blocks, since ``K_MM`` and ``A`` are block-diagonal over codes too)
+        and :meth:`shared_moments` work on it unchanged, at ``O(M^2)`` instead of ``O(N^2)``
+        per input. With ``Z = X`` it is the exact GP (up to the rounding of ``K_MM^-1``).
+
+        ``kinv`` is a difference of two matrices as large as ``K_MM^-1``, so pseudo-inputs
+        that nearly repeat each other would leave the moments to rounding noise: where the
+        condition number of ``K_MM`` exceeds ``1e8`` (float64; ``1 / (10 eps)`` in a lower
+        precision), ``K_MM`` gets the smallest ridge ``r I`` that brings it down to that (in
+        ``A`` as well: a DTC whose inducing values carry noise ``r``); well-conditioned
+        pseudo-inputs are left as they are. Its :meth:`to_dtype` recomputes it from the data;
+        :meth:`sparse` on it starts again from the data.
+
+        Args:
+            inducing_inputs: ``[M, Din]`` pseudo-inputs ``Z`` (finite; converted to the
+                posterior's dtype and device).
+
+        Returns:
+            The sparse ``GPPosterior`` (detached iff this one is; not detached, its factors are
+            recomputed on each access, so gradients reach the hyperparameters).
+
+        Raises:
+            ValueError: ``inducing_inputs`` not ``[M, Din]`` with ``M > 0`` or not finite; a
+                noise per training point or per code (the DTC above assumes one noise).
+        """
+        x = self._data()
+        z = as_tensor(inducing_inputs, "inducing_inputs", ndim=2, dtype=x.dtype, device=x.device)
+        if z.shape[0] == 0 or z.shape[1] != self.input_dim:
+            raise ValueError(
+                f"inducing_inputs must be [M, Din] = [M > 0, {self.input_dim}], got "
+                f"{tuple(z.shape)}"
+            )
+        if self.noise.dim() or self.code_noise is not None:
+            per = "code (code_noise)" if self.code_noise is not None else "training point"
+            raise ValueError(
+                "the sparse DTC posterior on inducing inputs needs one noise shared by all "
+                f"training points; this posterior has a noise per {per} (e.g. the transition GP "
+                "of a model with noise_per_value=True): use the exact posterior (inducing=None)"
+            )
+        pieces = (self.kernel, x, self.train_targets, self.noise, self.scale, self.offset)
+        return _DTCPosterior(*pieces, z.detach() if self.detach else z, detach=self.detach)
+
+    def shared_moments(
+        self, values: torch.Tensor, dtype: torch.dtype | None = None
+    ) -> SharedTransition:
+        r"""Moments of ``f(x, g_k) + noise`` at one input Gaussian over ``x`` for K known values
+        ``g_k`` of the trailing input columns, organised for the IDDM's tensor-product kernel.
+
+        The same moments as :meth:`predict_gaussian` at ``[x, g_k]`` with
+        ``include_noise=True`` for every k, but ``psi2`` over ``x`` is computed once per input
+        Gaussian and reduced over the groups of training points of equal ``g``:
+        ``O(N^2 Dx + K U N Dx)`` instead of ``O(K N^2 Dx)`` (U distinct training values;
+        :class:`~hgpdm_torch.gp_shared.SharedTransition`). On a :meth:`sparse` posterior the
+        pseudo-inputs take the place of the training points.
+
+        Args:
+            values: ``[K, Dg]`` the grid of trailing-column values (intention values or codes),
+                ``1 <= Dg < Din``.
+            dtype: computation dtype (default the posterior's; weights and ``K^-1`` are cast).
+
+        Returns:
+            A :class:`~hgpdm_torch.gp_shared.SharedTransition`; its ``moments(mu [B, Dx],
+            Sigma [B, Dx, Dx])`` gives ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and
+            ``Cov[x, f] [B, K, Dx, Dx]``.
+
+        Raises:
+            TypeError: a kernel that is not one RBF over ``x`` times a factor of ``g``
+                (:meth:`SharedTransition.supports
+                <hgpdm_torch.gp_shared.SharedTransition.supports>`).
+        """
+        return SharedTransition(self, values, dtype)
 
     def predict_gaussian(
         self,
@@ -488,3 +602,99 @@ def _shared_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     nk = len(keep)
     perm = [order.index(i) if order.index(i) < nk else order.index(i) + 1 for i in range(nb)]
     return out.permute(*perm, nk, nb + 1)
+
+
+# Smallest ratio of the smallest to the largest eigenvalue of K_MM that GPPosterior.sparse lets
+# through (float64; ten machine epsilons in a lower precision); below it, the smallest ridge that
+# restores it is added to K_MM. The DTC's kinv = K_MM^-1 - noise A^-1 cancels two matrices as
+# large as K_MM^-1, and pseudo-inputs that nearly repeat each other (neighbouring latents on nearby
+# intention values) make K_MM singular to rounding (condition numbers 1e15-1e18 on fitted IDDMs,
+# where the covariances came out as rounding noise at the 1e-2 level, two summation orders
+# disagreeing by that much). At 1e8 they agree to 1e-9 and are closer to the exact GP's.
+_MIN_EIGEN_RATIO = 1e-8
+
+
+class _DTCPosterior(GPPosterior):
+    """:meth:`GPPosterior.sparse`: the DTC approximation, a posterior on the pseudo-inputs.
+
+    ``train_inputs`` are the pseudo-inputs ``Z [M, Din]``; ``data_inputs [N, Din]`` and
+    ``train_targets [N, Dout]`` the data it is conditioned on. The factors are
+    ``(L_MM, weights, L_A)``: the Cholesky factors of ``K_MM`` (with its ridge, if any) and
+    ``A = noise K_MM + K_MN K_NM``, and ``A^-1 K_MN Y``.
+    """
+
+    def __init__(
+        self,
+        kernel: Kernel,
+        data_inputs: torch.Tensor,
+        train_targets: torch.Tensor,
+        noise: torch.Tensor,
+        scale: torch.Tensor,
+        offset: torch.Tensor,
+        inducing_inputs: torch.Tensor,
+        *,
+        detach: bool,
+    ) -> None:
+        # no GPPosterior.__init__: the pieces come checked (and detached) from a posterior
+        self.kernel, self.detach, self.noise, self.code_noise = kernel, detach, noise, None
+        self.data_inputs, self.train_targets = data_inputs, train_targets
+        self.train_inputs, self.scale, self.offset = inducing_inputs, scale, offset
+        if detach:
+            with torch.no_grad():
+                self._factors = self._factorise()
+
+    def _factorise(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        z, x = self.train_inputs, self.data_inputs
+        kmm = self.kernel(z).to_dense()
+        with torch.no_grad():  # a numerical safeguard, not part of the model: no gradient
+            lam = torch.linalg.eigvalsh(kmm)  # ascending
+            floor = max(_MIN_EIGEN_RATIO, 10 * torch.finfo(kmm.dtype).eps)
+            ridge = (floor * lam[-1] - lam[0]).clamp_min(0.0)
+        kmm = kmm + ridge * torch.eye(len(z), dtype=kmm.dtype, device=kmm.device)
+        kmn = self.kernel(z, x).to_dense()
+        chol_m = psd_cholesky(kmm, name="inducing kernel matrix K_MM")
+        a = self.noise * kmm + kmn @ kmn.transpose(0, 1)
+        chol_a = psd_cholesky(a, name="DTC matrix noise K_MM + K_MN K_NM")
+        return chol_m, torch.cholesky_solve(kmn @ self.train_targets, chol_a), chol_a
+
+    def _current(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self._factors if self.detach else self._factorise()
+
+    @property
+    def chol(self) -> torch.Tensor:
+        raise AttributeError(
+            "a sparse (DTC) posterior has no Cholesky factor of K + noise I: use its weights and "
+            "kinv (K_MM^-1 - noise A^-1)"
+        )
+
+    @property
+    def weights(self) -> torch.Tensor:
+        """``[M, Dout]`` ``A^-1 K_MN Y``."""
+        return self._current()[1]
+
+    def _explained_variance(self, kxX: torch.Tensor) -> torch.Tensor:
+        # k K_MM^-1 k^T - noise k A^-1 k^T by two solves: better conditioned than through kinv
+        chol_m, _, chol_a = self._current()
+        kt = kxX.transpose(0, 1)
+        vm = torch.linalg.solve_triangular(chol_m, kt, upper=False)
+        va = torch.linalg.solve_triangular(chol_a, kt, upper=False)
+        return vm.pow(2).sum(0) - self.noise * va.pow(2).sum(0)
+
+    def _inverse(self) -> torch.Tensor:
+        chol_m, _, chol_a = self._current()
+        inverse = torch.cholesky_inverse(chol_m) - self.noise * torch.cholesky_inverse(chol_a)
+        return symmetrize(inverse)
+
+    def _data(self) -> torch.Tensor:
+        return self.data_inputs
+
+    def to_dtype(self, dtype: torch.dtype) -> GPPosterior:
+        """The same (detached) sparse GP in another dtype, recomputed from the data in it."""
+        if self.train_inputs.dtype == dtype:
+            return self
+        kernel = copy.deepcopy(self.kernel).to(dtype).requires_grad_(False)
+        pieces = (
+            self.data_inputs, self.train_targets, self.noise, self.scale, self.offset,
+            self.train_inputs,
+        )  # fmt: skip
+        return _DTCPosterior(kernel, *(t.detach().to(dtype) for t in pieces), detach=True)

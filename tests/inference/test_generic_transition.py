@@ -1,8 +1,9 @@
 """The online filter on every model the toolkit fits: the generic transition moments
 (:class:`GenericTransition`, moment matching of the transition GP at ``[x, g_k]``) against the
-IDDM fast path (:class:`SharedTransition`) where both apply, Monte Carlo of the GP at points for
-the H-GPDM's kernels, GP-ADF (:func:`filter_sequence`) for a plain GPDM (K = 1), and the
-Monte-Carlo planner on an H-GPDM against the filter it replays."""
+IDDM fast path (:class:`SharedTransition`) where both apply, exact and sparse (``inducing``: the
+same DTC posterior on both paths), Monte Carlo of the GP at points for the H-GPDM's kernels,
+GP-ADF (:func:`filter_sequence`) for a plain GPDM (K = 1), and the Monte-Carlo planner on an
+H-GPDM against the filter it replays."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from hgpdm_torch.inference.intention import (
     OnlineIntentionFilter,
     SharedTransition,
     intention_grid,
+    transition_moments,
 )
 from hgpdm_torch.models import GPDM, HGPDM, IDDM
 
@@ -108,6 +110,50 @@ def test_generic_moments_equal_shared_ones(which, request, generator):
 
 
 @pytest.mark.parametrize("which", ["iddm_continuous", "iddm_discrete"])
+def test_sparse_generic_moments_equal_sparse_shared_ones(which, request, generator):
+    """``inducing`` on both paths: one DTC posterior on the same pseudo-inputs (fewer than the
+    training points, on fewer intention values for the continuous g), so the generic moment
+    matching equals the grouped fast path; and both differ from the exact GP's moments."""
+    model = request.getfixturevalue(which)
+    post, values = model.transition_posterior(), intention_grid(model, _grid(model))
+    n, dx = post.train_inputs.shape[0], model.latent_dim
+    inducing = n // 2
+    mu = model.latent[:4].detach() + 0.1 * torch.randn(4, dx, generator=generator)
+    A = torch.randn(4, dx, dx, generator=generator)
+    Sigma = 0.05 * A @ A.mT + 1e-4 * torch.eye(dx)
+    paths = {}
+    for path in ("shared", "generic"):
+        t = transition_moments(post, values, transition=path, inducing=inducing)
+        paths[path] = t
+        assert type(t) is {"shared": SharedTransition, "generic": GenericTransition}[path]
+    generic, shared = paths["generic"], paths["shared"]
+    assert generic.inputs.shape[0] <= inducing < n  # the pseudo-inputs, not the training set
+    if which == "iddm_continuous":
+        assert shared.groups == round(inducing**0.5)
+    fast, slow = shared.moments(mu, Sigma), generic.moments(mu, Sigma)
+    exact = SharedTransition(post, values).moments(mu, Sigma)
+    for a, b, c in zip(slow, fast, exact, strict=True):
+        assert a.shape == b.shape == (4, len(values), dx, *a.shape[3:])
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9)
+        assert float((a - c).abs().max()) > 1e-6  # a real approximation
+
+
+@pytest.mark.parametrize("which", ["iddm_continuous", "iddm_discrete"])
+def test_sparse_generic_filter_equals_sparse_shared_filter(which, request):
+    model = request.getfixturevalue(which)
+    z = _stream_data(model)
+    inducing = model.transition_posterior().train_inputs.shape[0] // 2
+    out = {}
+    for path in ("shared", "generic"):
+        f = OnlineIntentionFilter(
+            model, _grid(model), forgetting=0.1, batch_size=3, transition=path, inducing=inducing
+        )
+        out[path] = _run(f, z)
+    for a, b in zip(out["generic"], out["shared"], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-8)
+
+
+@pytest.mark.parametrize("which", ["iddm_continuous", "iddm_discrete"])
 @pytest.mark.parametrize("evidence", ["predictive", "bound"])
 def test_generic_filter_equals_shared_filter(which, evidence, request):
     """Several steps, three streams (one with a missing observation): beliefs and q(x)."""
@@ -183,11 +229,29 @@ def test_hgpdm_filter_runs_and_learns(which, request):
     assert bool(torch.isfinite(_run(bound, z)[0]).all())
 
 
-def test_generic_path_refuses_inducing_and_unknown_choices(hgpdm_continuous):
-    with pytest.raises(ValueError, match="inducing"):
-        OnlineIntentionFilter(hgpdm_continuous, GRID, inducing=10)
+def test_generic_path_takes_inducing_and_refuses_unknown_choices(hgpdm_continuous):
+    """The H-GPDM's kernel on its sparse DTC posterior: the filter runs on the pseudo-inputs,
+    and with all training points (``inducing >= N``) it tracks the exact filter (not to
+    rounding: the fitted latents' ``K_MM`` is regularised to condition 1e8 by a ridge)."""
+    model = hgpdm_continuous
+    z = _stream_data(model)
+    n = model.transition_posterior().train_inputs.shape[0]
+    sparse = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=3, inducing=n // 3)
+    assert isinstance(sparse.transition, GenericTransition)
+    assert sparse.transition.inputs.shape[0] <= n // 3
+    logs, means, _ = _run(sparse, z)
+    assert bool(torch.isfinite(logs).all() & torch.isfinite(means).all())
+    assert not bool(sparse.reset_count.any())
+    full = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=3, inducing=n)
+    exact = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=3)
+    (log_f, mean_f, cov_f), (log_e, mean_e, cov_e) = _run(full, z), _run(exact, z)
+    torch.testing.assert_close(log_f.exp(), log_e.exp(), rtol=0, atol=2e-3)
+    torch.testing.assert_close(mean_f, mean_e, rtol=0, atol=1e-3 * float(mean_e.abs().max()))
+    torch.testing.assert_close(cov_f, cov_e, rtol=0, atol=1e-3 * float(cov_e.abs().max()))
+    with pytest.raises(ValueError, match="inducing must be a positive int"):
+        OnlineIntentionFilter(model, GRID, inducing=0)
     with pytest.raises(ValueError, match="transition"):
-        OnlineIntentionFilter(hgpdm_continuous, GRID, transition="fast")
+        OnlineIntentionFilter(model, GRID, transition="fast")
 
 
 # ----- a plain GPDM: one value, GP-ADF ----------------------------------------------------------

@@ -31,10 +31,11 @@ One module per concept; this package re-exports their public names, so that
 - :mod:`~hgpdm_torch.inference.intention.state_prior`: the first state's prior (marginal or per
   class);
 - :mod:`~hgpdm_torch.inference.intention.linearisation`: ``E_q[log q~(y | x)]``;
-- :mod:`~hgpdm_torch.inference.intention.shared_transition`: the IDDM's fast transition moments
-  for K values at one input Gaussian, exact or sparse (DTC pseudo-inputs, Sec. 3.3.3);
-- :mod:`~hgpdm_torch.inference.intention.transition`: the generic transition moments for any
-  model, the choice between the two, and the precision check of a lower dtype;
+- :mod:`~hgpdm_torch.inference.intention.transition`: the transition moments for K values at
+  one input Gaussian: the IDDM's fast path (:meth:`GPPosterior.shared_moments
+  <hgpdm_torch.gp.GPPosterior.shared_moments>`) or the generic one for any model, on the exact
+  GP or its sparse DTC approximation (:meth:`GPPosterior.sparse
+  <hgpdm_torch.gp.GPPosterior.sparse>`, Sec. 3.3.3), and the precision check of a lower dtype;
 - :mod:`~hgpdm_torch.inference.intention.measurement`: the GP-ADF measurement update
   (closed form for a linear kernel);
 - :mod:`~hgpdm_torch.inference.intention.streams`: B streams isolated from each other;
@@ -42,19 +43,19 @@ One module per concept; this package re-exports their public names, so that
 - :mod:`~hgpdm_torch.inference.intention.batch`: :func:`infer_intention` and the bound's terms.
 
 Imports flow one way: ``grid``, ``state_prior``, ``linearisation``, ``measurement``,
-``shared_transition`` <- ``transition``, ``streams`` <- ``online``; ``batch`` uses the first
-three.
+``transition`` (on :mod:`hgpdm_torch.gp` and :mod:`hgpdm_torch.gp_shared`), ``streams`` <-
+``online``; ``batch`` uses the first three.
 
 Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
 ``Dg`` intention dims, ``N`` transition training points.
 """
 
+from ...gp_shared import SharedTransition
 from .batch import batch_bound, batch_bound_terms, infer_intention
 from .grid import IntentionBelief, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import LinearMeasurement
 from .online import OnlineIntentionFilter
-from .shared_transition import SharedTransition
 from .state_prior import STATE_PRIORS, class_state_prior
 from .transition import (
     EVIDENCE_LIMIT,

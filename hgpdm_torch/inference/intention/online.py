@@ -151,8 +151,12 @@ class OnlineIntentionFilter(IsolatedStreams):
             (:class:`~hgpdm_torch.inference.intention.transition.GenericTransition`); or
             ``"auto"`` (default): shared where the kernel allows it, else generic. Both give
             the same moments where both apply.
-        inducing: pseudo-inputs of a sparse transition GP (Sec. 3.3.3; see
-            :class:`SharedTransition`; shared path only), or ``None`` for the exact GP.
+        inducing: number of pseudo-inputs of a sparse (DTC) transition GP (Sec. 3.3.3:
+            :meth:`GPPosterior.sparse <hgpdm_torch.gp.GPPosterior.sparse>` on training latents
+            paired with few intention values,
+            :func:`~hgpdm_torch.gp_shared.sparse_posterior`), on either transition path (the
+            same pseudo-inputs on both), or ``None`` for the exact GP. Needs one process noise
+            (not ``noise_per_value``).
         inducing_values: distinct intention values among the pseudo-inputs (continuous g;
             default ``round(sqrt(inducing))``, all training values when ``inducing >= N``).
         chunk_size: positive int, streams processed together; the ``[chunk, N, N]``

@@ -6,9 +6,9 @@ The online filter (and the Monte-Carlo planner on it) needs, for B input Gaussia
 of ``x' = f(x, g_k) + noise``. Two objects give them with the same interface
 (:class:`TransitionMoments`):
 
-- :class:`~hgpdm_torch.inference.intention.shared_transition.SharedTransition`, the fast path
-  for the IDDM's tensor-product kernel (one ``N x N`` expectation per stream for all K values;
-  optionally sparse);
+- :class:`~hgpdm_torch.gp_shared.SharedTransition` (:meth:`GPPosterior.shared_moments
+  <hgpdm_torch.gp.GPPosterior.shared_moments>`), the fast path for the IDDM's tensor-product
+  kernel (one ``N x N`` expectation per stream for all K values);
 - :class:`GenericTransition`, any transition kernel that :mod:`hgpdm_torch.expectations`
   supports (the H-GPDM's with its linear terms, a discrete kernel with ``sharing > 0``, a user
   kernel, a plain GPDM's without g): :meth:`GPPosterior.predict_gaussian
@@ -16,8 +16,9 @@ of ``x' = f(x, g_k) + noise``. Two objects give them with the same interface
   with ``g_k`` known (zero variance).
 
 :func:`transition_moments` picks one (``transition="auto"``: the fast path where the kernel
-allows it). Both give the same moments where both apply (``tests/inference/
-test_generic_transition.py``: 1e-8 in float64).
+allows it), on the exact GP or on its sparse DTC approximation (``inducing``: the same
+pseudo-inputs for both, :func:`~hgpdm_torch.gp_shared.sparse_posterior`). Both give the same
+moments where both apply (``tests/inference/test_generic_transition.py``: 1e-8 in float64).
 
 Shapes: ``B`` streams, ``K`` intention values, ``Dx`` latent, ``Dg`` intention dims (0 for a
 GPDM), ``N`` transition training points.
@@ -32,9 +33,9 @@ import torch
 
 from ... import settings
 from ...gp import GPPosterior
+from ...gp_shared import SharedTransition, sparse_posterior
 from ...models import GPDM
 from ...validation import check_choice
-from .shared_transition import SharedTransition
 from .state_prior import _state_prior
 
 __all__ = [
@@ -81,10 +82,13 @@ class GenericTransition:
     every kernel term is shared by the K values, and a discrete g touches only its own training
     points). Any kernel that :mod:`hgpdm_torch.expectations` supports works: the H-GPDM's RBF
     plus linear terms, the discrete kernel with ``sharing > 0``, a user's. A plain GPDM has no
-    g (``values [1, 0]``): K = 1, and the filter is GP-ADF.
+    g (``values [1, 0]``): K = 1, and the filter is GP-ADF. A sparse posterior
+    (:meth:`GPPosterior.sparse <hgpdm_torch.gp.GPPosterior.sparse>`) works the same way, on its
+    M pseudo-inputs.
 
     Args:
-        posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``).
+        posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``),
+            exact or sparse.
         values: ``[K, Dg]`` intention grid or codes (``[1, 0]`` for a model without g).
         dtype: computation dtype (default the posterior's; another one refactorises the GP in it).
     """
@@ -144,26 +148,22 @@ def transition_moments(
         posterior: the transition GP (``model.transition_posterior()``).
         values: ``[K, Dg]`` intention grid (``[1, 0]`` without g).
         dtype: computation dtype.
-        transition: ``"shared"`` (:class:`SharedTransition`; ``TypeError`` unless the kernel
-            is the IDDM's), ``"generic"`` (:class:`GenericTransition`), or ``"auto"``: shared
-            where :meth:`SharedTransition.supports` the kernel, else generic.
-        inducing: pseudo-inputs of the sparse GP of :class:`SharedTransition` (shared path
-            only; ``ValueError`` on the generic one).
-        inducing_values: its distinct intention values (likewise).
+        transition: ``"shared"`` (:meth:`GPPosterior.shared_moments
+            <hgpdm_torch.gp.GPPosterior.shared_moments>`, a :class:`SharedTransition`;
+            ``TypeError`` unless the kernel is the IDDM's), ``"generic"``
+            (:class:`GenericTransition`), or ``"auto"``: shared where
+            :meth:`SharedTransition.supports` the kernel, else generic.
+        inducing: number of pseudo-inputs M of a sparse (DTC) transition GP on either path
+            (:func:`~hgpdm_torch.gp_shared.sparse_posterior`), or ``None`` for the exact GP.
+        inducing_values: its distinct intention values (continuous g; see there).
     """
     check_choice(transition, "transition", TRANSITIONS)
     if transition == "auto":
         shared = SharedTransition.supports(posterior, values)
         transition = "shared" if shared else "generic"
+    posterior = sparse_posterior(posterior, values.shape[-1], inducing, inducing_values)
     if transition == "shared":
-        return SharedTransition(
-            posterior, values, dtype, inducing=inducing, inducing_values=inducing_values
-        )
-    if inducing is not None or inducing_values is not None:
-        raise ValueError(
-            "inducing (the sparse DTC transition GP) needs the IDDM transition kernel "
-            "(transition='shared'); this transition takes the generic path: use inducing=None"
-        )
+        return posterior.shared_moments(values, dtype)
     return GenericTransition(posterior, values, dtype)
 
 

@@ -1,49 +1,92 @@
-r"""Moment matching of the IDDM transition for K intentions sharing one input Gaussian.
+r"""Moment matching of a GP at one input Gaussian shared by K values of its known input columns.
 
-The transition kernel of the IDDM is ``alpha_1 exp(-alpha_2/2 |x - x'|^2) phi(g, g')`` (``phi``
-an RBF in g, or ``delta`` for a discrete g). The online input ``q(x_{t-1})`` is shared by all K
-intentions, so the ``N x N`` expectation ``psi2`` over ``x`` is computed once per stream and
-step; and as ``g`` is constant within a training sequence, the N training points form U groups
-of equal ``g``. All K second moments and traces then follow from ``U x U`` group sums of
-``psi2``: ``beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv (beta_u^T psi2_uv beta_v)``, with no
-``N x N`` work per intention (DESIGN.md sec. 8). :class:`SharedTransition` does this, optionally
-on M < N pseudo-inputs (Sec. 3.3.3). Other kernels take the generic path of
-:mod:`~hgpdm_torch.inference.intention.transition`.
+The IDDM transition GP maps ``[x, g] -> x_{t+1}`` with the kernel
+``alpha_1 exp(-alpha_2/2 |x - x'|^2) phi(g, g')`` (``phi`` an RBF in g, or ``delta`` for a
+discrete g). The online filter needs its moments at one input Gaussian ``q(x)`` per stream for
+all K values of an intention grid, so the ``N x N`` expectation ``psi2`` over ``x`` is computed
+once per stream and step; and as ``g`` is constant within a training sequence, the N training
+points form U groups of equal ``g``. All K second moments and traces then follow from ``U x U``
+group sums of ``psi2``: ``beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv (beta_u^T psi2_uv beta_v)``,
+with no ``N x N`` work per value (DESIGN.md sec. 8). :class:`SharedTransition` does this
+(:meth:`GPPosterior.shared_moments <hgpdm_torch.gp.GPPosterior.shared_moments>`), optionally on
+M < N pseudo-inputs (:func:`sparse_posterior`, Sec. 3.3.3: :meth:`GPPosterior.sparse
+<hgpdm_torch.gp.GPPosterior.sparse>` on pseudo-inputs that share few values of g). Other kernels
+take :meth:`GPPosterior.predict_gaussian <hgpdm_torch.gp.GPPosterior.predict_gaussian>`.
 
-Shapes: ``B`` streams, ``K`` intention values, ``Dx`` latent, ``Dg`` intention dims, ``N``
-transition training points, ``M`` pseudo-inputs.
+Shapes: ``B`` streams, ``K`` grid values, ``Dx`` latent, ``Dg`` intention dims, ``N`` training
+points, ``M`` pseudo-inputs.
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
-from sklearn.cluster import KMeans
 
-from ...expectations import Leaf, Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
-from ...gp import GPPosterior
-from ...linalg import psd_cholesky, symmetrize
+from .expectations import Leaf, Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
+from .linalg import symmetrize
 
-__all__ = ["SharedTransition"]
+if TYPE_CHECKING:  # gp.py imports this module: GPPosterior only annotates here
+    from .gp import GPPosterior
+
+__all__ = ["SharedTransition", "sparse_posterior"]
 
 
-def _dtc(posterior: GPPosterior, Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """DTC weights ``[M, Dout]`` and variance matrix ``[M, M]`` on the pseudo-inputs ``Z``."""
-    X, Y, noise = posterior.train_inputs, posterior.train_targets, posterior.noise
-    if noise.dim() or posterior.code_noise is not None:
-        raise ValueError(
-            "inducing (the sparse DTC transition GP) needs one shared process noise; this model "
-            "has a noise per intention value (noise_per_value=True): use inducing=None"
-        )
-    with torch.no_grad():
-        Kmm = posterior.kernel(Z).to_dense()
-        Kmn = posterior.kernel(Z, X).to_dense()
-    Lm = psd_cholesky(Kmm, name="inducing kernel matrix K_MM")
-    LA = psd_cholesky(noise * Kmm + Kmn @ Kmn.T, name="DTC matrix noise K_MM + K_MN K_NM")
-    weights = torch.cholesky_solve(Kmn @ Y, LA)
-    kinv = symmetrize(torch.cholesky_inverse(Lm) - noise * torch.cholesky_inverse(LA))
-    return weights, kinv
+def _positive_int(value: object, name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is an int >= 1 (not a bool)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive int or None, got {value!r}")
+
+
+def sparse_posterior(
+    posterior: GPPosterior, dg: int, inducing: int | None, inducing_values: int | None = None
+) -> GPPosterior:
+    """The transition GP on ``inducing`` pseudo-inputs (DTC, Sec. 3.3.3), or ``posterior``.
+
+    The pseudo-inputs are training latents paired with ``inducing_values`` distinct values of
+    the last ``dg`` input columns (K-means centres of the training g; all codes of a discrete
+    g; none without g), so that :class:`SharedTransition` on the result has that many groups:
+    its work per step falls from ``O(N^2 Dx + K U N Dx)`` to ``O(M^2 Dx + K inducing_values M
+    Dx)``. Both transition paths of the online filter use this choice, so they agree.
+
+    Args:
+        posterior: the exact GP over ``[x, g]`` (``Din = Dx + dg``).
+        dg: number of trailing intention columns ``Dg`` (0 without g).
+        inducing: number of pseudo-inputs M, or ``None`` for ``posterior`` itself.
+        inducing_values: distinct intention values among the pseudo-inputs for a continuous g,
+            at most M (default ``round(sqrt(M))``, or all training values when ``M >= N``: all
+            training inputs, the exact GP but for the ridge that
+            :meth:`GPPosterior.sparse <hgpdm_torch.gp.GPPosterior.sparse>` adds to an
+            ill-conditioned ``K_MM``).
+
+    Returns:
+        ``posterior.sparse(Z)`` with ``Z [<= M, Din]`` (more than M only when M is below the
+        number of discrete codes), or ``posterior`` when ``inducing`` is ``None``.
+
+    Raises:
+        ValueError: ``inducing``/``inducing_values`` not positive ints, ``inducing_values``
+            above ``inducing`` or without it; a posterior with a noise per value (see
+            :meth:`GPPosterior.sparse <hgpdm_torch.gp.GPPosterior.sparse>`).
+    """
+    if inducing is None:
+        if inducing_values is not None:
+            raise ValueError("inducing_values needs inducing (the number of pseudo-inputs)")
+        return posterior
+    _positive_int(inducing, "inducing")
+    if inducing_values is not None:
+        _positive_int(inducing_values, "inducing_values")
+        if inducing_values > inducing:
+            raise ValueError(
+                f"inducing_values ({inducing_values}) cannot exceed inducing ({inducing}): "
+                "each intention value needs at least one pseudo-input"
+            )
+    X = posterior.train_inputs
+    if not 0 <= dg < X.shape[1]:
+        raise ValueError(f"dg must be in [0, {X.shape[1] - 1}] (Din - 1), got {dg}")
+    discrete = any(leaf.codes for leaf in kernel_leaves(posterior.kernel, X.shape[1]))
+    dx = X.shape[1] - dg
+    return posterior.sparse(_pseudo_inputs(X, dx, inducing, inducing_values, discrete))
 
 
 def _pseudo_inputs(
@@ -54,18 +97,25 @@ def _pseudo_inputs(
     The cost per step grows with the number of distinct intention values among the pseudo-inputs
     (the groups of :class:`SharedTransition`), so they share ``num_values`` values: the training
     intentions' K-means centres, weighted by their number of points (default
-    ``round(sqrt(M))``; the training values themselves when ``M >= N``, which gives the exact GP;
+    ``round(sqrt(M))``; the training values themselves when ``M >= N``: all training inputs;
     a discrete g always keeps its codes). Each value gets ``floor(M / values)`` (at least one)
     training latents of its cluster, evenly spread over the cluster's points (all of them when
     it has fewer), so there are at most M unless M is below the number of discrete codes.
+    Without g (``Dg = 0``) the M latents are evenly spread over all training points.
     """
-    uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
+    if X.shape[1] == dx:  # no g: one value shared by all points
+        uniq = X.new_zeros(1, 0)
+        group = torch.zeros(X.shape[0], dtype=torch.long, device=X.device)
+    else:
+        uniq, group = torch.unique(X[:, dx:], dim=0, return_inverse=True)
     u = len(uniq)
     if num_values is None:
         num_values = max(1, round(math.sqrt(m))) if m < X.shape[0] else u
     if discrete or num_values >= u:
         centres, cluster = uniq, group
     else:
+        from sklearn.cluster import KMeans  # only here: importing sklearn takes ~1 s
+
         counts = torch.bincount(group, minlength=u).double().cpu().numpy()
         km = KMeans(n_clusters=num_values, n_init=4, random_state=0)
         km.fit(uniq.double().cpu().numpy(), sample_weight=counts)
@@ -98,12 +148,25 @@ def _tensor_product(terms: list[Term]) -> bool:
     return len(terms) == 1 and terms[0].kind == "rbf" and terms[0].factor is not None
 
 
+def _check_values(posterior: GPPosterior, values: torch.Tensor) -> None:
+    """``values`` must be a ``[K, Dg]`` tensor of trailing input columns, ``1 <= Dg < Din``."""
+    if not isinstance(values, torch.Tensor):
+        raise TypeError(f"values must be a tensor [K, Dg], got {type(values).__name__}")
+    din = posterior.input_dim
+    if values.dim() != 2 or not 1 <= values.shape[1] < din:
+        raise ValueError(
+            f"values must be [K, Dg] with 1 <= Dg < Din = {din} (the trailing input columns), "
+            f"got {tuple(values.shape)}"
+        )
+
+
 class SharedTransition:
     r"""Moment matching of the IDDM transition GP at one input Gaussian for all K intentions.
 
     For ``x ~ N(mu, Sigma)`` and each grid value ``g_k`` this gives exactly what
-    :meth:`GPPosterior.predict_gaussian` gives for ``[x, g_k]`` with ``include_noise=True`` (mean,
-    covariance and ``Cov[x, f]``, Eq. 29-31 and ``Q^x``), organised for speed:
+    :meth:`GPPosterior.predict_gaussian <hgpdm_torch.gp.GPPosterior.predict_gaussian>` gives for
+    ``[x, g_k]`` with ``include_noise=True`` (mean, covariance and ``Cov[x, f]``, Eq. 29-31 and
+    ``Q^x``; with the posterior's ``scale`` and ``offset``), organised for speed:
 
     - the kernel must be one RBF term over ``x`` times a factor of ``g`` (the IDDM tensor product
       ``iddm_continuous`` or the block kernel ``iddm_discrete``); the ``x`` expectations
@@ -113,19 +176,20 @@ class SharedTransition:
       and group u. The second moments contract ``psi2`` with each group's weights, then with
       ``phi``: ``O(N^2 Dx + K U N Dx)`` per stream instead of ``O(K N^2 Dx)``.
 
-    With ``inducing = M`` the GP is replaced by its sparse pseudo-input approximation (thesis
-    Sec. 3.3.3; the deterministic training conditional, DTC): with ``A = noise K_MM + K_MN K_NM``
-    the mean weights become ``A^-1 K_MN Y`` and ``K^-1`` in the variance becomes
-    ``K_MM^-1 - noise A^-1``. The M pseudo-inputs are training latents paired with
-    ``inducing_values`` intention values (K-means centres of the training g; all codes of a
-    discrete g), so the U groups above become ``inducing_values`` groups: the work per step falls
-    from ``O(N^2 Dx + K U N Dx)`` to ``O(M^2 Dx + K inducing_values M Dx)``.
+    It reads the posterior's ``train_inputs``, ``weights`` and ``kinv`` only, so a sparse
+    posterior (:meth:`GPPosterior.sparse <hgpdm_torch.gp.GPPosterior.sparse>`) works as well,
+    its pseudo-inputs grouped instead of the training points. With ``inducing = M`` the
+    constructor builds that sparse GP itself (the deterministic training conditional, DTC, of
+    thesis Sec. 3.3.3: with ``A = noise K_MM + K_MN K_NM`` the mean weights become
+    ``A^-1 K_MN Y`` and ``K^-1`` in the variance becomes ``K_MM^-1 - noise A^-1``) on the
+    pseudo-inputs of :func:`sparse_posterior`, whose ``inducing_values`` intention values become
+    the groups: the work per step falls to ``O(M^2 Dx + K inducing_values M Dx)``.
 
     Args:
         posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``).
-        values: ``[K, Dg]`` intention grid (or codes).
+        values: ``[K, Dg]`` intention grid (or codes), ``1 <= Dg < Din``.
         dtype: computation dtype (the posterior's weights and ``K^-1`` are cast from it).
-        inducing: number of pseudo-inputs M (``None``: the exact GP).
+        inducing: number of pseudo-inputs M (``None``: ``posterior`` as it is).
         inducing_values: number of distinct intention values among the pseudo-inputs for a
             continuous g, at most M (default ``round(sqrt(M))``, or all training values when
             ``M >= N``).
@@ -140,32 +204,13 @@ class SharedTransition:
         inducing: int | None = None,
         inducing_values: int | None = None,
     ) -> None:
+        _check_values(posterior, values)
         dtype = dtype or posterior.train_inputs.dtype
+        posterior = sparse_posterior(posterior, values.shape[1], inducing, inducing_values)
         X = posterior.train_inputs
         dx = X.shape[1] - values.shape[1]
         leaves = kernel_leaves(posterior.kernel, X.shape[1])
         weights, kinv = posterior.weights, posterior.kinv
-        if inducing is not None:
-            if isinstance(inducing, bool) or not isinstance(inducing, int) or inducing < 1:
-                raise ValueError(f"inducing must be a positive int or None, got {inducing!r}")
-            if inducing_values is not None and (
-                isinstance(inducing_values, bool)
-                or not isinstance(inducing_values, int)
-                or inducing_values < 1
-            ):
-                raise ValueError(
-                    f"inducing_values must be a positive int or None, got {inducing_values!r}"
-                )
-            if inducing_values is not None and inducing_values > inducing:
-                raise ValueError(
-                    f"inducing_values ({inducing_values}) cannot exceed inducing ({inducing}): "
-                    "each intention value needs at least one pseudo-input"
-                )
-            discrete = any(leaf.codes for leaf in leaves)
-            X = _pseudo_inputs(X, dx, inducing, inducing_values, discrete)
-            weights, kinv = _dtc(posterior, X)
-        elif inducing_values is not None:
-            raise ValueError("inducing_values needs inducing (the number of pseudo-inputs)")
         uniq, group, terms = _group_terms(leaves, X, values, dx)
         if not _tensor_product(terms):
             raise TypeError(
@@ -207,6 +252,10 @@ class SharedTransition:
             )
         else:
             self.noise = posterior.noise.to(dtype)
+        # a transition GP has neither (None skips the no-op arithmetic on the hot path)
+        scale2, offset = posterior.scale.pow(2), posterior.offset
+        self.scale2 = None if bool((scale2 == 1).all()) else scale2.to(dtype)  # [Dx]
+        self.offset = None if bool((offset == 0).all()) else offset.to(dtype)  # [Dx]
 
     @property
     def num_values(self) -> int:
@@ -261,5 +310,10 @@ class SharedTransition:
         P2 = (phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
         cov = P2 @ self.weighted_beta  # [B, K, Dx, Dx]
         var = (self.coef - trace).clamp_min(0.0) + self.noise
-        cov = symmetrize(cov) + torch.diag_embed(var[..., None].expand(b, -1, dx))
-        return mean, cov, cross
+        var = (
+            var[..., None].expand(b, -1, dx)
+            if self.scale2 is None
+            else var[..., None] * self.scale2
+        )
+        cov = symmetrize(cov) + torch.diag_embed(var)
+        return mean if self.offset is None else mean + self.offset, cov, cross
