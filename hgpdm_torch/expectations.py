@@ -20,7 +20,7 @@ How it is organised (GPflow-style dispatch, on a normal form):
 
 1. :func:`kernel_leaves` dispatches on the gpytorch kernel type (``RBFKernel`` ARD or not,
    ``LinearKernel``, ``ScaleKernel``, ``AdditiveKernel``, ``ProductKernel``, ``active_dims``,
-   and our ``IntentionRBFKernel`` and ``DiscreteIntentionKernel``) and rewrites the kernel as a
+   and our ``DiscreteIntentionKernel`` and legacy ``IntentionRBFKernel``) and rewrites it as a
    sum of :class:`Leaf` terms over all input columns: ``coef * exp(-1/2 sum_c w_c (x_c - x'_c)^2)``
    or ``coef * sum_c w_c x_c x'_c``, each times Kronecker deltas on code columns and, from a
    product, times linear factors (``Leaf.factors``).

@@ -5,13 +5,12 @@ Inputs of every transition kernel are the concatenation ``[x, g]`` of a latent s
 the integer code). gpytorch's ``RBFKernel``, ``LinearKernel``, ``ScaleKernel``,
 ``AdditiveKernel`` and ``ProductKernel`` express most terms. This module adds:
 
-- :class:`IntentionRBFKernel`: ``exp(-a_x/2 ||x - x'||^2 - a_g/2 ||g - g'||^2)``, one width for
+- :func:`intention_rbf`: ``exp(-a_x/2 ||x - x'||^2) exp(-a_g/2 ||g - g'||^2)``, one width for
   all latent dims and one for all intention dims (Sec. 2.2.1; the IDDM tensor product of Sec.
-  3.2.2 is ``alpha_1`` times this kernel). :func:`intention_rbf` builds the same kernel as
-  gpytorch's ``RBFKernel(active_dims=x) * RBFKernel(active_dims=g)`` (equal to an ulp, with
-  identical Gaussian-input expectations, and loading this kernel's state dicts);
-  :func:`transition_kernel` still uses the former, whose Gram matrix the saved models' numbers
-  were computed with.
+  3.2.2 is ``alpha_1`` times this kernel), built as gpytorch's
+  ``RBFKernel(active_dims=x) * RBFKernel(active_dims=g)``; the continuous kinds of
+  :func:`transition_kernel` use it. It loads the state dicts of :class:`IntentionRBFKernel`,
+  the bespoke kernel that earlier releases built (kept so that their pickles still unpickle).
 - :class:`DiscreteIntentionKernel`: ``delta(g, g') k(x, x')`` (Sec. 2.2.1, discrete g).
 
 White-noise terms (``beta_2`` in Eq. 1, ``beta_1`` in Eq. 2, ``alpha_4``) act on training points
@@ -71,8 +70,12 @@ class IntentionRBFKernel(Kernel):
     so ``alpha_2^x = l_x^{-2}`` and ``alpha_2^g = l_g^{-2}`` in the thesis's notation. Wrap it in a
     ``ScaleKernel`` for the signal variance ``alpha_1``.
 
-    :func:`intention_rbf` builds the same kernel from gpytorch's ``RBFKernel`` and
-    ``ProductKernel`` (equal to an ulp, with identical Gaussian-input expectations).
+    Legacy: earlier releases built the continuous transition kernels with this class; now
+    :func:`transition_kernel` builds :func:`intention_rbf`, the same kernel from gpytorch's
+    ``RBFKernel`` and ``ProductKernel`` (equal to an ulp, with identical Gaussian-input
+    expectations), which loads this kernel's state dicts, so saved model files load into it.
+    The class stays so that pickles holding it (models, posteriors, kernels) unpickle and keep
+    working, expectations included.
 
     Args:
         x_dim: number of latent dims ``Dx`` (the first columns of the input).
@@ -365,6 +368,10 @@ def transition_kernel(
               (tensor product, Sec. 3.2.2);
             - ``"iddm_discrete"``: ``delta(g, g') alpha_1 RBF(x)`` (Sec. 3.2.2 with
               ``alpha_3 = inf``).
+
+            The RBF of the continuous kinds is :func:`intention_rbf`,
+            ``ScaleKernel(RBF(x) * RBF(g))``; their state dicts from earlier releases (with
+            :class:`IntentionRBFKernel` there) load into it.
         x_dim: latent dimension ``Dx``.
         g_dim: intention dimension ``Dg`` for continuous g (discrete g uses one code column).
         num_values: number of values K of a discrete g (required for the discrete kinds).
@@ -429,11 +436,7 @@ def transition_kernel(
         return style if rho == 0.0 else AdditiveKernel(base(rho, cols), style)
     if g_dim < 1:
         raise ValueError(f"g_dim must be >= 1, got {g_dim}")
-    # IntentionRBFKernel, not its gpytorch equal intention_rbf(): their Gram matrices differ by
-    # an ulp, which K^-1 (condition ~1e5) amplifies past 1e-12 in the models' results
-    rbf = IntentionRBFKernel(x_dim, g_dim)
-    rbf.lengthscale_x = _rbf_lengthscale(a2)
-    rbf.lengthscale_g = _rbf_lengthscale(float(alpha_g[0]))
+    rbf = intention_rbf(x_dim, g_dim, _rbf_lengthscale(a2), _rbf_lengthscale(float(alpha_g[0])))
     if kind == "iddm_continuous":
         return scaled(rbf)
     x_cols, g_cols = range(x_dim), range(x_dim, x_dim + g_dim)

@@ -150,15 +150,22 @@ def test_intention_rbf_product_equals_the_bespoke_kernel(generator):
 
 @pytest.mark.parametrize("kind", ["iddm_continuous", "continuous"])
 def test_intention_rbf_loads_the_bespoke_kernels_state_dict(kind, generator):
-    """A state dict holding IntentionRBFKernel entries (a transition kernel of a saved model)
-    loads into the product form, nested at any prefix, with the same Gram matrix."""
+    """A state dict holding IntentionRBFKernel entries (the transition kernel of a model saved
+    before the switch to the product form) loads into today's transition kernel, nested at any
+    prefix, with the same Gram matrix."""
     old = transition_kernel(kind, 2, g_dim=1, alpha=(0.8, 1.7, 0.3, 1e-3), alpha_g=(2.5, 0.4))
+    old_scaled = old if kind == "iddm_continuous" else old.kernels[0]
+    bespoke = IntentionRBFKernel(2, 1)
+    bespoke.lengthscale_x, bespoke.lengthscale_g = (
+        k.lengthscale for k in old_scaled.base_kernel.kernels
+    )
+    old_scaled.base_kernel = bespoke
     with torch.no_grad():
         for p in old.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=generator))
     new = transition_kernel(kind, 2, g_dim=1)
     scaled = new if kind == "iddm_continuous" else new.kernels[0]
-    scaled.base_kernel = intention_rbf(2, 1)
+    assert isinstance(scaled.base_kernel, gpytorch.kernels.ProductKernel)
     state = old.state_dict()
     assert any("raw_lengthscale_x" in key for key in state)
     missing, unexpected = new.load_state_dict(state)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from gpytorch.kernels import AdditiveKernel
+from gpytorch.kernels import AdditiveKernel, ProductKernel
 from scipy.stats import multivariate_normal, norm
 
 from hgpdm_torch.models import GPDM, HGPDM, IDDM
@@ -44,7 +44,7 @@ def _transition_gram(model: GPDM, xin: np.ndarray, gin: np.ndarray | None) -> np
     rbf = (
         model.transition_kernel if kind == "iddm_continuous" else model.transition_kernel.kernels[0]
     )
-    a2g = float(rbf.base_kernel.lengthscale_g) ** -2
+    a2g = float(rbf.base_kernel.kernels[1].lengthscale) ** -2  # RBF(x) * RBF(g)
     dg2 = ((gin[:, None, :] - gin[None, :, :]) ** 2).sum(-1)
     k = a1 * np.exp(-0.5 * a2 * d2 - 0.5 * a2g * dg2)
     if kind == "continuous":
@@ -67,9 +67,9 @@ def _alphas(model: GPDM) -> tuple[float, float, float]:
     k = model.transition_kernel
     scale = k if model.transition_kind.startswith("iddm") else k.kernels[0]
     a1 = float(scale.outputscale)
-    inner = scale.base_kernel
-    ls = inner.lengthscale_x if hasattr(inner, "lengthscale_x") else inner.lengthscale
-    a2 = float(ls) ** -2
+    inner = scale.base_kernel  # RBF(x), or RBF(x) * RBF(g) for the continuous kinds
+    rbf_x = inner.kernels[0] if isinstance(inner, ProductKernel) else inner
+    a2 = float(rbf_x.lengthscale) ** -2
     a3 = 0.0 if model.transition_kind.startswith("iddm") else float(k.kernels[1].variance)
     return a1, a2, a3
 

@@ -13,8 +13,10 @@ import sys
 import numpy as np
 import pytest
 import torch
+from gpytorch.kernels import ProductKernel
 
 import hgpdm_torch
+from hgpdm_torch.kernels import IntentionRBFKernel
 from hgpdm_torch.models import (
     GPDM,
     HGPDM,
@@ -111,6 +113,37 @@ def test_round_trip_rebuilds_the_same_model(tmp_path, build):
     version, blob = _unpack(tmp_path / "m.pt")
     assert version == FORMAT_VERSION
     assert blob["class"] == type(model).__name__ and blob["dtype"] == "float64"
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda s: HGPDM(s, [0.1, -0.3, 0.7, 0.2], 2, intention="continuous"),
+        lambda s: IDDM(s, [0.1, -0.3, 0.7, 0.2], 2, intention="continuous", measurement="linear"),
+    ],
+    ids=["hgpdm-continuous", "iddm-continuous"],
+)
+def test_files_with_the_bespoke_intention_kernel_load_into_the_product(tmp_path, build):
+    """A file saved when the continuous kinds used IntentionRBFKernel (its state dict holds
+    ``raw_lengthscale_x``/``_g``) loads into today's RBF(x) * RBF(g) with the same length
+    scales; the model equals the saved one to the ulp by which the two Gram matrices differ."""
+    model = build(_sequences())
+    model.fit(2, warn=False)
+    kernel = model.transition_kernel
+    scaled = kernel if isinstance(model, IDDM) else kernel.kernels[0]
+    rbf_x, rbf_g = scaled.base_kernel.kernels
+    old = IntentionRBFKernel(rbf_x.active_dims.numel(), rbf_g.active_dims.numel())
+    old.lengthscale_x, old.lengthscale_g = rbf_x.lengthscale, rbf_g.lengthscale
+    scaled.base_kernel = old
+    model.save(tmp_path / "m.pt")
+    assert any(k.endswith("raw_lengthscale_x") for k in _unpack(tmp_path / "m.pt")[1]["state_dict"])
+    again = load_model(tmp_path / "m.pt")
+    kernel = again.transition_kernel
+    product = (kernel if isinstance(again, IDDM) else kernel.kernels[0]).base_kernel
+    assert isinstance(product, ProductKernel)
+    assert torch.equal(product.kernels[0].lengthscale, old.lengthscale_x)
+    assert torch.equal(product.kernels[1].lengthscale, old.lengthscale_g)
+    assert _loss(again) == pytest.approx(_loss(model), rel=1e-10)
 
 
 def test_load_classmethod_checks_the_class(saved):
