@@ -280,15 +280,18 @@ class GPPosterior:
         option: known ``g``, batches of intentions, ``include_noise``, ``joint_cov``; a
         discrete intention's blocks, since ``K_MM`` and ``A`` are block-diagonal over codes too)
         and :meth:`shared_moments` work on it unchanged, at ``O(M^2)`` instead of ``O(N^2)``
-        per input. With ``Z = X`` it is the exact GP (up to the rounding of ``K_MM^-1``).
+        per input. With ``Z = X`` it is the exact GP where ``K_MM`` is well conditioned (else
+        up to the ridge below: on fitted latents, variances within ~1%).
 
         ``kinv`` is a difference of two matrices as large as ``K_MM^-1``, so pseudo-inputs
         that nearly repeat each other would leave the moments to rounding noise: where the
         condition number of ``K_MM`` exceeds ``1e8`` (float64; ``1 / (10 eps)`` in a lower
         precision), ``K_MM`` gets the smallest ridge ``r I`` that brings it down to that (in
         ``A`` as well: a DTC whose inducing values carry noise ``r``); well-conditioned
-        pseudo-inputs are left as they are. Its :meth:`to_dtype` recomputes it from the data;
-        :meth:`sparse` on it starts again from the data.
+        pseudo-inputs are left as they are. The ridge is held constant under autograd (with
+        ``detach=False``, gradients are those of the GP with that ridge, not of the ridge's own
+        dependence on the hyperparameters). Its :meth:`to_dtype` casts factors computed in its
+        own dtype; :meth:`sparse` on it starts again from the data.
 
         Args:
             inducing_inputs: ``[M, Din]`` pseudo-inputs ``Z`` (finite; converted to the
@@ -689,12 +692,21 @@ class _DTCPosterior(GPPosterior):
         return self.data_inputs
 
     def to_dtype(self, dtype: torch.dtype) -> GPPosterior:
-        """The same (detached) sparse GP in another dtype, recomputed from the data in it."""
+        """The same (detached) sparse GP in another dtype: factors and ``kinv`` computed in this
+        one's dtype, then cast.
+
+        Unlike the exact GP's, they are not recomputed in ``dtype``: ``kinv = K_MM^-1 - noise
+        A^-1`` cancels two matrices as large as ``K_MM^-1`` (``A`` has condition numbers of
+        1e12-1e14 on fitted models), which float32 would leave to rounding.
+        """
         if self.train_inputs.dtype == dtype:
             return self
-        kernel = copy.deepcopy(self.kernel).to(dtype).requires_grad_(False)
-        pieces = (
-            self.data_inputs, self.train_targets, self.noise, self.scale, self.offset,
-            self.train_inputs,
-        )  # fmt: skip
-        return _DTCPosterior(kernel, *(t.detach().to(dtype) for t in pieces), detach=True)
+        low = copy.copy(self)
+        low.kernel = copy.deepcopy(self.kernel).to(dtype).requires_grad_(False)
+        for name in ("data_inputs", "train_targets", "noise", "scale", "offset", "train_inputs"):
+            setattr(low, name, getattr(self, name).detach().to(dtype))
+        low.detach = True
+        with torch.no_grad():
+            low._factors = tuple(f.to(dtype) for f in self._current())
+            low._kinv = self.kinv.detach().to(dtype)
+        return low

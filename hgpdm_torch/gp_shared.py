@@ -112,6 +112,8 @@ def _pseudo_inputs(
     if num_values is None:
         num_values = max(1, round(math.sqrt(m))) if m < X.shape[0] else u
     if discrete or num_values >= u:
+        if m >= X.shape[0]:  # every value kept and room for every point: the exact GP's inputs
+            return X
         centres, cluster = uniq, group
     else:
         from sklearn.cluster import KMeans  # only here: importing sklearn takes ~1 s

@@ -217,9 +217,13 @@ def test_sparse_dtype_gradients_and_resparsifying(generator):
     sparse = post.sparse(Z)
     xs = torch.cat([torch.randn(5, DX, generator=generator), Z[:5, DX:]], 1)
     ref_mean, ref_var = sparse.predict(xs)
-    # another dtype: recomputed from the data in it
+    # another dtype: the factors and kinv of this one's, cast (K_MM^-1 - noise A^-1 cancels
+    # two large matrices, which float32 arithmetic would leave to rounding)
     low = sparse.to_dtype(torch.float32)
     assert low.train_inputs.dtype == low.weights.dtype == low.kinv.dtype == torch.float32
+    assert torch.equal(low.kinv, sparse.kinv.float())
+    assert torch.equal(low.weights, sparse.weights.float())
+    assert sparse.train_inputs.dtype == sparse.kinv.dtype == torch.float64  # unchanged
     assert sparse.to_dtype(torch.float64) is sparse
     mean, var = low.predict(xs.float())
     torch.testing.assert_close(mean.double(), ref_mean, rtol=1e-3, atol=1e-4)
@@ -283,7 +287,14 @@ def test_sparse_posterior_pseudo_inputs(generator):
     assert Z.shape == (16, 3) and len(torch.unique(Z[:, DX])) == 4
     assert bool(torch.isin(Z[:, :DX], post.train_inputs[:, :DX]).all())
     full = sparse_posterior(post, 1, n)
-    assert torch.equal(torch.sort(full.train_inputs, 0)[0], torch.sort(post.train_inputs, 0)[0])
+    assert torch.equal(full.train_inputs, post.train_inputs)
+    # groups of unequal size (5, 10 and 30 points): M >= N still keeps every training point
+    uneven = torch.cat([post.train_inputs[:45, :DX], torch.repeat_interleave(
+        torch.tensor([-1.0, 0.0, 1.0], dtype=post.train_inputs.dtype), torch.tensor([5, 10, 30])
+    )[:, None]], 1)  # fmt: skip
+    post_u = GPPosterior(post.kernel, uneven, post.train_targets[:45], NOISE)
+    for m in (45, 60):
+        assert torch.equal(sparse_posterior(post_u, 1, m).train_inputs, uneven)
     gpdm = GPPosterior(
         transition_kernel("gpdm", 3, alpha=ALPHA), post.train_inputs, post.train_targets, NOISE
     )

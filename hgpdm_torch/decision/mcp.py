@@ -230,7 +230,8 @@ class MonteCarloPlanner:
         self.filter = belief_filter
         self.q, self.features = q, features
         self.measurement = model.measurement_posterior()
-        self.transition = model.transition_posterior() if sampling == "points" else None
+        # the filter's transition GP (sparse where the filter's is)
+        self.transition = belief_filter.posterior if sampling == "points" else None
         self.num_particles, self.min_particles = num_particles, min_particles
         self.chunk_size, self.confidence, self.sampling = chunk_size, confidence, sampling
         # interval half-width factors c(n) of Algorithm 4.3 for every checkpoint n

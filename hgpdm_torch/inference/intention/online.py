@@ -29,6 +29,7 @@ import torch
 
 from ... import settings
 from ...gaussian import independent_joint, mixture_moments, rts_step
+from ...gp_shared import sparse_posterior
 from ...linalg import symmetrize
 from ...models import GPDM
 from ...validation import check_choice
@@ -176,6 +177,8 @@ class OnlineIntentionFilter(IsolatedStreams):
         rejected_count, reset_count: ``[B]`` int64, rejected observations and automatic restarts
             of each stream since :meth:`reset`.
         check: the :class:`~hgpdm_torch.inference.filtering.ObservationCheck` in use.
+        posterior: the transition :class:`~hgpdm_torch.gp.GPPosterior` in use (its sparse DTC
+            approximation with ``inducing``), in the model's dtype.
 
     Shapes: ``update(z [B, Dz])`` (or ``[Dz]`` when B = 1) -> :class:`IntentionBelief` with
     ``prob [B, K]`` (or ``[K]``), ``rejected [B]`` and ``reset_streams [B]`` (or ``[]``).
@@ -222,17 +225,18 @@ class OnlineIntentionFilter(IsolatedStreams):
             raise ValueError("mixing='gaussian' needs a continuous g and evidence='bound'")
         self.dtype = dtype or model.latent.dtype
         self.continuous = kind == "continuous"
-        trans = model.transition_posterior()
-        sparse = {"inducing": inducing, "inducing_values": inducing_values}
-        self.transition = transition_moments(
-            trans, values, self.dtype, transition=transition, **sparse
+        # the exact transition GP or its sparse DTC approximation, for every use below
+        trans = sparse_posterior(
+            model.transition_posterior(), values.shape[-1], inducing, inducing_values
         )
+        self.posterior = trans
+        self.transition = transition_moments(trans, values, self.dtype, transition=transition)
         meas = model.measurement_posterior()
         self.check = ObservationCheck.from_measurement(meas, outlier_sd)
         self.measure = _measurement_update(meas, self.dtype)
         own = trans.train_inputs.dtype
         if self.dtype != own:
-            reference = transition_moments(trans, values, own, transition=transition, **sparse)
+            reference = transition_moments(trans, values, own, transition=transition)
             measure = _measurement_update(meas, own)
             _check_precision(model, reference, self.transition, measure, self.measure)
         self.gaussian_transition = trans.to_dtype(self.dtype) if mixing == "gaussian" else None
