@@ -20,7 +20,14 @@ def test_benchmarks_are_found():
     assert {"hgpdm_fit", "moment_matching", "online_intention", "mcp"} <= set(NAMES)
 
 
-@pytest.mark.parametrize("name", NAMES)
+#: quick runs over ~20 s on 2 cores, behind ``slow``: the behaviour they time has fast tests of
+#: its own (stroke execution in tests/robots, the regressors in tests/test_baselines.py)
+SLOW = {"table_tennis", "target_information"}
+
+
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in NAMES]
+)
 def test_quick_mode_runs_and_writes_results(name, capsys):
     module = importlib.import_module(f"benchmarks.{name}")
     assert module.main(["--quick"]) == 0
