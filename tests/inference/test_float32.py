@@ -11,8 +11,6 @@ which the transition check alone let through, is refused with the cause and the 
 
 from __future__ import annotations
 
-import time
-
 import pytest
 import torch
 
@@ -64,17 +62,11 @@ def test_rbf_measurement_model_is_refused_naming_the_measurement_gp(styles):
 
 def test_accepted_float32_filter_tracks_float64_on_seen_and_unseen_styles(styles):
     """A linear measurement and alpha_4 = 5e-2 (evidence error 0.018 nats): float32 is
-    accepted (the check costs ~0.03 s) and its beliefs stay within 0.02 of float64 (measured:
+    accepted and its beliefs stay within 0.02 of float64 (measured:
     2e-3) over 6 streams x 200 steps, three of an unseen style, and one stream of 1,200 steps
     through the test movements in turn (style switches included)."""
     data, _, test = styles
     model = _model(styles, "linear", 5e-2)
-    start = time.perf_counter()
-    OnlineIntentionFilter(model, dtype=torch.float32)
-    checked = time.perf_counter() - start
-    start = time.perf_counter()
-    OnlineIntentionFilter(model)
-    assert checked - (time.perf_counter() - start) < 1.0  # the check itself (~0.03 s here)
 
     labels = data.labels.tolist()
     picks = [next(i for i in test if labels[i] == c) for c in range(3)]
