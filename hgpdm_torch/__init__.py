@@ -27,6 +27,7 @@ _EXPORTS: dict[str, str] = {
     "GPPosterior": ".gp",
     "HGPDM": ".models",
     "IDDM": ".models",
+    "LinearIDDM": ".models",
     "ModelFileError": ".models",
     "cross_validate": ".model_selection",
     "datasets": ".datasets",

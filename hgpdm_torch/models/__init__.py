@@ -1,4 +1,5 @@
-"""Models: the GPDM, the hierarchical GPDM (H-GPDM) and the Intention-Driven Dynamics Model.
+"""Models: the GPDM, the hierarchical GPDM (H-GPDM), the Intention-Driven Dynamics Model and its
+linear-Gaussian, phase-indexed counterpart :class:`LinearIDDM`.
 
 Saving and loading: :meth:`GPDM.save`, :func:`load_model`, :func:`register_model` for your own
 subclasses, and :class:`ModelFileError` for files that cannot be loaded
@@ -7,12 +8,14 @@ subclasses, and :class:`ModelFileError` for files that cannot be loaded
 
 from .gpdm import GPDM
 from .hgpdm import HGPDM, IDDM
+from .linear_iddm import LinearIDDM
 from .persistence import ModelFileError, load_model, register_model, registered_models
 
 __all__ = [
     "GPDM",
     "HGPDM",
     "IDDM",
+    "LinearIDDM",
     "ModelFileError",
     "load_model",
     "register_model",

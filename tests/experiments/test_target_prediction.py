@@ -34,13 +34,19 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert len(table.meta["train_mae_online"]) == len(HORIZONS_MS)
     for name in (
         "online", "online calibrated", "online sparse M=30", "batch", "gpr", "ridge", "median",
+        "linear iddm",
     ):  # fmt: skip
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
     # the credible sets are scored at T = 1 and at the temperature fitted on the CV folds
     t = table.meta["temperature"]
     assert t > 0 and any(m.endswith(f"T={t:.3g} (CV)") for m in methods)
     covered = [r["90% set coverage [%]"] for r in table.rows if "90% set coverage [%]" in r]
-    assert len(covered) == 2 and all(0 <= c <= 100 for c in covered)
+    assert len(covered) == 3 and all(0 <= c <= 100 for c in covered)
+    # the linear IDDM's prior is the one of least CV error at 80 ms among those searched
+    linear = table.meta["linear_iddm"]
+    best = min(linear["cv_mae_80ms"], key=linear["cv_mae_80ms"].get)
+    assert best == f"{linear['coef_precision']},{linear['noise_prior']}"
+    assert any(m.startswith("linear IDDM per phase") for m in methods)
     assert set(table.meta["calibration"]) == {"T=1", "fitted T"}
     # the median row equals an independent recomputation on the same strokes
     strokes = sample_strokes(22, generator=torch.Generator().manual_seed(0))

@@ -1,0 +1,183 @@
+"""LinearIDDM: the conjugate predictive against marginal-likelihood ratios, beliefs against a
+brute-force loop, recovery of g on phase-dependent linear systems, and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.special import gammaln, multigammaln
+
+from hgpdm_torch.models import LinearIDDM
+
+
+def _log_marginal(u: np.ndarray, y: np.ndarray, noise: str, lam: float, psi: float) -> float:
+    """log p(Y | U) of the conjugate model, from its closed form (not from the predictive)."""
+    n, d = y.shape
+    p = u.shape[1]
+    prec = u.T @ u + lam * np.eye(p)
+    coef = np.linalg.solve(prec, u.T @ y)
+    resid = y.T @ y - coef.T @ prec @ coef  # Y^T (I + U U^T / lam)^-1 Y
+    logdet_ratio = p * math.log(lam) - np.linalg.slogdet(prec)[1]  # log |Lambda_0| / |Lambda_n|
+    if noise == "isotropic":  # sigma^2 ~ IG(2, psi)
+        a0, b0 = 2.0, psi
+        an, bn = a0 + n * d / 2, b0 + 0.5 * np.trace(resid)
+        gauss = -n * d / 2 * math.log(2 * math.pi) + d / 2 * logdet_ratio
+        return float(gauss + a0 * math.log(b0) - an * math.log(bn) + gammaln(an) - gammaln(a0))
+    if noise == "diagonal":  # each dim its own D = 1 model
+        return sum(_log_marginal(u, y[:, [k]], "full", lam, psi) for k in range(d))
+    nu0 = d + 2.0
+    psi0, psin = psi * np.eye(d), psi * np.eye(d) + resid
+    return float(
+        -n * d / 2 * math.log(math.pi) + d / 2 * logdet_ratio
+        + nu0 / 2 * np.linalg.slogdet(psi0)[1] - (nu0 + n) / 2 * np.linalg.slogdet(psin)[1]
+        + multigammaln((nu0 + n) / 2, d) - multigammaln(nu0 / 2, d)
+    )  # fmt: skip
+
+
+def _phase_system(n: int, generator: torch.Generator, discrete: bool = False, T: int = 6):
+    """Sequences of z_{t+1} = A_t z_t + b_t phi(g) + e_t whose dependence on g flips sign with
+    the phase (a stationary model averages it away), full noise covariance."""
+    d = 3
+    if discrete:
+        g = torch.randint(0, 3, (n,), generator=generator).double()
+        phi = torch.nn.functional.one_hot(g.long(), 3).double() - 1 / 3
+    else:
+        g = 2 * torch.rand(n, generator=generator) - 1
+        phi = g[:, None]
+    a = 0.6 * torch.eye(d)
+    b = torch.randn(phi.shape[1], d, generator=generator)
+    mix = torch.tensor([[1.0, 0.0, 0.0], [0.9, 0.3, 0.0], [0.2, -0.5, 0.4]])
+    z = [torch.randn(n, d, generator=generator)]
+    for t in range(T - 1):
+        sign = 1.0 if t % 2 == 0 else -1.0
+        noise = 0.3 * torch.randn(n, d, generator=generator) @ mix.T
+        z.append(z[-1] @ a.T + sign * phi @ b + noise)
+    return torch.stack(z, 1), g
+
+
+@pytest.mark.parametrize("noise", ["full", "diagonal", "isotropic"])
+def test_predictive_is_the_ratio_of_marginal_likelihoods(noise, generator):
+    # log p(z_new | u_new, data) = log p(Y + new | U + u_new) - log p(Y | U): the closed-form
+    # marginal likelihoods are an independent derivation of the Student-t predictive
+    obs, g = _phase_system(12, generator, T=4)
+    lam, psi = 0.7, 0.4
+    model = LinearIDDM(noise=noise, phase=False, coef_precision=lam, noise_prior=psi).fit(obs, g)
+    frames = obs.reshape(-1, 3).numpy()
+    mean, std = frames.mean(0), frames.std(0, ddof=1)
+    z = (obs.numpy() - mean) / std
+    u = np.concatenate(
+        [z[:, :-1], np.broadcast_to(g.numpy()[:, None, None], (12, 3, 1)), np.ones((12, 3, 1))], -1
+    ).reshape(-1, 5)
+    y = z[:, 1:].reshape(-1, 3)
+    a, b = torch.randn(2, 3, generator=generator).double() + torch.tensor(mean)
+    for gv in (-0.8, 0.3):
+        u_new = np.concatenate([(a.numpy() - mean) / std, [gv, 1.0]])[None]
+        y_new = ((b.numpy() - mean) / std)[None]
+        oracle = _log_marginal(np.vstack([u, u_new]), np.vstack([y, y_new]), noise, lam, psi)
+        oracle -= _log_marginal(u, y, noise, lam, psi) + np.log(std).sum()  # raw-z density
+        got = model.log_predictive(a, b, torch.tensor([gv]))
+        assert got.shape == (1,)
+        assert abs(float(got[0]) - oracle) < 1e-9
+
+
+def test_beliefs_match_a_brute_force_loop_and_are_causal(generator):
+    obs, g = _phase_system(40, generator)
+    model = LinearIDDM().fit(obs[:30], g[:30])
+    grid = torch.linspace(-1, 1, 7)
+    belief = model.beliefs(obs[30:], grid)
+    assert belief.prob.shape == (10, 6, 7) and belief.mean.shape == (10, 6, 1)
+    for i in range(10):
+        for t in range(6):
+            log_w = torch.zeros(7)
+            for s in range(t):
+                log_w += model.log_predictive(obs[30 + i, s], obs[30 + i, s + 1], grid, step=s)
+            expected = torch.softmax(log_w, 0)
+            assert torch.allclose(belief.prob[i, t], expected, atol=1e-12)
+    # frame 0 has seen no transition: the uniform prior; a later frame never changes the past
+    assert torch.allclose(belief.prob[:, 0], torch.full((10, 7), 1 / 7))
+    changed = obs[30:].clone()
+    changed[:, 4:] += 5.0
+    again = model.beliefs(changed, grid)
+    assert torch.allclose(again.prob[:, :4], belief.prob[:, :4], atol=1e-14)
+    assert not torch.allclose(again.prob[:, 4:], belief.prob[:, 4:])
+    # a prior over the grid multiplies the belief
+    prior = torch.linspace(-1.0, 1.0, 7)
+    tilted = model.beliefs(obs[30:], grid, log_prior=prior)
+    assert torch.allclose(tilted.prob, torch.softmax(belief.log_prob + prior, -1), atol=1e-12)
+
+
+def test_recovers_g_of_a_phase_dependent_system(generator):
+    obs, g = _phase_system(260, generator)
+    train, test = slice(0, 200), slice(200, 260)
+    grid = torch.linspace(-1, 1, 41)
+    errors = {}
+    for phase in (True, False):
+        model = LinearIDDM(phase=phase).fit(obs[train], g[train])
+        mean = model.beliefs(obs[test], grid).mean[:, -1, 0]
+        errors[phase] = float((mean - g[test]).abs().mean())
+    # g's effect flips sign with the phase: the shared transition averages it away
+    assert errors[True] < 0.1 and errors[False] > 3 * errors[True]
+    # the error falls as frames arrive
+    model = LinearIDDM().fit(obs[train], g[train])
+    err = (model.beliefs(obs[test], grid).mean[..., 0] - g[test, None]).abs().mean(0)
+    assert float(err[-1]) < float(err[1]) < float(err[0])
+
+
+def test_discrete_intentions(generator):
+    obs, g = _phase_system(200, generator, discrete=True)
+    model = LinearIDDM(intention="discrete").fit(list(obs[:150]), g[:150].long())
+    belief = model.beliefs(obs[150:])
+    assert belief.values.tolist() == [[0.0], [1.0], [2.0]] and belief.mean is None
+    accuracy = (belief.prob[:, -1].argmax(-1) == g[150:].long()).double().mean()
+    assert accuracy > 0.9
+
+
+def test_sequences_of_different_lengths(generator):
+    obs, g = _phase_system(30, generator)
+    seqs = [obs[j, : 3 + j % 4] for j in range(30)]  # 3..6 frames
+    model = LinearIDDM().fit(seqs, g)
+    assert model.num_phases == 5
+    out = model.log_evidence(obs[0])  # one [T, Dz] stream
+    assert out.shape == (6, 25) and bool((out[0] == 0).all())
+    with pytest.raises(ValueError, match="step 5 has no transition"):
+        model.log_evidence(torch.cat([obs[0], obs[0, :1]]))
+    shared = LinearIDDM(phase=False).fit(seqs, g)
+    assert shared.num_phases == 1 and shared.log_evidence(torch.cat([obs[0]] * 2)).shape == (12, 25)
+
+
+def test_rejects_bad_input(generator):
+    obs, g = _phase_system(10, generator)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        LinearIDDM().beliefs(obs)
+    with pytest.raises(ValueError, match="noise"):
+        LinearIDDM(noise="spherical")
+    with pytest.raises(ValueError, match="coef_precision"):
+        LinearIDDM(coef_precision=0.0)
+    with pytest.raises(ValueError, match="noise_prior"):
+        LinearIDDM(noise_prior=float("nan"))
+    with pytest.raises(TypeError, match="phase"):
+        LinearIDDM(phase=1)
+    with pytest.raises(ValueError, match="num_values"):
+        LinearIDDM(num_values=3)
+    with pytest.raises(ValueError, match="intentions"):
+        LinearIDDM().fit(obs, g[:5])
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        LinearIDDM().fit([obs[0, :1]], g[:1])
+    with pytest.raises(ValueError, match="codes"):
+        LinearIDDM(intention="discrete").fit(obs, g)
+    model = LinearIDDM().fit(obs, g)
+    with pytest.raises(ValueError, match="Dz = 3"):
+        model.beliefs(obs[..., :2])
+    bad = obs.clone()
+    bad[1, 2, 0] = float("nan")
+    with pytest.raises(ValueError, match="obs"):
+        model.beliefs(bad)
+    with pytest.raises(ValueError, match="grid"):
+        model.beliefs(obs, torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="log_prior"):
+        model.beliefs(obs, torch.zeros(3), log_prior=torch.zeros(4))
+    with pytest.raises(ValueError, match="step"):
+        model.log_predictive(obs[0, 0], obs[0, 1], step=-1)
