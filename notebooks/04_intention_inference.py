@@ -148,12 +148,46 @@ size = dict(n_train=14, n_test=8, kernels=('linear',), latent_dims=(4,), grid_si
             fit_steps=5) if SMOKE else dict(kernels=('linear',), latent_dims=(4,))
 table = target_prediction(**size)
 print(table.to_markdown())
-for name in ('batch', 'online', 'gpr', 'median'):
+for name in ('batch', 'online', 'linear iddm', 'gpr', 'median'):
     mae, sem = np.array(table.meta['mae'][name]).T
     plt.errorbar(HORIZONS_MS, mae, sem, capsize=3, marker='o', label=name)
 plt.gca().invert_xaxis()
 plt.xlabel('time before the hit [ms]')
 plt.ylabel('MAE [cm]')
+plt.legend()
+plt.show()
+
+# %% [markdown]
+# ## When the GP IDDM loses the target: a linear-Gaussian intention-driven dynamics
+#
+# On these strokes the thesis's IDDM stays above GPR at 80 ms (README, target prediction). The
+# target is there: at 80 ms it shows in how the *last* transition departs from what the previous
+# frame predicts, along a few precise directions of the 15 features while others (racket
+# velocity) are noisy. The GP IDDM averages that away three times over: one transition for every
+# phase of the stroke, one isotropic process noise, and a 6-D latent state
+# (`python -m benchmarks target_dynamics` measures each). `hg.LinearIDDM` keeps the IDDM's idea,
+# the intention as an input of the dynamics and Bayes' theorem over it, with a linear transition of
+# its own at each frame index, a full noise covariance over the observed features, and both
+# integrated out under their conjugate prior, whose two scales it picks by their evidence. Its
+# belief after frame t reads frames 0..t only, for all streams in one call. It needs data: each
+# phase has 17 coefficients per feature and a 15 x 15 noise covariance. With the 16 training plays
+# of the smoke run stored here it errs far more than the GP IDDM; with the 100 of the experiment it
+# beats GPR at 80 ms (README, target prediction).
+
+# %%
+lin = hg.LinearIDDM().fit(obs[:n_train], targets[:n_train])
+print('prior (coef_precision, noise_prior) by evidence:', lin.prior)
+lin_belief = lin.beliefs(test_obs[:, :5], grid)  # [streams, frames, grid]
+gp_mean = torch.stack([b.mean[:, 0] for b in beliefs], 1)
+for t, label in zip((1, 2, 3, 4), HORIZONS_MS, strict=True):
+    gp_mae = 100 * float((gp_mean[:, t] - test_y).abs().mean())
+    lin_mae = 100 * float((lin_belief.mean[:, t, 0] - test_y).abs().mean())
+    print(f'{label} ms before the hit: GP IDDM {gp_mae:.1f} cm, linear IDDM {lin_mae:.1f} cm')
+plt.bar(grid.numpy() - 0.02, beliefs[4].prob[play].numpy(), width=0.04, label='GP IDDM')
+plt.bar(grid.numpy() + 0.02, lin_belief.prob[play, 4].numpy(), width=0.04, label='linear IDDM')
+plt.axvline(float(test_y[play]), color='r', label='true target')
+plt.xlabel('target x [m]')
+plt.ylabel('posterior 80 ms before the hit')
 plt.legend()
 plt.show()
 

@@ -18,8 +18,7 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   raw observations): MAE +- SEM in cm and the CPU time per observation;
 - the linear-Gaussian intention-driven dynamics (:class:`~hgpdm_torch.models.LinearIDDM`, not in
   the thesis): a transition per frame index with a full noise covariance over the observations,
-  its prior (coefficient precision, noise scale) chosen by the same cross-validation folds at the
-  80 ms horizon, the decision deadline;
+  its prior (coefficient precision, noise scale) chosen by the evidence of the training strokes;
 - how often the online belief's 90% credible set over the grid holds the grid value nearest to
   the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
   on the cross-validation folds' held-out beliefs (:func:`~hgpdm_torch.inference.fit_temperature`;
@@ -51,8 +50,6 @@ __all__ = ["HORIZONS_MS", "grid_index", "main", "supervised_init", "target_predi
 #: observations, the last at the hit).
 HORIZONS_MS = (320, 240, 160, 80)
 _STEPS = (1, 2, 3, 4)
-#: Priors of :class:`LinearIDDM` searched by cross-validation: (coef_precision, noise_prior).
-LINEAR_PRIORS = tuple((lam, psi) for lam in (0.3, 1.0, 3.0, 10.0) for psi in (0.1, 0.3, 1.0))
 
 
 def _mae_sem(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
@@ -176,28 +173,17 @@ def _cv_mae(
     return float(torch.cat(errors).mean()), torch.cat(logs), torch.cat(truths)
 
 
-def _linear_iddm(obs, y, folds, grid, obs_test, y_test) -> tuple[dict[str, Any], list, float]:
-    """:class:`LinearIDDM` with the prior of least cross-validated MAE at 80 ms (the same folds
-    as the IDDM's selection); returns the choice (with every prior's CV MAE and the test
-    beliefs' calibration at T = 1), the test scores and the CPU ms per observation."""
-    cv = {}
-    for lam, psi in LINEAR_PRIORS:
-        errors = []
-        for held in folds:
-            keep = torch.ones(len(y), dtype=torch.bool)
-            keep[held] = False
-            model = LinearIDDM(coef_precision=lam, noise_prior=psi).fit(obs[keep], y[keep])
-            mean = model.beliefs(obs[held][:, : _STEPS[-1] + 1], grid).mean[..., 0]
-            errors.append(100.0 * (mean[:, _STEPS[-1]] - y[held]).abs())
-        cv[(lam, psi)] = float(torch.cat(errors).mean())
-    lam, psi = min(cv, key=cv.get)
-    model = LinearIDDM(coef_precision=lam, noise_prior=psi).fit(obs, y)
+def _linear_iddm(obs, y, grid, obs_test, y_test) -> tuple[dict[str, Any], list, float]:
+    """:class:`LinearIDDM` with its prior chosen by the evidence of the training strokes
+    (``"auto"``); returns the prior with the test beliefs' calibration at T = 1, the test
+    scores and the CPU ms per observation."""
+    model = LinearIDDM().fit(obs, y)
     start = time.process_time()
     belief = model.beliefs(obs_test, grid)
     ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
     truth = grid_index(y_test, grid)[:, None].expand(-1, len(_STEPS))
-    choice = {"coef_precision": lam, "noise_prior": psi,
-              "cv_mae_80ms": {f"{a},{b}": round(v, 2) for (a, b), v in cv.items()},
+    choice = {"coef_precision": model.prior[0], "noise_prior": model.prior[1],
+              "log_evidence": model.log_marginal_likelihood(),
               "calibration": calibration(belief.prob[:, list(_STEPS)], truth)}  # fmt: skip
     mean = belief.mean[..., 0]
     return choice, [_mae_sem(mean[:, s], y_test) for s in _STEPS], ms
@@ -297,7 +283,7 @@ def target_prediction(
         table.meta["mae"][f"online sparse M={m}"] = scores_sparse
         name = f"IDDM online eps={forgetting}, sparse M={m}"
         table.add(**_row("comparison", name, *best, None, scores_sparse, ms_sparse))
-    choice, scores, ms = _linear_iddm(obs[train], y[train], folds, grid, obs_test, y_test)
+    choice, scores, ms = _linear_iddm(obs[train], y[train], grid, obs_test, y_test)
     table.meta["linear_iddm"] = choice
     table.meta["mae"]["linear iddm"] = scores
     prior = f"lambda={choice['coef_precision']:g}, psi={choice['noise_prior']:g}"

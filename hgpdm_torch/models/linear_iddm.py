@@ -46,9 +46,12 @@ from torch.distributions import StudentT
 
 from ..validation import as_tensor, check_choice
 
-__all__ = ["LinearIDDM"]
+__all__ = ["AUTO_COEF_PRECISION", "AUTO_NOISE_PRIOR", "LinearIDDM"]
 
 NOISE_KINDS = ("full", "diagonal", "isotropic")
+#: Candidates of ``coef_precision="auto"`` and ``noise_prior="auto"`` (half-decade log grids).
+AUTO_COEF_PRECISION = tuple(10.0 ** (k / 2) for k in range(-3, 5))  # 0.03 .. 100
+AUTO_NOISE_PRIOR = tuple(10.0 ** (k / 2) for k in range(-4, 2))  # 0.01 .. 3.2
 
 
 class LinearIDDM:
@@ -65,9 +68,14 @@ class LinearIDDM:
             shared by all frames.
         noise: ``"full"`` (default), ``"diagonal"`` or ``"isotropic"`` noise covariance.
         coef_precision: ``lambda > 0``, prior precision of the coefficients (ridge strength
-            on standardised inputs).
+            on standardised inputs), or ``"auto"`` (default): the value of
+            :data:`AUTO_COEF_PRECISION` of largest marginal likelihood of the training
+            transitions (empirical Bayes, jointly with ``noise_prior``).
         noise_prior: ``psi > 0``, the prior's guess of the noise variance of a standardised
-            observed dimension.
+            observed dimension, or ``"auto"`` (default, from :data:`AUTO_NOISE_PRIOR`).
+
+    After :meth:`fit`, ``prior`` holds the ``(lambda, psi)`` used and
+    :meth:`log_marginal_likelihood` the evidence of the training transitions under it.
         dtype: floating dtype of the fitted statistics.
     """
 
@@ -78,8 +86,8 @@ class LinearIDDM:
         num_values: int | None = None,
         phase: bool = True,
         noise: str = "full",
-        coef_precision: float = 1.0,
-        noise_prior: float = 0.1,
+        coef_precision: float | str = "auto",
+        noise_prior: float | str = "auto",
         dtype: torch.dtype = torch.float64,
     ) -> None:
         self.intention = check_choice(intention, "intention", ("continuous", "discrete"))
@@ -87,8 +95,11 @@ class LinearIDDM:
         if not isinstance(phase, bool):
             raise TypeError(f"phase must be a bool, got {phase!r}")
         for name, v in (("coef_precision", coef_precision), ("noise_prior", noise_prior)):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0 or math.isinf(v):
-                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+            if v != "auto" and (
+                isinstance(v, bool) or not isinstance(v, int | float) or not v > 0
+                or math.isinf(v)
+            ):  # fmt: skip
+                raise ValueError(f"{name} must be a positive finite number or 'auto', got {v!r}")
         if num_values is not None and (
             intention != "discrete" or isinstance(num_values, bool)
             or not isinstance(num_values, int) or num_values < 1
@@ -99,7 +110,7 @@ class LinearIDDM:
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.phase, self.num_values, self._num_values_arg = phase, num_values, num_values
-        self.coef_precision, self.noise_prior = float(coef_precision), float(noise_prior)
+        self.coef_precision, self.noise_prior = coef_precision, noise_prior
         self.dtype = dtype
         self.fitted = False
 
@@ -135,29 +146,33 @@ class LinearIDDM:
         u, y, step = torch.cat(src), torch.cat(dst), torch.cat(step)
         u = torch.cat([u, torch.ones(len(u), 1, dtype=u.dtype, device=device)], -1)
         self.num_phases = int(step.max()) + 1 if self.phase else 1
-        stats = [self._posterior(u[step == s] if self.phase else u, y[step == s] if self.phase
-                                 else y) for s in range(self.num_phases)]  # fmt: skip
-        # [S, P, P], [S, P, Dz], [S, Dz, Dz] (Psi_n), [S] (nu_n)
-        self.precision = torch.stack([s[0] for s in stats])
-        self.coef = torch.stack([s[1] for s in stats])
-        self.scatter = torch.stack([s[2] for s in stats])
-        self.dof = torch.stack([s[3] for s in stats])
+        parts = [(u[step == s], y[step == s]) if self.phase else (u, y)
+                 for s in range(self.num_phases)]  # fmt: skip
+        lams = AUTO_COEF_PRECISION if self.coef_precision == "auto" else (self.coef_precision,)
+        psis = AUTO_NOISE_PRIOR if self.noise_prior == "auto" else (self.noise_prior,)
+        best = None
+        for lam in lams:  # empirical Bayes over the candidates (one when both are given)
+            for psi in psis:
+                stats = [_posterior(a, b, float(lam), float(psi)) for a, b in parts]
+                evidence = sum(_log_marginal(*st, self.noise, float(lam), float(psi))
+                               for st in stats)  # fmt: skip
+                if best is None or evidence > best[0]:
+                    best = (evidence, (float(lam), float(psi)), stats)
+        self._evidence, self.prior, stats = best
+        # [S, P, P] Lambda_n, [S, P, Dz] M_n, [S, Dz, Dz] Psi_n, [S] nu_n
+        self.precision, self.coef, self.scatter, self.dof = (
+            torch.stack([st[i] for st in stats]) for i in range(4)
+        )
         self.precision_tril = torch.linalg.cholesky(self.precision)
         self.fitted = True
         return self
 
-    def _posterior(self, u: torch.Tensor, y: torch.Tensor):
-        """Conjugate update of one phase: ``Lambda_n``, ``M_n``, ``Psi_n``, ``nu_n``."""
-        p, d = u.shape[1], y.shape[1]
-        eye = torch.eye(p, dtype=u.dtype, device=u.device)
-        lam = u.T @ u + self.coef_precision * eye
-        coef = torch.linalg.solve(lam, u.T @ y)
-        scatter = y.T @ y - coef.T @ lam @ coef
-        scatter = 0.5 * (scatter + scatter.T) + self.noise_prior * torch.eye(
-            d, dtype=u.dtype, device=u.device
-        )
-        dof = torch.tensor(d + 2.0 + len(u), dtype=u.dtype, device=u.device)
-        return lam, coef, scatter, dof
+    def log_marginal_likelihood(self) -> float:
+        """``log p(Z_{1:} | Z_{:-1}, g)`` of the (standardised) training transitions under the
+        fitted prior, summed over the phases: the closed-form evidence of the conjugate model,
+        which ``"auto"`` maximises."""
+        self._check_fitted()
+        return float(self._evidence)
 
     # ---------------------------------------------------------------------------- inference
     def log_predictive(self, z_prev: Any, z_next: Any, grid: Any = None, step: int = 0):
@@ -220,7 +235,8 @@ class LinearIDDM:
         else:  # sigma^2 ~ IG(2, psi): a_n = 2 + n Dz / 2, b_n = psi + tr(Psi_n - psi I) / 2
             n = nu - d - 2
             a_n = 2.0 + n * d / 2
-            b_n = self.noise_prior + 0.5 * (scatter.trace() - d * self.noise_prior)
+            psi = self.prior[1]
+            b_n = psi + 0.5 * (scatter.trace() - d * psi)
             eye = torch.eye(d, dtype=za.dtype, device=za.device)
             scale = eye * (b_n / a_n * inflate)[..., None, None].sqrt()
             logp = MultivariateStudentT(2 * a_n, loc, scale).log_prob(zb[:, None].expand_as(loc))
@@ -353,3 +369,44 @@ class LinearIDDM:
                 raise ValueError(f"discrete intentions must lie in [0, {k - 1}]")
             self.num_values = k
         return g
+
+
+def _posterior(u: torch.Tensor, y: torch.Tensor, lam: float, psi: float):
+    """Conjugate update of one phase from ``u [n, P]``, ``y [n, Dz]``: ``Lambda_n [P, P]``,
+    ``M_n [P, Dz]``, ``Psi_n [Dz, Dz]`` (prior ``psi I`` included) and ``nu_n``."""
+    p, d = u.shape[1], y.shape[1]
+    precision = u.T @ u + lam * torch.eye(p, dtype=u.dtype, device=u.device)
+    coef = torch.linalg.solve(precision, u.T @ y)
+    scatter = y.T @ y - coef.T @ precision @ coef
+    scatter = 0.5 * (scatter + scatter.T) + psi * torch.eye(d, dtype=u.dtype, device=u.device)
+    return precision, coef, scatter, torch.tensor(d + 2.0 + len(u), dtype=u.dtype, device=u.device)
+
+
+def _log_marginal(
+    precision: torch.Tensor, coef: torch.Tensor, scatter: torch.Tensor, dof: torch.Tensor,
+    noise: str, lam: float, psi: float,
+) -> torch.Tensor:  # fmt: skip
+    """``log p(Y | U)`` of one phase: the matrix-normal inverse-Wishart evidence
+    ``pi^(-n D/2) (|Lambda_0| / |Lambda_n|)^(D/2) |Psi_0|^(nu_0/2) / |Psi_n|^(nu_n/2)
+    Gamma_D(nu_n/2) / Gamma_D(nu_0/2)``; per dimension with ``D = 1`` for diagonal noise; with
+    the inverse-gamma ``IG(2, psi)`` and ``(2 pi)^(-n D/2)`` for isotropic noise."""
+    p, d = coef.shape
+    n = float(dof) - d - 2
+    coef_term = 0.5 * (p * math.log(lam) - torch.linalg.cholesky(precision).diagonal().log().sum()
+                       * 2)  # fmt: skip
+    if noise == "isotropic":
+        a_n = 2.0 + n * d / 2
+        b_n = psi + 0.5 * (scatter.trace() - d * psi)
+        return (-0.5 * n * d * math.log(2 * math.pi) + d * coef_term + 2.0 * math.log(psi)
+                - a_n * b_n.log() + math.lgamma(a_n) - math.lgamma(2.0))  # fmt: skip
+    if noise == "diagonal":  # each dimension its own D = 1 model: nu_0 = 3, nu_n = 3 + n
+        nu0, nun = 3.0, 3.0 + n
+        per_dim = (-0.5 * n * math.log(math.pi) + coef_term + 0.5 * nu0 * math.log(psi)
+                   - 0.5 * nun * scatter.diagonal().log() + math.lgamma(nun / 2)
+                   - math.lgamma(nu0 / 2))  # fmt: skip
+        return per_dim.sum()
+    nu0, nun = d + 2.0, float(dof)
+    logdet = 2 * torch.linalg.cholesky(scatter).diagonal().log().sum()
+    return (-0.5 * n * d * math.log(math.pi) + d * coef_term + 0.5 * nu0 * d * math.log(psi)
+            - 0.5 * nun * logdet + torch.special.multigammaln(scatter.new_tensor(nun / 2), d)
+            - torch.special.multigammaln(scatter.new_tensor(nu0 / 2), d))  # fmt: skip

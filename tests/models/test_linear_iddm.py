@@ -11,6 +11,7 @@ import torch
 from scipy.special import gammaln, multigammaln
 
 from hgpdm_torch.models import LinearIDDM
+from hgpdm_torch.models.linear_iddm import AUTO_COEF_PRECISION, AUTO_NOISE_PRIOR
 
 
 def _log_marginal(u: np.ndarray, y: np.ndarray, noise: str, lam: float, psi: float) -> float:
@@ -63,8 +64,10 @@ def test_predictive_is_the_ratio_of_marginal_likelihoods(noise, generator):
     # log p(z_new | u_new, data) = log p(Y + new | U + u_new) - log p(Y | U): the closed-form
     # marginal likelihoods are an independent derivation of the Student-t predictive
     obs, g = _phase_system(12, generator, T=4)
-    lam, psi = 0.7, 0.4
-    model = LinearIDDM(noise=noise, phase=False, coef_precision=lam, noise_prior=psi).fit(obs, g)
+    model = LinearIDDM(noise=noise, phase=False).fit(obs, g)  # the prior by its evidence
+    lam, psi = model.prior
+    fixed = LinearIDDM(noise=noise, phase=False, coef_precision=0.7, noise_prior=0.4).fit(obs, g)
+    assert fixed.prior == (0.7, 0.4)
     frames = obs.reshape(-1, 3).numpy()
     mean, std = frames.mean(0), frames.std(0, ddof=1)
     z = (obs.numpy() - mean) / std
@@ -81,6 +84,31 @@ def test_predictive_is_the_ratio_of_marginal_likelihoods(noise, generator):
         got = model.log_predictive(a, b, torch.tensor([gv]))
         assert got.shape == (1,)
         assert abs(float(got[0]) - oracle) < 1e-9
+        oracle = _log_marginal(np.vstack([u, u_new]), np.vstack([y, y_new]), noise, 0.7, 0.4)
+        oracle -= _log_marginal(u, y, noise, 0.7, 0.4) + np.log(std).sum()
+        assert abs(float(fixed.log_predictive(a, b, torch.tensor([gv]))[0]) - oracle) < 1e-9
+
+
+@pytest.mark.parametrize("noise", ["full", "diagonal", "isotropic"])
+def test_evidence_and_the_auto_prior(noise, generator):
+    obs, g = _phase_system(15, generator, T=4)
+    frames = obs.reshape(-1, 3).numpy()
+    z = (obs.numpy() - frames.mean(0)) / frames.std(0, ddof=1)
+    phases = [(np.column_stack([z[:, s], g.numpy(), np.ones(15)]), z[:, s + 1]) for s in range(3)]
+    model = LinearIDDM(noise=noise, coef_precision=0.5, noise_prior=0.2).fit(obs, g)
+    oracle = sum(_log_marginal(u, y, noise, 0.5, 0.2) for u, y in phases)
+    assert abs(model.log_marginal_likelihood() - oracle) < 1e-8
+    # "auto" (the default) takes the candidates' evidence maximum
+    auto = LinearIDDM(noise=noise).fit(obs, g)
+    best = max(
+        ((lam, psi) for lam in AUTO_COEF_PRECISION for psi in AUTO_NOISE_PRIOR),
+        key=lambda pr: sum(_log_marginal(u, y, noise, *pr) for u, y in phases),
+    )
+    assert auto.prior == pytest.approx(best)
+    psi = AUTO_NOISE_PRIOR[2]  # only lambda searched: a sub-grid, never a better evidence
+    half = LinearIDDM(noise=noise, noise_prior=psi).fit(obs, g)
+    assert half.prior[1] == psi and half.prior[0] in AUTO_COEF_PRECISION
+    assert half.log_marginal_likelihood() <= auto.log_marginal_likelihood() + 1e-9
 
 
 def test_beliefs_match_a_brute_force_loop_and_are_causal(generator):
@@ -156,6 +184,8 @@ def test_rejects_bad_input(generator):
         LinearIDDM(noise="spherical")
     with pytest.raises(ValueError, match="coef_precision"):
         LinearIDDM(coef_precision=0.0)
+    with pytest.raises(ValueError, match="coef_precision"):
+        LinearIDDM(coef_precision="best")
     with pytest.raises(ValueError, match="noise_prior"):
         LinearIDDM(noise_prior=float("nan"))
     with pytest.raises(TypeError, match="phase"):
