@@ -44,6 +44,7 @@ from ..decision.lspi import lspi
 from ..decision.mcp import MonteCarloPlanner
 from ..decision.policies import fixed_time_policy, greedy_policy, mcp_policy, stop_only_q
 from ..decision.stopping import StoppingProblem
+from ..models import LinearIDDM
 from ..parallel import Executor, available_cpus, get_executor, ray_address_type
 from . import anticipation as ant
 from .arguments import (
@@ -103,7 +104,10 @@ class DemoResult:
     ``target_probs [n_test, T, K]`` is the belief over the target grid ``grid [K]`` of each of
     them at the ``T`` decision times ``start_times``; ``successes`` maps each player of the
     table to its ``[n_test]`` returns on the same rallies (the pairs behind the paired
-    difference).
+    difference). ``linear_probs [n_test, T, K]`` is the belief of a
+    :class:`~hgpdm_torch.models.LinearIDDM` fitted on the IDDM's training strokes (all of
+    them, also where the IDDM takes a subset), for comparison only: the players decide on the
+    IDDM's belief.
     """
 
     table: ResultTable
@@ -113,6 +117,18 @@ class DemoResult:
     target_probs: torch.Tensor
     meta: dict = field(default_factory=dict)
     successes: dict[str, torch.Tensor] = field(default_factory=dict)
+    linear_probs: torch.Tensor | None = None
+
+
+def _linear_beliefs(
+    obs: torch.Tensor, targets: torch.Tensor, train: torch.Tensor, test: torch.Tensor,
+    steps_at: list[int], grid: torch.Tensor,
+) -> torch.Tensor:  # fmt: skip
+    """``[len(test), T, K]`` beliefs of a :class:`LinearIDDM` fitted on the ``train`` strokes,
+    at the decision steps."""
+    model = LinearIDDM().fit(obs[train], targets[train])
+    belief = model.beliefs(obs[test][:, : max(steps_at) + 1], grid)
+    return belief.prob[:, steps_at]
 
 
 def _play_rally(job: tuple) -> object:
@@ -267,6 +283,8 @@ def run_demo(
             stop_action = torch.zeros(n, dtype=torch.long)
             table_reward = torch.zeros(n)
             probs = torch.zeros(n, len(start_times), config.grid_size)
+            linear_probs = torch.zeros_like(probs)
+            grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
             single = start_times.index(ant.SINGLE_TIME)
             t_learn = t_plan = 0.0
             decisions = 0
@@ -310,6 +328,9 @@ def run_demo(
                 stop_step[at], stop_action[at] = decided.stop_step, decided.stop_action
                 table_reward[at] = decided.reward.to(table_reward.dtype)
                 probs[at] = beliefs.log_prob[test].exp().to(probs.dtype)
+                seen_by = iddm_train if watched else train  # the IDDM's strokes
+                linear = _linear_beliefs(obs, targets, seen_by, test, steps_at, grid)
+                linear_probs[at] = linear.to(probs.dtype)
                 bar.update()
             bar.close()
             if shared is None:
@@ -376,9 +397,13 @@ def run_demo(
         "play [s]": t_play,
         "live = table": f"{agree}/{n}",
     }
+    # how far each belief's mean lies from the true target at each decision time
+    truth = trials.targets[valid].to(probs.dtype)
+    for name, p in (("IDDM", probs), ("linear IDDM", linear_probs)):
+        err = 100 * ((p * grid.to(p.dtype)).sum(-1) - truth[:, None]).abs().mean(0)
+        meta[f"belief mean MAE [cm], {name}"] = [round(float(e), 1) for e in err]
     table.meta.update(meta)
-    grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
-    return DemoResult(table, rallies, grid, start_times, probs, meta, won)
+    return DemoResult(table, rallies, grid, start_times, probs, meta, won, linear_probs)
 
 
 def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
@@ -423,8 +448,9 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     # the first returned rally (else the first one) and the belief that led to it
     j = next((k for k, r in enumerate(result.rallies) if r.outcome.success), 0)
     rally = result.rallies[j]
-    fig = Figure(figsize=(11, 4.2))
-    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
+    columns = 2 if result.linear_probs is None else 3
+    fig = Figure(figsize=(5.5 * columns, 4.2))
+    ax3 = fig.add_subplot(1, columns, 1, projection="3d")
     draw_table(ax3)
     draw_stroke(ax3, rally.outcome, WAM(), color=MOVEMENT_COLORS[rally.action], label=rally.action)
     ax3.set_title(
@@ -432,13 +458,16 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
         f"before the hit -> {'returned' if rally.outcome.success else 'missed'}",
         fontsize=9,
     )
-    ax = fig.add_subplot(1, 2, 2)
-    probs = result.target_probs[j]
-    for t, s in enumerate(result.start_times):
-        ax.plot(result.grid, probs[t], label=f"{round(-1000 * s)} ms before the hit")
-    ax.axvline(rally.target, color="k", ls="--", lw=1, label="true target")
-    ax.set(xlabel="target x on the hitting plane [m]", ylabel="belief (online IDDM)")
-    ax.legend(fontsize=7)
+    beliefs = [("belief (online IDDM, used by the players)", result.target_probs)]
+    if result.linear_probs is not None:
+        beliefs.append(("belief (linear IDDM, same strokes)", result.linear_probs))
+    for k, (label, probs) in enumerate(beliefs):
+        ax = fig.add_subplot(1, 1 + len(beliefs), 2 + k)
+        for t, s in enumerate(result.start_times):
+            ax.plot(result.grid, probs[j, t], label=f"{round(-1000 * s)} ms before the hit")
+        ax.axvline(rally.target, color="k", ls="--", lw=1, label="true target")
+        ax.set(xlabel="target x on the hitting plane [m]", ylabel=label)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(out / "rally.png")
     fig.savefig(paths[-1], dpi=120)
