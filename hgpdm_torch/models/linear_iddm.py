@@ -3,15 +3,15 @@
 The IDDM of Ch. 3 lets the intention ``g`` drive a GP transition over a low-dimensional latent
 state with one isotropic process noise shared by all frames of a movement. :class:`LinearIDDM`
 keeps the IDDM's idea (``g`` is an input of the dynamics; inference is Bayes' theorem over
-``g``) and drops those three assumptions: the state is the standardised observation itself, the
-transition is linear in ``[z_t, phi(g), 1]`` with its own coefficients and its own *full* noise
-covariance at each frame index of the movement (``phase=True``), and both are integrated out
-under their conjugate matrix-normal inverse-Wishart prior, so the one-step predictive is a
-multivariate Student-t (not in the thesis). For movements recorded from a common start (a
-stroke's first frame a fixed time before the hit), this is what the target-prediction
-experiment needs: there the target information at 80 ms lies in the step-specific, strongly
-anisotropic residual of the last transition, which a stationary transition with isotropic noise
-over a 6-D latent averages away (README, target prediction).
+``g``) and drops those three assumptions: the state is the standardised observation itself, and
+the transition is linear in ``[z_t, phi(g), 1]`` with its own coefficients and its own noise
+covariance (per dimension by default) at each frame index of the movement (``phase=True``), both
+integrated out under their conjugate prior, so the one-step predictive is a Student-t (not in the
+thesis). For movements recorded from a common start (a stroke's first frame a fixed time before
+the hit), this is what the target-prediction experiment needs: there the target information at
+80 ms lies in the step-specific, anisotropic residual of the last transition, which a stationary
+transition with isotropic noise over a 6-D latent averages away (README, target prediction;
+``python -m benchmarks target_dynamics``).
 
 Model, for each phase ``s`` (the frame index of ``z_t``, or one shared phase)::
 
@@ -24,9 +24,13 @@ independent per-dimension variances (inverse-gamma, the ``Dz = 1`` case of the p
 dimension), ``noise="isotropic"`` by ``sigma_s^2 I`` with ``sigma_s^2 ~ IG(2, psi)`` (the GPDM's
 assumption). Posterior after ``n`` transitions ``U [n, P]``, ``Y [n, Dz]``:
 ``Lambda_n = U^T U + lambda I``, ``M_n = Lambda_n^-1 U^T Y``,
-``Psi_n = psi I + Y^T Y - M_n^T Lambda_n M_n``, ``nu_n = Dz + 2 + n``; the predictive of
+``Psi_n = psi I + Y^T Y - M_n^T Lambda_n M_n`` (computed as ``psi I + R^T R + lambda M_n^T M_n``
+with the residuals ``R = Y - U M_n``, which does not cancel in float32), ``nu_n = Dz + 2 + n``;
+the predictive of
 ``z_{t+1}`` given ``u`` is Student-t with ``nu_n - Dz + 1`` degrees of freedom, location
-``M_n^T u`` and scale matrix ``(1 + u^T Lambda_n^-1 u) Psi_n / (nu_n - Dz + 1)``.
+``M_n^T u`` and scale matrix ``(1 + u^T Lambda_n^-1 u) Psi_n / (nu_n - Dz + 1)``. The noise
+kind and the scales ``lambda``, ``psi`` are chosen by the closed-form evidence ``p(Y | U)``
+unless given.
 
 The belief over a grid of K intention values after frame ``t`` is
 ``p(g | z_{0:t}) ~ p(g) prod_{s<t} p(z_{s+1} | z_s, g, data)``: exact for this model, causal
@@ -37,16 +41,19 @@ streams in one pass.
 from __future__ import annotations
 
 import math
+import numbers
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from pyro.distributions import MultivariateStudentT
 from torch.distributions import StudentT
 
 from ..validation import as_tensor, check_choice
 
-__all__ = ["AUTO_COEF_PRECISION", "AUTO_NOISE_PRIOR", "LinearIDDM"]
+__all__ = ["AUTO_COEF_PRECISION", "AUTO_NOISE_PRIOR", "NOISE_KINDS", "LinearIDDM"]
 
 NOISE_KINDS = ("full", "diagonal", "isotropic")
 #: Candidates of ``coef_precision="auto"`` and ``noise_prior="auto"`` (half-decade log grids).
@@ -66,17 +73,19 @@ class LinearIDDM:
             sequences (needs sequences that start at a common point of the movement; a stream
             may not be longer than the longest training sequence). ``False``: one transition
             shared by all frames.
-        noise: ``"full"`` (default), ``"diagonal"`` or ``"isotropic"`` noise covariance.
+        noise: ``"full"``, ``"diagonal"`` or ``"isotropic"`` noise covariance, or ``"auto"``
+            (default): the kind of largest evidence, chosen jointly with the prior scales.
         coef_precision: ``lambda > 0``, prior precision of the coefficients (ridge strength
             on standardised inputs), or ``"auto"`` (default): the value of
             :data:`AUTO_COEF_PRECISION` of largest marginal likelihood of the training
             transitions (empirical Bayes, jointly with ``noise_prior``).
         noise_prior: ``psi > 0``, the prior's guess of the noise variance of a standardised
             observed dimension, or ``"auto"`` (default, from :data:`AUTO_NOISE_PRIOR`).
-
-    After :meth:`fit`, ``prior`` holds the ``(lambda, psi)`` used and
-    :meth:`log_marginal_likelihood` the evidence of the training transitions under it.
         dtype: floating dtype of the fitted statistics.
+
+    After :meth:`fit`, ``noise_kind`` and ``prior`` hold the noise kind and ``(lambda, psi)``
+    used and :meth:`log_marginal_likelihood` the evidence of the training transitions under
+    them. A choice on the edge of its candidate grid warns (the evidence may rise beyond it).
     """
 
     def __init__(
@@ -85,13 +94,13 @@ class LinearIDDM:
         intention: str = "continuous",
         num_values: int | None = None,
         phase: bool = True,
-        noise: str = "full",
+        noise: str = "auto",
         coef_precision: float | str = "auto",
         noise_prior: float | str = "auto",
         dtype: torch.dtype = torch.float64,
     ) -> None:
         self.intention = check_choice(intention, "intention", ("continuous", "discrete"))
-        self.noise = check_choice(noise, "noise", NOISE_KINDS)
+        self.noise = check_choice(noise, "noise", (*NOISE_KINDS, "auto"))
         if not isinstance(phase, bool):
             raise TypeError(f"phase must be a bool, got {phase!r}")
         for name, v in (("coef_precision", coef_precision), ("noise_prior", noise_prior)):
@@ -128,37 +137,50 @@ class LinearIDDM:
         """
         seqs = self._check_sequences(sequences)
         device = seqs[0].device
-        g = self._check_intentions(intentions, len(seqs)).to(device)
+        g, num_values = self._check_intentions(intentions, len(seqs))
+        g = g.to(device)
         frames = torch.cat(seqs)
-        self.obs_mean = frames.mean(0)
-        std = frames.std(0)
-        self.obs_std = torch.where(std > 0, std, torch.ones_like(std))  # constant dims: as is
-        self.obs_dim = frames.shape[1]
-        self.intention_dim = g.shape[1]
-        self.intentions = g
-        feats = self._features(g)
+        mean, std = frames.mean(0), frames.std(0)
+        std = torch.where(std > 0, std, torch.ones_like(std))  # constant dims: as they are
+        feats = _features(g, self.intention, num_values)
         src, dst, step = [], [], []
-        for j, s in enumerate(seqs):
-            z = self._standardise(s)
+        for j, seq in enumerate(seqs):
+            z = (seq - mean) / std
             src.append(torch.cat([z[:-1], feats[j].expand(len(z) - 1, -1)], -1))
             dst.append(z[1:])
             step.append(torch.arange(len(z) - 1, device=device))
         u, y, step = torch.cat(src), torch.cat(dst), torch.cat(step)
         u = torch.cat([u, torch.ones(len(u), 1, dtype=u.dtype, device=device)], -1)
-        self.num_phases = int(step.max()) + 1 if self.phase else 1
+        num_phases = int(step.max()) + 1 if self.phase else 1
         parts = [(u[step == s], y[step == s]) if self.phase else (u, y)
-                 for s in range(self.num_phases)]  # fmt: skip
+                 for s in range(num_phases)]  # fmt: skip
+        kinds = NOISE_KINDS if self.noise == "auto" else (self.noise,)
         lams = AUTO_COEF_PRECISION if self.coef_precision == "auto" else (self.coef_precision,)
         psis = AUTO_NOISE_PRIOR if self.noise_prior == "auto" else (self.noise_prior,)
         best = None
-        for lam in lams:  # empirical Bayes over the candidates (one when both are given)
+        for lam in lams:  # empirical Bayes over the candidates (one when all are given)
             for psi in psis:
                 stats = [_posterior(a, b, float(lam), float(psi)) for a, b in parts]
-                evidence = sum(_log_marginal(*st, self.noise, float(lam), float(psi))
-                               for st in stats)  # fmt: skip
-                if best is None or evidence > best[0]:
-                    best = (evidence, (float(lam), float(psi)), stats)
-        self._evidence, self.prior, stats = best
+                for kind in kinds:
+                    evidence = float(sum(_log_marginal(*st, kind, float(lam), float(psi))
+                                         for st in stats))  # fmt: skip
+                    if best is None or evidence > best[0]:
+                        best = (evidence, kind, (float(lam), float(psi)), stats)
+        evidence, kind, prior, stats = best
+        for name, value, grid in (("coef_precision", prior[0], lams), ("noise_prior", prior[1],
+                                                                         psis)):  # fmt: skip
+            if len(grid) > 1 and value in (grid[0], grid[-1]):
+                warnings.warn(
+                    f"LinearIDDM: the evidence chose {name} = {value:g}, the edge of its "
+                    f"candidates {grid[0]:g} .. {grid[-1]:g}; pass a value to go beyond them",
+                    stacklevel=2,
+                )
+        # the fitted state, assigned only once everything above succeeded
+        self.obs_mean, self.obs_std, self.obs_dim = mean, std, frames.shape[1]
+        self.intentions, self.intention_dim, self.num_values = g, g.shape[1], num_values
+        self.num_phases, self.noise_kind, self.prior, self._evidence = (
+            num_phases, kind, prior, evidence
+        )  # fmt: skip
         # [S, P, P] Lambda_n, [S, P, Dz] M_n, [S, Dz, Dz] Psi_n, [S] nu_n
         self.precision, self.coef, self.scatter, self.dof = (
             torch.stack([st[i] for st in stats]) for i in range(4)
@@ -169,8 +191,8 @@ class LinearIDDM:
 
     def log_marginal_likelihood(self) -> float:
         """``log p(Z_{1:} | Z_{:-1}, g)`` of the (standardised) training transitions under the
-        fitted prior, summed over the phases: the closed-form evidence of the conjugate model,
-        which ``"auto"`` maximises."""
+        fitted noise kind and prior, summed over the phases: the closed-form evidence of the
+        conjugate model, which ``"auto"`` maximises."""
         self._check_fitted()
         return float(self._evidence)
 
@@ -195,8 +217,9 @@ class LinearIDDM:
                 f"z_prev and z_next must have the same shape, got {a.shape}, {b.shape}"
             )
         values = self.grid(grid)
-        if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        if isinstance(step, bool) or not isinstance(step, numbers.Integral) or step < 0:
             raise ValueError(f"step must be a non-negative int, got {step!r}")
+        step = int(step)
         out = self._log_predictive(a.reshape(-1, self.obs_dim), b.reshape(-1, self.obs_dim),
                                    self._features(values), step)  # fmt: skip
         return out.reshape(*a.shape[:-1], len(values))
@@ -223,12 +246,14 @@ class LinearIDDM:
                                           upper=False)  # fmt: skip
         inflate = (1.0 + v.pow(2).sum(0)).reshape(bsz, k)
         nu, scatter = self.dof[s], self.scatter[s]
-        if self.noise == "full":
+        if self.noise_kind == "full":
             df = nu - d + 1
             tril = torch.linalg.cholesky(scatter / df)
             scale = tril * inflate[..., None, None].sqrt()
             logp = MultivariateStudentT(df, loc, scale).log_prob(zb[:, None].expand_as(loc))
-        elif self.noise == "diagonal":  # per dim the Dz = 1 prior: the same nu_n - Dz + 1 = 3 + n
+        elif (
+            self.noise_kind == "diagonal"
+        ):  # per dim the Dz = 1 prior: the same nu_n - Dz + 1 = 3 + n
             df = nu - d + 1
             sd = (scatter.diagonal() / df).sqrt() * inflate[..., None].sqrt()
             logp = StudentT(df, loc, sd).log_prob(zb[:, None]).sum(-1)
@@ -255,10 +280,12 @@ class LinearIDDM:
         """
         self._check_fitted()
         z = self._check_obs(obs, "obs", min_ndim=2)
-        single = z.dim() == 2
+        obs_shape, single = z.shape, z.dim() == 2
         z = z[None] if single else z
-        if z.dim() != 3:
-            raise ValueError(f"obs must be [T, Dz] or [B, T, Dz], got {tuple(z.shape)}")
+        if z.dim() != 3 or z.shape[0] == 0 or z.shape[1] == 0:
+            raise ValueError(
+                f"obs must be [T, Dz] or [B, T, Dz] with B, T >= 1, got {tuple(obs_shape)}"
+            )
         feats = self._features(self.grid(grid))
         steps = [torch.zeros(z.shape[0], len(feats), dtype=z.dtype, device=z.device)]
         for t in range(z.shape[1] - 1):
@@ -295,6 +322,8 @@ class LinearIDDM:
         discrete g / ``num`` values over the training range of a continuous ``Dg = 1`` g."""
         self._check_fitted()
         device = self.coef.device
+        if isinstance(num, bool) or not isinstance(num, numbers.Integral) or num < 1:
+            raise ValueError(f"num must be a positive int, got {num!r}")
         if values is None:
             if self.intention == "discrete":
                 return torch.arange(self.num_values, dtype=self.dtype, device=device)[:, None]
@@ -318,10 +347,7 @@ class LinearIDDM:
 
     # ------------------------------------------------------------------------------ helpers
     def _features(self, g: torch.Tensor) -> torch.Tensor:
-        """``phi(g)``: g itself, or the one-hot code of a discrete g."""
-        if self.intention == "continuous":
-            return g
-        return torch.nn.functional.one_hot(g[:, 0].long(), self.num_values).to(g.dtype)
+        return _features(g, self.intention, self.num_values)
 
     def _standardise(self, z: torch.Tensor) -> torch.Tensor:
         return (z - self.obs_mean) / self.obs_std
@@ -337,6 +363,8 @@ class LinearIDDM:
         return z
 
     def _check_sequences(self, sequences: Any) -> list[torch.Tensor]:
+        if isinstance(sequences, np.ndarray) and sequences.dtype != object:
+            sequences = torch.as_tensor(sequences)
         if isinstance(sequences, torch.Tensor):
             if sequences.dim() != 3:
                 raise ValueError(f"sequences as a tensor must be [J, T, Dz], got "
@@ -355,20 +383,27 @@ class LinearIDDM:
             out.append(t.to(out[0].device) if out else t)
         return out
 
-    def _check_intentions(self, intentions: Any, num: int) -> torch.Tensor:
+    def _check_intentions(self, intentions: Any, num: int) -> tuple[torch.Tensor, int | None]:
         g = as_tensor(intentions, "intentions", dtype=self.dtype)
         g = g[:, None] if g.dim() == 1 else g
         if g.dim() != 2 or len(g) != num:
             raise ValueError(f"intentions must be [J] or [J, Dg] with J = {num} sequences, got "
                              f"{tuple(g.shape)}")  # fmt: skip
-        if self.intention == "discrete":
-            if g.shape[1] != 1 or bool((g != g.round()).any()) or bool((g < 0).any()):
-                raise ValueError("discrete intentions must be a [J] vector of codes >= 0")
-            k = int(g.max()) + 1 if self._num_values_arg is None else self._num_values_arg
-            if bool((g >= k).any()):
-                raise ValueError(f"discrete intentions must lie in [0, {k - 1}]")
-            self.num_values = k
+        if self.intention != "discrete":
+            return g, None
+        if g.shape[1] != 1 or bool((g != g.round()).any()) or bool((g < 0).any()):
+            raise ValueError("discrete intentions must be a [J] vector of codes >= 0")
+        k = int(g.max()) + 1 if self._num_values_arg is None else self._num_values_arg
+        if bool((g >= k).any()):
+            raise ValueError(f"discrete intentions must lie in [0, {k - 1}]")
+        return g, k
+
+
+def _features(g: torch.Tensor, intention: str, num_values: int | None) -> torch.Tensor:
+    """``phi(g)``: g itself, or the one-hot code of a discrete g."""
+    if intention == "continuous":
         return g
+    return torch.nn.functional.one_hot(g[:, 0].long(), num_values).to(g.dtype)
 
 
 def _posterior(u: torch.Tensor, y: torch.Tensor, lam: float, psi: float):
@@ -376,8 +411,10 @@ def _posterior(u: torch.Tensor, y: torch.Tensor, lam: float, psi: float):
     ``M_n [P, Dz]``, ``Psi_n [Dz, Dz]`` (prior ``psi I`` included) and ``nu_n``."""
     p, d = u.shape[1], y.shape[1]
     precision = u.T @ u + lam * torch.eye(p, dtype=u.dtype, device=u.device)
-    coef = torch.linalg.solve(precision, u.T @ y)
-    scatter = y.T @ y - coef.T @ precision @ coef
+    coef = torch.cholesky_solve(u.T @ y, torch.linalg.cholesky(precision))
+    # Y^T Y - M^T Lambda_n M as a sum of squares: the subtraction cancels in float32
+    resid = y - u @ coef
+    scatter = resid.T @ resid + lam * coef.T @ coef
     scatter = 0.5 * (scatter + scatter.T) + psi * torch.eye(d, dtype=u.dtype, device=u.device)
     return precision, coef, scatter, torch.tensor(d + 2.0 + len(u), dtype=u.dtype, device=u.device)
 

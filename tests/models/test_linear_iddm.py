@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from scipy.special import gammaln, multigammaln
+from scipy import integrate, stats
+from scipy.special import gammaln, logsumexp, multigammaln
 
 from hgpdm_torch.models import LinearIDDM
 from hgpdm_torch.models.linear_iddm import AUTO_COEF_PRECISION, AUTO_NOISE_PRIOR
@@ -36,6 +37,46 @@ def _log_marginal(u: np.ndarray, y: np.ndarray, noise: str, lam: float, psi: flo
         + nu0 / 2 * np.linalg.slogdet(psi0)[1] - (nu0 + n) / 2 * np.linalg.slogdet(psin)[1]
         + multigammaln((nu0 + n) / 2, d) - multigammaln(nu0 / 2, d)
     )  # fmt: skip
+
+
+def _sampled_log_marginal(u: np.ndarray, y: np.ndarray, noise: str, lam: float, psi: float):
+    """log p(Y | U) by integrating the noise out numerically: quadrature over sigma^2 for
+    isotropic and per-dimension noise, Monte Carlo over inverse-Wishart draws for full noise.
+    Given the noise, Y ~ MN(0, A, Sigma) with A = I + U U^T / lambda (W integrated out)."""
+    n, d = y.shape
+    a = np.eye(n) + u @ u.T / lam
+    a_inv, logdet_a = np.linalg.inv(a), np.linalg.slogdet(a)[1]
+
+    def gauss(q: float, var: float, dims: int) -> float:  # log N(y; 0, var A), dims columns
+        return -0.5 * (dims * (n * math.log(2 * math.pi * var) + logdet_a) + q / var)
+
+    def integral(q: float, dims: int, shape: float, scale: float) -> float:
+        # int N(.; 0, v A) IG(v; shape, scale) dv, over t = log v; the integrand's peak set
+        # to 1 (by its log at the mode v = (q/2 + scale) / (n dims / 2 + shape + 1))
+        def log_f(t: float) -> float:
+            return (
+                gauss(q, math.exp(t), dims)
+                + stats.invgamma.logpdf(math.exp(t), shape, scale=scale)
+                + t
+            )
+
+        mode = math.log((q / 2 + scale) / (n * dims / 2 + shape + 1))
+        peak = log_f(mode)
+        value, _ = integrate.quad(lambda t: math.exp(log_f(t) - peak), mode - 30, mode + 30,
+                                  points=[mode], limit=200)  # fmt: skip
+        return peak + math.log(value)
+
+    quad = np.einsum("id,ij,jd->d", y, a_inv, y)  # y_d^T A^-1 y_d per column
+    if noise == "isotropic":
+        return integral(float(quad.sum()), d, 2.0, psi)
+    if noise == "diagonal":  # IW(psi, 3) in one dimension is IG(3/2, psi/2)
+        return sum(integral(float(q), 1, 1.5, psi / 2) for q in quad)
+    sigmas = stats.invwishart(df=d + 2, scale=psi * np.eye(d)).rvs(100_000, random_state=3)
+    s_inv = np.linalg.inv(sigmas)
+    logs = (-0.5 * n * d * math.log(2 * math.pi) - 0.5 * d * logdet_a
+            - 0.5 * n * np.linalg.slogdet(sigmas)[1]
+            - 0.5 * np.einsum("kij,ji->k", s_inv, y.T @ a_inv @ y))  # fmt: skip
+    return float(logsumexp(logs) - math.log(len(logs)))
 
 
 def _phase_system(n: int, generator: torch.Generator, discrete: bool = False, T: int = 6):
@@ -111,6 +152,81 @@ def test_evidence_and_the_auto_prior(noise, generator):
     assert half.log_marginal_likelihood() <= auto.log_marginal_likelihood() + 1e-9
 
 
+@pytest.mark.parametrize("noise", ["full", "diagonal", "isotropic"])
+def test_closed_forms_against_numerical_integration(noise, generator):
+    # the closed-form evidence (used by the test oracle above and by "auto") against the noise
+    # integrated out by quadrature or Monte Carlo
+    u = np.column_stack([torch.randn(5, 2, generator=generator).numpy(), np.ones(5)])
+    y = torch.randn(5, 2, generator=generator).numpy() + u[:, :2] @ np.array([[0.5, 0], [0, 1]])
+    closed = _log_marginal(u, y, noise, 0.8, 0.6)
+    tol = 0.02 if noise == "full" else 1e-6  # Monte Carlo with 1e5 draws, or quadrature
+    assert abs(closed - _sampled_log_marginal(u, y, noise, 0.8, 0.6)) < tol
+
+
+@pytest.mark.parametrize("noise", ["full", "diagonal", "isotropic"])
+def test_each_phase_predicts_with_its_own_posterior(noise, generator):
+    # phase=True: the predictive at step s is the ratio of phase s's evidences
+    obs, g = _phase_system(10, generator, T=4)
+    model = LinearIDDM(noise=noise, coef_precision=0.7, noise_prior=0.4).fit(obs, g)
+    frames = obs.reshape(-1, 3).numpy()
+    mean, std = frames.mean(0), frames.std(0, ddof=1)
+    z = (obs.numpy() - mean) / std
+    a, b = torch.randn(2, 3, generator=generator).double() + torch.tensor(mean)
+    for step in range(3):
+        u = np.column_stack([z[:, step], g.numpy(), np.ones(10)])
+        u_new = np.concatenate([(a.numpy() - mean) / std, [0.4, 1.0]])[None]
+        y, y_new = z[:, step + 1], ((b.numpy() - mean) / std)[None]
+        oracle = _log_marginal(np.vstack([u, u_new]), np.vstack([y, y_new]), noise, 0.7, 0.4)
+        oracle -= _log_marginal(u, y, noise, 0.7, 0.4) + np.log(std).sum()
+        got = model.log_predictive(a, b, torch.tensor([0.4]), step=np.int64(step))
+        assert abs(float(got[0]) - oracle) < 1e-9
+
+
+def test_auto_noise_takes_the_kind_of_largest_evidence(generator):
+    obs, g = _phase_system(40, generator)
+    auto = LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, g)
+    fixed = {
+        kind: LinearIDDM(noise=kind, coef_precision=1.0, noise_prior=0.1).fit(obs, g)
+        for kind in ("full", "diagonal", "isotropic")
+    }
+    best = max(fixed, key=lambda k: fixed[k].log_marginal_likelihood())
+    assert auto.noise_kind == best == "full"  # the simulated noise is correlated
+    assert auto.log_marginal_likelihood() == fixed[best].log_marginal_likelihood()
+
+
+def test_float32_tracks_float64(generator):
+    # nearly deterministic dynamics: the residual scatter is ~1e-5 of Y^T Y, so computing it as
+    # Y^T Y - M^T Lambda M would cancel to noise in float32
+    n, T, d = 60, 30, 4
+    g = 2 * torch.rand(n, generator=generator) - 1
+    rot = torch.linalg.matrix_exp(torch.tensor([[0, .3, 0, 0], [-.3, 0, .2, 0], [0, -.2, 0, .1],
+                                                [0, 0, -.1, 0]]))  # fmt: skip
+    z = [torch.randn(n, d, generator=generator)]
+    for _ in range(T - 1):
+        z.append(z[-1] @ rot.T + 0.1 * g[:, None] + 3e-3 * torch.randn(n, d, generator=generator))
+    obs = torch.stack(z, 1)
+    options = {"noise": "full", "phase": False, "coef_precision": 0.1, "noise_prior": 1e-4}
+    b64 = LinearIDDM(**options).fit(obs[:40], g[:40])
+    b32 = LinearIDDM(**options, dtype=torch.float32).fit(obs[:40].float(), g[:40])
+    rel = (b32.scatter.double() - b64.scatter).abs().max() / b64.scatter.abs().max()
+    assert rel < 1e-3
+    grid = torch.linspace(-1, 1, 21)
+    p64 = b64.beliefs(obs[40:, :4], grid).prob
+    p32 = b32.beliefs(obs[40:, :4], grid).prob
+    assert p32.dtype == torch.float32 and (p32.double() - p64).abs().max() < 1e-2
+
+
+def test_a_failed_refit_keeps_the_fitted_model(generator):
+    obs, g = _phase_system(20, generator)
+    model = LinearIDDM().fit(obs, g)
+    before = model.beliefs(obs[:3]).prob
+    with pytest.raises(ValueError, match="intentions"):
+        model.fit(obs[:, :, :2], g[:5])
+    assert model.obs_dim == 3 and torch.equal(model.beliefs(obs[:3]).prob, before)
+    again = LinearIDDM().fit(obs.numpy(), g.numpy())  # NumPy input
+    assert torch.allclose(again.beliefs(obs[:3]).prob, before)
+
+
 def test_beliefs_match_a_brute_force_loop_and_are_causal(generator):
     obs, g = _phase_system(40, generator)
     model = LinearIDDM().fit(obs[:30], g[:30])
@@ -156,7 +272,8 @@ def test_recovers_g_of_a_phase_dependent_system(generator):
 
 def test_discrete_intentions(generator):
     obs, g = _phase_system(200, generator, discrete=True)
-    model = LinearIDDM(intention="discrete").fit(list(obs[:150]), g[:150].long())
+    with pytest.warns(UserWarning, match="edge of its candidates"):  # lambda at its smallest
+        model = LinearIDDM(intention="discrete").fit(list(obs[:150]), g[:150].long())
     belief = model.beliefs(obs[150:])
     assert belief.values.tolist() == [[0.0], [1.0], [2.0]] and belief.mean is None
     accuracy = (belief.prob[:, -1].argmax(-1) == g[150:].long()).double().mean()
@@ -211,3 +328,11 @@ def test_rejects_bad_input(generator):
         model.beliefs(obs, torch.zeros(3), log_prior=torch.zeros(4))
     with pytest.raises(ValueError, match="step"):
         model.log_predictive(obs[0, 0], obs[0, 1], step=-1)
+    with pytest.raises(ValueError, match="B, T >= 1"):
+        model.beliefs(obs[:, :0])
+    with pytest.raises(ValueError, match="B, T >= 1"):
+        model.beliefs(obs[:0])
+    with pytest.raises(ValueError, match="num"):
+        model.grid(num=0)
+    with pytest.raises(ValueError, match="noise"):
+        LinearIDDM(noise="spherical")
