@@ -174,15 +174,16 @@ def _cv_mae(
 
 
 def _linear_iddm(obs, y, grid, obs_test, y_test) -> tuple[dict[str, Any], list, float]:
-    """:class:`LinearIDDM` with its prior chosen by the evidence of the training strokes
-    (``"auto"``); returns the prior with the test beliefs' calibration at T = 1, the test
+    """:class:`LinearIDDM` with its noise kind and prior chosen by the evidence of the training
+    strokes (``"auto"``); returns them with the test beliefs' calibration at T = 1, the test
     scores and the CPU ms per observation."""
     model = LinearIDDM().fit(obs, y)
     start = time.process_time()
     belief = model.beliefs(obs_test, grid)
     ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
     truth = grid_index(y_test, grid)[:, None].expand(-1, len(_STEPS))
-    choice = {"coef_precision": model.prior[0], "noise_prior": model.prior[1],
+    choice = {"noise": model.noise_kind, "coef_precision": model.prior[0],
+              "noise_prior": model.prior[1],
               "log_evidence": model.log_marginal_likelihood(),
               "calibration": calibration(belief.prob[:, list(_STEPS)], truth)}  # fmt: skip
     mean = belief.mean[..., 0]
@@ -286,7 +287,8 @@ def target_prediction(
     choice, scores, ms = _linear_iddm(obs[train], y[train], grid, obs_test, y_test)
     table.meta["linear_iddm"] = choice
     table.meta["mae"]["linear iddm"] = scores
-    prior = f"lambda={choice['coef_precision']:g}, psi={choice['noise_prior']:g}"
+    prior = (f"{choice['noise']} noise, lambda={choice['coef_precision']:.3g}, "
+             f"psi={choice['noise_prior']:.3g}")  # fmt: skip
     name = f"linear IDDM per phase ({prior})"
     table.add(
         **_row("comparison", name, None, None, None, scores, ms),

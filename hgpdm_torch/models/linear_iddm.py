@@ -44,7 +44,7 @@ import math
 import numbers
 import warnings
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -52,6 +52,9 @@ from pyro.distributions import MultivariateStudentT
 from torch.distributions import StudentT
 
 from ..validation import as_tensor, check_choice
+
+if TYPE_CHECKING:  # the inference package imports the models: no import at run time
+    from ..inference.intention.grid import IntentionBelief
 
 __all__ = ["AUTO_COEF_PRECISION", "AUTO_NOISE_PRIOR", "NOISE_KINDS", "LinearIDDM"]
 
@@ -154,6 +157,14 @@ class LinearIDDM:
         num_phases = int(step.max()) + 1 if self.phase else 1
         parts = [(u[step == s], y[step == s]) if self.phase else (u, y)
                  for s in range(num_phases)]  # fmt: skip
+        fewest = min(len(a) for a, _ in parts)
+        if fewest < u.shape[1]:
+            warnings.warn(
+                f"LinearIDDM: a phase has {fewest} training transitions for {u.shape[1]} "
+                "coefficients per feature; its belief rests on the prior and can be far off "
+                "(use more recordings, or phase=False)",
+                stacklevel=2,
+            )
         kinds = NOISE_KINDS if self.noise == "auto" else (self.noise,)
         lams = AUTO_COEF_PRECISION if self.coef_precision == "auto" else (self.coef_precision,)
         psis = AUTO_NOISE_PRIOR if self.noise_prior == "auto" else (self.noise_prior,)
@@ -197,11 +208,14 @@ class LinearIDDM:
         return float(self._evidence)
 
     # ---------------------------------------------------------------------------- inference
-    def log_predictive(self, z_prev: Any, z_next: Any, grid: Any = None, step: int = 0):
+    def log_predictive(
+        self, z_prev: Any, z_next: Any, grid: Any = None, step: int = 0
+    ) -> torch.Tensor:
         """``log p(z_{t+1} | z_t, g, data)`` of one transition at each grid value.
 
         Args:
-            z_prev, z_next: ``[B, Dz]`` (or ``[Dz]``) consecutive raw observations.
+            z_prev: ``[B, Dz]`` (or ``[Dz]``) raw observations at frame ``step``.
+            z_next: the same streams' raw observations at the next frame.
             grid: ``[K]`` / ``[K, Dg]`` intention values (default :meth:`grid`).
             step: the frame index ``t`` of ``z_prev`` (its phase; ignored with ``phase=False``).
 
@@ -293,7 +307,7 @@ class LinearIDDM:
         out = torch.stack(steps, 1).cumsum(1)
         return out[0] if single else out
 
-    def beliefs(self, obs: Any, grid: Any = None, log_prior: Any = None):
+    def beliefs(self, obs: Any, grid: Any = None, log_prior: Any = None) -> IntentionBelief:
         """The belief over the grid after every frame (causal: frame t reads frames <= t).
 
         Args:

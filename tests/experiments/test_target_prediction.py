@@ -48,6 +48,7 @@ def test_smoke_run_reports_every_method_and_horizon():
     strokes14 = sample_strokes(22, generator=torch.Generator().manual_seed(0))
     refit = LinearIDDM().fit(strokes14.obs[:14], strokes14.targets[:14])
     assert (linear["coef_precision"], linear["noise_prior"]) == refit.prior
+    assert linear["noise"] == refit.noise_kind
     assert any(m.startswith("linear IDDM per phase") for m in methods)
     assert set(table.meta["calibration"]) == {"T=1", "fitted T"}
     # the median row equals an independent recomputation on the same strokes

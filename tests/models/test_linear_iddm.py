@@ -280,6 +280,13 @@ def test_discrete_intentions(generator):
     assert accuracy > 0.9
 
 
+def test_too_few_transitions_per_phase_warn(generator):
+    obs, g = _phase_system(5, generator)  # 5 transitions per phase for 5 coefficients: fine
+    LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, g)
+    with pytest.warns(UserWarning, match="4 training transitions for 5 coefficients"):
+        LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs[:4], g[:4])
+
+
 def test_sequences_of_different_lengths(generator):
     obs, g = _phase_system(30, generator)
     seqs = [obs[j, : 3 + j % 4] for j in range(30)]  # 3..6 frames
