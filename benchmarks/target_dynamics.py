@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from sklearn.cross_decomposition import PLSRegression
 
-from hgpdm_torch.baselines import WindowGPR
+from benchmarks.target_sweep import STEPS, abs_errors, gpr_errors, keep_mask
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
@@ -41,7 +41,6 @@ from hgpdm_torch.models import LinearIDDM
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
 RESULTS = Path(__file__).parent / "results"
-STEPS = [1, 2, 3, 4]  # observation index of 320, 240, 160, 80 ms before the hit
 #: (row name, LinearIDDM options, PLS dimension of the state or None for the observations)
 VARIANTS: list[tuple[str, dict[str, Any], int | None]] = [
     ("per phase, noise kind and prior by evidence (default LinearIDDM)", {}, None),
@@ -53,11 +52,6 @@ VARIANTS: list[tuple[str, dict[str, Any], int | None]] = [
     ("per phase, 6-D PLS state", {}, 6),
     ("per phase, 12-D PLS state", {}, 12),
 ]
-
-
-def _errors(pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Absolute errors [cm] at the four horizons, ``[n, 4]``."""
-    return 100.0 * (pred[:, STEPS] - y[:, None]).abs()
 
 
 def _pls(train: torch.Tensor, y: torch.Tensor, held: torch.Tensor, dim: int):
@@ -94,11 +88,6 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
         meta={"seed": seed, "n_train": n_train, "folds": folds, "rows": {}, "choices": {}},
     )
 
-    def keep_of(held: torch.Tensor) -> torch.Tensor:
-        keep = torch.ones(n_train, dtype=torch.bool)
-        keep[held] = False
-        return keep
-
     def add(name: str, errs: torch.Tensor, gpr: torch.Tensor, seconds: float) -> None:
         diff = errs[:, -1] - gpr[:, -1]
         paired = f"{float(diff.mean()):+.1f} +- {float(diff.std()) / len(diff) ** 0.5:.1f}"
@@ -112,19 +101,14 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
                "s": round(seconds, 1)},
         )  # fmt: skip
 
-    start, gpr = time.time(), []
-    for held in split:
-        keep = keep_of(held)
-        model = WindowGPR(windows=(1, 2, 3), seed=seed).fit(list(obs[keep]), y[keep])
-        pred = model.predict(obs[held][:, : STEPS[-1] + 1])
-        gpr.append(_errors(pred[0] if isinstance(pred, tuple) else pred, y[held]))
-    gpr_err = torch.cat(gpr)
+    start = time.time()
+    gpr_err = gpr_errors(obs, y, split, seed)
     add("GPR (experiment's WindowGPR)", gpr_err, gpr_err, time.time() - start)
 
     for name, options, dim in VARIANTS[:2] if quick else VARIANTS:
         start, errs, choices = time.time(), [], []
         for held in split:
-            keep = keep_of(held)
+            keep = keep_mask(n_train, held)
             train, test = obs[keep], obs[held][:, : STEPS[-1] + 1]
             if dim is not None:
                 train, test = _pls(train, y[keep], test, dim)
@@ -132,18 +116,18 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
                 warnings.simplefilter("ignore")
                 model = LinearIDDM(**options).fit(train, y[keep])
             choices.append([model.noise_kind, *model.prior])
-            errs.append(_errors(model.beliefs(test, grid).mean[..., 0], y[held]))
+            errs.append(abs_errors(model.beliefs(test, grid).mean[..., 0], y[held]))
         table.meta["choices"][name] = choices
         add(name, torch.cat(errs), gpr_err, time.time() - start)
 
     start, errs = time.time(), []
     for held in split:
-        keep = keep_of(held)
+        keep = keep_mask(n_train, held)
         with warnings.catch_warnings():  # 40 MAP steps do not converge; FitResult says so
             warnings.simplefilter("ignore")
             model = _fit_iddm(obs[keep], y[keep], "linear", 6, 5 if quick else 40, seed)
         mean, _, _ = _online(model, obs[held][:, : STEPS[-1] + 1], grid, 0.2)
-        errs.append(_errors(mean, y[held]))
+        errs.append(abs_errors(mean, y[held]))
     add("GP IDDM of the experiment (linear measurement, Dx 6, online eps 0.2)",
         torch.cat(errs), gpr_err, time.time() - start)  # fmt: skip
     return table

@@ -93,9 +93,28 @@ def _fit(obs: torch.Tensor, y: torch.Tensor, cfg: dict[str, Any], seed: int) -> 
     return model
 
 
-def _errors(pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def abs_errors(pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Absolute errors [cm] at the four horizons, ``[n, 4]``."""
     return 100.0 * (pred[:, STEPS] - y[:, None]).abs()
+
+
+def keep_mask(n: int, held: torch.Tensor) -> torch.Tensor:
+    """``[n]`` mask of the strokes outside the held-out fold."""
+    keep = torch.ones(n, dtype=torch.bool)
+    keep[held] = False
+    return keep
+
+
+def gpr_errors(obs: torch.Tensor, y: torch.Tensor, split, seed: int) -> torch.Tensor:
+    """The experiment's GPR (``WindowGPR``) fitted on each fold's training part: its absolute
+    errors ``[n, 4]`` on the held-out strokes, in the order of ``split``."""
+    errs = []
+    for held in split:
+        keep = keep_mask(len(y), held)
+        model = WindowGPR(windows=(1, 2, 3), seed=seed).fit(list(obs[keep]), y[keep])
+        pred = model.predict(obs[held][:, : STEPS[-1] + 1])
+        errs.append(abs_errors(pred[0] if isinstance(pred, tuple) else pred, y[held]))
+    return torch.cat(errs)
 
 
 def _sem(v: torch.Tensor) -> float:
@@ -143,17 +162,9 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
     )
 
     def keep_of(held: torch.Tensor) -> torch.Tensor:
-        keep = torch.ones(n_train, dtype=torch.bool)
-        keep[held] = False
-        return keep
+        return keep_mask(n_train, held)
 
-    gpr = []
-    for held in split:
-        keep = keep_of(held)
-        model = WindowGPR(windows=(1, 2, 3), seed=seed).fit(list(obs[keep]), y[keep])
-        pred = model.predict(obs[held][:, : STEPS[-1] + 1])
-        gpr.append(_errors(pred[0] if isinstance(pred, tuple) else pred, y[held]))
-    gpr_err = torch.cat(gpr)
+    gpr_err = gpr_errors(obs, y, split, seed)
     _row(table, "GPR (experiment's WindowGPR)", gpr_err, gpr_err)
 
     for name, change in variants:
@@ -164,7 +175,7 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
             keep = keep_of(held)
             model = _fit(obs[keep][..., cols], y[keep], cfg, seed)
             mean, _, _ = _online(model, obs[held][:, : STEPS[-1] + 1][..., cols], grid, cfg["eps"])
-            errs.append(_errors(mean, y[held]))
+            errs.append(abs_errors(mean, y[held]))
         _row(table, name, torch.cat(errs), gpr_err, s=round(time.time() - start))
 
     # the evidence temperature by inner CV, and the evidence of single steps (base model, eps 0)
@@ -182,7 +193,7 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
         temps.append(fit_temperature(torch.cat(inner_logs), torch.cat(inner_truth)))
         model = _fit(obs[keep], y[keep], base, seed)
         mean, _, _ = _online(model, obs[held][:, : STEPS[-1] + 1], grid, 0.0, temperature=temps[-1])
-        tempered.append(_errors(mean, y[held]))
+        tempered.append(abs_errors(mean, y[held]))
         f = OnlineIntentionFilter(model, grid, forgetting=0.0, batch_size=len(held))
         previous = torch.zeros(len(held), len(grid), dtype=obs.dtype)
         for t in range(STEPS[-1] + 1):
@@ -195,7 +206,7 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
          T=", ".join(f"{t:.3g}" for t in temps), s=round(time.time() - start))  # fmt: skip
     for t in STEPS:
         pred = torch.cat(single[t])[:, None].expand(-1, STEPS[-1] + 1)
-        err = _errors(pred, y)  # the same number in every column: one step's evidence
+        err = abs_errors(pred, y)  # the same number in every column: one step's evidence
         table.add(
             variant=f"evidence of step {t} ({HORIZONS_MS[t - 1]} ms) only, eps 0",
             **{"80 ms": round(float(err[:, -1].mean()), 1)},
