@@ -343,3 +343,13 @@ def test_rejects_bad_input(generator):
         model.grid(num=0)
     with pytest.raises(ValueError, match="noise"):
         LinearIDDM(noise="spherical")
+
+
+def test_runs_on_the_device_of_its_data(device, generator):
+    obs, g = _phase_system(30, generator)
+    cpu = LinearIDDM().fit(obs[:20], g[:20]).beliefs(obs[20:]).prob
+    model = LinearIDDM().fit(obs[:20].to(device), g[:20].to(device))
+    assert model.coef.device.type == device.type
+    prob = model.beliefs(obs[20:])  # streams given on the CPU move to the model's device
+    assert prob.prob.device.type == device.type
+    assert torch.allclose(prob.prob.cpu(), cpu, atol=1e-10)
