@@ -56,7 +56,13 @@ from ..validation import as_tensor, check_choice
 if TYPE_CHECKING:  # the inference package imports the models: no import at run time
     from ..inference.intention.grid import IntentionBelief
 
-__all__ = ["AUTO_COEF_PRECISION", "AUTO_NOISE_PRIOR", "NOISE_KINDS", "LinearIDDM"]
+__all__ = [
+    "AUTO_COEF_PRECISION",
+    "AUTO_NOISE_PRIOR",
+    "NOISE_KINDS",
+    "LinearIDDM",
+    "LinearIDDMStream",
+]
 
 NOISE_KINDS = ("full", "diagonal", "isotropic")
 #: Candidates of ``coef_precision="auto"`` and ``noise_prior="auto"`` (half-decade log grids).
@@ -265,9 +271,8 @@ class LinearIDDM:
             tril = torch.linalg.cholesky(scatter / df)
             scale = tril * inflate[..., None, None].sqrt()
             logp = MultivariateStudentT(df, loc, scale).log_prob(zb[:, None].expand_as(loc))
-        elif (
-            self.noise_kind == "diagonal"
-        ):  # per dim the Dz = 1 prior: the same nu_n - Dz + 1 = 3 + n
+        elif self.noise_kind == "diagonal":
+            # per dimension the Dz = 1 prior, with the same nu_n - Dz + 1 = 3 + n
             df = nu - d + 1
             sd = (scatter.diagonal() / df).sqrt() * inflate[..., None].sqrt()
             logp = StudentT(df, loc, sd).log_prob(zb[:, None]).sum(-1)
@@ -322,14 +327,24 @@ class LinearIDDM:
         from ..inference.intention.grid import IntentionBelief
 
         values = self.grid(grid)
-        log_w = self.log_evidence(obs, values)
-        if log_prior is not None:
-            prior = as_tensor(log_prior, "log_prior", dtype=log_w.dtype, device=log_w.device,
-                              ndim=1)  # fmt: skip
-            if len(prior) != len(values):
-                raise ValueError(f"log_prior must have K = {len(values)} entries, got {len(prior)}")
-            log_w = log_w + prior
+        log_w = self.log_evidence(obs, values) + self._log_prior(log_prior, len(values))
         return IntentionBelief.from_log(log_w, values, self.intention == "continuous")
+
+    def _log_prior(self, log_prior: Any, k: int) -> torch.Tensor:
+        """``[K]`` log prior over the grid (zeros: uniform)."""
+        if log_prior is None:
+            return torch.zeros(k, dtype=self.dtype, device=self.coef.device)
+        prior = as_tensor(log_prior, "log_prior", dtype=self.dtype, device=self.coef.device, ndim=1)
+        if len(prior) != k:
+            raise ValueError(f"log_prior must have K = {k} entries, got {len(prior)}")
+        return prior
+
+    def stream(
+        self, batch_size: int = 1, grid: Any = None, log_prior: Any = None
+    ) -> LinearIDDMStream:
+        """An online belief for ``batch_size`` streams that advance one frame per
+        :meth:`LinearIDDMStream.update` (the same beliefs as :meth:`beliefs`, frame by frame)."""
+        return LinearIDDMStream(self, batch_size, grid, log_prior)
 
     def grid(self, values: Any = None, num: int = 25) -> torch.Tensor:
         """``[K, Dg]`` intention values: ``values`` checked, or by default all codes of a
@@ -461,3 +476,61 @@ def _log_marginal(
     return (-0.5 * n * d * math.log(math.pi) + d * coef_term + 0.5 * nu0 * d * math.log(psi)
             - 0.5 * nun * logdet + torch.special.multigammaln(scatter.new_tensor(nun / 2), d)
             - torch.special.multigammaln(scatter.new_tensor(nu0 / 2), d))  # fmt: skip
+
+
+class LinearIDDMStream:
+    """Online beliefs of a fitted :class:`LinearIDDM` for B streams (:meth:`LinearIDDM.stream`).
+
+    Every :meth:`update` brings the next frame of all B streams, which therefore share their
+    frame index (the phase). A row with a NaN or inf is missing for its stream alone: the
+    transitions into and out of it carry no evidence, and ``belief.rejected`` flags it.
+    """
+
+    def __init__(self, model: LinearIDDM, batch_size: int, grid: Any, log_prior: Any) -> None:
+        model._check_fitted()
+        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral) or (
+            batch_size < 1
+        ):  # fmt: skip
+            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        self.model, self.batch_size = model, int(batch_size)
+        self.values = model.grid(grid)
+        self._feats = model._features(self.values)
+        self._prior = model._log_prior(log_prior, len(self.values))
+        self.reset()
+
+    def reset(self) -> None:
+        """Start every stream again at frame 0 with the prior belief."""
+        b, d = self.batch_size, self.model.obs_dim
+        device = self.model.coef.device
+        self.frames = 0
+        self.previous = torch.zeros(b, d, dtype=self.model.dtype, device=device)
+        self.has_previous = torch.zeros(b, dtype=torch.bool, device=device)
+        self.log_weights = self._prior.expand(b, -1).clone()
+
+    def update(self, z: Any) -> IntentionBelief:
+        """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream); returns the belief
+        ``[B, K]`` after it."""
+        from ..inference.filtering import _as_observations
+        from ..inference.intention.grid import IntentionBelief
+
+        z = _as_observations(z, min_ndim=1).to(self.model.dtype).to(self.model.coef.device)
+        z = z[None] if z.dim() == 1 else z
+        if z.shape != (self.batch_size, self.model.obs_dim):
+            raise ValueError(
+                f"z must be [B = {self.batch_size}, Dz = {self.model.obs_dim}], got "
+                f"{tuple(z.shape)}"
+            )
+        good = torch.isfinite(z).all(-1)
+        use = good & self.has_previous
+        if self.frames > 0 and bool(use.any()):
+            step = self.frames - 1
+            evidence = self.model._log_predictive(self.previous[use], z[use], self._feats, step)
+            self.log_weights[use] += evidence
+        self.previous = torch.where(good[:, None], z, self.previous)
+        self.has_previous = good
+        self.frames += 1
+        belief = IntentionBelief.from_log(
+            self.log_weights, self.values, self.model.intention == "continuous"
+        )
+        belief.rejected = ~good
+        return belief

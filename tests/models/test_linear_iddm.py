@@ -353,3 +353,40 @@ def test_runs_on_the_device_of_its_data(device, generator):
     prob = model.beliefs(obs[20:])  # streams given on the CPU move to the model's device
     assert prob.prob.device.type == device.type
     assert torch.allclose(prob.prob.cpu(), cpu, atol=1e-10)
+
+
+def test_stream_matches_beliefs_and_isolates_bad_rows(generator):
+    obs, g = _phase_system(40, generator)
+    model = LinearIDDM().fit(obs[:30], g[:30])
+    grid = torch.linspace(-1, 1, 9)
+    prior = torch.linspace(0.0, 1.0, 9)
+    batch = model.beliefs(obs[30:], grid, log_prior=prior)
+    stream = model.stream(10, grid, log_prior=prior)
+    for t in range(6):
+        b = stream.update(obs[30:, t])
+        assert torch.allclose(b.prob, batch.prob[:, t], atol=1e-12)
+        assert not bool(b.rejected.any())
+    # a NaN row in stream 2 at frame 3: the others are untouched; stream 2 loses the
+    # transitions 2 -> 3 and 3 -> 4 and keeps the rest
+    bad = obs[30:].clone()
+    bad[2, 3, 1] = float("nan")
+    stream.reset()
+    for t in range(6):
+        b = stream.update(bad[:, t])
+        assert bool(b.rejected[2]) == (t == 3) and int(b.rejected.sum()) == (t == 3)
+    others = [i for i in range(10) if i != 2]
+    assert torch.allclose(b.prob[others], batch.prob[others, -1], atol=1e-12)
+    log_w = prior.clone()
+    for s in (0, 1, 4):
+        log_w += model.log_predictive(obs[32, s], obs[32, s + 1], grid, step=s)
+    assert torch.allclose(b.prob[2], torch.softmax(log_w, 0), atol=1e-12)
+    # one stream takes [Dz] rows; bad sizes are refused; past the trained phases it says so
+    single = model.stream()
+    for t in range(6):
+        single.update(obs[30, t])
+    with pytest.raises(ValueError, match="step 5 has no transition"):
+        single.update(obs[30, 0])
+    with pytest.raises(ValueError, match="B = 10"):
+        stream.update(obs[30:35, 0])
+    with pytest.raises(ValueError, match="batch_size"):
+        model.stream(0)
