@@ -189,7 +189,8 @@ for t, label in zip((1, 2, 3, 4), HORIZONS_MS, strict=True):
            for m in (gp_mean, lin_mean, lin100_belief.mean[..., 0])]
     print(f'{label} ms before the hit, MAE [cm]: GP IDDM ({n_train} plays) {err[0]:.1f}, '
           f'linear IDDM ({n_train} plays) {err[1]:.1f}, linear IDDM (100 plays) {err[2]:.1f}')
-plt.bar(grid.numpy() - 0.02, beliefs[4].prob[play].numpy(), width=0.04, label='GP IDDM')
+plt.bar(grid.numpy() - 0.02, beliefs[4].prob[play].numpy(), width=0.04,
+        label=f'GP IDDM ({n_train} plays)')
 plt.bar(grid.numpy() + 0.02, lin100_belief.prob[play, 4].numpy(), width=0.04,
         label='linear IDDM (100 plays)')
 plt.axvline(float(test_y[play]), color='r', label='true target')

@@ -331,12 +331,18 @@ class LinearIDDM:
         return IntentionBelief.from_log(log_w, values, self.intention == "continuous")
 
     def _log_prior(self, log_prior: Any, k: int) -> torch.Tensor:
-        """``[K]`` log prior over the grid (zeros: uniform)."""
+        """``[K]`` log prior over the grid (zeros: uniform; ``-inf`` excludes a value)."""
         if log_prior is None:
             return torch.zeros(k, dtype=self.dtype, device=self.coef.device)
-        prior = as_tensor(log_prior, "log_prior", dtype=self.dtype, device=self.coef.device, ndim=1)
-        if len(prior) != k:
-            raise ValueError(f"log_prior must have K = {k} entries, got {len(prior)}")
+        prior = log_prior if isinstance(log_prior, torch.Tensor) else np.asarray(log_prior, float)
+        prior = torch.as_tensor(prior, dtype=self.dtype, device=self.coef.device)
+        if prior.shape != (k,):
+            raise ValueError(f"log_prior must be [K = {k}], got {tuple(prior.shape)}")
+        # -inf excludes a value; NaN, +inf or no finite value at all is no prior
+        if bool(prior.isnan().any()) or bool((prior == math.inf).any()) or not bool(
+            prior.isfinite().any()
+        ):  # fmt: skip
+            raise ValueError("log_prior must be finite or -inf, with at least one finite value")
         return prior
 
     def stream(
@@ -509,12 +515,24 @@ class LinearIDDMStream:
 
     def update(self, z: Any) -> IntentionBelief:
         """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream); returns the belief
-        ``[B, K]`` after it."""
+        ``[B, K]`` after it (``[K]``, with a scalar ``rejected``, for a ``[Dz]`` row, as
+        :meth:`~hgpdm_torch.inference.OnlineIntentionFilter.update`).
+
+        Raises:
+            ValueError: a row of the wrong size, or (``phase=True``) a frame past the longest
+                training sequence; the streams are then left as they were.
+        """
         from ..inference.filtering import _as_observations
         from ..inference.intention.grid import IntentionBelief
 
         z = _as_observations(z, min_ndim=1).to(self.model.dtype).to(self.model.coef.device)
-        z = z[None] if z.dim() == 1 else z
+        single = z.dim() == 1
+        z = z[None] if single else z
+        if self.model.phase and self.frames > self.model.num_phases:
+            raise ValueError(
+                f"frame {self.frames} has no transition: the training sequences had at most "
+                f"{self.model.num_phases + 1} frames (phase=True); reset() the streams"
+            )
         if z.shape != (self.batch_size, self.model.obs_dim):
             raise ValueError(
                 f"z must be [B = {self.batch_size}, Dz = {self.model.obs_dim}], got "
@@ -529,8 +547,9 @@ class LinearIDDMStream:
         self.previous = torch.where(good[:, None], z, self.previous)
         self.has_previous = good
         self.frames += 1
+        log_weights = self.log_weights[0] if single else self.log_weights
         belief = IntentionBelief.from_log(
-            self.log_weights, self.values, self.model.intention == "continuous"
+            log_weights, self.values, self.model.intention == "continuous"
         )
-        belief.rejected = ~good
+        belief.rejected = ~good[0] if single else ~good
         return belief

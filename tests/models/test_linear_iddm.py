@@ -4,6 +4,7 @@ brute-force loop, recovery of g on phase-dependent linear systems, and bad input
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -282,7 +283,9 @@ def test_discrete_intentions(generator):
 
 def test_too_few_transitions_per_phase_warn(generator):
     obs, g = _phase_system(5, generator)  # 5 transitions per phase for 5 coefficients: fine
-    LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, g)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, g)
     with pytest.warns(UserWarning, match="4 training transitions for 5 coefficients"):
         LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs[:4], g[:4])
 
@@ -345,6 +348,49 @@ def test_rejects_bad_input(generator):
         LinearIDDM(noise="spherical")
 
 
+@pytest.mark.filterwarnings("ignore:LinearIDDM. the evidence chose")
+def test_stream_shared_phase_discrete_and_inf_rows(generator):
+    obs, g = _phase_system(60, generator, discrete=True)
+    for phase in (True, False):
+        model = LinearIDDM(intention="discrete", phase=phase).fit(obs[:50], g[:50].long())
+        prior = torch.tensor([0.0, -math.inf, 0.5])  # -inf excludes code 1
+        batch = model.beliefs(obs[50:], log_prior=prior)
+        assert bool((batch.prob[..., 1] == 0).all())
+        bad = obs[50:].clone()
+        bad[4, 0, 0] = float("inf")  # stream 4 misses frame 0: no transition 0 -> 1
+        stream = model.stream(10, log_prior=prior)
+        for t in range(6):
+            b = stream.update(bad[:, t])
+        keep = [i for i in range(10) if i != 4]
+        assert torch.allclose(b.prob[keep], batch.prob[keep, -1], atol=1e-12)
+        log_w = prior.clone()
+        for s in range(1, 5):
+            log_w += model.log_predictive(obs[54, s], obs[54, s + 1], step=s)
+        assert torch.allclose(b.prob[4], torch.softmax(log_w, 0), atol=1e-12)
+    with pytest.raises(ValueError, match="log_prior"):
+        model.stream(log_prior=torch.tensor([0.0, math.nan, 0.0]))
+    with pytest.raises(ValueError, match="log_prior"):
+        model.beliefs(obs[50:], log_prior=torch.full((3,), -math.inf))
+
+
+def test_no_tensor_lands_on_the_default_device(generator):
+    # with torch's default device set to "meta", a tensor made without device= lands there
+    # and mixing it with the model's CPU tensors fails
+    obs, g = _phase_system(30, generator)
+    expected = LinearIDDM().fit(obs[:20], g[:20]).beliefs(obs[20:]).prob
+    torch.set_default_device("meta")
+    try:
+        model = LinearIDDM().fit(obs[:20], g[:20])
+        prob = model.beliefs(obs[20:], log_prior=torch.zeros(25, device="cpu")).prob
+        stream = model.stream(10, log_prior=[0.0] * 25)
+        for t in range(6):
+            online = stream.update(obs[20:, t]).prob
+    finally:
+        torch.set_default_device(None)
+    assert torch.allclose(prob, expected, atol=1e-12)
+    assert torch.allclose(online, expected[:, -1], atol=1e-12)
+
+
 def test_runs_on_the_device_of_its_data(device, generator):
     obs, g = _phase_system(30, generator)
     cpu = LinearIDDM().fit(obs[:20], g[:20]).beliefs(obs[20:]).prob
@@ -380,12 +426,16 @@ def test_stream_matches_beliefs_and_isolates_bad_rows(generator):
     for s in (0, 1, 4):
         log_w += model.log_predictive(obs[32, s], obs[32, s + 1], grid, step=s)
     assert torch.allclose(b.prob[2], torch.softmax(log_w, 0), atol=1e-12)
-    # one stream takes [Dz] rows; bad sizes are refused; past the trained phases it says so
-    single = model.stream()
+    # one stream takes [Dz] rows and answers [K]; past the trained phases it refuses any frame
+    single = model.stream(grid=grid, log_prior=prior)
     for t in range(6):
-        single.update(obs[30, t])
-    with pytest.raises(ValueError, match="step 5 has no transition"):
-        single.update(obs[30, 0])
+        one = single.update(obs[30, t])
+        assert one.prob.shape == (9,) and one.rejected.shape == ()
+        assert torch.allclose(one.prob, batch.prob[0, t], atol=1e-12)
+    with pytest.raises(ValueError, match="frame 6 has no transition"):
+        single.update(torch.full((3,), float("nan")))
+    assert single.frames == 6
+    stream.reset()
     with pytest.raises(ValueError, match="B = 10"):
         stream.update(obs[30:35, 0])
     with pytest.raises(ValueError, match="batch_size"):
