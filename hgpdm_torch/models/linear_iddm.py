@@ -32,10 +32,18 @@ the predictive of
 kind and the scales ``lambda``, ``psi`` are chosen by the closed-form evidence ``p(Y | U)``
 unless given.
 
-The belief over a grid of K intention values after frame ``t`` is
-``p(g | z_{0:t}) ~ p(g) prod_{s<t} p(z_{s+1} | z_s, g, data)``: exact for this model, causal
-(frame ``t``'s belief reads frames ``<= t`` only), and computed for all frames of a batch of
-streams in one pass.
+The log belief over a grid of K intention values after frame ``t`` is
+``B_t(g) = (1 - eps) B_{t-1}(g) + log p(z_t | z_{t-1}, g, data) / T``, ``B_0 = log p(g)``,
+normalised: causal (frame ``t``'s belief reads frames ``<= t`` only) and computed for all frames
+of a batch of streams in one pass. ``eps = 0``, ``T = 1`` (the defaults) is exact Bayes for this
+model, ``p(g | z_{0:t}) ~ p(g) prod_{s<t} p(z_{s+1} | z_s, g, data)``. Real transitions are not
+this model's independent Gaussians (the noise of a movement's frames is correlated and not
+Gaussian), so each step's evidence counts too strongly and the credible sets are too small. The
+evidence temperature ``T`` and the forgetting ``eps`` of Algorithm 3.2 (which lets the latest
+transitions outweigh the earlier ones) correct for it; ``"cv"`` chooses them by the likelihood
+of the true intention values of held-out beliefs of the training sequences (k-fold
+cross-validation; ``T`` by :func:`~hgpdm_torch.inference.calibration.fit_temperature`), as the
+GP IDDM's filters do with a given ``T`` and ``eps``.
 """
 
 from __future__ import annotations
@@ -59,12 +67,15 @@ if TYPE_CHECKING:  # the inference package imports the models: no import at run 
 __all__ = [
     "AUTO_COEF_PRECISION",
     "AUTO_NOISE_PRIOR",
+    "FORGETTING_CANDIDATES",
     "NOISE_KINDS",
     "LinearIDDM",
     "LinearIDDMStream",
 ]
 
 NOISE_KINDS = ("full", "diagonal", "isotropic")
+#: Candidates of ``forgetting="cv"``.
+FORGETTING_CANDIDATES = (0.0, 0.1, 0.2, 0.3, 0.5, 0.7)
 #: Candidates of ``coef_precision="auto"`` and ``noise_prior="auto"`` (half-decade log grids).
 AUTO_COEF_PRECISION = tuple(10.0 ** (k / 2) for k in range(-3, 5))  # 0.03 .. 100
 AUTO_NOISE_PRIOR = tuple(10.0 ** (k / 2) for k in range(-4, 2))  # 0.01 .. 3.2
@@ -90,11 +101,24 @@ class LinearIDDM:
             transitions (empirical Bayes, jointly with ``noise_prior``).
         noise_prior: ``psi > 0``, the prior's guess of the noise variance of a standardised
             observed dimension, or ``"auto"`` (default, from :data:`AUTO_NOISE_PRIOR`).
+        temperature: ``T > 0``, the evidence temperature of the beliefs (default 1: exact
+            Bayes), or ``"cv"``: the ``T`` that maximises the likelihood of the true intention
+            values of cross-validated beliefs on the training sequences (module docstring;
+            ``cv_folds`` folds, every frame after the first; a continuous g is scored on the
+            grid value nearest to it, the default 25-value grid for ``Dg = 1`` and the training
+            intentions otherwise).
+        forgetting: ``eps`` in ``[0, 1)``, how much of the log belief each new frame forgets
+            (default 0: none, exact Bayes), or ``"cv"``: the value of
+            :data:`FORGETTING_CANDIDATES` whose cross-validated beliefs (at their own fitted
+            ``T`` when ``temperature="cv"``) give the true values the largest likelihood.
+        cv_folds: number of folds for ``"cv"`` (sequence ``j`` is held out in fold
+            ``j mod cv_folds``; at most the number of sequences).
         dtype: floating dtype of the fitted statistics.
 
     After :meth:`fit`, ``noise_kind`` and ``prior`` hold the noise kind and ``(lambda, psi)``
-    used and :meth:`log_marginal_likelihood` the evidence of the training transitions under
-    them. A choice on the edge of its candidate grid warns (the evidence may rise beyond it).
+    used, :meth:`log_marginal_likelihood` the evidence of the training transitions under them
+    and ``temperature``, ``forgetting`` the ``T``, ``eps`` the beliefs use. A choice on the edge
+    of its candidate grid warns (the evidence may rise beyond it).
     """
 
     def __init__(
@@ -106,6 +130,9 @@ class LinearIDDM:
         noise: str = "auto",
         coef_precision: float | str = "auto",
         noise_prior: float | str = "auto",
+        temperature: float | str = 1.0,
+        forgetting: float | str = 0.0,
+        cv_folds: int = 5,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         self.intention = check_choice(intention, "intention", ("continuous", "discrete"))
@@ -127,6 +154,21 @@ class LinearIDDM:
             )
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        if temperature != "cv":
+            from ..inference.calibration import check_temperature  # no import cycle at run time
+
+            temperature = check_temperature(temperature)
+        if forgetting != "cv" and (
+            isinstance(forgetting, bool) or not isinstance(forgetting, int | float)
+            or not 0.0 <= forgetting < 1.0
+        ):  # fmt: skip
+            raise ValueError(f"forgetting must be a number in [0, 1) or 'cv', got {forgetting!r}")
+        if isinstance(cv_folds, bool) or not isinstance(cv_folds, int) or cv_folds < 2:
+            raise ValueError(f"cv_folds must be an int >= 2, got {cv_folds!r}")
+        self._temperature_arg, self._forgetting_arg = temperature, forgetting
+        self.cv_folds = cv_folds
+        self.temperature = None if temperature == "cv" else temperature
+        self.forgetting = None if forgetting == "cv" else float(forgetting)
         self.phase, self.num_values, self._num_values_arg = phase, num_values, num_values
         self.coef_precision, self.noise_prior = coef_precision, noise_prior
         self.dtype = dtype
@@ -192,7 +234,11 @@ class LinearIDDM:
                     f"candidates {grid[0]:g} .. {grid[-1]:g}; pass a value to go beyond them",
                     stacklevel=2,
                 )
+        temperature, forgetting = self._temperature_arg, self._forgetting_arg
+        if "cv" in (temperature, forgetting):
+            temperature, forgetting = self._cv_calibration(seqs, g, num_values, kind, prior)
         # the fitted state, assigned only once everything above succeeded
+        self.temperature, self.forgetting = temperature, float(forgetting)
         self.obs_mean, self.obs_std, self.obs_dim = mean, std, frames.shape[1]
         self.intentions, self.intention_dim, self.num_values = g, g.shape[1], num_values
         self.num_phases, self.noise_kind, self.prior, self._evidence = (
@@ -205,6 +251,54 @@ class LinearIDDM:
         self.precision_tril = torch.linalg.cholesky(self.precision)
         self.fitted = True
         return self
+
+    def _cv_calibration(
+        self, seqs: list[torch.Tensor], g: torch.Tensor, num_values: int | None, kind: str,
+        prior: tuple[float, float],
+    ) -> tuple[float, float]:  # fmt: skip
+        """``(T, eps)`` from the beliefs of each held-out sequence, by a model of the same noise
+        kind and prior fitted on the other folds (every frame after the first; the truth is the
+        nearest grid value): for each candidate ``eps``, ``T`` by
+        :func:`~hgpdm_torch.inference.calibration.fit_temperature` (or the given one), then the
+        pair of the smallest mean negative log probability of the truth."""
+        from ..inference.calibration import fit_temperature
+
+        folds = min(self.cv_folds, len(seqs))
+        if folds < 2:
+            raise ValueError("temperature='cv' needs at least 2 training sequences")
+        # the fitted model's default grid; the training intentions for a multi-dimensional g
+        values = g if g.shape[1] > 1 else _default_grid(g, self.intention, num_values, 25)
+        truth = torch.cdist(g, values).argmin(-1)
+        steps, hits = [], []  # per held-out sequence: [T_j - 1, K] evidence of each transition
+        for fold in range(folds):
+            held = [j for j in range(len(seqs)) if j % folds == fold]
+            rest = [j for j in range(len(seqs)) if j % folds != fold]
+            sub = LinearIDDM(intention=self.intention, num_values=num_values, phase=self.phase,
+                             noise=kind, coef_precision=prior[0], noise_prior=prior[1],
+                             dtype=self.dtype)  # fmt: skip
+            with warnings.catch_warnings():  # few transitions per phase: the full fit warned
+                warnings.simplefilter("ignore")
+                sub.fit([seqs[j] for j in rest], g[rest])
+            for j in held:
+                seq = seqs[j][: sub.num_phases + 1] if self.phase else seqs[j]
+                steps.append(sub.log_evidence(seq, values).diff(dim=0))
+                hits.append(truth[j].expand(len(seq) - 1))
+        hits_all = torch.cat(hits)
+        epsilons = (FORGETTING_CANDIDATES if self._forgetting_arg == "cv"
+                    else (self._forgetting_arg,))  # fmt: skip
+        best = None
+        for eps in epsilons:
+            # from a uniform prior B_0 = 0, B_t is the forgetful sum of the first t transitions
+            logs = torch.cat([_forget(e, float(eps)) for e in steps])
+            if self._temperature_arg == "cv":
+                temperature = fit_temperature(logs, hits_all)
+            else:
+                temperature = self._temperature_arg
+            log_p = torch.log_softmax(logs / temperature, -1)
+            nll = -float(log_p.gather(-1, hits_all[:, None]).mean())
+            if best is None or nll < best[0]:
+                best = (nll, temperature, float(eps))
+        return best[1], best[2]
 
     def log_marginal_likelihood(self) -> float:
         """``log p(Z_{1:} | Z_{:-1}, g)`` of the (standardised) training transitions under the
@@ -320,6 +414,10 @@ class LinearIDDM:
             grid: intention values (default :meth:`grid`).
             log_prior: ``[K]`` log prior over the grid (default uniform).
 
+        The log belief is the recursion ``B_t = (1 - forgetting) B_{t-1} + E_t / temperature``
+        from ``B_0 = log_prior`` over the evidence ``E_t`` of each transition (module docstring),
+        normalised; ``log_prior + log_evidence`` at the defaults.
+
         Returns:
             :class:`~hgpdm_torch.inference.IntentionBelief` with ``[B, T, K]`` probabilities
             and, for a continuous g, the posterior mean and sd ``[B, T, Dg]``.
@@ -327,7 +425,11 @@ class LinearIDDM:
         from ..inference.intention.grid import IntentionBelief
 
         values = self.grid(grid)
-        log_w = self.log_evidence(obs, values) + self._log_prior(log_prior, len(values))
+        evidence = self.log_evidence(obs, values)
+        steps = evidence.diff(dim=-2) / self.temperature  # each transition's evidence
+        prior = self._log_prior(log_prior, len(values))
+        log_w = _forget(torch.cat([prior.expand_as(evidence[..., :1, :]), steps], -2),
+                        self.forgetting)  # fmt: skip
         return IntentionBelief.from_log(log_w, values, self.intention == "continuous")
 
     def _log_prior(self, log_prior: Any, k: int) -> torch.Tensor:
@@ -360,13 +462,9 @@ class LinearIDDM:
         if isinstance(num, bool) or not isinstance(num, numbers.Integral) or num < 1:
             raise ValueError(f"num must be a positive int, got {num!r}")
         if values is None:
-            if self.intention == "discrete":
-                return torch.arange(self.num_values, dtype=self.dtype, device=device)[:, None]
-            if self.intention_dim != 1:
+            if self.intention == "continuous" and self.intention_dim != 1:
                 raise ValueError("a multi-dimensional continuous g needs an explicit grid")
-            g = self.intentions[:, 0]
-            return torch.linspace(float(g.min()), float(g.max()), num, dtype=self.dtype,
-                                  device=device)[:, None]  # fmt: skip
+            return _default_grid(self.intentions, self.intention, self.num_values, num)
         v = as_tensor(values, "grid", dtype=self.dtype, device=device)
         v = v[:, None] if v.dim() == 1 else v
         if v.dim() != 2 or len(v) == 0 or v.shape[1] != self.intention_dim:
@@ -432,6 +530,28 @@ class LinearIDDM:
         if bool((g >= k).any()):
             raise ValueError(f"discrete intentions must lie in [0, {k - 1}]")
         return g, k
+
+
+def _forget(steps: torch.Tensor, eps: float) -> torch.Tensor:
+    """``B_t = (1 - eps) B_{t-1} + steps_t`` along dim -2 from ``B_0 = steps_0``:
+    ``[..., T, K] -> [..., T, K]`` (a cumulative sum for ``eps = 0``)."""
+    if eps == 0.0:
+        return steps.cumsum(-2)
+    out = [steps[..., 0, :]]
+    for t in range(1, steps.shape[-2]):
+        out.append((1.0 - eps) * out[-1] + steps[..., t, :])
+    return torch.stack(out, -2)
+
+
+def _default_grid(
+    g: torch.Tensor, intention: str, num_values: int | None, num: int
+) -> torch.Tensor:
+    """``[K, 1]``: every code of a discrete g, or ``num`` values over the range of a continuous
+    ``g [J, 1]``."""
+    if intention == "discrete":
+        return torch.arange(num_values, dtype=g.dtype, device=g.device)[:, None]
+    return torch.linspace(float(g.min()), float(g.max()), num, dtype=g.dtype,
+                          device=g.device)[:, None]  # fmt: skip
 
 
 def _features(g: torch.Tensor, intention: str, num_values: int | None) -> torch.Tensor:
@@ -543,7 +663,8 @@ class LinearIDDMStream:
         if self.frames > 0 and bool(use.any()):
             step = self.frames - 1
             evidence = self.model._log_predictive(self.previous[use], z[use], self._feats, step)
-            self.log_weights[use] += evidence
+            self.log_weights *= 1.0 - self.model.forgetting  # every stream: Algorithm 3.2
+            self.log_weights[use] += evidence / self.model.temperature
         self.previous = torch.where(good[:, None], z, self.previous)
         self.has_previous = good
         self.frames += 1

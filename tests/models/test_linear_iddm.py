@@ -13,7 +13,11 @@ from scipy import integrate, stats
 from scipy.special import gammaln, logsumexp, multigammaln
 
 from hgpdm_torch.models import LinearIDDM
-from hgpdm_torch.models.linear_iddm import AUTO_COEF_PRECISION, AUTO_NOISE_PRIOR
+from hgpdm_torch.models.linear_iddm import (
+    AUTO_COEF_PRECISION,
+    AUTO_NOISE_PRIOR,
+    FORGETTING_CANDIDATES,
+)
 
 
 def _log_marginal(u: np.ndarray, y: np.ndarray, noise: str, lam: float, psi: float) -> float:
@@ -440,3 +444,164 @@ def test_stream_matches_beliefs_and_isolates_bad_rows(generator):
         stream.update(obs[30:35, 0])
     with pytest.raises(ValueError, match="batch_size"):
         model.stream(0)
+
+
+def _coverage(model: LinearIDDM, obs: torch.Tensor, g: torch.Tensor) -> float:
+    """How often the 90% credible set of the held-out beliefs (every frame after the first)
+    holds the grid value nearest to the true g."""
+    from hgpdm_torch.inference.calibration import credible_set
+
+    values = model.grid()
+    truth = (g[:, None] - values[:, 0]).abs().argmin(-1)
+    inside = credible_set(model.beliefs(obs, values).prob[:, 1:], 0.9)
+    return float(inside.gather(-1, truth[:, None, None].expand(-1, inside.shape[1], 1)).double()
+                 .mean())  # fmt: skip
+
+
+def test_temperature_tempers_the_evidence_in_batch_and_stream(generator):
+    from hgpdm_torch.inference.calibration import temper
+
+    obs, g = _phase_system(40, generator)
+    prior = torch.softmax(torch.linspace(0.0, 1.0, 25, dtype=torch.float64), 0)
+    exact = LinearIDDM(noise="full", coef_precision=1.0, noise_prior=0.1).fit(obs[:30], g[:30])
+    hot = LinearIDDM(noise="full", coef_precision=1.0, noise_prior=0.1, temperature=2.5)
+    hot.fit(obs[:30], g[:30])
+    assert exact.temperature == 1.0 and hot.temperature == 2.5
+    base = exact.beliefs(obs[30:], log_prior=prior.log())
+    tempered = hot.beliefs(obs[30:], log_prior=prior.log())
+    # the calibration module's tempering of the exact posterior (prior kept, evidence / T)
+    expected = temper(base.log_prob, 2.5, prior=prior).exp()
+    assert torch.allclose(tempered.prob, expected, atol=1e-12)
+    assert not torch.allclose(tempered.prob, base.prob, atol=1e-3)
+    stream = hot.stream(10, log_prior=prior.log())
+    for t in range(6):
+        assert torch.allclose(stream.update(obs[30:, t]).prob, tempered.prob[:, t], atol=1e-12)
+    with pytest.raises(ValueError, match="temperature"):
+        LinearIDDM(temperature=0.0)
+    with pytest.raises(TypeError, match="temperature"):
+        LinearIDDM(temperature="hot")
+    with pytest.raises(ValueError, match="cv_folds"):
+        LinearIDDM(cv_folds=1)
+    for bad in (1.0, -0.1, "some", True):
+        with pytest.raises(ValueError, match="forgetting"):
+            LinearIDDM(forgetting=bad)
+    with pytest.raises(ValueError, match="2 training sequences"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # one sequence: too few transitions per phase
+        LinearIDDM(temperature="cv").fit(obs[:1], g[:1])
+
+
+def _sequence_offsets(n: int, generator: torch.Generator, shared: float):
+    """Continuous-g sequences of z_{t+1} = 0.6 z_t + b g + e_t + c, whose noise has a part ``c``
+    drawn once per sequence with sd ``shared`` (0: independent transitions, as the model
+    assumes; > 0: the transitions of a sequence are correlated and their evidence overlaps)."""
+    d, steps = 3, 8
+    g = 2 * torch.rand(n, generator=generator) - 1
+    b = torch.tensor([[0.5, -0.3, 0.2]])
+    offset = shared * torch.randn(n, d, generator=generator)
+    z = [torch.randn(n, d, generator=generator)]
+    for _ in range(steps - 1):
+        e = 0.3 * torch.randn(n, d, generator=generator)
+        z.append(0.6 * z[-1] + g[:, None] @ b + e + offset)
+    return torch.stack(z, 1).double(), g.double()
+
+
+def test_cv_temperature_is_one_for_the_model_and_calibrates_correlated_noise(generator):
+    # independent Gaussian transitions (the model's own assumption): T ~ 1 and the exact
+    # beliefs are calibrated already; a noise part shared by a sequence's transitions makes
+    # T = 1 over-confident, and the cross-validated T widens the sets
+    obs, g = _sequence_offsets(400, generator, shared=0.0)
+    model = LinearIDDM(phase=False, temperature="cv").fit(obs[:200], g[:200])
+    assert 0.75 < model.temperature < 1.33
+    assert 0.85 < _coverage(model, obs[200:], g[200:]) < 0.95
+    # exact Bayes is what the model's own data calls for: no forgetting either
+    both = LinearIDDM(phase=False, temperature="cv", forgetting="cv").fit(obs[:200], g[:200])
+    assert both.forgetting == 0.0 and both.temperature == model.temperature
+    obs, g = _sequence_offsets(400, generator, shared=0.5)
+    exact = LinearIDDM(phase=False).fit(obs[:200], g[:200])
+    model = LinearIDDM(phase=False, temperature="cv").fit(obs[:200], g[:200])
+    assert model.temperature > 1.5
+    # correlated transitions: the cross-validation lets the latest ones outweigh the earlier
+    both = LinearIDDM(phase=False, temperature="cv", forgetting="cv").fit(obs[:200], g[:200])
+    assert both.forgetting > 0.0 and both.temperature > 1.2
+    assert _coverage(both, obs[200:], g[200:]) > 0.85
+    before, after = _coverage(exact, obs[200:], g[200:]), _coverage(model, obs[200:], g[200:])
+    assert after > max(before + 0.05, 0.85)
+    # and the held-out truth is more likely (what the fitted T maximises on the folds)
+    truth = (g[200:, None] - exact.grid()[:, 0]).abs().argmin(-1)[:, None].expand(-1, 7)
+    nll = [-m.beliefs(obs[200:]).log_prob[:, 1:].gather(-1, truth[..., None]).mean()
+           for m in (exact, model)]  # fmt: skip
+    assert nll[1] < nll[0]
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM")
+def test_cv_temperature_per_phase_discrete_and_unequal_lengths(generator):
+    obs, g = _phase_system(60, generator, discrete=True)
+    seqs = [s[: 4 + j % 3] for j, s in enumerate(obs)]  # 4 to 6 frames
+    model = LinearIDDM(intention="discrete", temperature="cv", cv_folds=3).fit(seqs, g.long())
+    assert math.isfinite(model.temperature) and model.temperature > 0
+    joint = LinearIDDM(intention="discrete", temperature="cv", forgetting="cv", cv_folds=3)
+    joint.fit(seqs, g.long())
+    # the same T from a hand-made 3-fold loop over the same folds
+    from hgpdm_torch.inference.calibration import fit_temperature
+
+    logs, truth = [], []
+    for fold in range(3):
+        rest = [j for j in range(60) if j % 3 != fold]
+        sub = LinearIDDM(intention="discrete", num_values=3, noise=model.noise_kind,
+                         coef_precision=model.prior[0], noise_prior=model.prior[1])  # fmt: skip
+        sub.fit([seqs[j] for j in rest], g[rest].long())
+        for j in range(fold, 60, 3):
+            frames = min(len(seqs[j]), sub.num_phases + 1)
+            logs.append(sub.log_evidence(seqs[j][:frames])[1:])
+            truth.append(g[j].long().expand(frames - 1))
+    expected = fit_temperature(torch.cat(logs), torch.cat(truth))
+    assert model.temperature == pytest.approx(expected, rel=1e-9)
+    # the joint choice: for each candidate eps, the forgetful beliefs B_t = (1 - eps) B_{t-1}
+    # + E_t, their own T, and the pair of the most likely truths
+    scores = []
+    for eps in FORGETTING_CANDIDATES:
+        rows = []
+        for log_ev in logs:  # cumulative evidence of frames 1.. of one sequence
+            steps = torch.diff(log_ev, dim=0, prepend=torch.zeros_like(log_ev[:1]))
+            b = torch.zeros_like(steps[0])
+            for e in steps:
+                b = (1 - eps) * b + e
+                rows.append(b)
+        rows = torch.stack(rows)
+        t = fit_temperature(rows, torch.cat(truth))
+        nll = -torch.log_softmax(rows / t, -1).gather(-1, torch.cat(truth)[:, None]).mean()
+        scores.append((float(nll), t, eps))
+    _, t, eps = min(scores)
+    assert joint.forgetting == eps and joint.temperature == pytest.approx(t, rel=1e-9)
+
+
+def test_forgetting_follows_algorithm_3_2_in_batch_and_stream(generator):
+    # B_t = (1 - eps) B_{t-1} + log p(z_t | z_{t-1}, g) / T from B_0 = log p(g), by hand from
+    # the one-step predictive
+    obs, g = _phase_system(40, generator)
+    model = LinearIDDM(noise="diagonal", coef_precision=1.0, noise_prior=0.1, temperature=1.5,
+                       forgetting=0.3).fit(obs[:30], g[:30])  # fmt: skip
+    assert model.forgetting == 0.3
+    grid = torch.linspace(-1, 1, 7)
+    prior = torch.log_softmax(torch.linspace(0.0, 2.0, 7, dtype=torch.float64), 0)
+    batch = model.beliefs(obs[30:], grid, log_prior=prior)
+    b = prior.expand(10, -1)
+    assert torch.allclose(batch.log_prob[:, 0], torch.log_softmax(b, -1), atol=1e-12)
+    for t in range(1, 6):
+        b = 0.7 * b + model.log_predictive(obs[30:, t - 1], obs[30:, t], grid, step=t - 1) / 1.5
+        assert torch.allclose(batch.log_prob[:, t], torch.log_softmax(b, -1), atol=1e-10)
+    stream = model.stream(10, grid, log_prior=prior)
+    for t in range(6):
+        assert torch.allclose(stream.update(obs[30:, t]).prob, batch.prob[:, t], atol=1e-12)
+    # a stream that misses frame 2 forgets at every frame but takes no evidence into or out of it
+    bad = obs[30:].clone()
+    bad[3, 2] = float("nan")
+    stream.reset()
+    for t in range(6):
+        online = stream.update(bad[:, t])
+    b = prior.clone()
+    for t in range(1, 6):
+        b = 0.7 * b
+        if t not in (2, 3):
+            b = b + model.log_predictive(obs[33, t - 1], obs[33, t], grid, step=t - 1) / 1.5
+    assert torch.allclose(online.prob[3], torch.softmax(b, 0), atol=1e-10)
