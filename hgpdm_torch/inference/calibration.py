@@ -52,8 +52,9 @@ def check_temperature(temperature: Any) -> float:
 def _log_probabilities(log_prob: Any, dtype: torch.dtype | None = None) -> torch.Tensor:
     """``log_prob`` as a floating tensor ``[..., K]``; ``-inf`` (probability 0) is allowed,
     NaN and ``+inf`` are not."""
-    try:
-        lp = torch.as_tensor(log_prob, dtype=dtype)
+    try:  # a tensor stays on its device (not torch's default one)
+        device = log_prob.device if isinstance(log_prob, torch.Tensor) else None
+        lp = torch.as_tensor(log_prob, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError) as err:
         raise TypeError(f"log_prob must be a real array [..., K]: {err}") from err
     if not lp.is_floating_point():

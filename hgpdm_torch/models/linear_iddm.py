@@ -106,7 +106,8 @@ class LinearIDDM:
             values of cross-validated beliefs on the training sequences (module docstring;
             ``cv_folds`` folds, every frame after the first; a continuous g is scored on the
             grid value nearest to it, the default 25-value grid for ``Dg = 1`` and the training
-            intentions otherwise).
+            intentions otherwise). ``T`` is searched in ``[1e-3, 1e3]``
+            (:data:`~hgpdm_torch.inference.calibration.TEMPERATURE_BOUNDS`) and warns at a bound.
         forgetting: ``eps`` in ``[0, 1)``, how much of the log belief each new frame forgets
             (default 0: none, exact Bayes), or ``"cv"``: the value of
             :data:`FORGETTING_CANDIDATES` whose cross-validated beliefs (at their own fitted
@@ -158,11 +159,15 @@ class LinearIDDM:
             from ..inference.calibration import check_temperature  # no import cycle at run time
 
             temperature = check_temperature(temperature)
-        if forgetting != "cv" and (
-            isinstance(forgetting, bool) or not isinstance(forgetting, int | float)
-            or not 0.0 <= forgetting < 1.0
-        ):  # fmt: skip
-            raise ValueError(f"forgetting must be a number in [0, 1) or 'cv', got {forgetting!r}")
+        if forgetting != "cv":
+            from ..inference.filtering import _real_scalar
+
+            try:
+                forgetting = _real_scalar(forgetting, "forgetting")
+            except TypeError as err:
+                raise ValueError(f"forgetting must be a number in [0, 1) or 'cv': {err}") from None
+            if not 0.0 <= forgetting < 1.0:
+                raise ValueError(f"forgetting must be in [0, 1) or 'cv', got {forgetting!r}")
         if isinstance(cv_folds, bool) or not isinstance(cv_folds, int) or cv_folds < 2:
             raise ValueError(f"cv_folds must be an int >= 2, got {cv_folds!r}")
         self._temperature_arg, self._forgetting_arg = temperature, forgetting
@@ -265,9 +270,16 @@ class LinearIDDM:
 
         folds = min(self.cv_folds, len(seqs))
         if folds < 2:
-            raise ValueError("temperature='cv' needs at least 2 training sequences")
-        # the fitted model's default grid; the training intentions for a multi-dimensional g
-        values = g if g.shape[1] > 1 else _default_grid(g, self.intention, num_values, 25)
+            raise ValueError("temperature or forgetting 'cv' needs at least 2 training sequences")
+        # the fitted model's default grid; the distinct training intentions for a 2-D+ g
+        if g.shape[1] > 1:
+            values = torch.unique(g, dim=0)
+        else:
+            values = _default_grid(g, self.intention, num_values, 25)
+        if len(values) < 2:
+            raise ValueError(
+                "temperature or forgetting 'cv' needs at least 2 intention values to score"
+            )
         truth = torch.cdist(g, values).argmin(-1)
         steps, hits = [], []  # per held-out sequence: [T_j - 1, K] evidence of each transition
         for fold in range(folds):
@@ -298,7 +310,26 @@ class LinearIDDM:
             nll = -float(log_p.gather(-1, hits_all[:, None]).mean())
             if best is None or nll < best[0]:
                 best = (nll, temperature, float(eps))
-        return best[1], best[2]
+        _, temperature, eps = best
+        from ..inference.calibration import TEMPERATURE_BOUNDS
+
+        if self._temperature_arg == "cv" and not (
+            1.01 * TEMPERATURE_BOUNDS[0] < temperature < TEMPERATURE_BOUNDS[1] / 1.01
+        ):
+            warnings.warn(
+                f"LinearIDDM: the cross-validated temperature is at its bound ({temperature:.3g}"
+                "): the held-out beliefs are " + ("never wrong (separable data: the beliefs "
+                "become one-hot)" if temperature < 1 else "uninformative about g") + "; pass a "
+                "temperature to choose it yourself",
+                stacklevel=3,
+            )  # fmt: skip
+        if len(epsilons) > 1 and eps == epsilons[-1]:
+            warnings.warn(
+                f"LinearIDDM: the cross-validation chose forgetting = {eps:g}, the edge of its "
+                f"candidates; pass a value to go beyond it",
+                stacklevel=3,
+            )
+        return temperature, eps
 
     def log_marginal_likelihood(self) -> float:
         """``log p(Z_{1:} | Z_{:-1}, g)`` of the (standardised) training transitions under the
@@ -609,7 +640,9 @@ class LinearIDDMStream:
 
     Every :meth:`update` brings the next frame of all B streams, which therefore share their
     frame index (the phase). A row with a NaN or inf is missing for its stream alone: the
-    transitions into and out of it carry no evidence, and ``belief.rejected`` flags it.
+    transitions into and out of it carry no evidence, and ``belief.rejected`` flags it. With
+    ``forgetting > 0`` every stream's log belief decays at every frame after the first, its row
+    missing or not (as :class:`~hgpdm_torch.inference.OnlineIntentionFilter` does).
     """
 
     def __init__(self, model: LinearIDDM, batch_size: int, grid: Any, log_prior: Any) -> None:
@@ -660,10 +693,13 @@ class LinearIDDMStream:
             )
         good = torch.isfinite(z).all(-1)
         use = good & self.has_previous
-        if self.frames > 0 and bool(use.any()):
+        evidence = None
+        if self.frames > 0 and bool(use.any()):  # before any change: an error leaves the state
             step = self.frames - 1
             evidence = self.model._log_predictive(self.previous[use], z[use], self._feats, step)
-            self.log_weights *= 1.0 - self.model.forgetting  # every stream: Algorithm 3.2
+        if self.frames > 0:  # every stream forgets at every frame, its row missing or not
+            self.log_weights *= 1.0 - self.model.forgetting
+        if evidence is not None:
             self.log_weights[use] += evidence / self.model.temperature
         self.previous = torch.where(good[:, None], z, self.previous)
         self.has_previous = good

@@ -386,6 +386,7 @@ def test_no_tensor_lands_on_the_default_device(generator):
     try:
         model = LinearIDDM().fit(obs[:20], g[:20])
         prob = model.beliefs(obs[20:], log_prior=torch.zeros(25, device="cpu")).prob
+        cv = LinearIDDM(temperature="cv", forgetting="cv").fit(obs[:20], g[:20])
         stream = model.stream(10, log_prior=[0.0] * 25)
         for t in range(6):
             online = stream.update(obs[20:, t]).prob
@@ -393,6 +394,8 @@ def test_no_tensor_lands_on_the_default_device(generator):
         torch.set_default_device(None)
     assert torch.allclose(prob, expected, atol=1e-12)
     assert torch.allclose(online, expected[:, -1], atol=1e-12)
+    on_cpu = LinearIDDM(temperature="cv", forgetting="cv").fit(obs[:20], g[:20])
+    assert (cv.temperature, cv.forgetting) == (on_cpu.temperature, on_cpu.forgetting)
 
 
 def test_runs_on_the_device_of_its_data(device, generator):
@@ -485,6 +488,7 @@ def test_temperature_tempers_the_evidence_in_batch_and_stream(generator):
     for bad in (1.0, -0.1, "some", True):
         with pytest.raises(ValueError, match="forgetting"):
             LinearIDDM(forgetting=bad)
+    assert LinearIDDM(forgetting=np.float32(0.25)).forgetting == 0.25
     with pytest.raises(ValueError, match="2 training sequences"), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # one sequence: too few transitions per phase
         LinearIDDM(temperature="cv").fit(obs[:1], g[:1])
@@ -533,46 +537,65 @@ def test_cv_temperature_is_one_for_the_model_and_calibrates_correlated_noise(gen
     assert nll[1] < nll[0]
 
 
-@pytest.mark.filterwarnings("ignore:LinearIDDM")
-def test_cv_temperature_per_phase_discrete_and_unequal_lengths(generator):
-    obs, g = _phase_system(60, generator, discrete=True)
-    seqs = [s[: 4 + j % 3] for j, s in enumerate(obs)]  # 4 to 6 frames
-    model = LinearIDDM(intention="discrete", temperature="cv", cv_folds=3).fit(seqs, g.long())
-    assert math.isfinite(model.temperature) and model.temperature > 0
-    joint = LinearIDDM(intention="discrete", temperature="cv", forgetting="cv", cv_folds=3)
-    joint.fit(seqs, g.long())
-    # the same T from a hand-made 3-fold loop over the same folds
+@pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has")
+@pytest.mark.filterwarnings("ignore:LinearIDDM. the evidence chose")
+def test_cv_calibration_against_a_hand_made_fold_loop(generator):
+    # per phase, sequences of 4 to 6 frames, 3 folds: j is held out in fold j mod 3, the others
+    # refit with the chosen noise kind and prior, every held-out frame after the first scored
+    # on the default 25-value grid at the value nearest its g
     from hgpdm_torch.inference.calibration import fit_temperature
 
-    logs, truth = [], []
+    obs, g = _phase_system(60, generator)
+    seqs = [s[: 4 + j % 3] for j, s in enumerate(obs)]
+    model = LinearIDDM(temperature="cv", cv_folds=3).fit(seqs, g)
+    joint = LinearIDDM(temperature="cv", forgetting="cv", cv_folds=3).fit(seqs, g)
+    values = torch.linspace(float(g.min()), float(g.max()), 25, dtype=torch.float64)
+    steps, truth = [], []
     for fold in range(3):
         rest = [j for j in range(60) if j % 3 != fold]
-        sub = LinearIDDM(intention="discrete", num_values=3, noise=model.noise_kind,
-                         coef_precision=model.prior[0], noise_prior=model.prior[1])  # fmt: skip
-        sub.fit([seqs[j] for j in rest], g[rest].long())
+        sub = LinearIDDM(noise=model.noise_kind, coef_precision=model.prior[0],
+                         noise_prior=model.prior[1])  # fmt: skip
+        sub.fit([seqs[j] for j in rest], g[rest])
         for j in range(fold, 60, 3):
             frames = min(len(seqs[j]), sub.num_phases + 1)
-            logs.append(sub.log_evidence(seqs[j][:frames])[1:])
-            truth.append(g[j].long().expand(frames - 1))
-    expected = fit_temperature(torch.cat(logs), torch.cat(truth))
-    assert model.temperature == pytest.approx(expected, rel=1e-9)
-    # the joint choice: for each candidate eps, the forgetful beliefs B_t = (1 - eps) B_{t-1}
-    # + E_t, their own T, and the pair of the most likely truths
+            steps.append(sub.log_evidence(seqs[j][:frames], values).diff(dim=0))
+            truth.append((g[j] - values).abs().argmin().expand(frames - 1))
+    truth = torch.cat(truth)
+    assert model.temperature == pytest.approx(fit_temperature(_forgetful(steps, 0.0), truth),
+                                              rel=1e-9)  # fmt: skip
+    assert 0.1 < model.temperature < 10  # informative held-out beliefs: T off its bounds
+    # the joint choice: for each candidate eps the forgetful beliefs B_t = (1 - eps) B_{t-1}
+    # + E_t, their own T, and the pair under which the truths are most likely
     scores = []
     for eps in FORGETTING_CANDIDATES:
-        rows = []
-        for log_ev in logs:  # cumulative evidence of frames 1.. of one sequence
-            steps = torch.diff(log_ev, dim=0, prepend=torch.zeros_like(log_ev[:1]))
-            b = torch.zeros_like(steps[0])
-            for e in steps:
-                b = (1 - eps) * b + e
-                rows.append(b)
-        rows = torch.stack(rows)
-        t = fit_temperature(rows, torch.cat(truth))
-        nll = -torch.log_softmax(rows / t, -1).gather(-1, torch.cat(truth)[:, None]).mean()
+        rows = _forgetful(steps, eps)
+        t = fit_temperature(rows, truth)
+        nll = -torch.log_softmax(rows / t, -1).gather(-1, truth[:, None]).mean()
         scores.append((float(nll), t, eps))
     _, t, eps = min(scores)
     assert joint.forgetting == eps and joint.temperature == pytest.approx(t, rel=1e-9)
+
+
+def _forgetful(steps: list[torch.Tensor], eps: float) -> torch.Tensor:
+    """Rows B_1 .. B_{T_j - 1} of every sequence's ``[T_j - 1, K]`` evidence steps, stacked."""
+    rows = []
+    for seq in steps:
+        b = torch.zeros_like(seq[0])
+        for e in seq:
+            b = (1 - eps) * b + e
+            rows.append(b)
+    return torch.stack(rows)
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has")
+@pytest.mark.filterwarnings("ignore:LinearIDDM. the evidence chose")
+def test_cv_on_separable_discrete_data_warns_at_the_temperature_bound(generator):
+    obs, g = _phase_system(60, generator, discrete=True)
+    with pytest.warns(UserWarning, match="temperature is at its bound"):
+        model = LinearIDDM(intention="discrete", temperature="cv", cv_folds=3).fit(obs, g.long())
+    assert model.temperature < 0.0011
+    with pytest.raises(ValueError, match="2 intention values"):
+        LinearIDDM(intention="discrete", temperature="cv").fit(obs, torch.zeros(60).long())
 
 
 def test_forgetting_follows_algorithm_3_2_in_batch_and_stream(generator):
@@ -605,3 +628,8 @@ def test_forgetting_follows_algorithm_3_2_in_batch_and_stream(generator):
         if t not in (2, 3):
             b = b + model.log_predictive(obs[33, t - 1], obs[33, t], grid, step=t - 1) / 1.5
     assert torch.allclose(online.prob[3], torch.softmax(b, 0), atol=1e-10)
+    # alone in its batch (no stream has a transition at frames 2 and 3), the same belief
+    alone = model.stream(1, grid, log_prior=prior)
+    for t in range(6):
+        single = alone.update(bad[3, t])
+    assert torch.allclose(single.prob, online.prob[3], atol=1e-12)
