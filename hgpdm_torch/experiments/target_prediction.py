@@ -17,8 +17,11 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   (Fig. 3.7), plus ridge regression on a window (not in the thesis; a linear read-out of the
   raw observations): MAE +- SEM in cm and the CPU time per observation;
 - the linear-Gaussian intention-driven dynamics (:class:`~hgpdm_torch.models.LinearIDDM`, not in
-  the thesis): a transition per frame index with a full noise covariance over the observations,
-  its prior (coefficient precision, noise scale) chosen by the evidence of the training strokes;
+  the thesis): a transition per frame index over the observations, its noise kind (full,
+  diagonal, isotropic) and prior (coefficient precision, noise scale) chosen by the evidence of
+  the training strokes; its beliefs at ``T = 1`` without forgetting (exact Bayes for the model)
+  and at the evidence temperature and forgetting of 5-fold cross-validated beliefs of the
+  training strokes (``temperature="cv", forgetting="cv"``);
 - how often the online belief's 90% credible set over the grid holds the grid value nearest to
   the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
   on the cross-validation folds' held-out beliefs (:func:`~hgpdm_torch.inference.fit_temperature`;
@@ -173,18 +176,19 @@ def _cv_mae(
     return float(torch.cat(errors).mean()), torch.cat(logs), torch.cat(truths)
 
 
-def _linear_iddm(obs, y, grid, obs_test, y_test) -> tuple[dict[str, Any], list, float]:
+def _linear_iddm(obs, y, grid, obs_test, y_test, **options) -> tuple[dict[str, Any], list, float]:
     """:class:`LinearIDDM` with its noise kind and prior chosen by the evidence of the training
-    strokes (``"auto"``); returns them with the test beliefs' calibration at T = 1, the test
-    scores and the CPU ms per observation."""
-    model = LinearIDDM().fit(obs, y)
+    strokes (``"auto"``) and the given ``temperature``/``forgetting`` options; returns them with
+    the test beliefs' calibration, the test scores and the CPU ms per observation."""
+    model = LinearIDDM(**options).fit(obs, y)
     start = time.process_time()
     belief = model.beliefs(obs_test, grid)
     ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
     truth = grid_index(y_test, grid)[:, None].expand(-1, len(_STEPS))
     choice = {"noise": model.noise_kind, "coef_precision": model.prior[0],
               "noise_prior": model.prior[1],
-              "log_evidence": model.log_marginal_likelihood(),
+              "log_evidence": model.log_marginal_likelihood(), "temperature": model.temperature,
+              "forgetting": model.forgetting,
               "calibration": calibration(belief.prob[:, list(_STEPS)], truth)}  # fmt: skip
     mean = belief.mean[..., 0]
     return choice, [_mae_sem(mean[:, s], y_test) for s in _STEPS], ms
@@ -284,16 +288,19 @@ def target_prediction(
         table.meta["mae"][f"online sparse M={m}"] = scores_sparse
         name = f"IDDM online eps={forgetting}, sparse M={m}"
         table.add(**_row("comparison", name, *best, None, scores_sparse, ms_sparse))
-    choice, scores, ms = _linear_iddm(obs[train], y[train], grid, obs_test, y_test)
-    table.meta["linear_iddm"] = choice
-    table.meta["mae"]["linear iddm"] = scores
-    prior = (f"{choice['noise']} noise, lambda={choice['coef_precision']:.3g}, "
-             f"psi={choice['noise_prior']:.3g}")  # fmt: skip
-    name = f"linear IDDM per phase ({prior})"
-    table.add(
-        **_row("comparison", name, None, None, None, scores, ms),
-        **{"90% set coverage [%]": round(100 * choice["calibration"]["coverage"], 1)},
-    )
+    calibrate = {"temperature": "cv", "forgetting": "cv"}
+    for key, options in (("linear iddm", {}), ("linear iddm calibrated", calibrate)):
+        choice, scores, ms = _linear_iddm(obs[train], y[train], grid, obs_test, y_test, **options)
+        table.meta[key.replace(" ", "_")] = choice
+        table.meta["mae"][key] = scores
+        prior = (f"{choice['noise']} noise, lambda={choice['coef_precision']:.3g}, "
+                 f"psi={choice['noise_prior']:.3g}, T={choice['temperature']:.3g}, "
+                 f"eps={choice['forgetting']:.3g}")  # fmt: skip
+        name = f"linear IDDM per phase ({prior}{' (CV)' if options else ''})"
+        table.add(
+            **_row("comparison", name, None, None, None, scores, ms),
+            **{"90% set coverage [%]": round(100 * choice["calibration"]["coverage"], 1)},
+        )
     start = time.process_time()
     batch = infer_intention(best_model, obs_test, grid, window=window).mean[..., 0]
     ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])

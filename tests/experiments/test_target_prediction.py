@@ -35,14 +35,14 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert len(table.meta["train_mae_online"]) == len(HORIZONS_MS)
     for name in (
         "online", "online calibrated", "online sparse M=30", "batch", "gpr", "ridge", "median",
-        "linear iddm",
+        "linear iddm", "linear iddm calibrated",
     ):  # fmt: skip
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
     # the credible sets are scored at T = 1 and at the temperature fitted on the CV folds
     t = table.meta["temperature"]
     assert t > 0 and any(m.endswith(f"T={t:.3g} (CV)") for m in methods)
     covered = [r["90% set coverage [%]"] for r in table.rows if "90% set coverage [%]" in r]
-    assert len(covered) == 3 and all(0 <= c <= 100 for c in covered)
+    assert len(covered) == 4 and all(0 <= c <= 100 for c in covered)
     # the linear IDDM's prior is the evidence maximum of the training strokes
     linear = table.meta["linear_iddm"]
     strokes14 = sample_strokes(22, generator=torch.Generator().manual_seed(0))
@@ -50,6 +50,13 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert (linear["coef_precision"], linear["noise_prior"]) == refit.prior
     assert linear["noise"] == refit.noise_kind
     assert any(m.startswith("linear IDDM per phase") for m in methods)
+    # and its calibrated row: the same prior, the temperature and forgetting of its own CV
+    calibrated = table.meta["linear_iddm_calibrated"]
+    cv = LinearIDDM(temperature="cv", forgetting="cv")
+    cv.fit(strokes14.obs[:14], strokes14.targets[:14])
+    assert (linear["temperature"], linear["forgetting"]) == (1.0, 0.0)
+    assert (calibrated["temperature"], calibrated["forgetting"]) == (cv.temperature, cv.forgetting)
+    assert any(m.endswith(f"eps={cv.forgetting:.3g} (CV))") for m in methods)
     assert set(table.meta["calibration"]) == {"T=1", "fitted T"}
     # the median row equals an independent recomputation on the same strokes
     strokes = sample_strokes(22, generator=torch.Generator().manual_seed(0))
