@@ -246,6 +246,7 @@ class LinearIDDM:
         self.temperature, self.forgetting = temperature, float(forgetting)
         self.obs_mean, self.obs_std, self.obs_dim = mean, std, frames.shape[1]
         self.intentions, self.intention_dim, self.num_values = g, g.shape[1], num_values
+        self._sequences = seqs
         self.num_phases, self.noise_kind, self.prior, self._evidence = (
             num_phases, kind, prior, evidence
         )  # fmt: skip
@@ -330,6 +331,95 @@ class LinearIDDM:
                 stacklevel=3,
             )
         return temperature, eps
+
+    # --------------------------------------------------------------------------- persistence
+    #: the fitted statistics :meth:`state_dict` holds
+    _STATE = ("obs_mean", "obs_std", "intentions", "precision", "coef", "scatter", "dof")
+
+    def config(self) -> dict[str, Any]:
+        """Constructor arguments that refit this model without any search: the noise kind,
+        prior, temperature and forgetting as chosen (not ``"auto"``/``"cv"``)."""
+        self._check_fitted()
+        return {"intention": self.intention, "num_values": self._num_values_arg,
+                "phase": self.phase, "noise": self.noise_kind,
+                "coef_precision": self.prior[0], "noise_prior": self.prior[1],
+                "temperature": self.temperature, "forgetting": self.forgetting,
+                "cv_folds": self.cv_folds}  # fmt: skip
+
+    def _data_arguments(self) -> dict[str, Any]:
+        """:meth:`fit`'s arguments: the training ``sequences`` and their ``intentions``."""
+        self._check_fitted()
+        g = self.intentions[:, 0] if self.intention_dim == 1 else self.intentions
+        if self.intention == "discrete":
+            g = g.long()
+        return {"sequences": [s.clone() for s in self._sequences], "intentions": g.clone()}
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The fitted statistics (standardisation, training intentions and each phase's
+        ``Lambda_n``, ``M_n``, ``Psi_n``, ``nu_n``) and the evidence, as tensors."""
+        self._check_fitted()
+        state = {k: getattr(self, k).clone() for k in self._STATE}
+        state["log_evidence"] = torch.tensor(self._evidence, dtype=self.dtype)
+        return state
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Take saved statistics into this fitted model; they must agree with what its own
+        training data give (to ``1e-8`` relative; the rest is the machine's rounding).
+
+        Raises:
+            RuntimeError: other keys, shapes or dtypes, or statistics of other data.
+        """
+        own = self.state_dict()
+        if set(state) != set(own):
+            raise RuntimeError(f"state keys {sorted(state)} differ from {sorted(own)}")
+        for key, mine in own.items():
+            theirs = state[key]
+            if not isinstance(theirs, torch.Tensor) or (theirs.shape, theirs.dtype) != (
+                mine.shape, mine.dtype
+            ):  # fmt: skip
+                raise RuntimeError(f"state[{key!r}] must be a {mine.dtype} tensor {mine.shape}")
+            if not torch.allclose(theirs.to(mine.device), mine, rtol=1e-8, atol=1e-10):
+                raise RuntimeError(
+                    f"state[{key!r}] differs from what the training data give: the statistics "
+                    "belong to other data"
+                )
+        for key in self._STATE:
+            setattr(self, key, state[key].to(own[key].device).clone())
+        self._evidence = float(state["log_evidence"])
+        self.precision_tril = torch.linalg.cholesky(self.precision)
+
+    @classmethod
+    def _rebuild(cls, data: dict[str, Any], config: dict[str, Any], dtype: torch.dtype):
+        """The model :func:`~hgpdm_torch.models.load_model` rebuilds from a file: constructed
+        from ``config`` and fitted on ``data`` (no search: ``config`` holds the choices)."""
+        with warnings.catch_warnings():  # the original fit warned already
+            warnings.simplefilter("ignore")
+            return cls(**config, dtype=dtype).fit(**data)
+
+    def save(self, path: Any) -> None:
+        """Save the fitted model to ``path`` in the checksummed, versioned format of
+        :mod:`~hgpdm_torch.models.persistence` (configuration, training data, statistics);
+        load it with :func:`~hgpdm_torch.models.load_model` or :meth:`load`."""
+        from .persistence import save_model
+
+        self._check_fitted()
+        save_model(self, path)
+
+    @classmethod
+    def load(cls, path: Any) -> LinearIDDM:
+        """Load a model written by :meth:`save`; it must be an instance of ``cls``.
+
+        Raises:
+            ModelFileError: see :func:`~hgpdm_torch.models.load_model`, or the file holds a
+                model of another class.
+        """
+        from .persistence import ModelFileError, load_model
+
+        model = load_model(path)
+        if not isinstance(model, cls):
+            raise ModelFileError(f"{path}: holds a {type(model).__qualname__}, not a "
+                                 f"{cls.__qualname__}")  # fmt: skip
+        return model
 
     def log_marginal_likelihood(self) -> float:
         """``log p(Z_{1:} | Z_{:-1}, g)`` of the (standardised) training transitions under the

@@ -25,8 +25,13 @@ The checksum detects corruption (a damaged disk, a cut-off copy), not deliberate
 anyone can write a file with a matching hash. Safety against malicious files comes from two
 other rules: the payload is read with ``torch.load(..., weights_only=True)`` (no pickled code),
 and the class is looked up in an allow-list of registered model classes, never imported from a
-module named by the file. :class:`GPDM`, :class:`HGPDM` and :class:`IDDM` are registered; a
-subclass of your own is registered with :func:`register_model`.
+module named by the file. :class:`GPDM`, :class:`HGPDM`, :class:`IDDM` and :class:`LinearIDDM`
+are registered; a subclass of your own is registered with :func:`register_model`.
+
+A :class:`LinearIDDM` keeps its training data outside its statistics, so it is rebuilt by
+fitting it again with the saved choices (``LinearIDDM._rebuild``; no evidence or
+cross-validation search), and the saved statistics must agree with that fit before they are
+taken (:meth:`LinearIDDM.load_state_dict`).
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ import torch
 
 from .gpdm import GPDM
 from .hgpdm import HGPDM, IDDM
+from .linear_iddm import LinearIDDM
 
 __all__ = [
     "FORMAT_VERSION",
@@ -72,9 +78,10 @@ _DTYPES = {
     "float64": torch.float64,
 }
 
-M = TypeVar("M", bound=type[GPDM])
+Model = GPDM | LinearIDDM
+M = TypeVar("M", bound=type[GPDM] | type[LinearIDDM])
 
-_REGISTRY: dict[str, type[GPDM]] = {}
+_REGISTRY: dict[str, type[Model]] = {}
 
 
 class ModelFileError(ValueError):
@@ -109,8 +116,9 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
     to ``self._config`` (constructor options) or overrides ``_data_arguments`` (data).
 
     Args:
-        cls: a subclass of :class:`~hgpdm_torch.models.GPDM` (or the GPDM itself); omit it to
-            get a decorator, e.g. ``@register_model(name="mylab.MyGPDM")``.
+        cls: a subclass of :class:`~hgpdm_torch.models.GPDM` or
+            :class:`~hgpdm_torch.models.LinearIDDM` (or either itself); omit it to get a
+            decorator, e.g. ``@register_model(name="mylab.MyGPDM")``.
         name: the name stored in files (default: the class's ``__qualname__``). Names are
             global: choose a qualified one if another package may use the same class name.
 
@@ -118,7 +126,7 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
         ``cls`` unchanged (or the decorator).
 
     Raises:
-        TypeError: ``cls`` is not a GPDM subclass.
+        TypeError: ``cls`` is not a GPDM or LinearIDDM subclass.
         ValueError: ``name`` is empty, is taken by another class, or ``cls`` is already
             registered under another name. Re-registering a class with the same module and
             qualified name (re-running a notebook cell, reloading a module) replaces the old
@@ -126,8 +134,8 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
     """
     if cls is None:
         return lambda c: register_model(c, name=name)
-    if not (isinstance(cls, type) and issubclass(cls, GPDM)):
-        raise TypeError(f"register_model needs a subclass of GPDM, got {cls!r}")
+    if not (isinstance(cls, type) and issubclass(cls, GPDM | LinearIDDM)):
+        raise TypeError(f"register_model needs a subclass of GPDM or LinearIDDM, got {cls!r}")
     key = cls.__qualname__ if name is None else name
     if not isinstance(key, str) or not key:
         raise ValueError(f"name must be a non-empty str, got {name!r}")
@@ -144,7 +152,7 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
     return cls
 
 
-def registered_models() -> dict[str, type[GPDM]]:
+def registered_models() -> dict[str, type[Model]]:
     """A copy of the registry: the names a file may store, with the class each one loads."""
     return dict(_REGISTRY)
 
@@ -153,7 +161,7 @@ def _describe(cls: type) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
-def _registered_name(cls: type[GPDM]) -> str:
+def _registered_name(cls: type[Model]) -> str:
     for key, registered in _REGISTRY.items():
         if registered is cls:
             return key
@@ -164,13 +172,14 @@ def _registered_name(cls: type[GPDM]) -> str:
     )
 
 
-for _cls in (GPDM, HGPDM, IDDM):
+for _cls in (GPDM, HGPDM, IDDM, LinearIDDM):
     register_model(_cls)
 
 
 # --------------------------------------------------------------------------------- writing
-def save_model(model: GPDM, path: str | os.PathLike[str]) -> None:
-    """Write ``model`` to ``path`` in the format above (what :meth:`GPDM.save` calls).
+def save_model(model: Model, path: str | os.PathLike[str]) -> None:
+    """Write ``model`` to ``path`` in the format above (what :meth:`GPDM.save` and
+    :meth:`LinearIDDM.save` call).
 
     The file is written beside ``path`` under a temporary name and then renamed over it, so an
     interrupted save never leaves a half-written file in place of a good one.
@@ -184,7 +193,9 @@ def save_model(model: GPDM, path: str | os.PathLike[str]) -> None:
         "config": copy.deepcopy(model.config()),
         "data": model._data_arguments(),
         "state_dict": model.state_dict(),
-        "dtype": str(model.latent.dtype).removeprefix("torch."),
+        "dtype": str(
+            model.dtype if isinstance(model, LinearIDDM) else model.latent.dtype
+        ).removeprefix("torch."),
     }
     buffer = io.BytesIO()
     torch.save(blob, buffer)
@@ -245,7 +256,7 @@ def _read_payload(path: Path) -> bytes:
     return payload
 
 
-def _check_blob(path: Path, blob: Any) -> tuple[type[GPDM], dict, dict, dict, torch.dtype]:
+def _check_blob(path: Path, blob: Any) -> tuple[type[Model], dict, dict, dict, torch.dtype]:
     """Validate the structure of a verified payload; return class, config, data, state, dtype."""
     if not isinstance(blob, dict) or set(blob) != _PAYLOAD_KEYS:
         keys = sorted(map(str, blob)) if isinstance(blob, dict) else type(blob).__name__
@@ -298,8 +309,9 @@ def _same(a: Any, b: Any) -> bool:
     return type(a) is type(b) and a == b
 
 
-def load_model(path: str | os.PathLike[str]) -> GPDM:
-    """Rebuild a model saved with :meth:`GPDM.save`: same class, data, parameters and buffers.
+def load_model(path: str | os.PathLike[str]) -> Model:
+    """Rebuild a model saved with :meth:`GPDM.save` or :meth:`LinearIDDM.save`: same class,
+    data, parameters and buffers (statistics).
 
     The class is looked up by its saved name among the registered classes
     (:func:`register_model`); nothing named by the file is imported, and the payload is read
@@ -325,8 +337,11 @@ def load_model(path: str | os.PathLike[str]) -> GPDM:
         raise ModelFileError(f"{path}: the payload cannot be read: {err}") from err
     cls, config, data, state, dtype = _check_blob(path, blob)
     try:
-        model = cls(**data, **config, dtype=dtype)
-    except (TypeError, ValueError) as err:
+        if issubclass(cls, LinearIDDM):
+            model = cls._rebuild(data, config, dtype)
+        else:
+            model = cls(**data, **config, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError) as err:
         raise ModelFileError(
             f"{path}: the saved configuration and data do not rebuild a {blob['class']}: {err}"
         ) from err

@@ -358,3 +358,62 @@ def test_noise_setters_accept_floats_and_0_dim_tensors():
     with pytest.raises(TypeError, match="real number"):
         model.transition_noise = "0.1"
     assert math.isfinite(_loss(model))
+
+
+# ------------------------------------------------------------------------------ LinearIDDM
+def _linear_data(discrete: bool, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    g = torch.randint(0, 3, (24,), generator=gen) if discrete else torch.rand(24, generator=gen)
+    obs = torch.randn(24, 5, 3, generator=gen).cumsum(1) + 0.5 * g[:, None, None]
+    return obs, g
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM")
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"temperature": "cv", "forgetting": "cv"}, {"intention": "discrete", "phase": False}],
+    ids=["default", "calibrated", "discrete-shared"],
+)
+def test_linear_iddm_round_trip(tmp_path, options):
+    from hgpdm_torch.models import LinearIDDM
+
+    obs, g = _linear_data(options.get("intention") == "discrete")
+    model = LinearIDDM(**options).fit(list(obs[:20]), g[:20])
+    path = tmp_path / "linear.pt"
+    model.save(path)
+    loaded = load_model(path)
+    assert type(loaded) is LinearIDDM and isinstance(LinearIDDM.load(path), LinearIDDM)
+    assert loaded.config() == model.config()
+    for key, value in model.state_dict().items():  # the saved statistics, bit for bit
+        assert torch.equal(loaded.state_dict()[key], value)
+    assert loaded.log_marginal_likelihood() == model.log_marginal_likelihood()
+    assert torch.equal(loaded.beliefs(obs[20:]).prob, model.beliefs(obs[20:]).prob)
+    with pytest.raises(ModelFileError, match="not a IDDM"):
+        IDDM.load(path)
+    assert registered_models()["LinearIDDM"] is LinearIDDM
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM")
+def test_linear_iddm_statistics_must_come_from_its_data(tmp_path):
+    from hgpdm_torch.models import LinearIDDM
+
+    obs, g = _linear_data(False)
+    model = LinearIDDM().fit(obs, g)
+    path = tmp_path / "linear.pt"
+    model.save(path)
+    _, blob = _unpack(path)
+    assert set(blob["config"]) >= {"noise", "coef_precision", "temperature", "forgetting"}
+    assert "auto" not in blob["config"].values()  # the choices, so no search on loading
+    coef = blob["state_dict"]["coef"].clone()
+    coef[0, 0, 0] += 1e-3
+    _pack(path, {**blob, "state_dict": {**blob["state_dict"], "coef": coef}})
+    with pytest.raises(ModelFileError, match="belong to other data"):
+        load_model(path)
+    _pack(path, {**blob, "state_dict": {**blob["state_dict"], "coef": coef[:, :2]}})
+    with pytest.raises(ModelFileError, match="saved state does not fit"):
+        load_model(path)
+    _pack(path, {**blob, "data": {**blob["data"], "intentions": g[:5]}})
+    with pytest.raises(ModelFileError, match="do not rebuild"):
+        load_model(path)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        LinearIDDM().save(tmp_path / "unfitted.pt")
