@@ -1,6 +1,6 @@
 """Target prediction on fresh draws of the full protocol (issue #14, item 4).
 
-``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick]`` (about 12 min on 2 cores
+``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick]`` (about 11 min on 2 cores
 for 10 replicates; each draws and simulates 226 strokes). Writes
 ``benchmarks/results/target_replicates.json`` (``..._quick.json`` with ``--quick``).
 
@@ -22,7 +22,8 @@ Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon,
 GPR at 80 ms with a 95% interval from a two-stage bootstrap (replicates, then strokes within
 each; it covers the variation of the training draw as well as of the test strokes), how many
 replicates have a ratio at most 0.9, and the coverage of the belief's 90% credible set over the
-grid (the four horizons pooled; ``meta.replicates`` holds each replicate's figures).
+grid (the four horizons pooled; at ``T = 1`` for the GP IDDM; ``meta.replicates`` holds each
+replicate's figures and what each LinearIDDM variant chose).
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ METHODS = (
 
 def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int):
     """Absolute errors ``[n_test, 4]`` and 90%-set hits ``[n_test, 4]`` (None for GPR) of
-    every method on one draw of the protocol, and the LinearIDDM default's choice."""
+    every method on one draw of the protocol, and what each LinearIDDM variant chose (noise
+    kind, prior, T, eps and the warnings of its fit)."""
     gen = torch.Generator().manual_seed(seed)
     strokes = sample_strokes(n_train + n_test, generator=gen)
     obs, y = strokes.obs[:n_train], strokes.targets[:n_train]
@@ -80,16 +82,18 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
         iddm = _fit_iddm(obs, y, "linear", 6, steps, seed)
     mean, _, log_prob = _online(iddm, test, grid, 0.2)
     out[METHODS[1]] = (abs_errors(mean, y_test), hits(log_prob.exp()))
-    choice = None
+    choices = {}
     calibrate = {"temperature": "cv", "forgetting": "cv"}
     for name, options in zip(METHODS[2:], ({}, calibrate, {"noise": "full"}), strict=True):
-        with warnings.catch_warnings():  # a prior on the edge of its candidates: recorded
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as caught:  # edge choices: recorded below
+            warnings.simplefilter("always")
             model = LinearIDDM(**options).fit(obs, y)
-        choice = choice or [model.noise_kind, *model.prior]
+        choices[name] = {"noise": model.noise_kind, "prior": list(model.prior),
+                         "temperature": model.temperature, "forgetting": model.forgetting,
+                         "warnings": [str(w.message) for w in caught]}  # fmt: skip
         belief = model.beliefs(test, grid)
         out[name] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
-    return out, choice
+    return out, choices
 
 
 def _ratio_interval(
@@ -134,18 +138,20 @@ def run(quick: bool = False, replicates: int = 10) -> ResultTable:
     )
     for seed in range(1, replicates + 1):
         start = time.time()
-        out, choice = _replicate(seed, n_train, n_test, grid_size, steps)
+        out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
         ref = out[METHODS[0]][0][:, -1].sum()
         table.meta["replicates"][seed] = {
             "seconds": round(time.time() - start, 1),
-            "linear_iddm_choice": choice,
+            "linear_iddm_choices": choices,
             "mae_80ms": {m: float(e[:, -1].mean()) for m, (e, _) in out.items()},
             "ratio_80ms": {m: float(e[:, -1].sum() / ref) for m, (e, _) in out.items()},
         }
         for m, (e, hit) in out.items():
             errors[m].append(e)
             covered[m].append(hit)
-        print(f"replicate {seed}: {table.meta['replicates'][seed]}", file=sys.stderr)
+        rep = table.meta["replicates"][seed]
+        print(f"replicate {seed} ({rep['seconds']} s), ratio to GPR at 80 ms: "
+              f"{rep['ratio_80ms']}", file=sys.stderr)  # fmt: skip
     for m in METHODS:
         err = torch.cat(errors[m])
         ratios = [r["ratio_80ms"][m] for r in table.meta["replicates"].values()]

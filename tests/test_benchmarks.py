@@ -8,6 +8,7 @@ import pkgutil
 from pathlib import Path
 
 import pytest
+import torch
 
 import benchmarks
 
@@ -56,3 +57,29 @@ def test_device_options_only_go_to_benchmarks_that_take_them(capsys):
     assert "target_sweep" not in DEVICE_AWARE and "online_intention" in DEVICE_AWARE
     assert main(["target_sweep", "--device", "cpu"]) == 2
     assert "take no --device" in capsys.readouterr().err
+
+
+def test_replicate_ratio_interval_against_a_plain_loop():
+    """The two-stage bootstrap of target_replicates: replicates drawn with replacement, then
+    strokes within each drawn replicate, paired between the methods, ratio of sums."""
+    from benchmarks.target_replicates import _ratio_interval
+
+    gen = torch.Generator().manual_seed(0)
+    err = [torch.rand(12, 4, generator=gen, dtype=torch.float64) for _ in range(3)]
+    ref = [e + 0.3 * torch.rand(12, 4, generator=gen, dtype=torch.float64) for e in err]
+    assert _ratio_interval(ref, ref, 200, 0) == (1.0, 1.0)
+    lo, hi = _ratio_interval(err, ref, 400, 1)
+    # the same draws, in the same order from the same generator, by a loop
+    draw = torch.Generator().manual_seed(1)
+    which = torch.randint(3, (400, 3), generator=draw)
+    strokes = torch.randint(12, (400, 3, 12), generator=draw)
+    ratios = []
+    for b in range(400):
+        num = sum(float(err[r][strokes[b, i], -1].sum()) for i, r in enumerate(which[b].tolist()))
+        den = sum(float(ref[r][strokes[b, i], -1].sum()) for i, r in enumerate(which[b].tolist()))
+        ratios.append(num / den)
+    expected = torch.quantile(torch.tensor(ratios, dtype=torch.float64),
+                              torch.tensor([0.025, 0.975], dtype=torch.float64))  # fmt: skip
+    assert (lo, hi) == pytest.approx(expected.tolist(), rel=1e-12)
+    point = float(sum(e[:, -1].sum() for e in err) / sum(r[:, -1].sum() for r in ref))
+    assert lo < point < hi
