@@ -29,9 +29,11 @@ module named by the file. :class:`GPDM`, :class:`HGPDM`, :class:`IDDM` and :clas
 are registered; a subclass of your own is registered with :func:`register_model`.
 
 A :class:`LinearIDDM` keeps its training data outside its statistics, so it is rebuilt by
-fitting it again with the saved choices (``LinearIDDM._rebuild``; no evidence or
-cross-validation search), and the saved statistics must agree with that fit before they are
-taken (:meth:`LinearIDDM.load_state_dict`).
+fitting it again with the saved choices (``LinearIDDM._rebuild``; a file asking for an evidence
+or cross-validation search, or holding coefficients of a shape its data do not imply, is
+refused before any fitting), and the saved statistics must agree with that fit before they are
+taken (:meth:`LinearIDDM.load_state_dict`): for it, that is the data/state check of the last
+step.
 """
 
 from __future__ import annotations
@@ -268,9 +270,9 @@ def _check_blob(path: Path, blob: Any) -> tuple[type[Model], dict, dict, dict, t
     if cls is None:
         raise ModelFileError(
             f"{path}: the file holds a model of class {name!r}, which is not registered "
-            f"(registered: {sorted(_REGISTRY)}). If it is your own GPDM subclass, register it "
-            f"before loading: decorate the class with @hgpdm_torch.models.register_model, or "
-            f"call register_model(cls, name={name!r})"
+            f"(registered: {sorted(_REGISTRY)}). If it is your own GPDM or LinearIDDM subclass, "
+            "register it before loading: decorate the class with "
+            f"@hgpdm_torch.models.register_model, or call register_model(cls, name={name!r})"
         )
     dtype = _DTYPES.get(blob["dtype"]) if isinstance(blob["dtype"], str) else None
     if dtype is None:
@@ -318,7 +320,7 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     with ``torch.load(..., weights_only=True)``. The model is rebuilt on the CPU.
 
     Args:
-        path: a file written by :meth:`GPDM.save`.
+        path: a file written by :meth:`GPDM.save` or :meth:`LinearIDDM.save`.
 
     Returns:
         The model, an instance of the registered class the file names.
@@ -338,7 +340,7 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     cls, config, data, state, dtype = _check_blob(path, blob)
     try:
         if issubclass(cls, LinearIDDM):
-            model = cls._rebuild(data, config, dtype)
+            model = cls._rebuild(data, config, dtype, state)
         else:
             model = cls(**data, **config, dtype=dtype)
     except (TypeError, ValueError, RuntimeError) as err:

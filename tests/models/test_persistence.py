@@ -371,8 +371,13 @@ def _linear_data(discrete: bool, seed: int = 0):
 @pytest.mark.filterwarnings("ignore:LinearIDDM")
 @pytest.mark.parametrize(
     "options",
-    [{}, {"temperature": "cv", "forgetting": "cv"}, {"intention": "discrete", "phase": False}],
-    ids=["default", "calibrated", "discrete-shared"],
+    [
+        {},
+        {"temperature": "cv", "forgetting": "cv"},
+        {"intention": "discrete", "phase": False},
+        {"dtype": torch.float32},
+    ],
+    ids=["default", "calibrated", "discrete-shared", "float32"],
 )
 def test_linear_iddm_round_trip(tmp_path, options):
     from hgpdm_torch.models import LinearIDDM
@@ -410,6 +415,10 @@ def test_linear_iddm_statistics_must_come_from_its_data(tmp_path):
     with pytest.raises(ModelFileError, match="belong to other data"):
         load_model(path)
     _pack(path, {**blob, "state_dict": {**blob["state_dict"], "coef": coef[:, :2]}})
+    with pytest.raises(ModelFileError, match="do not fit the data"):
+        load_model(path)
+    scatter = blob["state_dict"]["scatter"][:, :2]
+    _pack(path, {**blob, "state_dict": {**blob["state_dict"], "scatter": scatter}})
     with pytest.raises(ModelFileError, match="saved state does not fit"):
         load_model(path)
     _pack(path, {**blob, "data": {**blob["data"], "intentions": g[:5]}})
@@ -417,3 +426,47 @@ def test_linear_iddm_statistics_must_come_from_its_data(tmp_path):
         load_model(path)
     with pytest.raises(RuntimeError, match="not fitted"):
         LinearIDDM().save(tmp_path / "unfitted.pt")
+    # a file may not ask for a search, nor for statistics its data do not imply (checked
+    # before any fitting, so a small file cannot ask for a large fit)
+    _pack(path, {**blob, "config": {**blob["config"], "noise": "auto"}})
+    with pytest.raises(ModelFileError, match="asks for a search"):
+        load_model(path)
+    discrete = LinearIDDM(intention="discrete").fit(obs, (g * 3).long().clamp(max=2))
+    discrete.save(path)
+    _, blob = _unpack(path)
+    _pack(path, {**blob, "config": {**blob["config"], "num_values": 10**7}})
+    with pytest.raises(ModelFileError, match="do not fit the data"):
+        load_model(path)
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_linear_iddm_loads_statistics_of_another_summation_order(tmp_path, dtype):
+    # another machine's BLAS sums in another order: the same model fitted on the sequences in
+    # reverse order (same statistics up to rounding) is accepted; its file's data are the
+    # forward ones, so loading refits them and compares
+    from hgpdm_torch.models import LinearIDDM
+
+    obs, g = _linear_data(False, seed=3)
+    obs[..., 2] = obs[..., 1] + 1e-3 * obs[..., 0]  # two nearly collinear features
+    forward = LinearIDDM(dtype=dtype).fit(obs, g)
+    backward = LinearIDDM(**forward.config(), dtype=dtype).fit(obs.flip(0), g.flip(0))
+    path = tmp_path / "linear.pt"
+    forward.save(path)
+    _, blob = _unpack(path)
+    state = backward.state_dict()
+    state["intentions"] = forward.state_dict()["intentions"]  # the order of the intentions
+    _pack(path, {**blob, "state_dict": state})
+    assert torch.equal(load_model(path).coef, backward.coef)
+
+
+def test_linear_iddm_keeps_its_own_copy_of_the_data(tmp_path):
+    from hgpdm_torch.models import LinearIDDM
+
+    obs, g = _linear_data(False)
+    obs, g = obs.double(), g.double()
+    model = LinearIDDM().fit(obs, g)
+    obs += 1.0  # the caller changes its arrays after fitting
+    g += 1.0
+    model.save(tmp_path / "linear.pt")
+    assert torch.equal(load_model(tmp_path / "linear.pt").coef, model.coef)
