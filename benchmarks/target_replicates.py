@@ -16,7 +16,8 @@ experiment makes by cross-validation is not repeated):
   steps, ``eps = 0.2``: the experiment's selected model);
 - :class:`~hgpdm_torch.models.LinearIDDM` with its defaults (noise kind and prior by evidence),
   with the evidence temperature and forgetting of its 5-fold cross-validated training beliefs
-  (``temperature="cv", forgetting="cv"``), and with full noise.
+  (``temperature="cv", forgetting="cv"``), with full noise, and with the rank-1 interaction
+  (``interaction_rank=1``) without and with that calibration.
 
 Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon, the ratio to
 GPR at 80 ms with a 95% interval from a two-stage bootstrap (replicates, then strokes within
@@ -56,6 +57,8 @@ METHODS = (
     "LinearIDDM (default: noise kind and prior by evidence)",
     "LinearIDDM, T and eps by CV",
     "LinearIDDM, full noise",
+    "LinearIDDM, interaction rank 1",
+    "LinearIDDM, interaction rank 1, T and eps by CV",
 )
 
 
@@ -84,7 +87,9 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
     out[METHODS[1]] = (abs_errors(mean, y_test), hits(log_prob.exp()))
     choices = {}
     calibrate = {"temperature": "cv", "forgetting": "cv"}
-    for name, options in zip(METHODS[2:], ({}, calibrate, {"noise": "full"}), strict=True):
+    variants = ({}, calibrate, {"noise": "full"}, {"interaction_rank": 1},
+                {"interaction_rank": 1, **calibrate})  # fmt: skip
+    for name, options in zip(METHODS[2:], variants, strict=True):
         with warnings.catch_warnings(record=True) as caught:  # edge choices: recorded below
             warnings.simplefilter("always")
             model = LinearIDDM(**options).fit(obs, y)

@@ -21,7 +21,8 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   diagonal, isotropic) and prior (coefficient precision, noise scale) chosen by the evidence of
   the training strokes; its beliefs at ``T = 1`` without forgetting (exact Bayes for the model)
   and at the evidence temperature and forgetting of 5-fold cross-validated beliefs of the
-  training strokes (``temperature="cv", forgetting="cv"``);
+  training strokes (``temperature="cv", forgetting="cv"``), the latter also with the rank-1
+  intention-state interaction (``interaction_rank=1``);
 - how often the online belief's 90% credible set over the grid holds the grid value nearest to
   the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
   on the cross-validation folds' held-out beliefs (:func:`~hgpdm_torch.inference.fit_temperature`;
@@ -188,7 +189,7 @@ def _linear_iddm(obs, y, grid, obs_test, y_test, **options) -> tuple[dict[str, A
     choice = {"noise": model.noise_kind, "coef_precision": model.prior[0],
               "noise_prior": model.prior[1],
               "log_evidence": model.log_marginal_likelihood(), "temperature": model.temperature,
-              "forgetting": model.forgetting,
+              "forgetting": model.forgetting, "interaction_rank": model.interaction_rank,
               "calibration": calibration(belief.prob[:, list(_STEPS)], truth)}  # fmt: skip
     mean = belief.mean[..., 0]
     return choice, [_mae_sem(mean[:, s], y_test) for s in _STEPS], ms
@@ -289,13 +290,19 @@ def target_prediction(
         name = f"IDDM online eps={forgetting}, sparse M={m}"
         table.add(**_row("comparison", name, *best, None, scores_sparse, ms_sparse))
     calibrate = {"temperature": "cv", "forgetting": "cv"}
-    for key, options in (("linear iddm", {}), ("linear iddm calibrated", calibrate)):
+    for key, options in (
+        ("linear iddm", {}),
+        ("linear iddm calibrated", calibrate),
+        ("linear iddm interaction calibrated", {"interaction_rank": 1, **calibrate}),
+    ):
         choice, scores, ms = _linear_iddm(obs[train], y[train], grid, obs_test, y_test, **options)
         table.meta[key.replace(" ", "_")] = choice
         table.meta["mae"][key] = scores
         prior = (f"{choice['noise']} noise, lambda={choice['coef_precision']:.3g}, "
                  f"psi={choice['noise_prior']:.3g}, T={choice['temperature']:.3g}, "
-                 f"eps={choice['forgetting']:.3g}")  # fmt: skip
+                 f"eps={choice['forgetting']:.3g}"
+                 + (f", interaction rank {choice['interaction_rank']}"
+                    if choice["interaction_rank"] else ""))  # fmt: skip
         name = f"linear IDDM per phase ({prior}{' (CV)' if options else ''})"
         table.add(
             **_row("comparison", name, None, None, None, scores, ms),

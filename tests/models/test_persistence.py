@@ -376,8 +376,9 @@ def _linear_data(discrete: bool, seed: int = 0):
         {"temperature": "cv", "forgetting": "cv"},
         {"intention": "discrete", "phase": False},
         {"dtype": torch.float32},
+        {"interaction_rank": 1, "temperature": "cv", "forgetting": "cv"},
     ],
-    ids=["default", "calibrated", "discrete-shared", "float32"],
+    ids=["default", "calibrated", "discrete-shared", "float32", "interaction"],
 )
 def test_linear_iddm_round_trip(tmp_path, options):
     from hgpdm_torch.models import LinearIDDM
