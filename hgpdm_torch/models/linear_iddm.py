@@ -3,9 +3,10 @@
 The IDDM of Ch. 3 lets the intention ``g`` drive a GP transition over a low-dimensional latent
 state with one isotropic process noise shared by all frames of a movement. :class:`LinearIDDM`
 keeps the IDDM's idea (``g`` is an input of the dynamics; inference is Bayes' theorem over
-``g``) and drops those three assumptions: the state is the standardised observation itself, and
-the transition is linear in ``[z_t, phi(g), 1]`` with its own coefficients and its own noise
-covariance (per dimension by default) at each frame index of the movement (``phase=True``), both
+``g``) and drops those three assumptions: the state is the standardised observation itself, and the
+transition is linear in ``[z_t, phi(g), 1]`` (optionally with an intention-state interaction) with
+its own coefficients and its own noise covariance (per dimension by default) at each frame index of
+the movement (``phase=True``), both
 integrated out under their conjugate prior, so the one-step predictive is a Student-t (not in the
 thesis). For movements recorded from a common start (a stroke's first frame a fixed time before
 the hit), this is what the target-prediction experiment needs: there the target information at
@@ -19,12 +20,14 @@ Model, for each phase ``s`` (the frame index of ``z_t``, or one shared phase)::
     W_s | Sigma_s ~ MN(0, I / lambda, Sigma_s),   Sigma_s ~ IW(psi I, Dz + 2)
 
 with ``z`` standardised by the training frames' mean and standard deviation, ``phi(g) = g`` for a
-continuous g and the one-hot code for a discrete g. The interaction block is empty by default;
-with ``interaction_rank = r``, ``V_s [Dz, r]`` are the partial-least-squares directions of the
-phase's training states on ``phi(g)`` (fixed before the conjugate update, so the model stays
-conjugate): the intention's effect on the next frame may then scale with how far the current
-frame already shows it. On the table-tennis strokes ``r = 1`` predicts the target 5-10 cm
-better 320-160 ms before the hit and as well at 80 ms (README).
+continuous g and the one-hot code for a discrete g. The interaction block is empty by default; with
+``interaction_rank = r``, ``V_s [Dz, r]`` are the partial-least-squares directions of the phase's
+training states on ``phi(g)`` (fixed before the conjugate update, so the model stays conjugate): the
+intention's effect on the next frame may then scale with how far the current frame already shows it.
+``V_s`` is a plug-in estimate from the training ``(z_t, g)`` (per phase it never sees the targets
+``z_{t+1}``; with ``phase=False`` it does), so the evidence is conditional on it and is no criterion
+for the rank: choose ``r`` by cross-validation. On the table-tennis strokes ``r = 1`` predicts the
+target 5-10 cm better 320-160 ms before the hit and as well at 80 ms (README).
 
 ``noise="diagonal"`` replaces ``Sigma_s`` by independent per-dimension variances (inverse-gamma,
 the ``Dz = 1`` case of the prior per dimension), ``noise="isotropic"`` by ``sigma_s^2 I`` with
@@ -228,6 +231,11 @@ class LinearIDDM:
         src, phi, y, step = torch.cat(src), torch.cat(phi), torch.cat(dst), torch.cat(step)
         num_phases = int(step.max()) + 1 if self.phase else 1
         masks = [step == s if self.phase else step >= 0 for s in range(num_phases)]
+        if self.interaction_rank > src.shape[1]:
+            raise ValueError(
+                f"interaction_rank {self.interaction_rank} exceeds Dz = {src.shape[1]}, the "
+                "number of directions there are"
+            )
         # [S, Dz, r] interaction directions of each phase, then its inputs u_t
         directions = torch.stack([_directions(src[m], phi[m], self.interaction_rank)
                                   for m in masks])  # fmt: skip
@@ -382,7 +390,8 @@ class LinearIDDM:
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """The fitted statistics (standardisation, training intentions and each phase's
-        ``Lambda_n``, ``M_n``, ``Psi_n``, ``nu_n``) and the evidence, as tensors."""
+        interaction directions ``V_s``, ``Lambda_n``, ``M_n``, ``Psi_n``, ``nu_n``) and the
+        evidence, as tensors."""
         self._check_fitted()
         state = {k: getattr(self, k).clone() for k in self._STATE}
         state["log_evidence"] = torch.tensor(self._evidence, dtype=self.dtype)
@@ -398,6 +407,8 @@ class LinearIDDM:
             RuntimeError: other keys, shapes or dtypes, or statistics of other data.
         """
         own = self.state_dict()
+        if "directions" not in state and own["directions"].shape[-1] == 0:
+            state = {**state, "directions": own["directions"]}  # files from before the option
         if set(state) != set(own):
             raise RuntimeError(f"state keys {sorted(state)} differ from {sorted(own)}")
         for key, mine in own.items():
@@ -735,14 +746,21 @@ def _forget(steps: torch.Tensor, eps: float) -> torch.Tensor:
 
 def _directions(z: torch.Tensor, phi: torch.Tensor, rank: int) -> torch.Tensor:
     """``[Dz, rank]``: the partial-least-squares directions of the states ``z [n, Dz]`` on the
-    intention features ``phi [n, P]`` (sklearn, unscaled: ``z`` is standardised already)."""
+    intention features ``phi [n, P]`` (sklearn, unscaled: ``z`` is standardised already).
+    Zeros, with a warning, where they cannot be estimated: fewer than ``rank + 1`` transitions,
+    or an intention that does not vary over them (no interaction in that phase)."""
+    zeros = z.new_zeros(z.shape[1], rank)
     if rank == 0:
-        return z.new_zeros(z.shape[1], 0)
-    if rank > min(z.shape[1], len(z) - 1):
-        raise ValueError(
-            f"interaction_rank {rank} needs at least {rank + 1} transitions per phase and "
-            f"Dz >= {rank}; got {len(z)} and Dz = {z.shape[1]}"
+        return zeros
+    if len(z) < rank + 1 or bool((phi.std(0) == 0).all()):
+        warnings.warn(
+            f"LinearIDDM: a phase has {len(z)} training transitions"
+            + (" whose intentions are all equal" if len(z) >= rank + 1 else "")
+            + f"; its interaction directions (rank {rank}) cannot be estimated and are left "
+            "out (zeros)",
+            stacklevel=4,
         )
+        return zeros
     from sklearn.cross_decomposition import PLSRegression
 
     pls = PLSRegression(rank, scale=False).fit(z.cpu().numpy(), phi.cpu().numpy())

@@ -539,7 +539,8 @@ def test_cv_temperature_is_one_for_the_model_and_calibrates_correlated_noise(gen
 
 @pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has")
 @pytest.mark.filterwarnings("ignore:LinearIDDM. the evidence chose")
-def test_cv_calibration_against_a_hand_made_fold_loop(generator):
+@pytest.mark.parametrize("rank", [0, 1])
+def test_cv_calibration_against_a_hand_made_fold_loop(rank, generator):
     # per phase, sequences of 4 to 6 frames, 3 folds: j is held out in fold j mod 3, the others
     # refit with the chosen noise kind and prior, every held-out frame after the first scored
     # on the default 25-value grid at the value nearest its g
@@ -547,14 +548,15 @@ def test_cv_calibration_against_a_hand_made_fold_loop(generator):
 
     obs, g = _phase_system(60, generator)
     seqs = [s[: 4 + j % 3] for j, s in enumerate(obs)]
-    model = LinearIDDM(temperature="cv", cv_folds=3).fit(seqs, g)
-    joint = LinearIDDM(temperature="cv", forgetting="cv", cv_folds=3).fit(seqs, g)
+    model = LinearIDDM(temperature="cv", cv_folds=3, interaction_rank=rank).fit(seqs, g)
+    joint = LinearIDDM(temperature="cv", forgetting="cv", cv_folds=3, interaction_rank=rank)
+    joint.fit(seqs, g)
     values = torch.linspace(float(g.min()), float(g.max()), 25, dtype=torch.float64)
     steps, truth = [], []
     for fold in range(3):
         rest = [j for j in range(60) if j % 3 != fold]
         sub = LinearIDDM(noise=model.noise_kind, coef_precision=model.prior[0],
-                         noise_prior=model.prior[1])  # fmt: skip
+                         noise_prior=model.prior[1], interaction_rank=rank)  # fmt: skip
         sub.fit([seqs[j] for j in rest], g[rest])
         for j in range(fold, 60, 3):
             frames = min(len(seqs[j]), sub.num_phases + 1)
@@ -700,5 +702,44 @@ def test_interaction_discrete_shared_phase_stream_and_bad_rank(generator):
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="interaction_rank"):
             LinearIDDM(interaction_rank=bad)
-    with pytest.raises(ValueError, match="interaction_rank 4"):
+    with pytest.raises(ValueError, match="exceeds Dz = 3"):
         LinearIDDM(interaction_rank=4).fit(obs[:50], g[:50])
+    # the predictive with P = 3 one-hot features and r = 2 directions: the ratio of marginal
+    # likelihoods with u = [z, phi, 1, phi (x) V^T z] flattened phi-major
+    lam, psi = model.prior
+    z = ((obs[:50] - model.obs_mean) / model.obs_std).numpy()
+    v = model.directions[0].numpy()
+    onehot = np.eye(3)[g[:50].long().numpy()]
+
+    def inputs(zs: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        inter = (phi[:, :, None] * (zs @ v)[:, None, :]).reshape(len(zs), 6)
+        return np.concatenate([zs, phi, np.ones((len(zs), 1)), inter], 1)
+
+    u = inputs(z[:, :-1].reshape(-1, 3), np.repeat(onehot, 5, 0))
+    y = z[:, 1:].reshape(-1, 3)
+    a, b = obs[55, 1], obs[55, 2]
+    za = ((a - model.obs_mean) / model.obs_std).numpy()[None]
+    zb = ((b - model.obs_mean) / model.obs_std).numpy()[None]
+    for code in range(3):
+        u_new = inputs(za, np.eye(3)[[code]])
+        oracle = _log_marginal(np.vstack([u, u_new]), np.vstack([y, zb]), model.noise_kind,
+                               lam, psi)  # fmt: skip
+        oracle -= _log_marginal(u, y, model.noise_kind, lam, psi)
+        oracle -= np.log(model.obs_std.numpy()).sum()
+        got = model.log_predictive(a, b, torch.tensor([float(code)]), step=1)
+        assert abs(float(got[0]) - oracle) < 1e-9
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has 1 training transitions for")
+@pytest.mark.filterwarnings("ignore:LinearIDDM. the evidence chose")
+def test_interaction_with_short_phases_and_constant_intentions_warns(generator):
+    obs, g = _phase_system(40, generator)
+    seqs = [s if j == 0 else s[:5] for j, s in enumerate(obs)]  # one transition in phase 4
+    with pytest.warns(UserWarning, match="cannot be estimated"):
+        model = LinearIDDM(interaction_rank=1, temperature="cv", cv_folds=4).fit(seqs, g)
+    assert bool((model.directions[4] == 0).all()) and bool((model.directions[0] != 0).any())
+    assert math.isfinite(model.temperature)
+    with pytest.warns(UserWarning, match="intentions are all equal"):
+        LinearIDDM(interaction_rank=1, coef_precision=1.0, noise_prior=0.1).fit(
+            obs, torch.full((40,), 0.3)
+        )

@@ -377,8 +377,9 @@ def _linear_data(discrete: bool, seed: int = 0):
         {"intention": "discrete", "phase": False},
         {"dtype": torch.float32},
         {"interaction_rank": 1, "temperature": "cv", "forgetting": "cv"},
+        {"intention": "discrete", "interaction_rank": 2},
     ],
-    ids=["default", "calibrated", "discrete-shared", "float32", "interaction"],
+    ids=["default", "calibrated", "discrete-shared", "float32", "interaction", "discrete-r2"],
 )
 def test_linear_iddm_round_trip(tmp_path, options):
     from hgpdm_torch.models import LinearIDDM
@@ -459,6 +460,21 @@ def test_linear_iddm_loads_statistics_of_another_summation_order(tmp_path, dtype
     state["intentions"] = forward.state_dict()["intentions"]  # the order of the intentions
     _pack(path, {**blob, "state_dict": state})
     assert torch.equal(load_model(path).coef, backward.coef)
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM")
+def test_linear_iddm_files_from_before_the_interaction_option_load(tmp_path):
+    from hgpdm_torch.models import LinearIDDM
+
+    obs, g = _linear_data(False)
+    model = LinearIDDM().fit(obs, g)
+    path = tmp_path / "old.pt"
+    model.save(path)
+    _, blob = _unpack(path)
+    config = {k: v for k, v in blob["config"].items() if k != "interaction_rank"}
+    state = {k: v for k, v in blob["state_dict"].items() if k != "directions"}
+    _pack(path, {**blob, "config": config, "state_dict": state})
+    assert torch.equal(load_model(path).beliefs(obs).prob, model.beliefs(obs).prob)
 
 
 def test_linear_iddm_keeps_its_own_copy_of_the_data(tmp_path):
