@@ -21,6 +21,7 @@ from hgpdm_torch.models import (
     GPDM,
     HGPDM,
     IDDM,
+    LinearIDDM,
     ModelFileError,
     load_model,
     register_model,
@@ -361,6 +362,15 @@ def test_noise_setters_accept_floats_and_0_dim_tensors():
 
 
 # ------------------------------------------------------------------------------ LinearIDDM
+def _saved_linear(tmp_path, name: str = "linear.pt"):
+    """A LinearIDDM fitted on ``_linear_data``, its file and the file's payload."""
+    obs, g = _linear_data(False)
+    model = LinearIDDM().fit(obs, g)
+    path = tmp_path / name
+    model.save(path)
+    return model, obs, g, path, _unpack(path)[1]
+
+
 def _linear_data(discrete: bool, seed: int = 0):
     gen = torch.Generator().manual_seed(seed)
     g = torch.randint(0, 3, (24,), generator=gen) if discrete else torch.rand(24, generator=gen)
@@ -382,8 +392,6 @@ def _linear_data(discrete: bool, seed: int = 0):
     ids=["default", "calibrated", "discrete-shared", "float32", "interaction", "discrete-r2"],
 )
 def test_linear_iddm_round_trip(tmp_path, options):
-    from hgpdm_torch.models import LinearIDDM
-
     obs, g = _linear_data(options.get("intention") == "discrete")
     model = LinearIDDM(**options).fit(list(obs[:20]), g[:20])
     path = tmp_path / "linear.pt"
@@ -402,13 +410,7 @@ def test_linear_iddm_round_trip(tmp_path, options):
 
 @pytest.mark.filterwarnings("ignore:LinearIDDM")
 def test_linear_iddm_statistics_must_come_from_its_data(tmp_path):
-    from hgpdm_torch.models import LinearIDDM
-
-    obs, g = _linear_data(False)
-    model = LinearIDDM().fit(obs, g)
-    path = tmp_path / "linear.pt"
-    model.save(path)
-    _, blob = _unpack(path)
+    model, obs, g, path, blob = _saved_linear(tmp_path)
     assert set(blob["config"]) >= {"noise", "coef_precision", "temperature", "forgetting"}
     assert "auto" not in blob["config"].values()  # the choices, so no search on loading
     coef = blob["state_dict"]["coef"].clone()
@@ -447,8 +449,6 @@ def test_linear_iddm_loads_statistics_of_another_summation_order(tmp_path, dtype
     # another machine's BLAS sums in another order: the same model fitted on the sequences in
     # reverse order (same statistics up to rounding) is accepted; its file's data are the
     # forward ones, so loading refits them and compares
-    from hgpdm_torch.models import LinearIDDM
-
     obs, g = _linear_data(False, seed=3)
     obs[..., 2] = obs[..., 1] + 1e-3 * obs[..., 0]  # two nearly collinear features
     forward = LinearIDDM(dtype=dtype).fit(obs, g)
@@ -464,13 +464,7 @@ def test_linear_iddm_loads_statistics_of_another_summation_order(tmp_path, dtype
 
 @pytest.mark.filterwarnings("ignore:LinearIDDM")
 def test_linear_iddm_files_from_before_the_interaction_option_load(tmp_path):
-    from hgpdm_torch.models import LinearIDDM
-
-    obs, g = _linear_data(False)
-    model = LinearIDDM().fit(obs, g)
-    path = tmp_path / "old.pt"
-    model.save(path)
-    _, blob = _unpack(path)
+    model, obs, _, path, blob = _saved_linear(tmp_path, "old.pt")
     config = {k: v for k, v in blob["config"].items() if k != "interaction_rank"}
     state = {k: v for k, v in blob["state_dict"].items() if k != "directions"}
     _pack(path, {**blob, "config": config, "state_dict": state})
@@ -478,8 +472,6 @@ def test_linear_iddm_files_from_before_the_interaction_option_load(tmp_path):
 
 
 def test_linear_iddm_keeps_its_own_copy_of_the_data(tmp_path):
-    from hgpdm_torch.models import LinearIDDM
-
     obs, g = _linear_data(False)
     obs, g = obs.double(), g.double()
     model = LinearIDDM().fit(obs, g)
