@@ -105,9 +105,10 @@ class DemoResult:
     them at the ``T`` decision times ``start_times``; ``successes`` maps each player of the
     table to its ``[n_test]`` returns on the same rallies (the pairs behind the paired
     difference). ``linear_probs [n_test, T, K]`` is the belief of a
-    :class:`~hgpdm_torch.models.LinearIDDM` fitted on the IDDM's training strokes (all of
-    them, also where the IDDM takes a subset), for comparison only: the players decide on the
-    IDDM's belief.
+    :class:`~hgpdm_torch.models.LinearIDDM` with the settings README recommends (rank-1
+    intention-state interaction, temperature and forgetting by cross-validation) fitted on the
+    IDDM's training strokes (all of them, also where the IDDM takes a subset), for comparison
+    only: the players decide on the IDDM's belief.
     """
 
     table: ResultTable
@@ -124,9 +125,10 @@ def _linear_beliefs(
     obs: torch.Tensor, targets: torch.Tensor, train: torch.Tensor, test: torch.Tensor,
     steps_at: list[int], grid: torch.Tensor,
 ) -> torch.Tensor:  # fmt: skip
-    """``[len(test), T, K]`` beliefs of a :class:`LinearIDDM` fitted on the ``train`` strokes,
-    at the decision steps."""
-    model = LinearIDDM().fit(obs[train], targets[train])
+    """``[len(test), T, K]`` beliefs of a :class:`LinearIDDM` (rank-1 interaction, T and eps by
+    cross-validation) fitted on the ``train`` strokes, at the decision steps."""
+    model = LinearIDDM(interaction_rank=1, temperature="cv", forgetting="cv")
+    model.fit(obs[train], targets[train])
     belief = model.beliefs(obs[test][:, : max(steps_at) + 1], grid)
     return belief.prob[:, steps_at]
 
