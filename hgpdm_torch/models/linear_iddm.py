@@ -327,7 +327,7 @@ class LinearIDDM:
                 sub.fit([seqs[j] for j in rest], g[rest])
             for j in held:
                 seq = seqs[j][: sub.num_phases + 1] if self.phase else seqs[j]
-                steps.append(sub.log_evidence(seq, values).diff(dim=0))
+                steps.append(sub._transition_evidence(seq, values)[1:])
                 hits.append(truth[j].expand(len(seq) - 1))
         hits_all = torch.cat(hits)
         epsilons = (FORGETTING_CANDIDATES if self._forgetting_arg == "cv"
@@ -593,6 +593,11 @@ class LinearIDDM:
         Returns:
             ``[B, T, K]`` (or ``[T, K]``); frame 0 holds zeros (no transition yet).
         """
+        return self._transition_evidence(obs, grid).cumsum(-2)
+
+    def _transition_evidence(self, obs: Any, grid: Any = None) -> torch.Tensor:
+        """``log p(z_t | z_{t-1}, g, data)`` of each transition: ``[B, T, K]`` (or ``[T, K]``),
+        frame 0 zeros; :meth:`log_evidence` sums it, :meth:`beliefs` forgets and tempers it."""
         self._check_fitted()
         z = self._check_obs(obs, "obs", min_ndim=2)
         obs_shape, single = z.shape, z.dim() == 2
@@ -605,7 +610,7 @@ class LinearIDDM:
         steps = [torch.zeros(z.shape[0], len(feats), dtype=z.dtype, device=z.device)]
         for t in range(z.shape[1] - 1):
             steps.append(self._log_predictive(z[:, t], z[:, t + 1], feats, t))
-        out = torch.stack(steps, 1).cumsum(1)
+        out = torch.stack(steps, 1)
         return out[0] if single else out
 
     def beliefs(self, obs: Any, grid: Any = None, log_prior: Any = None) -> IntentionBelief:
@@ -627,11 +632,9 @@ class LinearIDDM:
         from ..inference.intention.grid import IntentionBelief
 
         values = self.grid(grid)
-        evidence = self.log_evidence(obs, values)
-        steps = evidence.diff(dim=-2) / self.temperature  # each transition's evidence
-        prior = self._log_prior(log_prior, len(values))
-        log_w = _forget(torch.cat([prior.expand_as(evidence[..., :1, :]), steps], -2),
-                        self.forgetting)  # fmt: skip
+        steps = self._transition_evidence(obs, values) / self.temperature
+        steps[..., 0, :] = self._log_prior(log_prior, len(values))  # B_0 (no transition yet)
+        log_w = _forget(steps, self.forgetting)
         return IntentionBelief.from_log(log_w, values, self.intention == "continuous")
 
     def _log_prior(self, log_prior: Any, k: int) -> torch.Tensor:
