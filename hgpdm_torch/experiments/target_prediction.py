@@ -22,7 +22,8 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   the training strokes; its beliefs at ``T = 1`` without forgetting (exact Bayes for the model)
   and at the evidence temperature and forgetting of 5-fold cross-validated beliefs of the
   training strokes (``temperature="cv", forgetting="cv"``), the latter also with the rank-1
-  intention-state interaction (``interaction_rank=1``);
+  intention-state interaction (``interaction_rank=1``), and both of those with the noise kind
+  and prior chosen by that cross-validation instead of the evidence (``select="cv"``);
 - how often the online belief's 90% credible set over the grid holds the grid value nearest to
   the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
   on the cross-validation folds' held-out beliefs (:func:`~hgpdm_torch.inference.fit_temperature`;
@@ -178,8 +179,9 @@ def _cv_mae(
 
 
 def _linear_iddm(obs, y, grid, obs_test, y_test, **options) -> tuple[dict[str, Any], list, float]:
-    """:class:`LinearIDDM` with its noise kind and prior chosen by the evidence of the training
-    strokes (``"auto"``) and the given ``temperature``/``forgetting`` options; returns them with
+    """:class:`LinearIDDM` with its noise kind and prior chosen (``"auto"``) by the evidence of
+    the training strokes or the given ``select`` and the given ``temperature``/``forgetting``
+    options; returns the choices with
     the test beliefs' calibration, the test scores and the CPU ms per observation."""
     model = LinearIDDM(**options).fit(obs, y)
     start = time.process_time()
@@ -294,6 +296,8 @@ def target_prediction(
         ("linear iddm", {}),
         ("linear iddm calibrated", calibrate),
         ("linear iddm interaction calibrated", {"interaction_rank": 1, **calibrate}),
+        ("linear iddm selected", {"select": "cv", **calibrate}),
+        ("linear iddm interaction selected", {"interaction_rank": 1, "select": "cv", **calibrate}),
     ):
         choice, scores, ms = _linear_iddm(obs[train], y[train], grid, obs_test, y_test, **options)
         table.meta[key.replace(" ", "_")] = choice
@@ -303,7 +307,8 @@ def target_prediction(
                  f"eps={choice['forgetting']:.3g}"
                  + (f", interaction rank {choice['interaction_rank']}"
                     if choice["interaction_rank"] else ""))  # fmt: skip
-        name = f"linear IDDM per phase ({prior}{' (CV)' if options else ''})"
+        chosen = "all by CV" if "select" in options else "T, eps by CV" if options else ""
+        name = f"linear IDDM per phase ({prior}{f' ({chosen})' if chosen else ''})"
         table.add(
             **_row("comparison", name, None, None, None, scores, ms),
             **{"90% set coverage [%]": round(100 * choice["calibration"]["coverage"], 1)},

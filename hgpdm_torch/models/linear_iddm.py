@@ -40,8 +40,8 @@ with the residuals ``R = Y - U M_n``, which does not cancel in float32), ``nu_n 
 the predictive of
 ``z_{t+1}`` given ``u`` is Student-t with ``nu_n - Dz + 1`` degrees of freedom, location
 ``M_n^T u`` and scale matrix ``(1 + u^T Lambda_n^-1 u) Psi_n / (nu_n - Dz + 1)``. The noise
-kind and the scales ``lambda``, ``psi`` are chosen by the closed-form evidence ``p(Y | U)``
-unless given.
+kind and the scales ``lambda``, ``psi`` are chosen, unless given, by the closed-form evidence
+``p(Y | U)`` (``select="evidence"``) or by cross-validation (``select="cv"``, below).
 
 The log belief over a grid of K intention values after frame ``t`` is
 ``B_t(g) = (1 - eps) B_{t-1}(g) + log p(z_t | z_{t-1}, g, data) / T``, ``B_0 = log p(g)``,
@@ -55,6 +55,15 @@ transitions outweigh the earlier ones) correct for it; ``"cv"`` chooses them by 
 of the true intention values of held-out beliefs of the training sequences (k-fold
 cross-validation; ``T`` by :func:`~hgpdm_torch.inference.calibration.fit_temperature`), as the
 GP IDDM's filters do with a given ``T`` and ``eps``.
+
+The evidence scores how well the model predicts the next frame, all ``Dz`` dimensions of it; the
+beliefs need only the part of the dynamics that depends on ``g``, a few of the ``P Dz``
+coefficients. ``select="cv"`` therefore chooses the noise kind and the prior scales by the
+criterion of ``T`` and ``eps``: the likelihood of the true intentions under cross-validated beliefs
+(jointly with ``T`` and ``eps`` where they are ``"cv"``). On the table-tennis strokes it picks a
+3-30 times stronger ridge ``lambda`` than the evidence does and predicts the target better
+(README, target prediction). It costs a fit per fold and candidate (144 candidates with
+everything ``"auto"``: seconds for a hundred short sequences).
 """
 
 from __future__ import annotations
@@ -63,7 +72,7 @@ import math
 import numbers
 import warnings
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
@@ -80,16 +89,30 @@ __all__ = [
     "AUTO_NOISE_PRIOR",
     "FORGETTING_CANDIDATES",
     "NOISE_KINDS",
+    "SELECTION_CRITERIA",
     "LinearIDDM",
     "LinearIDDMStream",
 ]
 
 NOISE_KINDS = ("full", "diagonal", "isotropic")
+#: How ``select`` chooses the ``"auto"`` noise kind and prior scales.
+SELECTION_CRITERIA = ("evidence", "cv")
 #: Candidates of ``forgetting="cv"``.
 FORGETTING_CANDIDATES = (0.0, 0.1, 0.2, 0.3, 0.5, 0.7)
 #: Candidates of ``coef_precision="auto"`` and ``noise_prior="auto"`` (half-decade log grids).
 AUTO_COEF_PRECISION = tuple(10.0 ** (k / 2) for k in range(-3, 5))  # 0.03 .. 100
 AUTO_NOISE_PRIOR = tuple(10.0 ** (k / 2) for k in range(-4, 2))  # 0.01 .. 3.2
+
+
+class _Design(NamedTuple):
+    """What :meth:`LinearIDDM.fit` derives from training data before the prior's update: the
+    standardisation ``[Dz]``, the interaction directions ``[S, Dz, r]`` and, per phase, the
+    inputs ``U_s [n_s, P]`` and targets ``Y_s [n_s, Dz]``."""
+
+    mean: torch.Tensor
+    std: torch.Tensor
+    directions: torch.Tensor
+    parts: list[tuple[torch.Tensor, torch.Tensor]]
 
 
 class LinearIDDM:
@@ -130,12 +153,18 @@ class LinearIDDM:
             ``T`` when ``temperature="cv"``) give the true values the largest likelihood.
         cv_folds: number of folds for ``"cv"`` (sequence ``j`` is held out in fold
             ``j mod cv_folds``; at most the number of sequences).
+        select: how the ``"auto"`` noise kind and prior scales are chosen: ``"evidence"``
+            (default: the marginal likelihood of the training transitions; fast) or ``"cv"``:
+            the candidate (of :data:`NOISE_KINDS`, :data:`AUTO_COEF_PRECISION`,
+            :data:`AUTO_NOISE_PRIOR`) whose cross-validated beliefs give the true intention
+            values the largest likelihood, the criterion of ``temperature="cv"``, searched
+            jointly with ``T`` and ``eps`` (module docstring).
         dtype: floating dtype of the fitted statistics.
 
     After :meth:`fit`, ``noise_kind`` and ``prior`` hold the noise kind and ``(lambda, psi)``
     used, :meth:`log_marginal_likelihood` the evidence of the training transitions under them
     and ``temperature``, ``forgetting`` the ``T``, ``eps`` the beliefs use. A choice on the edge
-    of its candidate grid warns (the evidence may rise beyond it).
+    of its candidate grid warns (the criterion may improve beyond it).
     """
 
     def __init__(
@@ -151,9 +180,11 @@ class LinearIDDM:
         temperature: float | str = 1.0,
         forgetting: float | str = 0.0,
         cv_folds: int = 5,
+        select: str = "evidence",
         dtype: torch.dtype = torch.float64,
     ) -> None:
         self.intention = check_choice(intention, "intention", ("continuous", "discrete"))
+        self.select = check_choice(select, "select", SELECTION_CRITERIA)
         self.noise = check_choice(noise, "noise", (*NOISE_KINDS, "auto"))
         if not isinstance(phase, bool):
             raise TypeError(f"phase must be a bool, got {phase!r}")
@@ -215,9 +246,60 @@ class LinearIDDM:
             ``self``.
         """
         seqs = self._check_sequences(sequences)
-        device = seqs[0].device
         g, num_values = self._check_intentions(intentions, len(seqs))
-        g = g.to(device)
+        g = g.to(seqs[0].device)
+        design = self._design(seqs, g, num_values)
+        fewest, width = min(len(u) for u, _ in design.parts), design.parts[0][0].shape[1]
+        if fewest < width:
+            warnings.warn(
+                f"LinearIDDM: a phase has {fewest} training transitions for {width} "
+                "coefficients per feature; its belief rests on the prior and can be far off "
+                "(use more recordings, or phase=False)",
+                stacklevel=2,
+            )
+        kinds = NOISE_KINDS if self.noise == "auto" else (self.noise,)
+        lams = AUTO_COEF_PRECISION if self.coef_precision == "auto" else (self.coef_precision,)
+        psis = AUTO_NOISE_PRIOR if self.noise_prior == "auto" else (self.noise_prior,)
+        priors = [(float(lam), float(psi)) for lam in lams for psi in psis]
+        temperature, forgetting = self._temperature_arg, self._forgetting_arg
+        if self.select == "evidence" or len(kinds) * len(priors) == 1:
+            best = None
+            for prior in priors:  # empirical Bayes over the candidates (one when all are given)
+                stats = [_posterior(u, y, *prior) for u, y in design.parts]
+                for kind in kinds:
+                    evidence = _total_log_marginal(stats, kind, prior)
+                    if best is None or evidence > best[0]:
+                        best = (evidence, kind, prior, stats)
+            evidence, kind, prior, stats = best
+            if "cv" in (temperature, forgetting):
+                kind, prior, temperature, forgetting = self._cross_validate(
+                    seqs, g, num_values, [(kind, prior)]
+                )
+        else:  # the candidate whose held-out beliefs give the true intentions most probability
+            kind, prior, temperature, forgetting = self._cross_validate(
+                seqs, g, num_values, [(k, p) for p in priors for k in kinds]
+            )
+            stats = [_posterior(u, y, *prior) for u, y in design.parts]
+            evidence = _total_log_marginal(stats, kind, prior)
+        criterion = "evidence" if self.select == "evidence" else "cross-validation"
+        for name, value, grid in (("coef_precision", prior[0], lams), ("noise_prior", prior[1],
+                                                                         psis)):  # fmt: skip
+            if len(grid) > 1 and value in (grid[0], grid[-1]):
+                warnings.warn(
+                    f"LinearIDDM: the {criterion} chose {name} = {value:g}, the edge of its "
+                    f"candidates {grid[0]:g} .. {grid[-1]:g}; pass a value to go beyond them",
+                    stacklevel=2,
+                )
+        # the fitted state, assigned only once everything above succeeded
+        self._assign(design, g, num_values, kind, prior, stats, evidence)
+        self.temperature, self.forgetting = temperature, float(forgetting)
+        self._sequences = [q.clone() for q in seqs]  # the caller's arrays may change later
+        return self
+
+    def _design(self, seqs: list[torch.Tensor], g: torch.Tensor, num_values: int | None) -> _Design:
+        """Standardisation, interaction directions and each phase's inputs ``U_s`` and targets
+        ``Y_s`` of the training transitions of ``seqs`` (everything but the prior's update)."""
+        device = seqs[0].device
         frames = torch.cat(seqs)
         mean, std = frames.mean(0), frames.std(0)
         std = torch.where(std > 0, std, torch.ones_like(std))  # constant dims: as they are
@@ -241,69 +323,43 @@ class LinearIDDM:
         directions = torch.stack([_directions(src[m], phi[m], self.interaction_rank)
                                   for m in masks])  # fmt: skip
         parts = [(_inputs(src[m], phi[m], directions[s]), y[m]) for s, m in enumerate(masks)]
-        fewest, width = min(len(a) for a, _ in parts), parts[0][0].shape[1]
-        if fewest < width:
-            warnings.warn(
-                f"LinearIDDM: a phase has {fewest} training transitions for {width} "
-                "coefficients per feature; its belief rests on the prior and can be far off "
-                "(use more recordings, or phase=False)",
-                stacklevel=2,
-            )
-        kinds = NOISE_KINDS if self.noise == "auto" else (self.noise,)
-        lams = AUTO_COEF_PRECISION if self.coef_precision == "auto" else (self.coef_precision,)
-        psis = AUTO_NOISE_PRIOR if self.noise_prior == "auto" else (self.noise_prior,)
-        best = None
-        for lam in lams:  # empirical Bayes over the candidates (one when all are given)
-            for psi in psis:
-                stats = [_posterior(a, b, float(lam), float(psi)) for a, b in parts]
-                for kind in kinds:
-                    evidence = float(sum(_log_marginal(*st, kind, float(lam), float(psi))
-                                         for st in stats))  # fmt: skip
-                    if best is None or evidence > best[0]:
-                        best = (evidence, kind, (float(lam), float(psi)), stats)
-        evidence, kind, prior, stats = best
-        for name, value, grid in (("coef_precision", prior[0], lams), ("noise_prior", prior[1],
-                                                                         psis)):  # fmt: skip
-            if len(grid) > 1 and value in (grid[0], grid[-1]):
-                warnings.warn(
-                    f"LinearIDDM: the evidence chose {name} = {value:g}, the edge of its "
-                    f"candidates {grid[0]:g} .. {grid[-1]:g}; pass a value to go beyond them",
-                    stacklevel=2,
-                )
-        temperature, forgetting = self._temperature_arg, self._forgetting_arg
-        if "cv" in (temperature, forgetting):
-            temperature, forgetting = self._cv_calibration(seqs, g, num_values, kind, prior)
-        # the fitted state, assigned only once everything above succeeded
-        self.temperature, self.forgetting = temperature, float(forgetting)
-        self.obs_mean, self.obs_std, self.obs_dim = mean, std, frames.shape[1]
+        return _Design(mean, std, directions, parts)
+
+    def _assign(
+        self, design: _Design, g: torch.Tensor, num_values: int | None, kind: str,
+        prior: tuple[float, float], stats: list[tuple[torch.Tensor, ...]], evidence: float,
+    ) -> None:  # fmt: skip
+        """Make this model the posterior ``stats`` (one tuple per phase) of ``design``."""
+        self.obs_mean, self.obs_std, self.obs_dim = design.mean, design.std, len(design.mean)
         self.intentions, self.intention_dim, self.num_values = g.clone(), g.shape[1], num_values
-        self._sequences = [q.clone() for q in seqs]  # the caller's arrays may change later
         self.num_phases, self.noise_kind, self.prior, self._evidence = (
-            num_phases, kind, prior, evidence
+            len(stats), kind, prior, evidence
         )  # fmt: skip
         # [S, P, P] Lambda_n, [S, P, Dz] M_n, [S, Dz, Dz] Psi_n, [S] nu_n
         self.precision, self.coef, self.scatter, self.dof = (
             torch.stack([st[i] for st in stats]) for i in range(4)
         )
-        self.directions = directions
+        self.directions = design.directions
         self.precision_tril = torch.linalg.cholesky(self.precision)
         self.fitted = True
-        return self
 
-    def _cv_calibration(
-        self, seqs: list[torch.Tensor], g: torch.Tensor, num_values: int | None, kind: str,
-        prior: tuple[float, float],
-    ) -> tuple[float, float]:  # fmt: skip
-        """``(T, eps)`` from the beliefs of each held-out sequence, by a model of the same noise
-        kind and prior fitted on the other folds (every frame after the first; the truth is the
-        nearest grid value): for each candidate ``eps``, ``T`` by
-        :func:`~hgpdm_torch.inference.calibration.fit_temperature` (or the given one), then the
-        pair of the smallest mean negative log probability of the truth."""
-        from ..inference.calibration import fit_temperature
+    def _cross_validate(
+        self, seqs: list[torch.Tensor], g: torch.Tensor, num_values: int | None,
+        candidates: list[tuple[str, tuple[float, float]]],
+    ) -> tuple[str, tuple[float, float], float, float]:  # fmt: skip
+        """The candidate ``(noise kind, (lambda, psi))`` and ``(T, eps)`` whose beliefs of each
+        held-out sequence, by the candidate fitted on the other folds (every frame after the
+        first; the truth is the nearest grid value), give the truths the smallest mean negative
+        log probability: for each candidate and each candidate ``eps``, ``T`` by
+        :func:`~hgpdm_torch.inference.calibration.fit_temperature` (or the given ``T``; the
+        given ``eps``). Ties go to the earlier candidate."""
+        from ..inference.calibration import TEMPERATURE_BOUNDS, fit_temperature
 
         folds = min(self.cv_folds, len(seqs))
         if folds < 2:
-            raise ValueError("temperature or forgetting 'cv' needs at least 2 training sequences")
+            raise ValueError(
+                "temperature, forgetting or select 'cv' needs at least 2 training sequences"
+            )
         # the fitted model's default grid; the distinct training intentions for a 2-D+ g
         if g.shape[1] > 1:
             values = torch.unique(g, dim=0)
@@ -311,42 +367,54 @@ class LinearIDDM:
             values = _default_grid(g, self.intention, num_values, 25)
         if len(values) < 2:
             raise ValueError(
-                "temperature or forgetting 'cv' needs at least 2 intention values to score"
+                "temperature, forgetting or select 'cv' needs at least 2 intention values to score"
             )
         truth = torch.cdist(g, values).argmin(-1)
-        steps, hits = [], []  # per held-out sequence: [T_j - 1, K] evidence of each transition
+        # per candidate, per group of held-out sequences of one length: [n, T - 1, K] evidence
+        # of each transition, and the groups' [n, T - 1] true value indices
+        steps: list[list[torch.Tensor]] = [[] for _ in candidates]
+        hits = []
+        sub = LinearIDDM(intention=self.intention, num_values=num_values, phase=self.phase,
+                         interaction_rank=self.interaction_rank, dtype=self.dtype)  # fmt: skip
         for fold in range(folds):
             held = [j for j in range(len(seqs)) if j % folds == fold]
             rest = [j for j in range(len(seqs)) if j % folds != fold]
-            sub = LinearIDDM(intention=self.intention, num_values=num_values, phase=self.phase,
-                             noise=kind, coef_precision=prior[0], noise_prior=prior[1],
-                             interaction_rank=self.interaction_rank,
-                             dtype=self.dtype)  # fmt: skip
             with warnings.catch_warnings():  # few transitions per phase: the full fit warned
                 warnings.simplefilter("ignore")
-                sub.fit([seqs[j] for j in rest], g[rest])
+                design = sub._design([seqs[j] for j in rest], g[rest], num_values)
+            cut = len(design.parts) + 1 if self.phase else None
+            groups: dict[int, list[torch.Tensor]] = {}
+            labels: dict[int, list[torch.Tensor]] = {}
             for j in held:
-                seq = seqs[j][: sub.num_phases + 1] if self.phase else seqs[j]
-                steps.append(sub._transition_evidence(seq, values)[1:])
-                hits.append(truth[j].expand(len(seq) - 1))
-        hits_all = torch.cat(hits)
+                seq = seqs[j][:cut]
+                groups.setdefault(len(seq), []).append(seq)
+                labels.setdefault(len(seq), []).append(truth[j].expand(len(seq) - 1))
+            hits.extend(torch.stack(v) for v in labels.values())
+            posteriors: dict[tuple[float, float], list] = {}
+            for c, (kind, prior) in enumerate(candidates):
+                if prior not in posteriors:
+                    posteriors[prior] = [_posterior(u, y, *prior) for u, y in design.parts]
+                sub._assign(design, g[rest], num_values, kind, prior, posteriors[prior],
+                            math.nan)  # fmt: skip
+                steps[c].extend(sub._transition_evidence(torch.stack(group), values)[:, 1:]
+                                for group in groups.values())  # fmt: skip
+        hits_all = torch.cat([h.flatten() for h in hits])
         epsilons = (FORGETTING_CANDIDATES if self._forgetting_arg == "cv"
                     else (self._forgetting_arg,))  # fmt: skip
         best = None
-        for eps in epsilons:
-            # from a uniform prior B_0 = 0, B_t is the forgetful sum of the first t transitions
-            logs = torch.cat([_forget(e, float(eps)) for e in steps])
-            if self._temperature_arg == "cv":
-                temperature = fit_temperature(logs, hits_all)
-            else:
-                temperature = self._temperature_arg
-            log_p = torch.log_softmax(logs / temperature, -1)
-            nll = -float(log_p.gather(-1, hits_all[:, None]).mean())
-            if best is None or nll < best[0]:
-                best = (nll, temperature, float(eps))
-        _, temperature, eps = best
-        from ..inference.calibration import TEMPERATURE_BOUNDS
-
+        for c, (kind, prior) in enumerate(candidates):
+            for eps in epsilons:
+                # from a uniform prior B_0 = 0, B_t is the forgetful sum of the first t steps
+                logs = torch.cat([_forget(e, float(eps)).flatten(0, -2) for e in steps[c]])
+                if self._temperature_arg == "cv":
+                    temperature = fit_temperature(logs, hits_all)
+                else:
+                    temperature = self._temperature_arg
+                log_p = torch.log_softmax(logs / temperature, -1)
+                nll = -float(log_p.gather(-1, hits_all[:, None]).mean())
+                if best is None or nll < best[0]:
+                    best = (nll, kind, prior, temperature, float(eps))
+        _, kind, prior, temperature, eps = best
         if self._temperature_arg == "cv" and not (
             1.01 * TEMPERATURE_BOUNDS[0] < temperature < TEMPERATURE_BOUNDS[1] / 1.01
         ):
@@ -363,7 +431,7 @@ class LinearIDDM:
                 f"candidates; pass a value to go beyond it",
                 stacklevel=3,
             )
-        return temperature, eps
+        return kind, prior, temperature, eps
 
     # --------------------------------------------------------------------------- persistence
     #: the fitted statistics :meth:`state_dict` holds
@@ -507,7 +575,7 @@ class LinearIDDM:
     def log_marginal_likelihood(self) -> float:
         """``log p(Z_{1:} | Z_{:-1}, g)`` of the (standardised) training transitions under the
         fitted noise kind and prior, summed over the phases: the closed-form evidence of the
-        conjugate model, which ``"auto"`` maximises."""
+        conjugate model, which ``"auto"`` maximises with ``select="evidence"``."""
         self._check_fitted()
         return float(self._evidence)
 
@@ -808,6 +876,13 @@ def _posterior(u: torch.Tensor, y: torch.Tensor, lam: float, psi: float):
     scatter = resid.T @ resid + lam * coef.T @ coef
     scatter = 0.5 * (scatter + scatter.T) + psi * torch.eye(d, dtype=u.dtype, device=u.device)
     return precision, coef, scatter, torch.tensor(d + 2.0 + len(u), dtype=u.dtype, device=u.device)
+
+
+def _total_log_marginal(
+    stats: list[tuple[torch.Tensor, ...]], kind: str, prior: tuple[float, float]
+) -> float:
+    """The evidence of all phases: the sum of :func:`_log_marginal` over ``stats``."""
+    return float(sum(_log_marginal(*st, kind, *prior) for st in stats))
 
 
 def _log_marginal(

@@ -321,6 +321,8 @@ def test_rejects_bad_input(generator):
         LinearIDDM(noise_prior=float("nan"))
     with pytest.raises(TypeError, match="phase"):
         LinearIDDM(phase=1)
+    with pytest.raises(ValueError, match="select"):
+        LinearIDDM(select="likelihood")
     with pytest.raises(ValueError, match="num_values"):
         LinearIDDM(num_values=3)
     with pytest.raises(ValueError, match="intentions"):
@@ -576,6 +578,53 @@ def test_cv_calibration_against_a_hand_made_fold_loop(rank, generator):
         scores.append((float(nll), t, eps))
     _, t, eps = min(scores)
     assert joint.forgetting == eps and joint.temperature == pytest.approx(t, rel=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has")
+@pytest.mark.filterwarnings("ignore:LinearIDDM. the cross-validation chose")
+@pytest.mark.parametrize("rank", [0, 1])
+def test_cv_selection_against_a_brute_force_search(rank, generator):
+    # select="cv": every candidate (noise kind, lambda) refitted through the public API on each
+    # fold's other sequences, its held-out evidence steps forgotten and tempered as in
+    # test_cv_calibration_against_a_hand_made_fold_loop; the fit must take the candidate, eps
+    # and T of the smallest held-out negative log probability of the truths (first on ties)
+    from hgpdm_torch.inference.calibration import fit_temperature
+    from hgpdm_torch.models.linear_iddm import NOISE_KINDS
+
+    obs, g = _phase_system(45, generator, T=5)
+    seqs = [s[: 3 + j % 3] for j, s in enumerate(obs)]
+    options = {"noise_prior": 0.3, "interaction_rank": rank, "cv_folds": 3}
+    model = LinearIDDM(select="cv", temperature="cv", forgetting="cv", **options).fit(seqs, g)
+    values = torch.linspace(float(g.min()), float(g.max()), 25, dtype=torch.float64)
+    scores = []
+    for lam in AUTO_COEF_PRECISION:
+        for kind in NOISE_KINDS:
+            steps, truth = [], []
+            for fold in range(3):
+                rest = [j for j in range(45) if j % 3 != fold]
+                sub = LinearIDDM(noise=kind, coef_precision=lam, noise_prior=0.3,
+                                 interaction_rank=rank)  # fmt: skip
+                sub.fit([seqs[j] for j in rest], g[rest])
+                for j in range(fold, 45, 3):
+                    frames = min(len(seqs[j]), sub.num_phases + 1)
+                    steps.append(sub.log_evidence(seqs[j][:frames], values).diff(dim=0))
+                    truth.append((g[j] - values).abs().argmin().expand(frames - 1))
+            truth = torch.cat(truth)
+            for eps in FORGETTING_CANDIDATES:
+                rows = _forgetful(steps, eps)
+                t = fit_temperature(rows, truth)
+                nll = -torch.log_softmax(rows / t, -1).gather(-1, truth[:, None]).mean()
+                scores.append((float(nll), kind, lam, eps, t))
+    best = min(scores, key=lambda s: s[0])
+    assert (model.noise_kind, model.prior, model.forgetting) == (best[1], (best[2], 0.3), best[3])
+    assert model.temperature == pytest.approx(best[4], rel=1e-9)
+    # the statistics are those of a plain fit with the chosen options; its evidence as reported
+    plain = LinearIDDM(**model.config()).fit(seqs, g)
+    for key, value in plain.state_dict().items():
+        torch.testing.assert_close(model.state_dict()[key], value, rtol=1e-12, atol=1e-12)
+    # with nothing to choose, select="cv" is the plain fit and runs no cross-validation
+    fixed = LinearIDDM(select="cv", **model.config()).fit(seqs, g)
+    assert (fixed.temperature, fixed.forgetting) == (model.temperature, model.forgetting)
 
 
 def _forgetful(steps: list[torch.Tensor], eps: float) -> torch.Tensor:

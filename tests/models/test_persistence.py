@@ -388,8 +388,9 @@ def _linear_data(discrete: bool, seed: int = 0):
         {"dtype": torch.float32},
         {"interaction_rank": 1, "temperature": "cv", "forgetting": "cv"},
         {"intention": "discrete", "interaction_rank": 2},
+        {"select": "cv", "temperature": "cv", "forgetting": "cv"},
     ],
-    ids=["default", "calibrated", "discrete-shared", "float32", "interaction", "discrete-r2"],
+    ids=["default", "calibrated", "discrete-shared", "float32", "interaction", "r2", "selected"],
 )
 def test_linear_iddm_round_trip(tmp_path, options):
     obs, g = _linear_data(options.get("intention") == "discrete")
