@@ -1,6 +1,6 @@
 """Target prediction on fresh draws of the full protocol (issue #14, item 4).
 
-``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick]`` (about 11 min on 2 cores
+``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick]`` (about 14 min on 2 cores
 for 10 replicates; each draws and simulates 226 strokes). Writes
 ``benchmarks/results/target_replicates.json`` (``..._quick.json`` with ``--quick``).
 
@@ -16,8 +16,11 @@ experiment makes by cross-validation is not repeated):
   steps, ``eps = 0.2``: the experiment's selected model);
 - :class:`~hgpdm_torch.models.LinearIDDM` with its defaults (noise kind and prior by evidence),
   with the evidence temperature and forgetting of its 5-fold cross-validated training beliefs
-  (``temperature="cv", forgetting="cv"``), with full noise, and with the rank-1 interaction
-  (``interaction_rank=1``) without and with that calibration.
+  (``temperature="cv", forgetting="cv"``), with full noise, with the rank-1 interaction
+  (``interaction_rank=1``) without and with that calibration, and calibrated with the noise kind
+  and prior chosen by the same cross-validation instead of the evidence (``select="cv"``), with
+  rank 0 and 1, and the equal mixture of the beliefs of those two
+  (:class:`~hgpdm_torch.inference.BeliefMixture`).
 
 Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon, the ratio to
 GPR at 80 ms with a 95% interval from a two-stage bootstrap (replicates, then strokes within
@@ -46,6 +49,7 @@ from hgpdm_torch.experiments.target_prediction import (
     grid_index,
     strokes_limit,
 )
+from hgpdm_torch.inference import BeliefMixture
 from hgpdm_torch.inference.calibration import credible_set
 from hgpdm_torch.models import LinearIDDM
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
@@ -59,6 +63,9 @@ METHODS = (
     "LinearIDDM, full noise",
     "LinearIDDM, interaction rank 1",
     "LinearIDDM, interaction rank 1, T and eps by CV",
+    "LinearIDDM, noise and prior by CV, T and eps by CV",
+    "LinearIDDM, interaction rank 1, noise and prior by CV, T and eps by CV",
+    "BeliefMixture of the last two (equal weights)",
 )
 
 
@@ -85,19 +92,23 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
         iddm = _fit_iddm(obs, y, "linear", 6, steps, seed)
     mean, _, log_prob = _online(iddm, test, grid, 0.2)
     out[METHODS[1]] = (abs_errors(mean, y_test), hits(log_prob.exp()))
-    choices = {}
+    choices, fitted = {}, []
     calibrate = {"temperature": "cv", "forgetting": "cv"}
     variants = ({}, calibrate, {"noise": "full"}, {"interaction_rank": 1},
-                {"interaction_rank": 1, **calibrate})  # fmt: skip
-    for name, options in zip(METHODS[2:], variants, strict=True):
+                {"interaction_rank": 1, **calibrate}, {"select": "cv", **calibrate},
+                {"interaction_rank": 1, "select": "cv", **calibrate})  # fmt: skip
+    for name, options in zip(METHODS[2:-1], variants, strict=True):
         with warnings.catch_warnings(record=True) as caught:  # edge choices: recorded below
             warnings.simplefilter("always")
             model = LinearIDDM(**options).fit(obs, y)
         choices[name] = {"noise": model.noise_kind, "prior": list(model.prior),
                          "temperature": model.temperature, "forgetting": model.forgetting,
                          "warnings": [str(w.message) for w in caught]}  # fmt: skip
+        fitted.append(model)
         belief = model.beliefs(test, grid)
         out[name] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
+    belief = BeliefMixture(fitted[-2:]).beliefs(test, grid)
+    out[METHODS[-1]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
     return out, choices
 
 

@@ -23,7 +23,8 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   and at the evidence temperature and forgetting of 5-fold cross-validated beliefs of the
   training strokes (``temperature="cv", forgetting="cv"``), the latter also with the rank-1
   intention-state interaction (``interaction_rank=1``), and both of those with the noise kind
-  and prior chosen by that cross-validation instead of the evidence (``select="cv"``);
+  and prior chosen by that cross-validation instead of the evidence (``select="cv"``), and the
+  equal mixture of the beliefs of those two (:class:`~hgpdm_torch.inference.BeliefMixture`);
 - how often the online belief's 90% credible set over the grid holds the grid value nearest to
   the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
   on the cross-validation folds' held-out beliefs (:func:`~hgpdm_torch.inference.fit_temperature`;
@@ -43,7 +44,7 @@ from tqdm.auto import tqdm
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
 from ..inference.calibration import calibration, fit_temperature
-from ..inference.intention import OnlineIntentionFilter, infer_intention
+from ..inference.intention import BeliefMixture, OnlineIntentionFilter, infer_intention
 from ..models import IDDM, LinearIDDM
 from ..validation import as_tensor, check_choice
 from .arguments import output_file, random_seed
@@ -178,11 +179,13 @@ def _cv_mae(
     return float(torch.cat(errors).mean()), torch.cat(logs), torch.cat(truths)
 
 
-def _linear_iddm(obs, y, grid, obs_test, y_test, **options) -> tuple[dict[str, Any], list, float]:
+def _linear_iddm(
+    obs, y, grid, obs_test, y_test, **options
+) -> tuple[dict[str, Any], list, float, LinearIDDM]:
     """:class:`LinearIDDM` with its noise kind and prior chosen (``"auto"``) by the evidence of
     the training strokes or the given ``select`` and the given ``temperature``/``forgetting``
     options; returns the choices with
-    the test beliefs' calibration, the test scores and the CPU ms per observation."""
+    the test beliefs' calibration, the test scores, the CPU ms per observation and the model."""
     model = LinearIDDM(**options).fit(obs, y)
     start = time.process_time()
     belief = model.beliefs(obs_test, grid)
@@ -194,7 +197,7 @@ def _linear_iddm(obs, y, grid, obs_test, y_test, **options) -> tuple[dict[str, A
               "forgetting": model.forgetting, "interaction_rank": model.interaction_rank,
               "calibration": calibration(belief.prob[:, list(_STEPS)], truth)}  # fmt: skip
     mean = belief.mean[..., 0]
-    return choice, [_mae_sem(mean[:, s], y_test) for s in _STEPS], ms
+    return choice, [_mae_sem(mean[:, s], y_test) for s in _STEPS], ms, model
 
 
 def target_prediction(
@@ -292,6 +295,7 @@ def target_prediction(
         name = f"IDDM online eps={forgetting}, sparse M={m}"
         table.add(**_row("comparison", name, *best, None, scores_sparse, ms_sparse))
     calibrate = {"temperature": "cv", "forgetting": "cv"}
+    linear_models = {}
     for key, options in (
         ("linear iddm", {}),
         ("linear iddm calibrated", calibrate),
@@ -299,7 +303,10 @@ def target_prediction(
         ("linear iddm selected", {"select": "cv", **calibrate}),
         ("linear iddm interaction selected", {"interaction_rank": 1, "select": "cv", **calibrate}),
     ):
-        choice, scores, ms = _linear_iddm(obs[train], y[train], grid, obs_test, y_test, **options)
+        choice, scores, ms, model = _linear_iddm(
+            obs[train], y[train], grid, obs_test, y_test, **options
+        )
+        linear_models[key] = model
         table.meta[key.replace(" ", "_")] = choice
         table.meta["mae"][key] = scores
         prior = (f"{choice['noise']} noise, lambda={choice['coef_precision']:.3g}, "
@@ -313,6 +320,22 @@ def target_prediction(
             **_row("comparison", name, None, None, None, scores, ms),
             **{"90% set coverage [%]": round(100 * choice["calibration"]["coverage"], 1)},
         )
+    # the equal mixture of the two selected models' beliefs
+    mixture = BeliefMixture([linear_models["linear iddm selected"],
+                             linear_models["linear iddm interaction selected"]])  # fmt: skip
+    start = time.process_time()
+    belief = mixture.beliefs(obs_test, grid)
+    ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
+    truth = grid_index(y_test, grid)[:, None].expand(-1, len(_STEPS))
+    cal_mix = calibration(belief.prob[:, list(_STEPS)], truth)
+    scores = [_mae_sem(belief.mean[:, s, 0], y_test) for s in _STEPS]
+    table.meta["mae"]["linear iddm mixture"] = scores
+    table.meta["linear_iddm_mixture"] = {"calibration": cal_mix}
+    name = "BeliefMixture of the two linear IDDMs all by CV (equal weights)"
+    table.add(
+        **_row("comparison", name, None, None, None, scores, ms),
+        **{"90% set coverage [%]": round(100 * cal_mix["coverage"], 1)},
+    )
     start = time.process_time()
     batch = infer_intention(best_model, obs_test, grid, window=window).mean[..., 0]
     ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])

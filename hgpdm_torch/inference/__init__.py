@@ -14,6 +14,8 @@ from .filtering import (
     smooth,
 )
 from .intention import (
+    BeliefMixture,
+    BeliefMixtureStream,
     IntentionBelief,
     LinearMeasurement,
     OnlineIntentionFilter,
@@ -38,6 +40,8 @@ __all__ = [
     "DEFAULT_OUTLIER_SD",
     "FilterResult",
     "ObservationCheck",
+    "BeliefMixture",
+    "BeliefMixtureStream",
     "IntentionBelief",
     "LinearMeasurement",
     "OnlineIntentionFilter",

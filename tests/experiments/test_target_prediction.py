@@ -36,14 +36,14 @@ def test_smoke_run_reports_every_method_and_horizon():
     for name in (
         "online", "online calibrated", "online sparse M=30", "batch", "gpr", "ridge", "median",
         "linear iddm", "linear iddm calibrated", "linear iddm interaction calibrated",
-        "linear iddm selected", "linear iddm interaction selected",
+        "linear iddm selected", "linear iddm interaction selected", "linear iddm mixture",
     ):  # fmt: skip
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
     # the credible sets are scored at T = 1 and at the temperature fitted on the CV folds
     t = table.meta["temperature"]
     assert t > 0 and any(m.endswith(f"T={t:.3g} (CV)") for m in methods)
     covered = [r["90% set coverage [%]"] for r in table.rows if "90% set coverage [%]" in r]
-    assert len(covered) == 7 and all(0 <= c <= 100 for c in covered)
+    assert len(covered) == 8 and all(0 <= c <= 100 for c in covered)
     # the linear IDDM's prior is the evidence maximum of the training strokes
     linear = table.meta["linear_iddm"]
     strokes14 = sample_strokes(22, generator=torch.Generator().manual_seed(0))
@@ -68,6 +68,7 @@ def test_smoke_run_reports_every_method_and_horizon():
         sel.noise_kind, *sel.prior
     )  # fmt: skip
     assert any("interaction rank 1 (all by CV)" in m for m in methods)
+    assert any(m.startswith("BeliefMixture") for m in methods)
     assert set(table.meta["calibration"]) == {"T=1", "fitted T"}
     # the median row equals an independent recomputation on the same strokes
     strokes = sample_strokes(22, generator=torch.Generator().manual_seed(0))

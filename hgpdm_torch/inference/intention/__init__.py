@@ -40,11 +40,13 @@ One module per concept; this package re-exports their public names, so that
   (closed form for a linear kernel);
 - :mod:`~hgpdm_torch.inference.intention.streams`: B streams isolated from each other;
 - :mod:`~hgpdm_torch.inference.intention.online`: :class:`OnlineIntentionFilter`;
-- :mod:`~hgpdm_torch.inference.intention.batch`: :func:`infer_intention` and the bound's terms.
+- :mod:`~hgpdm_torch.inference.intention.batch`: :func:`infer_intention` and the bound's terms;
+- :mod:`~hgpdm_torch.inference.intention.mixture`: :class:`BeliefMixture`, the weighted mixture
+  of several models' beliefs (e.g. :class:`~hgpdm_torch.models.LinearIDDM` variants).
 
 Imports flow one way: ``grid``, ``state_prior``, ``linearisation``, ``measurement``,
 ``transition`` (on :mod:`hgpdm_torch.gp` and :mod:`hgpdm_torch.gp_shared`), ``streams`` <-
-``online``; ``batch`` uses the first three.
+``online``; ``batch`` uses the first three; ``mixture`` uses ``grid`` only.
 
 Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
 ``Dg`` intention dims, ``N`` transition training points.
@@ -55,6 +57,7 @@ from .batch import batch_bound, batch_bound_terms, infer_intention
 from .grid import IntentionBelief, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import LinearMeasurement
+from .mixture import BeliefMixture, BeliefMixtureStream
 from .online import OnlineIntentionFilter
 from .state_prior import STATE_PRIORS, class_state_prior
 from .transition import (
@@ -66,6 +69,8 @@ from .transition import (
 )
 
 __all__ = [
+    "BeliefMixture",
+    "BeliefMixtureStream",
     "GenericTransition",
     "IntentionBelief",
     "LinearMeasurement",

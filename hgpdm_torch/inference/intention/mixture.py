@@ -1,0 +1,139 @@
+"""A mixture of several intention models' beliefs over one grid (a linear opinion pool).
+
+Models that make different assumptions err on different streams. Averaging their beliefs,
+``p(g | z_{0:t}) = sum_m w_m p_m(g | z_{0:t})`` with fixed weights ``w_m >= 0`` summing to 1, is
+Bayesian model averaging with the model probabilities held at the weights instead of updated by
+each stream's evidence (which, over many observed dimensions, would soon pick one model per
+stream and lose the averaging). Its mean is the weighted mean of the members' means; its spread
+adds how much they disagree. On the table-tennis strokes, the equal mixture of a
+:class:`~hgpdm_torch.models.LinearIDDM` without and with the rank-1 interaction predicts the
+target better at 80 ms than either alone (README, target prediction).
+
+Shapes: ``B`` streams, ``T`` frames, ``K`` intention values, ``M`` members.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+from .grid import IntentionBelief
+
+__all__ = ["BeliefMixture", "BeliefMixtureStream"]
+
+
+class BeliefMixture:
+    """The weighted mixture of the beliefs of fitted intention models over a shared grid.
+
+    Args:
+        models: ``M >= 1`` fitted models with ``beliefs(obs, grid, log_prior)``,
+            ``stream(batch_size, grid, log_prior)`` and ``grid(values)``, as
+            :class:`~hgpdm_torch.models.LinearIDDM` has; all score the same intention.
+        weights: ``[M]`` non-negative weights, not all zero (normalised to sum 1); default
+            equal.
+    """
+
+    def __init__(self, models: Sequence[Any], weights: Sequence[float] | None = None) -> None:
+        if not isinstance(models, Sequence) or isinstance(models, str) or not models:
+            raise TypeError("models must be a non-empty sequence of fitted intention models")
+        for m, model in enumerate(models):
+            needed = ("beliefs", "stream", "grid")
+            missing = [a for a in needed if not callable(getattr(model, a, None))]
+            if missing:
+                raise TypeError(
+                    f"models[{m}] ({type(model).__name__}) has no {', '.join(missing)} method: "
+                    "a member must give beliefs over a grid (e.g. a LinearIDDM)"
+                )
+        if weights is None:
+            weights = [1.0] * len(models)
+        if isinstance(weights, torch.Tensor):
+            weights = weights.tolist()
+        if (
+            not isinstance(weights, Sequence) or len(weights) != len(models)
+            or not all(isinstance(w, int | float) and not isinstance(w, bool) for w in weights)
+        ):  # fmt: skip
+            raise ValueError(f"weights must be {len(models)} numbers (one per model), got "
+                             f"{weights!r}")  # fmt: skip
+        if not all(math.isfinite(w) and w >= 0 for w in weights) or sum(weights) <= 0:
+            raise ValueError(f"weights must be finite and >= 0, not all zero, got {weights!r}")
+        self.models = list(models)
+        total = float(sum(weights))
+        self.weights = [float(w) / total for w in weights]
+
+    def grid(self, values: Any = None) -> torch.Tensor:
+        """``[K, Dg]`` intention values: the first member's :meth:`grid` (its default grid when
+        ``values`` is None)."""
+        return self.models[0].grid(values)
+
+    def beliefs(self, obs: Any, grid: Any = None, log_prior: Any = None) -> IntentionBelief:
+        """The mixture of the members' beliefs after every frame.
+
+        Args:
+            obs: ``[B, T, Dz]`` or ``[T, Dz]`` streams, as each member's ``beliefs`` takes them.
+            grid: intention values (default :meth:`grid`), passed to every member.
+            log_prior: ``[K]`` log prior over the grid, passed to every member.
+
+        Returns:
+            :class:`~hgpdm_torch.inference.IntentionBelief` with ``[B, T, K]`` (or ``[T, K]``)
+            probabilities ``sum_m w_m p_m`` and, for a continuous g, its mean and sd.
+        """
+        values = self.grid(grid)
+        return self._mix([m.beliefs(obs, values, log_prior) for m in self.models], values)
+
+    def stream(
+        self, batch_size: int = 1, grid: Any = None, log_prior: Any = None
+    ) -> BeliefMixtureStream:
+        """An online mixture for ``batch_size`` streams: every member's own stream, advanced
+        together (the same beliefs as :meth:`beliefs`, frame by frame)."""
+        values = self.grid(grid)
+        return BeliefMixtureStream(
+            self, [m.stream(batch_size, values, log_prior) for m in self.models], values
+        )
+
+    def _mix(self, beliefs: list[IntentionBelief], values: torch.Tensor) -> IntentionBelief:
+        """``log sum_m w_m p_m`` of the members' beliefs ``[..., K]`` over ``values``."""
+        first = beliefs[0]
+        for m, b in enumerate(beliefs):
+            if b.log_prob.shape != first.log_prob.shape or (b.mean is None) != (
+                first.mean is None
+            ):  # fmt: skip
+                raise ValueError(
+                    f"models[{m}]'s belief ({tuple(b.log_prob.shape)}, "
+                    f"{'continuous' if b.mean is not None else 'discrete'} g) does not match "
+                    f"models[0]'s ({tuple(first.log_prob.shape)}, "
+                    f"{'continuous' if first.mean is not None else 'discrete'} g): the members "
+                    "must score the same intention on the same grid"
+                )
+        log_w = torch.tensor(self.weights, dtype=first.log_prob.dtype,
+                             device=first.log_prob.device).log()  # fmt: skip
+        stacked = torch.stack([b.log_prob for b in beliefs], -1)  # [..., K, M]
+        mixed = torch.logsumexp(stacked + log_w, -1)
+        return IntentionBelief.from_log(mixed, values, first.mean is not None)
+
+
+class BeliefMixtureStream:
+    """Online beliefs of a :class:`BeliefMixture` (:meth:`BeliefMixture.stream`)."""
+
+    def __init__(
+        self, mixture: BeliefMixture, streams: list[Any], values: torch.Tensor
+    ) -> None:  # fmt: skip
+        self.mixture, self.streams, self.values = mixture, streams, values
+
+    def reset(self) -> None:
+        """Start every stream of every member again at its prior."""
+        for s in self.streams:
+            s.reset()
+
+    def update(self, z: Any) -> IntentionBelief:
+        """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream) to every member; returns
+        the mixed belief ``[B, K]`` (``[K]``). ``rejected`` flags a stream whose frame any
+        member rejected."""
+        beliefs = [s.update(z) for s in self.streams]
+        out = self.mixture._mix(beliefs, self.values)
+        flags = [b.rejected for b in beliefs if b.rejected is not None]
+        if flags:
+            out.rejected = torch.stack(flags).any(0)
+        return out

@@ -1,0 +1,96 @@
+"""BeliefMixture: the weighted average of member beliefs against a direct numpy computation,
+the online stream against the batch beliefs, and bad input."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from hgpdm_torch.inference import BeliefMixture
+from hgpdm_torch.models import LinearIDDM
+
+
+def _members(generator: torch.Generator, discrete: bool = False):
+    """Two LinearIDDMs (no interaction, rank 1) fitted to sequences whose next frame depends on
+    g times the current one, and 10 held-out sequences."""
+    n, t = 70, 5
+    g = torch.randint(0, 3, (n,), generator=generator).double() if discrete else (
+        2 * torch.rand(n, generator=generator) - 1
+    )  # fmt: skip
+    z = [torch.randn(n, 2, generator=generator)]
+    for _ in range(t - 1):
+        drift = torch.stack([0.5 * g * z[-1][:, 0], 0.4 * g], -1)
+        z.append(0.7 * z[-1] + drift + 0.3 * torch.randn(n, 2, generator=generator))
+    obs = torch.stack(z, 1)
+    labels = g.long() if discrete else g
+    kind = "discrete" if discrete else "continuous"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # edge choices of the prior scales
+        models = [LinearIDDM(intention=kind, interaction_rank=r).fit(obs[:60], labels[:60])
+                  for r in (0, 1)]  # fmt: skip
+    return models, obs[60:]
+
+
+@pytest.mark.parametrize("discrete", [False, True])
+def test_mixture_is_the_weighted_average_of_the_members(discrete, generator):
+    models, test = _members(generator, discrete)
+    mix = BeliefMixture(models, weights=[3.0, 1.0])
+    assert mix.weights == [0.75, 0.25]
+    belief = mix.beliefs(test)
+    parts = [m.beliefs(test).prob.numpy() for m in models]
+    expected = 0.75 * parts[0] + 0.25 * parts[1]  # computed directly, in numpy
+    np.testing.assert_allclose(belief.prob.numpy(), expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(belief.log_prob.exp().numpy(), expected, rtol=1e-12, atol=1e-15)
+    values = models[0].grid().numpy()
+    if discrete:
+        assert belief.mean is None
+    else:
+        np.testing.assert_allclose(belief.mean.numpy(), expected @ values, rtol=1e-12)
+        var = expected @ values**2 - (expected @ values) ** 2
+        np.testing.assert_allclose(belief.std.numpy() ** 2, var, rtol=1e-9, atol=1e-12)
+    # the members disagree: the mixture differs from each, and one member alone is itself
+    assert not np.allclose(parts[0], parts[1], atol=1e-3)
+    alone = BeliefMixture(models[:1]).beliefs(test)
+    torch.testing.assert_close(alone.prob, models[0].beliefs(test).prob, rtol=1e-12, atol=1e-15)
+
+
+def test_stream_matches_beliefs_and_flags_a_bad_row(generator):
+    models, test = _members(generator)
+    grid = torch.linspace(-1, 1, 9, dtype=torch.float64)
+    mix = BeliefMixture(models)
+    batch = mix.beliefs(test, grid)
+    stream = mix.stream(len(test), grid)
+    for t in range(test.shape[1]):
+        step = stream.update(test[:, t])
+        torch.testing.assert_close(step.prob, batch.prob[:, t], rtol=1e-10, atol=1e-12)
+        assert not bool(step.rejected.any())
+    stream.reset()
+    frames = test[:, :3].clone()
+    frames[2, 1] = float("nan")
+    for t in range(3):
+        step = stream.update(frames[:, t])
+    assert step.rejected.tolist() == [False, False, False, False, False, False, False, False,
+                                      False, False]  # the NaN was one frame back  # fmt: skip
+    stream.reset()
+    stream.update(frames[:, 0])
+    flagged = stream.update(frames[:, 1])
+    assert flagged.rejected.tolist() == [j == 2 for j in range(10)]
+    # the other streams are untouched by the bad one
+    torch.testing.assert_close(flagged.prob[:2], batch.prob[:2, 1], rtol=1e-10, atol=1e-12)
+
+
+def test_rejects_bad_input(generator):
+    models, test = _members(generator)
+    with pytest.raises(TypeError, match="non-empty sequence"):
+        BeliefMixture([])
+    with pytest.raises(TypeError, match="no beliefs, stream, grid"):
+        BeliefMixture([models[0], object()])
+    for bad in ([1.0], [1.0, -1.0], [0.0, 0.0], [float("nan"), 1.0], [1.0, "a"]):
+        with pytest.raises(ValueError, match="weights"):
+            BeliefMixture(models, weights=bad)
+    discrete, _ = _members(generator, discrete=True)
+    with pytest.raises(ValueError, match="same intention on the same grid"):
+        BeliefMixture([models[0], discrete[0]]).beliefs(test, grid=torch.arange(3.0))
