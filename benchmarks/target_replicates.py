@@ -1,8 +1,9 @@
 """Target prediction on fresh draws of the full protocol (issue #14, item 4).
 
-``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick]`` (about 14 min on 2 cores
-for 10 replicates; each draws and simulates 226 strokes). Writes
-``benchmarks/results/target_replicates.json`` (``..._quick.json`` with ``--quick``).
+``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick] [--first-seed=S]`` (about
+14 min on 2 cores for 10 replicates; each draws and simulates 226 strokes). Writes
+``benchmarks/results/target_replicates.json`` (``..._quick.json`` with ``--quick``,
+``..._from{S}.json`` for the seeds ``S .. S + 9`` instead of ``1 .. 10``).
 
 ``hgpdm target-prediction`` scores one draw of the protocol (seed 0: train on 100 strokes, test
 on the next 126), and that test split was looked at while the models were developed. Here the
@@ -128,11 +129,12 @@ def _ratio_interval(
     return float(lo), float(hi)
 
 
-def run(quick: bool = False, replicates: int = 10) -> ResultTable:
+def run(quick: bool = False, replicates: int = 10, first_seed: int = 1) -> ResultTable:
     if quick:
         replicates, n_train, n_test, grid_size, steps = 2, 20, 10, 13, 5
     else:
         n_train, n_test, grid_size, steps = 100, 126, 25, 40
+    seeds = range(first_seed, first_seed + replicates)
     errors: dict[str, list] = {m: [] for m in METHODS}
     covered: dict[str, list] = {m: [] for m in METHODS}
     table = ResultTable(
@@ -146,13 +148,13 @@ def run(quick: bool = False, replicates: int = 10) -> ResultTable:
             "90% set coverage [%]",
         ],  # fmt: skip
         meta={
-            "seeds": list(range(1, replicates + 1)),
+            "seeds": list(seeds),
             "n_train": n_train,
             "n_test": n_test,
             "replicates": {},
         },  # fmt: skip
     )
-    for seed in range(1, replicates + 1):
+    for seed in seeds:
         start = time.time()
         out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
         ref = out[METHODS[0]][0][:, -1].sum()
@@ -187,9 +189,14 @@ def run(quick: bool = False, replicates: int = 10) -> ResultTable:
 
 def main(argv: list[str]) -> int:
     quick = "--quick" in argv
-    table = run(quick=quick)
+    # --first-seed=S: the replicates S .. S + 9 (a confirmation on draws never looked at)
+    seeds = [a.split("=", 1)[1] for a in argv if a.startswith("--first-seed=")]
+    first = int(seeds[-1]) if seeds else 1
+    table = run(quick=quick, first_seed=first)
     print(table.to_markdown())
-    table.to_json(RESULTS / ("target_replicates_quick.json" if quick else "target_replicates.json"))
+    name = "target_replicates" + ("_quick" if quick else "") + (f"_from{first}" if first != 1
+                                                                 else "")  # fmt: skip
+    table.to_json(RESULTS / f"{name}.json")
     return 0
 
 

@@ -32,6 +32,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,7 @@ from ..decision.lspi import lspi
 from ..decision.mcp import MonteCarloPlanner
 from ..decision.policies import fixed_time_policy, greedy_policy, mcp_policy, stop_only_q
 from ..decision.stopping import StoppingProblem
+from ..inference import BeliefMixture
 from ..models import LinearIDDM
 from ..parallel import Executor, available_cpus, get_executor, ray_address_type
 from . import anticipation as ant
@@ -104,11 +106,12 @@ class DemoResult:
     ``target_probs [n_test, T, K]`` is the belief over the target grid ``grid [K]`` of each of
     them at the ``T`` decision times ``start_times``; ``successes`` maps each player of the
     table to its ``[n_test]`` returns on the same rallies (the pairs behind the paired
-    difference). ``linear_probs [n_test, T, K]`` is the belief of a
-    :class:`~hgpdm_torch.models.LinearIDDM` with the settings README recommends (rank-1
-    intention-state interaction, temperature and forgetting by cross-validation) fitted on the
-    IDDM's training strokes (all of them, also where the IDDM takes a subset), for comparison
-    only: the players decide on the IDDM's belief.
+    difference). ``linear_probs [n_test, T, K]`` is the belief README recommends for target
+    prediction, the :class:`~hgpdm_torch.inference.BeliefMixture` of two
+    :class:`~hgpdm_torch.models.LinearIDDM` (without and with the rank-1 intention-state
+    interaction, everything chosen by cross-validation) fitted on the IDDM's training strokes
+    (all of them, also where the IDDM takes a subset), for comparison only: the players decide
+    on the IDDM's belief.
     """
 
     table: ResultTable
@@ -125,11 +128,16 @@ def _linear_beliefs(
     obs: torch.Tensor, targets: torch.Tensor, train: torch.Tensor, test: torch.Tensor,
     steps_at: list[int], grid: torch.Tensor,
 ) -> torch.Tensor:  # fmt: skip
-    """``[len(test), T, K]`` beliefs of a :class:`LinearIDDM` (rank-1 interaction, T and eps by
-    cross-validation) fitted on the ``train`` strokes, at the decision steps."""
-    model = LinearIDDM(interaction_rank=1, temperature="cv", forgetting="cv")
-    model.fit(obs[train], targets[train])
-    belief = model.beliefs(obs[test][:, : max(steps_at) + 1], grid)
+    """``[len(test), T, K]`` beliefs, at the decision steps, of the equal mixture of two
+    :class:`LinearIDDM` (without and with the rank-1 interaction; noise kind, prior, T and eps
+    by cross-validation) fitted on the ``train`` strokes."""
+    models = []
+    for rank in (0, 1):
+        model = LinearIDDM(interaction_rank=rank, select="cv", temperature="cv", forgetting="cv")
+        with warnings.catch_warnings():  # a comparison only: a prior scale at its grid's edge
+            warnings.simplefilter("ignore")  # (the held-out likelihood is flat in it) is fine
+            models.append(model.fit(obs[train], targets[train]))
+    belief = BeliefMixture(models).beliefs(obs[test][:, : max(steps_at) + 1], grid)
     return belief.prob[:, steps_at]
 
 
@@ -462,7 +470,7 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     )
     beliefs = [("belief (online IDDM, used by the players)", result.target_probs)]
     if result.linear_probs is not None:
-        beliefs.append(("belief (linear IDDM, same strokes)", result.linear_probs))
+        beliefs.append(("belief (linear IDDMs, same strokes)", result.linear_probs))
     for k, (label, probs) in enumerate(beliefs):
         ax = fig.add_subplot(1, 1 + len(beliefs), 2 + k)
         for t, s in enumerate(result.start_times):

@@ -132,7 +132,9 @@ class LinearIDDM:
         coef_precision: ``lambda > 0``, prior precision of the coefficients (ridge strength
             on standardised inputs), or ``"auto"`` (default): the value of
             :data:`AUTO_COEF_PRECISION` of largest marginal likelihood of the training
-            transitions (empirical Bayes, jointly with ``noise_prior``).
+            transitions (empirical Bayes, jointly with ``noise_prior``; by cross-validation
+            with ``select="cv"``). A continuous g enters as given, not standardised: in units
+            where it varies by about 1 its coefficients are shrunk as much as the states'.
         noise_prior: ``psi > 0``, the prior's guess of the noise variance of a standardised
             observed dimension, or ``"auto"`` (default, from :data:`AUTO_NOISE_PRIOR`).
         interaction_rank: ``r >= 0``: the transition also takes ``phi(g) (x) (V_s^T z_t)``,
