@@ -62,8 +62,10 @@ coefficients. ``select="cv"`` therefore chooses the noise kind and the prior sca
 criterion of ``T`` and ``eps``: the likelihood of the true intentions under cross-validated beliefs
 (jointly with ``T`` and ``eps`` where they are ``"cv"``). On the table-tennis strokes it picks a
 3-30 times stronger ridge ``lambda`` than the evidence does and predicts the target better
-(README, target prediction). It costs a fit per fold and candidate (144 candidates with
-everything ``"auto"``: seconds for a hundred short sequences).
+(README, target prediction). It costs a posterior per fold and candidate and the held-out
+evidence of each (144 candidates with everything ``"auto"``: about 8 s for a hundred sequences
+of 5 frames; held-out sequences of one length are scored in one batch, so many different lengths
+cost more).
 """
 
 from __future__ import annotations
@@ -372,12 +374,11 @@ class LinearIDDM:
                 "temperature, forgetting or select 'cv' needs at least 2 intention values to score"
             )
         truth = torch.cdist(g, values).argmin(-1)
-        # per candidate, per group of held-out sequences of one length: [n, T - 1, K] evidence
-        # of each transition, and the groups' [n, T - 1] true value indices
-        steps: list[list[torch.Tensor]] = [[] for _ in candidates]
-        hits = []
+        # per fold: its design, and its held-out sequences in groups of one length [n, T, Dz]
+        # with their [n, T - 1] true value indices
         sub = LinearIDDM(intention=self.intention, num_values=num_values, phase=self.phase,
                          interaction_rank=self.interaction_rank, dtype=self.dtype)  # fmt: skip
+        splits, hits = [], []
         for fold in range(folds):
             held = [j for j in range(len(seqs)) if j % folds == fold]
             rest = [j for j in range(len(seqs)) if j % folds != fold]
@@ -391,23 +392,24 @@ class LinearIDDM:
                 seq = seqs[j][:cut]
                 groups.setdefault(len(seq), []).append(seq)
                 labels.setdefault(len(seq), []).append(truth[j].expand(len(seq) - 1))
-            hits.extend(torch.stack(v) for v in labels.values())
-            posteriors: dict[tuple[float, float], list] = {}
-            for c, (kind, prior) in enumerate(candidates):
-                if prior not in posteriors:
-                    posteriors[prior] = [_posterior(u, y, *prior) for u, y in design.parts]
-                sub._assign(design, g[rest], num_values, kind, prior, posteriors[prior],
-                            math.nan)  # fmt: skip
-                steps[c].extend(sub._transition_evidence(torch.stack(group), values)[:, 1:]
-                                for group in groups.values())  # fmt: skip
-        hits_all = torch.cat([h.flatten() for h in hits])
+            hits.extend(torch.stack(labels[n]).flatten() for n in groups)
+            splits.append((design, rest, [torch.stack(v) for v in groups.values()]))
+        hits_all = torch.cat(hits)
         epsilons = (FORGETTING_CANDIDATES if self._forgetting_arg == "cv"
                     else (self._forgetting_arg,))  # fmt: skip
+        posteriors: dict[tuple[int, tuple[float, float]], list] = {}  # per (fold, prior)
         best = None
-        for c, (kind, prior) in enumerate(candidates):
+        for kind, prior in candidates:  # one candidate's held-out evidence in memory at a time
+            steps = []  # [n, T - 1, K] evidence of each held-out transition, group by group
+            for fold, (design, rest, groups) in enumerate(splits):
+                if (fold, prior) not in posteriors:
+                    posteriors[fold, prior] = [_posterior(u, y, *prior) for u, y in design.parts]
+                sub._assign(design, g[rest], num_values, kind, prior, posteriors[fold, prior],
+                            math.nan)  # fmt: skip
+                steps.extend(sub._transition_evidence(group, values)[:, 1:] for group in groups)
             for eps in epsilons:
                 # from a uniform prior B_0 = 0, B_t is the forgetful sum of the first t steps
-                logs = torch.cat([_forget(e, float(eps)).flatten(0, -2) for e in steps[c]])
+                logs = torch.cat([_forget(e, float(eps)).flatten(0, -2) for e in steps])
                 if self._temperature_arg == "cv":
                     temperature = fit_temperature(logs, hits_all)
                 else:

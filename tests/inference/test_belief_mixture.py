@@ -82,6 +82,68 @@ def test_stream_matches_beliefs_and_flags_a_bad_row(generator):
     torch.testing.assert_close(flagged.prob[:2], batch.prob[:2, 1], rtol=1e-10, atol=1e-12)
 
 
+class _FlagsFirst:
+    """A member whose stream flags stream 0's every frame as rejected (another rule than its
+    partner's), otherwise the wrapped model."""
+
+    def __init__(self, model: LinearIDDM) -> None:
+        self.model = model
+
+    def grid(self, values=None):
+        return self.model.grid(values)
+
+    def beliefs(self, obs, grid=None, log_prior=None):
+        return self.model.beliefs(obs, grid, log_prior)
+
+    def stream(self, batch_size=1, grid=None, log_prior=None):
+        inner = self.model.stream(batch_size, grid, log_prior)
+
+        class Stream:
+            def update(self, z):
+                belief = inner.update(z)
+                belief.rejected = torch.arange(batch_size) == 0
+                return belief
+
+        return Stream()
+
+
+def test_stream_rejects_what_any_member_rejects(generator):
+    models, test = _members(generator)
+    step = BeliefMixture([models[0], _FlagsFirst(models[1])]).stream(len(test)).update(test[:, 0])
+    assert step.rejected.tolist() == [j == 0 for j in range(len(test))]
+
+
+def test_a_failing_member_leaves_every_stream_as_it_was(generator):
+    # a shared transition takes any number of frames, a per-phase one only the training length
+    # (5): the sixth frame fails in the second member after the first has taken it
+    models, test = _members(generator)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        shared = LinearIDDM(phase=False).fit(models[0]._sequences, models[0].intentions[:, 0])
+    stream = BeliefMixture([shared, models[1]]).stream(len(test))
+    for t in range(5):
+        stream.update(test[:, t])
+    before = [(s.frames, s.log_weights.clone(), s.previous.clone()) for s in stream.streams]
+    with pytest.raises(ValueError, match="no transition"):
+        stream.update(test[:, 4] + 0.1)
+    for s, (frames, log_w, previous) in zip(stream.streams, before, strict=True):
+        assert s.frames == frames
+        assert torch.equal(s.log_weights, log_w) and torch.equal(s.previous, previous)
+
+
+def test_weights_as_arrays_and_extreme_values(generator):
+    models, _ = _members(generator)
+    assert BeliefMixture(models, weights=np.array([3.0, 1.0])).weights == [0.75, 0.25]
+    assert BeliefMixture(models, weights=torch.tensor([1, 3])).weights == [0.25, 0.75]
+    assert BeliefMixture(models, weights=[np.float32(1), np.float32(1)]).weights == [0.5, 0.5]
+    # a sum that would overflow: still equal weights, no NaN
+    assert BeliefMixture(models, weights=[1e308, 1e308]).weights == [0.5, 0.5]
+    with pytest.raises(ValueError, match="weights"):
+        BeliefMixture(models, weights=[10**400, 1])
+    with pytest.raises(ValueError, match="weights"):
+        BeliefMixture(models, weights=np.ones((2, 1)))
+
+
 def test_rejects_bad_input(generator):
     models, test = _members(generator)
     with pytest.raises(TypeError, match="non-empty sequence"):

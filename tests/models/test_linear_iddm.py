@@ -543,13 +543,13 @@ def test_cv_temperature_is_one_for_the_model_and_calibrates_correlated_noise(gen
 @pytest.mark.filterwarnings("ignore:LinearIDDM. the evidence chose")
 @pytest.mark.parametrize("rank", [0, 1])
 def test_cv_calibration_against_a_hand_made_fold_loop(rank, generator):
-    # per phase, sequences of 4 to 6 frames, 3 folds: j is held out in fold j mod 3, the others
+    # per phase, sequences of 2 to 6 frames, 3 folds: j is held out in fold j mod 3, the others
     # refit with the chosen noise kind and prior, every held-out frame after the first scored
     # on the default 25-value grid at the value nearest its g
     from hgpdm_torch.inference.calibration import fit_temperature
 
     obs, g = _phase_system(60, generator)
-    seqs = [s[: 4 + j % 3] for j, s in enumerate(obs)]
+    seqs = [s[: 2 + (2 * j) % 5] for j, s in enumerate(obs)]  # lengths vary within each fold
     model = LinearIDDM(temperature="cv", cv_folds=3, interaction_rank=rank).fit(seqs, g)
     joint = LinearIDDM(temperature="cv", forgetting="cv", cv_folds=3, interaction_rank=rank)
     joint.fit(seqs, g)
@@ -583,7 +583,7 @@ def test_cv_calibration_against_a_hand_made_fold_loop(rank, generator):
 @pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has")
 @pytest.mark.filterwarnings("ignore:LinearIDDM. the cross-validation chose")
 @pytest.mark.parametrize("rank", [0, 1])
-def test_cv_selection_against_a_brute_force_search(rank, generator):
+def test_cv_selection_against_a_brute_force_search(rank, generator, monkeypatch):
     # select="cv": every candidate (noise kind, lambda) refitted through the public API on each
     # fold's other sequences, its held-out evidence steps forgotten and tempered as in
     # test_cv_calibration_against_a_hand_made_fold_loop; the fit must take the candidate, eps
@@ -592,7 +592,8 @@ def test_cv_selection_against_a_brute_force_search(rank, generator):
     from hgpdm_torch.models.linear_iddm import NOISE_KINDS
 
     obs, g = _phase_system(45, generator, T=5)
-    seqs = [s[: 3 + j % 3] for j, s in enumerate(obs)]
+    # lengths 2-5 that vary within each fold (the held-out sequences are batched by length)
+    seqs = [s[: 2 + (2 * j) % 5] for j, s in enumerate(obs)]
     options = {"noise_prior": 0.3, "interaction_rank": rank, "cv_folds": 3}
     model = LinearIDDM(select="cv", temperature="cv", forgetting="cv", **options).fit(seqs, g)
     values = torch.linspace(float(g.min()), float(g.max()), 25, dtype=torch.float64)
@@ -622,9 +623,15 @@ def test_cv_selection_against_a_brute_force_search(rank, generator):
     plain = LinearIDDM(**model.config()).fit(seqs, g)
     for key, value in plain.state_dict().items():
         torch.testing.assert_close(model.state_dict()[key], value, rtol=1e-12, atol=1e-12)
+
     # with nothing to choose, select="cv" is the plain fit and runs no cross-validation
+    def no_cv(*args, **kwargs):
+        raise AssertionError("cross-validation ran with nothing to choose")
+
+    monkeypatch.setattr(LinearIDDM, "_cross_validate", no_cv)
     fixed = LinearIDDM(select="cv", **model.config()).fit(seqs, g)
-    assert (fixed.temperature, fixed.forgetting) == (model.temperature, model.forgetting)
+    for key, value in plain.state_dict().items():
+        torch.testing.assert_close(fixed.state_dict()[key], value, rtol=0, atol=0)
 
 
 def _forgetful(steps: list[torch.Tensor], eps: float) -> torch.Tensor:

@@ -14,10 +14,10 @@ Shapes: ``B`` streams, ``T`` frames, ``K`` intention values, ``M`` members.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import torch
 
 from .grid import IntentionBelief
@@ -32,8 +32,8 @@ class BeliefMixture:
         models: ``M >= 1`` fitted models with ``beliefs(obs, grid, log_prior)``,
             ``stream(batch_size, grid, log_prior)`` and ``grid(values)``, as
             :class:`~hgpdm_torch.models.LinearIDDM` has; all score the same intention.
-        weights: ``[M]`` non-negative weights, not all zero (normalised to sum 1); default
-            equal.
+        weights: ``[M]`` non-negative finite weights, not all zero (a list, array or tensor;
+            normalised to sum 1); default equal.
     """
 
     def __init__(self, models: Sequence[Any], weights: Sequence[float] | None = None) -> None:
@@ -49,19 +49,25 @@ class BeliefMixture:
                 )
         if weights is None:
             weights = [1.0] * len(models)
-        if isinstance(weights, torch.Tensor):
-            weights = weights.tolist()
-        if (
-            not isinstance(weights, Sequence) or len(weights) != len(models)
-            or not all(isinstance(w, int | float) and not isinstance(w, bool) for w in weights)
+        if isinstance(weights, str | bytes) or (
+            isinstance(weights, Sequence) and any(isinstance(w, bool | str) for w in weights)
         ):  # fmt: skip
-            raise ValueError(f"weights must be {len(models)} numbers (one per model), got "
-                             f"{weights!r}")  # fmt: skip
-        if not all(math.isfinite(w) and w >= 0 for w in weights) or sum(weights) <= 0:
+            raise ValueError(f"weights must be {len(models)} numbers, got {weights!r}")
+        if isinstance(weights, torch.Tensor):
+            weights = weights.detach().cpu().numpy()
+        try:
+            w = np.asarray(weights, dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError(f"weights must be {len(models)} numbers, got {weights!r}") from None
+        if w.shape != (len(models),):
+            raise ValueError(
+                f"weights must be [M = {len(models)}] (one per model), got shape {w.shape}"
+            )
+        if not (np.isfinite(w).all() and (w >= 0).all() and (w > 0).any()):
             raise ValueError(f"weights must be finite and >= 0, not all zero, got {weights!r}")
+        w = w / w.max()  # then the sum cannot overflow
         self.models = list(models)
-        total = float(sum(weights))
-        self.weights = [float(w) / total for w in weights]
+        self.weights = (w / w.sum()).tolist()
 
     def grid(self, values: Any = None) -> torch.Tensor:
         """``[K, Dg]`` intention values: the first member's :meth:`grid` (its default grid when
@@ -107,6 +113,12 @@ class BeliefMixture:
                     f"{'continuous' if first.mean is not None else 'discrete'} g): the members "
                     "must score the same intention on the same grid"
                 )
+        devices = {b.log_prob.device for b in beliefs}
+        if len(devices) > 1:
+            raise ValueError(
+                f"the members' beliefs lie on different devices {sorted(map(str, devices))}: "
+                "fit every member on one device"
+            )
         log_w = torch.tensor(self.weights, dtype=first.log_prob.dtype,
                              device=first.log_prob.device).log()  # fmt: skip
         stacked = torch.stack([b.log_prob for b in beliefs], -1)  # [..., K, M]
@@ -130,10 +142,27 @@ class BeliefMixtureStream:
     def update(self, z: Any) -> IntentionBelief:
         """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream) to every member; returns
         the mixed belief ``[B, K]`` (``[K]``). ``rejected`` flags a stream whose frame any
-        member rejected."""
-        beliefs = [s.update(z) for s in self.streams]
-        out = self.mixture._mix(beliefs, self.values)
+        member rejected (members with another rule, e.g. another dtype's range, may have used
+        it).
+
+        Raises:
+            whatever a member's ``update`` raises (a frame past its training length, a row of
+            the wrong size); every member's streams are then left as they were.
+        """
+        saved = [_snapshot(s) for s in self.streams]
+        try:
+            beliefs = [s.update(z) for s in self.streams]
+            out = self.mixture._mix(beliefs, self.values)
+        except Exception:
+            for stream, state in zip(self.streams, saved, strict=True):
+                stream.__dict__.update(state)
+            raise
         flags = [b.rejected for b in beliefs if b.rejected is not None]
         if flags:
             out.rejected = torch.stack(flags).any(0)
         return out
+
+
+def _snapshot(stream: Any) -> dict[str, Any]:
+    """A member stream's attributes, tensors cloned (an update may change them in place)."""
+    return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in vars(stream).items()}
