@@ -554,17 +554,9 @@ def test_cv_calibration_against_a_hand_made_fold_loop(rank, generator):
     joint = LinearIDDM(temperature="cv", forgetting="cv", cv_folds=3, interaction_rank=rank)
     joint.fit(seqs, g)
     values = torch.linspace(float(g.min()), float(g.max()), 25, dtype=torch.float64)
-    steps, truth = [], []
-    for fold in range(3):
-        rest = [j for j in range(60) if j % 3 != fold]
-        sub = LinearIDDM(noise=model.noise_kind, coef_precision=model.prior[0],
-                         noise_prior=model.prior[1], interaction_rank=rank)  # fmt: skip
-        sub.fit([seqs[j] for j in rest], g[rest])
-        for j in range(fold, 60, 3):
-            frames = min(len(seqs[j]), sub.num_phases + 1)
-            steps.append(sub.log_evidence(seqs[j][:frames], values).diff(dim=0))
-            truth.append((g[j] - values).abs().argmin().expand(frames - 1))
-    truth = torch.cat(truth)
+    steps, truth = _held_out_steps(seqs, g, values, noise=model.noise_kind,
+                                   coef_precision=model.prior[0], noise_prior=model.prior[1],
+                                   interaction_rank=rank)  # fmt: skip
     assert model.temperature == pytest.approx(fit_temperature(_forgetful(steps, 0.0), truth),
                                               rel=1e-9)  # fmt: skip
     assert 0.1 < model.temperature < 10  # informative held-out beliefs: T off its bounds
@@ -600,17 +592,8 @@ def test_cv_selection_against_a_brute_force_search(rank, generator, monkeypatch)
     scores = []
     for lam in AUTO_COEF_PRECISION:
         for kind in NOISE_KINDS:
-            steps, truth = [], []
-            for fold in range(3):
-                rest = [j for j in range(45) if j % 3 != fold]
-                sub = LinearIDDM(noise=kind, coef_precision=lam, noise_prior=0.3,
-                                 interaction_rank=rank)  # fmt: skip
-                sub.fit([seqs[j] for j in rest], g[rest])
-                for j in range(fold, 45, 3):
-                    frames = min(len(seqs[j]), sub.num_phases + 1)
-                    steps.append(sub.log_evidence(seqs[j][:frames], values).diff(dim=0))
-                    truth.append((g[j] - values).abs().argmin().expand(frames - 1))
-            truth = torch.cat(truth)
+            steps, truth = _held_out_steps(seqs, g, values, noise=kind, coef_precision=lam,
+                                           noise_prior=0.3, interaction_rank=rank)  # fmt: skip
             for eps in FORGETTING_CANDIDATES:
                 rows = _forgetful(steps, eps)
                 t = fit_temperature(rows, truth)
@@ -632,6 +615,21 @@ def test_cv_selection_against_a_brute_force_search(rank, generator, monkeypatch)
     fixed = LinearIDDM(select="cv", **model.config()).fit(seqs, g)
     for key, value in plain.state_dict().items():
         torch.testing.assert_close(fixed.state_dict()[key], value, rtol=0, atol=0)
+
+
+def _held_out_steps(seqs, g, values, folds: int = 3, **options):
+    """Per held-out sequence (j in fold j mod ``folds``), the ``[T_j - 1, K]`` evidence of each
+    transition under a LinearIDDM with ``options`` fitted on the other folds through the public
+    API, and the index of the grid value nearest each sequence's g, per transition."""
+    steps, truth = [], []
+    for fold in range(folds):
+        rest = [j for j in range(len(seqs)) if j % folds != fold]
+        sub = LinearIDDM(**options).fit([seqs[j] for j in rest], g[rest])
+        for j in range(fold, len(seqs), folds):
+            frames = min(len(seqs[j]), sub.num_phases + 1)
+            steps.append(sub.log_evidence(seqs[j][:frames], values).diff(dim=0))
+            truth.append((g[j] - values).abs().argmin().expand(frames - 1))
+    return steps, torch.cat(truth)
 
 
 def _forgetful(steps: list[torch.Tensor], eps: float) -> torch.Tensor:
