@@ -146,8 +146,9 @@ class BeliefMixtureStream:
         it).
 
         Raises:
-            whatever a member's ``update`` raises (a frame past its training length, a row of
-            the wrong size); every member's streams are then left as they were.
+            Exception: whatever a member's ``update`` raises (a frame past its training
+                length, a row of the wrong size); every member's streams are then left as
+                they were.
         """
         saved = [_snapshot(s) for s in self.streams]
         try:
