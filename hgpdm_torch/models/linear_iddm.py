@@ -64,8 +64,7 @@ criterion of ``T`` and ``eps``: the likelihood of the true intentions under cros
 3-30 times stronger ridge ``lambda`` than the evidence does and predicts the target better
 (README, target prediction). It costs a posterior per fold and candidate and the held-out
 evidence of each (144 candidates with everything ``"auto"``: about 8 s for a hundred sequences
-of 5 frames; held-out sequences of one length are scored in one batch, so many different lengths
-cost more).
+of 5 frames; each fold's held-out sequences are scored in one batch, padded to the longest).
 """
 
 from __future__ import annotations
@@ -374,8 +373,8 @@ class LinearIDDM:
                 "temperature, forgetting or select 'cv' needs at least 2 intention values to score"
             )
         truth = torch.cdist(g, values).argmin(-1)
-        # per fold: its design, and its held-out sequences in groups of one length [n, T, Dz]
-        # with their [n, T - 1] true value indices
+        # per fold: its design, its held-out sequences [n, T, Dz] and the mask of their
+        # transitions, and the true value index of each transition
         sub = LinearIDDM(intention=self.intention, num_values=num_values, phase=self.phase,
                          interaction_rank=self.interaction_rank, dtype=self.dtype)  # fmt: skip
         splits, hits = [], []
@@ -386,30 +385,34 @@ class LinearIDDM:
                 warnings.simplefilter("ignore")
                 design = sub._design([seqs[j] for j in rest], g[rest], num_values)
             cut = len(design.parts) + 1 if self.phase else None
-            groups: dict[int, list[torch.Tensor]] = {}
-            labels: dict[int, list[torch.Tensor]] = {}
-            for j in held:
-                seq = seqs[j][:cut]
-                groups.setdefault(len(seq), []).append(seq)
-                labels.setdefault(len(seq), []).append(truth[j].expand(len(seq) - 1))
-            hits.extend(torch.stack(labels[n]).flatten() for n in groups)
-            splits.append((design, rest, [torch.stack(v) for v in groups.values()]))
+            held_seqs = [seqs[j][:cut] for j in held]
+            # one batch: each sequence padded with its last frame to the longest, and a mask
+            # [n, T - 1] of its own transitions (the padding's evidence is never scored)
+            longest = max(len(q) for q in held_seqs)
+            batch = torch.stack([torch.cat([q, q[-1:].expand(longest - len(q), -1)])
+                                 for q in held_seqs])  # fmt: skip
+            steps_idx = torch.arange(longest - 1, device=batch.device)
+            lengths = torch.tensor([len(q) for q in held_seqs], device=batch.device)
+            mask = steps_idx < (lengths[:, None] - 1)
+            hits.append(truth[held][:, None].expand_as(mask)[mask])
+            splits.append((design, rest, batch, mask))
         hits_all = torch.cat(hits)
         epsilons = (FORGETTING_CANDIDATES if self._forgetting_arg == "cv"
                     else (self._forgetting_arg,))  # fmt: skip
         posteriors: dict[tuple[int, tuple[float, float]], list] = {}  # per (fold, prior)
         best = None
         for kind, prior in candidates:  # one candidate's held-out evidence in memory at a time
-            steps = []  # [n, T - 1, K] evidence of each held-out transition, group by group
-            for fold, (design, rest, groups) in enumerate(splits):
+            steps = []  # per fold: [n, T - 1, K] evidence of each held-out transition, mask
+            for fold, (design, rest, batch, mask) in enumerate(splits):
                 if (fold, prior) not in posteriors:
                     posteriors[fold, prior] = [_posterior(u, y, *prior) for u, y in design.parts]
                 sub._assign(design, g[rest], num_values, kind, prior, posteriors[fold, prior],
                             math.nan)  # fmt: skip
-                steps.extend(sub._transition_evidence(group, values)[:, 1:] for group in groups)
+                steps.append((sub._transition_evidence(batch, values)[:, 1:], mask))
             for eps in epsilons:
                 # from a uniform prior B_0 = 0, B_t is the forgetful sum of the first t steps
-                logs = torch.cat([_forget(e, float(eps)).flatten(0, -2) for e in steps])
+                # (a padded step comes after all of a sequence's own: it changes none of them)
+                logs = torch.cat([_forget(e, float(eps))[m] for e, m in steps])
                 if self._temperature_arg == "cv":
                     temperature = fit_temperature(logs, hits_all)
                 else:
