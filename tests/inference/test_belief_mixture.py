@@ -72,8 +72,7 @@ def test_stream_matches_beliefs_and_flags_a_bad_row(generator):
     frames[2, 1] = float("nan")
     for t in range(3):
         step = stream.update(frames[:, t])
-    assert step.rejected.tolist() == [False, False, False, False, False, False, False, False,
-                                      False, False]  # the NaN was one frame back  # fmt: skip
+    assert not bool(step.rejected.any())  # the NaN row was one frame back
     stream.reset()
     stream.update(frames[:, 0])
     flagged = stream.update(frames[:, 1])
