@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: install demo test test-all bench lint notebooks docs clean
+.PHONY: install demo test test-all bench gpu-check lint notebooks docs clean
 
 $(STAMP): setup.cfg pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -31,6 +31,14 @@ test-all: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks
+
+# The accelerator check (benchmarks/gpu_check.py): the GPU tests and the device benchmarks where
+# CUDA is present, else the same code paths on the CPU at tiny sizes. On a GPU machine whose own
+# Python holds a CUDA build of torch, name it, e.g. `make gpu-check GPU_PY=python3` (no venv is
+# made then, so nothing is downloaded).
+GPU_PY ?=
+gpu-check: $(if $(GPU_PY),,$(STAMP))
+	$(or $(GPU_PY),$(PY)) -m benchmarks.gpu_check $(GPU_CHECK_ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

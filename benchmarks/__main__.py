@@ -31,6 +31,10 @@ def _split(argv: list[str]) -> tuple[list[str], list[str]]:
     return names, options
 
 
+#: modules of this folder that are not benchmarks: ``gpu_check`` runs the device-aware ones (and
+#: the GPU tests) on an accelerator, ``make gpu-check``
+NOT_BENCHMARKS = ("gpu_check",)
+
 #: the benchmarks that take ``--device``/``--dtype``/``--gpu-sizes``; the others run on the CPU
 #: in float64 and would ignore them (and overwrite their CPU result files)
 DEVICE_AWARE = ("hgpdm_fit", "mcp", "moment_matching", "online_intention", "variational")
@@ -40,7 +44,9 @@ def main(argv: list[str]) -> int:
     names, options = _split(argv)
     folder = Path(__file__).parent
     found = sorted(
-        m.name for m in pkgutil.iter_modules([str(folder)]) if not m.name.startswith("_")
+        m.name
+        for m in pkgutil.iter_modules([str(folder)])
+        if not m.name.startswith("_") and m.name not in NOT_BENCHMARKS
     )
     unknown = set(names) - set(found)
     if unknown:

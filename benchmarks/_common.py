@@ -46,6 +46,14 @@ def environment() -> dict[str, object]:
     }
 
 
+def device_name(device: torch.device) -> dict[str, str]:
+    """``{"device name": ...}`` for an accelerator (e.g. ``NVIDIA H200``); empty for the CPU,
+    whose processor :func:`environment` records."""
+    if device.type == "cuda":
+        return {"device name": torch.cuda.get_device_name(device)}
+    return {}
+
+
 @dataclass(frozen=True)
 class Options:
     """Command-line options shared by the benchmarks (:func:`parse_options`)."""
@@ -56,14 +64,15 @@ class Options:
     gpu_sizes: bool
 
     def results_file(self, name: str) -> Path:
-        """``results/<name>[_gpu][_<device>_<dtype>][_quick].json``: the default CPU float64
-        run keeps its historical file name; other runs do not overwrite it (and smoke runs
+        """``results/[gpu_]<name>[_<device>_<dtype>][_quick].json``: the default CPU float64
+        run keeps its historical file name; a run at the accelerator sizes (``--gpu-sizes``)
+        is ``gpu_<name>_<device>_<dtype>``; other runs do not overwrite either (and smoke runs
         stay ``*_quick.json``, which git ignores)."""
-        tag = "_gpu" if self.gpu_sizes else ""
-        if self.device.type != "cpu" or self.dtype != torch.float64:
+        tag = ""
+        if self.gpu_sizes or self.device.type != "cpu" or self.dtype != torch.float64:
             tag += f"_{self.device.type}_{str(self.dtype).removeprefix('torch.')}"
         tag += "_quick" if self.quick else ""
-        return RESULTS / f"{name}{tag}.json"
+        return RESULTS / f"{'gpu_' if self.gpu_sizes else ''}{name}{tag}.json"
 
     def meta(self) -> dict[str, object]:
         """What the result's ``meta`` records about the run (with :func:`environment`)."""
@@ -73,6 +82,7 @@ class Options:
             "device": str(self.device),
             "dtype": str(self.dtype).removeprefix("torch."),
             "gpu sizes": self.gpu_sizes,
+            **device_name(self.device),
         }
 
     def synchronize(self) -> None:

@@ -11,9 +11,12 @@ import pytest
 import torch
 
 import benchmarks
+from benchmarks.__main__ import NOT_BENCHMARKS
 
 NAMES = sorted(
-    m.name for m in pkgutil.iter_modules(benchmarks.__path__) if not m.name.startswith("_")
+    m.name
+    for m in pkgutil.iter_modules(benchmarks.__path__)
+    if not m.name.startswith("_") and m.name not in NOT_BENCHMARKS
 )
 
 

@@ -47,9 +47,9 @@ class ResultTable:
                 return ""
             if isinstance(v, float):
                 return format(v, floatfmt)
-            return str(v)
+            return str(v).replace("|", "\\|")  # a bare | would split the cell
 
-        lines = [f"**{self.title}**", "", "| " + " | ".join(self.columns) + " |"]
+        lines = [f"**{self.title}**", "", "| " + " | ".join(map(fmt, self.columns)) + " |"]
         lines.append("|" + "|".join("---" for _ in self.columns) + "|")
         for row in self.rows:
             lines.append("| " + " | ".join(fmt(row.get(c)) for c in self.columns) + " |")

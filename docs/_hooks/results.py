@@ -1,0 +1,63 @@
+"""MkDocs hook: result tables rendered from the JSON files the commands write.
+
+A page line ``<!-- results: gpu-check -->`` becomes the latest accelerator check
+(``benchmarks/results/gpu_check.json``, written by ``make gpu-check``) and the benchmark tables
+it names, each through :meth:`hgpdm_torch.experiments.table.ResultTable.to_markdown`, so the
+page shows what the files hold and never a copy typed by hand. A missing file is a warning (the
+strict build fails).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+from hgpdm_torch.experiments.table import ResultTable
+
+log = logging.getLogger("mkdocs.hooks.results")
+
+_MARKER = re.compile(r"^<!-- results: ([\w-]+) -->$", re.MULTILINE)
+
+
+def _gpu_check(root: Path) -> str:
+    path = root / "benchmarks" / "results" / "gpu_check.json"
+    if not path.exists():
+        log.warning(f"{path} is missing: run `make gpu-check` on a machine with CUDA")
+        return "*No accelerator check recorded yet.*"
+    summary = json.loads(path.read_text())
+    meta = summary["meta"]
+    facts = ", ".join(f"{k} {v}" for k, v in meta.items() if k not in ("device", "cuda"))
+    lines = [f"Device: **{meta['device']}** ({facts}).", "",
+             "| step | status | wall [s] | date |", "|---|---|---|---|"]  # fmt: skip
+    for step in summary["steps"]:
+        counts = step.get("counts")
+        status = step["status"] + (f" ({counts})" if counts else "")
+        lines.append(f"| {step['step']} | {status} | {step.get('seconds', '')} | "
+                     f"{step.get('date', '')} |")  # fmt: skip
+    for step in summary["steps"]:
+        table = step.get("results")
+        if table and (root / table).exists():
+            lines += ["", ResultTable.from_json(root / table).to_markdown(".3g"), "",
+                      f"*Source: `{table}`.*"]  # fmt: skip
+        elif table:
+            log.warning(f"{table}, named by {path.name}, is missing")
+    return "\n".join(lines)
+
+
+_RENDERERS = {"gpu-check": _gpu_check}
+
+
+def on_page_markdown(markdown: str, page: Any, config: Any, **kwargs: Any) -> str:
+    root = Path(config.config_file_path).parent
+
+    def render(match: re.Match[str]) -> str:
+        name = match.group(1)
+        if name not in _RENDERERS:
+            log.warning(f"{page.file.src_uri}: unknown results block {name!r}")
+            return match.group(0)
+        return _RENDERERS[name](root)
+
+    return _MARKER.sub(render, markdown)
