@@ -15,8 +15,18 @@ model-selection sweeps, hand independent jobs to an :class:`Executor` from :func
 ``Executor.map(fn, items)`` returns the results in the order of ``items`` whatever the executor,
 so a job whose randomness comes from its item (a seed, a generator state) gives the same result
 everywhere: same seed, same table, on one core or a hundred. A job must not read the caller's
-process-wide state (torch's default dtype, a global seed): forked processes inherit it, but a
-Ray worker starts fresh; put such settings in the item.
+process-wide state (torch's default dtype, a global seed): local workers and Ray workers start
+fresh processes that do not inherit it; put such settings in the item.
+
+Local processes are *spawned*, never forked. A process that has used torch's intra-op thread
+pool (OpenMP, MKL) holds locks that a forked child inherits in whatever state the parent's
+threads left them, so a forked worker can block forever in its first matrix product (seen as a
+hang of ``hgpdm demo`` in its first parallel stage). A spawned worker is a fresh interpreter:
+it costs an import of torch (about 2 s, once per worker, as the pool lives until
+:meth:`Executor.close`), and, as for any ``multiprocessing`` code, a script that makes a local
+executor must guard its top level with ``if __name__ == "__main__":``. Each worker takes
+``available_cpus() // workers`` intra-op threads (at least one) unless ``OMP_NUM_THREADS`` is
+set, so the workers together do not oversubscribe the cores.
 
 This module is a leaf: it imports only the standard library (and Ray on demand), nothing of
 ``hgpdm_torch``, so every layer -- ``robots`` included, which otherwise imports nothing of ours
@@ -26,8 +36,11 @@ outside itself -- may use it without breaking the dependency direction.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
+import pickle
 import socket
+import sys
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -102,10 +115,16 @@ class SerialExecutor(Executor):
 
 
 class ProcessExecutor(Executor):
-    """Local processes (:class:`concurrent.futures.ProcessPoolExecutor`), started on first use.
+    """Local processes (:class:`concurrent.futures.ProcessPoolExecutor` with the ``spawn`` start
+    method: safe after torch has started threads, see the module's docstring), started on
+    first use.
 
     The pool lives until :meth:`close`, so a worker's module-level caches survive between
     :meth:`map` calls.
+
+    Raises (from :meth:`map`):
+        TypeError: ``fn`` cannot be pickled (a lambda, a local function); an item that cannot
+            be pickled raises its pickling error when its result is read.
     """
 
     def __init__(self, workers: int) -> None:
@@ -113,14 +132,38 @@ class ProcessExecutor(Executor):
         self._pool: ProcessPoolExecutor | None = None
 
     def map(self, fn: Callable[[T], R], items: Iterable[T]) -> Iterator[R]:
+        try:  # here, not in the pool's feeder thread, whose failure may never reach the caller
+            pickle.dumps(fn)
+        except (pickle.PicklingError, AttributeError, TypeError) as err:
+            raise TypeError(
+                f"ProcessExecutor needs a picklable fn (a module-level function or a picklable "
+                f"object), got {fn!r}: {err}"
+            ) from err
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.workers)
+            threads = max(1, available_cpus() // self.workers)
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_limit_threads,
+                initargs=(threads,),
+            )
         return self._pool.map(fn, items)
 
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=True)
             self._pool = None
+
+
+def _limit_threads(threads: int) -> None:
+    """Start of each local worker: ``threads`` intra-op threads, unless ``OMP_NUM_THREADS``
+    says otherwise (for a torch imported later by a job, and for one already imported)."""
+    if "OMP_NUM_THREADS" in os.environ:
+        return
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(threads)
 
 
 def _apply(fn: Callable[[T], R], item: T) -> R:

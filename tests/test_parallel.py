@@ -7,6 +7,8 @@ reason, when Ray is not installed. The missing-Ray error is tested by hiding the
 from __future__ import annotations
 
 import importlib.util
+import os
+import pickle
 import socket
 import subprocess
 import sys
@@ -109,6 +111,48 @@ def test_importing_the_package_does_not_import_ray() -> None:
         "assert 'ray' not in sys.modules, 'ray was imported'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+#: a parent whose torch has run its 2-thread intra-op pool, then jobs doing a matrix product with
+#: 2 threads in a local worker: a forked worker inherits the pool's locks and hangs in its first
+#: product (3 of 3 runs with the fork start method on the 2-core machine); a spawned one cannot
+THREADS_THEN_WORKERS = """
+from functools import partial
+
+import torch
+from hgpdm_torch.parallel import ProcessExecutor
+from hgpdm_torch.experiments.table import ResultTable  # noqa: F401  (a package import, as the CLI)
+
+torch.set_num_threads(2)
+x = torch.randn(800, 800, dtype=torch.float64)
+for _ in range(3):
+    x = (x @ x) / 800.0
+eye = torch.eye(400, dtype=torch.float64)
+with ProcessExecutor(1) as ex:  # one worker: it takes both cores' threads, as the parent did
+    print([float(r.trace()) for r in ex.map(partial(torch.mm, eye), [eye] * 4)])
+"""
+
+
+def test_workers_started_after_torch_threads_finish() -> None:
+    """The executor is safe after torch has started threads, without OMP_NUM_THREADS=1 (the
+    Makefile sets it; a user running ``hgpdm ...`` directly does not)."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    out = subprocess.run(
+        [sys.executable, "-c", THREADS_THEN_WORKERS],
+        env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[400.0, 400.0, 400.0, 400.0]"  # trace(I I), from each job
+
+
+def test_an_unpicklable_job_raises_instead_of_hanging() -> None:
+    with ProcessExecutor(2) as ex, pytest.raises(TypeError, match="picklable fn"):
+        list(ex.map(lambda x: x, range(3)))
+    with ProcessExecutor(2) as ex:  # an unpicklable item: its error when its result is read
+        results = ex.map(str, [1, lambda: 2])
+        assert next(results) == "1"
+        with pytest.raises((pickle.PicklingError, AttributeError, TypeError)):
+            next(results)
 
 
 @pytest.mark.parametrize("workers", [1, 2])
