@@ -87,6 +87,7 @@ def a_file(tmp_path):
 
 
 SEED_RANGE = f"expected a seed in [0, {MAX_SEED}]"
+UNWRITABLE = "/proc/hgpdm_no"
 
 # (command and arguments, fragment of the message); "{file}"/"{dir}" are an existing file/folder
 BAD_ARGUMENTS = [
@@ -127,6 +128,14 @@ BAD_ARGUMENTS = [
     (["anticipation", "--ray-address", "head"], "argument --ray-address"),
     (["demo", "--ray-address", "a:b:c"], "argument --ray-address"),
     (["walkers", "--sharing", "1.5"], "--sharing must lie in [0, 1)"),
+    # a path the process cannot write (a virtual file system refuses even root): refused before
+    # the work, not after it
+    (["demo", "--out", UNWRITABLE], f"argument --out: {UNWRITABLE} cannot be written"),
+    (["demo", "--cache-dir", UNWRITABLE], f"argument --cache-dir: {UNWRITABLE} cannot be"),
+    (["anticipation", "--out", UNWRITABLE + "/sub"], "argument --out: /proc/hgpdm_no/sub cannot"),
+    (["games", "switch", "--json", UNWRITABLE], "argument --json: /proc/hgpdm_no cannot be"),
+    (["target-prediction", "--out", UNWRITABLE], "argument --out: /proc/hgpdm_no cannot be"),
+    (["walkers", "--out", UNWRITABLE], "argument --out: /proc/hgpdm_no cannot be written"),
     (["action-recognition", "--dataset", "kinect"], "argument --dataset: invalid choice"),
 ]
 

@@ -8,6 +8,8 @@ value or raises :class:`argparse.ArgumentTypeError`. Only the standard library i
 from __future__ import annotations
 
 import argparse
+import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -61,14 +63,33 @@ def random_seed(text: str) -> int:
 
 
 def _writable(text: str, kind: str) -> Path:
-    """``text`` as a path whose existing ancestors are folders (so it can be created)."""
+    """``text`` as a path whose existing ancestors are folders and that this process can write
+    (so that a long run does not end by failing to save its results)."""
     if not text.strip():
         raise argparse.ArgumentTypeError(f"expected a {kind} path, got an empty string")
     path = Path(text)
     for parent in path.parents:
         if parent.exists() and not parent.is_dir():
             raise argparse.ArgumentTypeError(f"{text}: {parent} is a file, not a folder")
+    _probe_write(path, text)
     return path
+
+
+def _probe_write(path: Path, text: str) -> None:
+    """Raise ``ArgumentTypeError`` unless ``path`` can be written, trying it for real (as root,
+    permission bits say nothing of a read-only or virtual file system), and leaving nothing
+    behind: an existing folder gets a temporary file, an existing file is opened for appending,
+    and otherwise the nearest existing ancestor gets a temporary folder."""
+    try:
+        if path.is_dir():
+            tempfile.TemporaryFile(dir=path).close()
+        elif path.exists():
+            path.open("a").close()
+        else:
+            ancestor = next(p for p in path.absolute().parents if p.exists())
+            shutil.rmtree(tempfile.mkdtemp(dir=ancestor))
+    except OSError as err:
+        raise argparse.ArgumentTypeError(f"{text} cannot be written: {err}") from None
 
 
 def output_folder(text: str) -> Path:

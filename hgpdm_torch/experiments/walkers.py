@@ -43,6 +43,7 @@ from ..inference.calibration import calibration
 from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..models import GPDM, HGPDM
+from .arguments import output_file
 from .style_recognition import chunked_forecast, forecast_windows
 from .table import ResultTable
 
@@ -258,7 +259,7 @@ def main(argv: list[str]) -> int:
         action="store_true",
         help="keep the RBF measurement width at its initial value (no length-scale collapse)",
     )
-    parser.add_argument("--out", type=Path, default=None, help="write the table as JSON")
+    parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
     options: dict[str, Any] = {
