@@ -281,8 +281,11 @@ def run_demo(
                 iddm_train = num_trials + torch.arange(watched)
                 shared = fit_beliefs(obs, targets, steps_at, iddm_train, valid, config)
             t_fit = time.perf_counter() - clock
+            fits = []  # FitResult summaries of the IDDM(s), for the result
             if shared is not None:
-                say(f"fit: IDDM on {watched} watched strokes, beliefs filtered ({t_fit:.0f} s)")
+                fits.append(shared.model.fit_result.summary())
+                say(f"fit: IDDM on {watched} watched strokes ({_fit_words(fits)}), beliefs "
+                    f"filtered ({t_fit:.0f} s)")  # fmt: skip
 
             # per fold: the baselines and LSPI are scored on the reward table, MCP decides
             players = [f"always {m} @240ms" for m in movements]
@@ -306,6 +309,7 @@ def run_demo(
                 beliefs = shared
                 if beliefs is None:  # no watched strokes: this fold's IDDM on its training set
                     beliefs = fit_beliefs(obs, targets, steps_at, train, valid, config)
+                    fits.append(beliefs.model.fit_result.summary())
                     t_fit += time.perf_counter() - clock
                     clock = time.perf_counter()
                 vectors = beliefs.vectors()[:num_trials]
@@ -344,7 +348,8 @@ def run_demo(
                 bar.update()
             bar.close()
             if shared is None:
-                say(f"fit: one IDDM per fold on its training strokes ({t_fit:.0f} s)")
+                say(f"fit: one IDDM per fold on its training strokes ({_fit_words(fits)}; "
+                    f"{t_fit:.0f} s)")  # fmt: skip
             say(
                 f"learn: LSPI, baselines and MCP decisions on {folds} folds "
                 f"({t_learn + t_plan:.0f} s)"
@@ -406,6 +411,7 @@ def run_demo(
         "MCP per decision [ms]": 1e3 * t_plan / max(1, decisions),
         "play [s]": t_play,
         "live = table": f"{agree}/{n}",
+        "IDDM fits": fits,
     }
     # how far each belief's mean lies from the true target at each decision time
     truth = trials.targets[valid].to(probs.dtype)
@@ -414,6 +420,16 @@ def run_demo(
         meta[f"belief mean MAE [cm], {name}"] = [round(float(e), 1) for e in err]
     table.meta.update(meta)
     return DemoResult(table, rallies, grid, start_times, probs, meta, won, linear_probs)
+
+
+def _fit_words(fits: list[dict[str, object]]) -> str:
+    """``"60 L-BFGS steps, at the step limit"`` for the IDDM fits' summaries (the budget is
+    :attr:`AnticipationConfig.fit_steps`; the reasons are in the result's meta)."""
+    steps = sorted({f["steps"] for f in fits})
+    done = sum(f["converged"] for f in fits)
+    state = "converged" if done == len(fits) else (
+        "at the step limit" if done == 0 else f"{done} of {len(fits)} converged")  # fmt: skip
+    return f"{'/'.join(map(str, steps))} L-BFGS steps, {state}"
 
 
 def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:

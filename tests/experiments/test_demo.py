@@ -6,6 +6,7 @@ import contextlib
 import io
 import json
 import sys
+import warnings
 
 import pytest
 
@@ -21,7 +22,8 @@ STAGES = ("simulate:", "fit:", "learn:", "play:")
 @pytest.fixture(scope="module")
 def played(tmp_path_factory):
     """One small CLI run (12 strokes, 20 watched, 1 process): its output folder, stdout, stderr
-    and the :class:`~hgpdm_torch.experiments.demo.DemoResult` it printed."""
+    and the :class:`~hgpdm_torch.experiments.demo.DemoResult` it printed; the warnings it
+    raised are in ``played_warnings``."""
     tmp = tmp_path_factory.mktemp("demo")
     out = tmp / "out"
     results = []
@@ -35,9 +37,29 @@ def played(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(demo, "run_demo", spy)
         stdout, stderr = io.StringIO(), io.StringIO()
-        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        with (
+            contextlib.redirect_stdout(stdout),
+            contextlib.redirect_stderr(stderr),
+            warnings.catch_warnings(record=True) as caught,
+        ):
+            warnings.simplefilter("always")
             assert cli.main([*args, "--cache-dir", str(tmp / "cache")]) == 0
+    PLAYED_WARNINGS[:] = caught
     return out, stdout.getvalue(), stderr.getvalue(), results[0]
+
+
+PLAYED_WARNINGS: list[warnings.WarningMessage] = []
+
+
+def test_the_main_job_warns_of_nothing_and_reports_its_fit(played):
+    """No warning a user cannot act on (a fit at its step budget, SAPIEN's missing Vulkan): the
+    IDDM's FitResult is in the result instead."""
+    out, _, stderr, _ = played
+    assert [str(w.message) for w in PLAYED_WARNINGS] == []
+    assert "Warning" not in stderr
+    fits = json.loads((out / "demo.json").read_text())["meta"]["IDDM fits"]
+    assert len(fits) == 1  # the one IDDM of the watched strokes
+    assert fits[0]["steps"] >= 1 and isinstance(fits[0]["converged"], bool) and fits[0]["reason"]
 
 
 def test_demo_plays_rallies_in_sapien(played):

@@ -32,12 +32,18 @@ speed), and :func:`.strokes.execute_stroke` hands the ball to PhysX before it ca
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
-import sapien
-import sapien.physx as physx
 import torch
+
+with warnings.catch_warnings():
+    # the scene simulates physics only, never renders: a missing system Vulkan (SAPIEN falls
+    # back to its own, unused here) is nothing a user must act on
+    warnings.filterwarnings("ignore", "Failed to find system libvulkan", UserWarning)
+    import sapien
+    import sapien.physx as physx
 
 from ..wam import DOF, RACKET_LINK, WAM, urdf_path
 from . import geometry as geo
