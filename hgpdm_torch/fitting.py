@@ -177,15 +177,30 @@ def _make_optimizer(
     if lr is not None:
         raise ValueError("lr applies to the named optimizers only; configure your optimizer")
     if isinstance(optimizer, torch.optim.Optimizer):
-        return optimizer
+        return _check_holds_parameters(optimizer, params, "optimizer")
     if callable(optimizer):
         made = optimizer(params)
         if not isinstance(made, torch.optim.Optimizer):
             raise TypeError(
                 f"the optimizer factory returned {type(made).__name__}, not an Optimizer"
             )
-        return made
+        return _check_holds_parameters(made, params, "the optimizer factory's optimizer")
     raise TypeError(f"optimizer must be a name, an Optimizer or a factory, got {optimizer!r}")
+
+
+def _check_holds_parameters(
+    opt: torch.optim.Optimizer, params: list[torch.Tensor], name: str
+) -> torch.optim.Optimizer:
+    """``opt`` if it updates at least one of the trainable ``params``; an optimizer over other
+    tensors would leave the model as it is, and the fit would stall without a cause."""
+    own = {id(p) for p in params}
+    if not any(id(p) in own for group in opt.param_groups for p in group["params"]):
+        raise ValueError(
+            f"{name} ({type(opt).__name__}) holds none of the model's trainable parameters: "
+            "build it over model.parameters(), e.g. torch.optim.Adam(model.parameters()), or "
+            "pass a factory params -> optimizer"
+        )
+    return opt
 
 
 def _clear_history(opt: torch.optim.Optimizer) -> None:
@@ -429,7 +444,8 @@ def fit_map(
         A :class:`FitResult`. The model holds the best parameters found.
 
     Raises:
-        ValueError: for non-positive tolerances or counts, or unknown optimizer names.
+        ValueError: for non-positive tolerances or counts, unknown optimizer names, or an
+            optimizer that holds none of the model's trainable parameters.
         FloatingPointError: when the loss cannot be evaluated at the starting parameters.
     """
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:

@@ -167,3 +167,23 @@ def test_a_converged_gpdm_stays_put_on_a_second_fit():
     assert first.converged, first.reason
     again = model.fit(50)
     assert abs(again.final_loss - first.final_loss) <= 1e-6 * abs(first.final_loss)
+
+
+def test_an_optimizer_over_other_tensors_is_refused(small_gpdm_data):
+    """An optimizer that holds none of the model's parameters would leave the model as it is
+    and the fit would report a stall ("call fit again"): it is refused up front."""
+    stray = torch.zeros(2, requires_grad=True)
+    model = Rosenbrock()
+    start = model.x.detach().clone()
+    for optimizer in (torch.optim.Adam([stray]), lambda params: torch.optim.SGD([stray], lr=0.1)):
+        with pytest.raises(ValueError, match=r"none of the model's trainable parameters.*"
+                                             r"model\.parameters\(\)"):  # fmt: skip
+            fit_map(model, 5, optimizer=optimizer)
+    assert torch.equal(model.x.detach(), start) and model.x.grad is None
+    gpdm = GPDM(small_gpdm_data[:2], 2)  # a model's fit goes through fit_map
+    with pytest.raises(ValueError, match=r"build it over model\.parameters\(\)"):
+        gpdm.fit(3, optimizer=torch.optim.Adam([stray]))
+    # an optimizer over a part of the model's parameters is the user's choice
+    part = [p for p in gpdm.parameters() if p.requires_grad][:1]
+    result = gpdm.fit(2, optimizer=torch.optim.Adam(part, lr=1e-3), warn=False)
+    assert result.steps == 2

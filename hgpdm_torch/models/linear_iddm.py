@@ -83,6 +83,7 @@ from torch.distributions import StudentT
 from ..validation import as_tensor, check_choice
 
 if TYPE_CHECKING:  # the inference package imports the models: no import at run time
+    from ..inference.filtering import ObservationCheck
     from ..inference.intention.grid import IntentionBelief
 
 __all__ = [
@@ -156,6 +157,16 @@ class LinearIDDM:
             ``T`` when ``temperature="cv"``) give the true values the largest likelihood.
         cv_folds: number of folds for ``"cv"`` (sequence ``j`` is held out in fold
             ``j mod cv_folds``; at most the number of sequences).
+        outlier_sd: the plausibility threshold of the observations the beliefs take, in
+            training standard deviations per observed dimension (default 100, the online
+            filter's :data:`~hgpdm_torch.inference.filtering.DEFAULT_OUTLIER_SD`), or ``None``
+            to refuse only NaN and inf: a frame beyond it (or with an inf, or a NaN in some
+            dimensions only) makes :meth:`beliefs`, :meth:`log_evidence` and
+            :meth:`log_predictive` raise a ``ValueError`` naming it, and is rejected for its
+            stream alone by :meth:`stream`, as
+            :class:`~hgpdm_torch.inference.OnlineIntentionFilter` does
+            (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`, centred on the
+            training mean, with the training standard deviation as the spread).
         select: how the ``"auto"`` noise kind and prior scales are chosen: ``"evidence"``
             (default: the marginal likelihood of the training transitions; fast) or ``"cv"``:
             the candidate (of :data:`NOISE_KINDS`, :data:`AUTO_COEF_PRECISION`,
@@ -183,6 +194,7 @@ class LinearIDDM:
         temperature: float | str = 1.0,
         forgetting: float | str = 0.0,
         cv_folds: int = 5,
+        outlier_sd: float | None = 100.0,
         select: str = "evidence",
         dtype: torch.dtype = torch.float64,
     ) -> None:
@@ -221,6 +233,9 @@ class LinearIDDM:
                 raise ValueError(f"forgetting must be in [0, 1) or 'cv', got {forgetting!r}")
         if isinstance(cv_folds, bool) or not isinstance(cv_folds, int) or cv_folds < 2:
             raise ValueError(f"cv_folds must be an int >= 2, got {cv_folds!r}")
+        from ..inference.filtering import _check_outlier_sd
+
+        self.outlier_sd = _check_outlier_sd(outlier_sd)
         if (
             isinstance(interaction_rank, bool) or not isinstance(interaction_rank, int)
             or interaction_rank < 0
@@ -243,10 +258,16 @@ class LinearIDDM:
         Args:
             sequences: J sequences ``[T_j, Dz]`` (a list; lengths may differ, each >= 2) or a
                 ``[J, T, Dz]`` tensor, finite.
-            intentions: g per sequence, ``[J]`` / ``[J, Dg]`` reals or ``[J]`` integer codes.
+            intentions: g per sequence, ``[J]`` / ``[J, Dg]`` reals or ``[J]`` integer codes,
+                with at least two distinct values (so ``J >= 2``).
 
         Returns:
             ``self``.
+
+        Raises:
+            ValueError: bad shapes or values; intentions that take one value only (or one
+                sequence): nothing can be learnt about how g drives the dynamics; data whose
+                squares and cross-products overflow the model's dtype (rescale them).
         """
         seqs = self._check_sequences(sequences)
         g, num_values = self._check_intentions(intentions, len(seqs))
@@ -305,6 +326,13 @@ class LinearIDDM:
         device = seqs[0].device
         frames = torch.cat(seqs)
         mean, std = frames.mean(0), frames.std(0)
+        if not bool(torch.isfinite(mean.sum() + std.sum())):
+            raise ValueError(
+                f"sequences overflow {self.dtype} arithmetic: the mean or standard deviation "
+                f"of their frames is not finite (largest |value| "
+                f"{float(frames.abs().max()):.3g}); rescale the observations (e.g. standardise "
+                "each dimension) before fitting"
+            )
         std = torch.where(std > 0, std, torch.ones_like(std))  # constant dims: as they are
         feats = _features(g, self.intention, num_values)
         src, phi, dst, step = [], [], [], []
@@ -326,6 +354,16 @@ class LinearIDDM:
         directions = torch.stack([_directions(src[m], phi[m], self.interaction_rank)
                                   for m in masks])  # fmt: skip
         parts = [(_inputs(src[m], phi[m], directions[s]), y[m]) for s, m in enumerate(masks)]
+        for u, y_s in parts:  # the conjugate update's squares and cross-products [U, Y]^T [U, Y]
+            uy = torch.cat([u, y_s], 1)
+            if not bool(torch.isfinite((uy.T @ uy).sum())):
+                raise ValueError(
+                    f"intentions overflow {self.dtype} arithmetic: the squares and "
+                    "cross-products of the transitions' inputs [z_t, phi(g), 1, ...] are not "
+                    f"finite (largest |g| {float(g.abs().max()):.3g}; the states are "
+                    "standardised, a continuous g enters as given); rescale g to about unit "
+                    "scale before fitting"
+                )
         return _Design(mean, std, directions, parts)
 
     def _assign(
@@ -358,25 +396,19 @@ class LinearIDDM:
         given ``eps``). Ties go to the earlier candidate."""
         from ..inference.calibration import TEMPERATURE_BOUNDS, fit_temperature
 
-        folds = min(self.cv_folds, len(seqs))
-        if folds < 2:
-            raise ValueError(
-                "temperature, forgetting or select 'cv' needs at least 2 training sequences"
-            )
+        folds = min(self.cv_folds, len(seqs))  # >= 2: fit refuses a single intention value
         # the fitted model's default grid; the distinct training intentions for a 2-D+ g
         if g.shape[1] > 1:
             values = torch.unique(g, dim=0)
         else:
             values = _default_grid(g, self.intention, num_values, 25)
-        if len(values) < 2:
-            raise ValueError(
-                "temperature, forgetting or select 'cv' needs at least 2 intention values to score"
-            )
         truth = torch.cdist(g, values).argmin(-1)
         # per fold: its design, its held-out sequences [n, T, Dz] and the mask of their
         # transitions, and the true value index of each transition
+        # held-out training frames are scored whatever their distance from the other folds'
         sub = LinearIDDM(intention=self.intention, num_values=num_values, phase=self.phase,
-                         interaction_rank=self.interaction_rank, dtype=self.dtype)  # fmt: skip
+                         interaction_rank=self.interaction_rank, outlier_sd=None,
+                         dtype=self.dtype)  # fmt: skip
         splits, hits = [], []
         for fold in range(folds):
             held = [j for j in range(len(seqs)) if j % folds == fold]
@@ -454,7 +486,8 @@ class LinearIDDM:
                 "phase": self.phase, "noise": self.noise_kind,
                 "coef_precision": self.prior[0], "noise_prior": self.prior[1],
                 "interaction_rank": self.interaction_rank, "temperature": self.temperature,
-                "forgetting": self.forgetting, "cv_folds": self.cv_folds}  # fmt: skip
+                "forgetting": self.forgetting, "cv_folds": self.cv_folds,
+                "outlier_sd": self.outlier_sd}  # fmt: skip
 
     def _data_arguments(self) -> dict[str, Any]:
         """:meth:`fit`'s arguments: the training ``sequences`` and their ``intentions``."""
@@ -601,6 +634,10 @@ class LinearIDDM:
         Returns:
             ``[B, K]`` (or ``[K]``) log densities of the raw ``z_next`` (the standardisation's
             Jacobian included).
+
+        Raises:
+            ValueError: a row that is not finite or is implausible (``outlier_sd``), or whose
+                density overflows the model's dtype, naming it.
         """
         self._check_fitted()
         a = self._check_obs(z_prev, "z_prev", min_ndim=1)
@@ -615,12 +652,15 @@ class LinearIDDM:
         step = int(step)
         out = self._log_predictive(a.reshape(-1, self.obs_dim), b.reshape(-1, self.obs_dim),
                                    self._features(values), step)  # fmt: skip
-        return out.reshape(*a.shape[:-1], len(values))
+        out = out.reshape(*a.shape[:-1], len(values))
+        _check_evidence(out, "z_next", "its transition from z_prev")
+        return out
 
     def _log_predictive(
         self, a: torch.Tensor, b: torch.Tensor, feats: torch.Tensor, step: int
     ) -> torch.Tensor:
-        """``[B, K]`` log predictive of raw ``b [B, Dz]`` from raw ``a [B, Dz]``."""
+        """``[B, K]`` log predictive of raw ``b [B, Dz]`` from raw ``a [B, Dz]`` (not finite
+        where the rows overflow the arithmetic: the callers check)."""
         s = step if self.phase else 0
         if s >= self.num_phases:
             raise ValueError(
@@ -641,12 +681,14 @@ class LinearIDDM:
             df = nu - d + 1
             tril = torch.linalg.cholesky(scatter / df)
             scale = tril * inflate[..., None, None].sqrt()
-            logp = MultivariateStudentT(df, loc, scale).log_prob(zb[:, None].expand_as(loc))
+            logp = MultivariateStudentT(df, loc, scale, validate_args=False).log_prob(
+                zb[:, None].expand_as(loc)
+            )
         elif self.noise_kind == "diagonal":
             # per dimension the Dz = 1 prior, with the same nu_n - Dz + 1 = 3 + n
             df = nu - d + 1
             sd = (scatter.diagonal() / df).sqrt() * inflate[..., None].sqrt()
-            logp = StudentT(df, loc, sd).log_prob(zb[:, None]).sum(-1)
+            logp = StudentT(df, loc, sd, validate_args=False).log_prob(zb[:, None]).sum(-1)
         else:  # sigma^2 ~ IG(2, psi): a_n = 2 + n Dz / 2, b_n = psi + tr(Psi_n - psi I) / 2
             n = nu - d - 2
             a_n = 2.0 + n * d / 2
@@ -654,7 +696,10 @@ class LinearIDDM:
             b_n = psi + 0.5 * (scatter.trace() - d * psi)
             eye = torch.eye(d, dtype=za.dtype, device=za.device)
             scale = eye * (b_n / a_n * inflate)[..., None, None].sqrt()
-            logp = MultivariateStudentT(2 * a_n, loc, scale).log_prob(zb[:, None].expand_as(loc))
+            logp = MultivariateStudentT(2 * a_n, loc, scale, validate_args=False).log_prob(
+                zb[:, None].expand_as(loc)
+            )
+        # an overflow gives NaN or inf (the distributions do not validate): the callers check
         return logp - self.obs_std.log().sum()
 
     def log_evidence(self, obs: Any, grid: Any = None) -> torch.Tensor:
@@ -667,6 +712,12 @@ class LinearIDDM:
 
         Returns:
             ``[B, T, K]`` (or ``[T, K]``); frame 0 holds zeros (no transition yet).
+
+        Raises:
+            ValueError: a frame that is not finite or is implausible (more than ``outlier_sd``
+                training standard deviations from the training mean in a dimension), or whose
+                transition's density overflows the model's dtype, naming its stream and frame
+                (as :func:`~hgpdm_torch.inference.infer_intention` does for a bad row).
         """
         return self._transition_evidence(obs, grid).cumsum(-2)
 
@@ -686,7 +737,9 @@ class LinearIDDM:
         for t in range(z.shape[1] - 1):
             steps.append(self._log_predictive(z[:, t], z[:, t + 1], feats, t))
         out = torch.stack(steps, 1)
-        return out[0] if single else out
+        out = out[0] if single else out
+        _check_evidence(out, "obs", "the transition into it")
+        return out
 
     def beliefs(self, obs: Any, grid: Any = None, log_prior: Any = None) -> IntentionBelief:
         """The belief over the grid after every frame (causal: frame t reads frames <= t).
@@ -703,6 +756,9 @@ class LinearIDDM:
         Returns:
             :class:`~hgpdm_torch.inference.IntentionBelief` with ``[B, T, K]`` probabilities
             and, for a continuous g, the posterior mean and sd ``[B, T, Dg]``.
+
+        Raises:
+            ValueError: a bad frame, naming its stream and frame (:meth:`log_evidence`).
         """
         from ..inference.intention.grid import IntentionBelief
 
@@ -728,11 +784,13 @@ class LinearIDDM:
         return prior
 
     def stream(
-        self, batch_size: int = 1, grid: Any = None, log_prior: Any = None
-    ) -> LinearIDDMStream:
+        self, batch_size: int = 1, grid: Any = None, log_prior: Any = None, *,
+        strict: bool = False,
+    ) -> LinearIDDMStream:  # fmt: skip
         """An online belief for ``batch_size`` streams that advance one frame per
-        :meth:`LinearIDDMStream.update` (the same beliefs as :meth:`beliefs`, frame by frame)."""
-        return LinearIDDMStream(self, batch_size, grid, log_prior)
+        :meth:`LinearIDDMStream.update` (the same beliefs as :meth:`beliefs`, frame by frame);
+        ``strict``: raise for a bad frame instead of rejecting it for its stream."""
+        return LinearIDDMStream(self, batch_size, grid, log_prior, strict=strict)
 
     def grid(self, values: Any = None, num: int = 25) -> torch.Tensor:
         """``[K, Dg]`` intention values: ``values`` checked, or by default all codes of a
@@ -769,10 +827,26 @@ class LinearIDDM:
         if not self.fitted:
             raise RuntimeError("this LinearIDDM is not fitted yet: call fit(sequences, intentions)")
 
+    def _observation_check(self) -> ObservationCheck:
+        """Which rows are bad (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`):
+        non-finite, or more than ``outlier_sd`` training standard deviations from the training
+        mean in a dimension."""
+        from ..inference.filtering import ObservationCheck
+
+        return ObservationCheck(self.obs_mean.double(), self.obs_std.double(), self.outlier_sd)
+
     def _check_obs(self, value: Any, name: str, min_ndim: int) -> torch.Tensor:
+        """``value [..., Dz]`` as a finite tensor of the model's dtype and device; a bad row
+        (:meth:`_observation_check`) raises a ``ValueError`` naming its index."""
+        from ..inference.filtering import _bad_observation
+
         z = as_tensor(value, name, dtype=self.dtype, device=self.coef.device, min_ndim=min_ndim)
         if z.shape[-1] != self.obs_dim:
             raise ValueError(f"{name} must have Dz = {self.obs_dim} columns, got {z.shape[-1]}")
+        found = self._observation_check().first_bad(z)
+        if found is not None:
+            index, why = found
+            raise _bad_observation(f"{name}{list(index)}", why)
         return z
 
     def _check_sequences(self, sequences: Any) -> list[torch.Tensor]:
@@ -802,14 +876,36 @@ class LinearIDDM:
         if g.dim() != 2 or len(g) != num:
             raise ValueError(f"intentions must be [J] or [J, Dg] with J = {num} sequences, got "
                              f"{tuple(g.shape)}")  # fmt: skip
-        if self.intention != "discrete":
-            return g, None
-        if g.shape[1] != 1 or bool((g != g.round()).any()) or bool((g < 0).any()):
-            raise ValueError("discrete intentions must be a [J] vector of codes >= 0")
-        k = int(g.max()) + 1 if self._num_values_arg is None else self._num_values_arg
-        if bool((g >= k).any()):
-            raise ValueError(f"discrete intentions must lie in [0, {k - 1}]")
+        k = None
+        if self.intention == "discrete":
+            if g.shape[1] != 1 or bool((g != g.round()).any()) or bool((g < 0).any()):
+                raise ValueError("discrete intentions must be a [J] vector of codes >= 0")
+            k = int(g.max()) + 1 if self._num_values_arg is None else self._num_values_arg
+            if bool((g >= k).any()):
+                raise ValueError(f"discrete intentions must lie in [0, {k - 1}]")
+        if len(torch.unique(g, dim=0)) < 2:
+            value = ", ".join(f"{v:.6g}" for v in g[0].tolist())
+            raise ValueError(
+                f"intentions must take at least 2 distinct values, got the single value {value} "
+                f"for all {num} sequence(s): the model learns how g drives the dynamics from "
+                "sequences of different g, so it needs at least two sequences with different "
+                "intentions"
+            )
         return g, k
+
+
+def _check_evidence(evidence: torch.Tensor, name: str, what: str) -> None:
+    """Raise where the log densities ``evidence [..., K]`` of the rows of ``name`` are not
+    finite: the rows, finite and within the plausibility threshold or not, overflow the
+    arithmetic of the model's dtype."""
+    bad = ~torch.isfinite(evidence).all(-1)
+    if bool(bad.any()):
+        index = [int(i) for i in torch.nonzero(bad)[0]]
+        raise ValueError(
+            f"{name}{index}: the density of {what} is not finite: the rows overflow "
+            f"{evidence.dtype} arithmetic; rescale the observations, or keep outlier_sd "
+            "finite (default 100) to refuse such rows"
+        )
 
 
 def _forget(steps: torch.Tensor, eps: float) -> torch.Tensor:
@@ -926,22 +1022,49 @@ class LinearIDDMStream:
     """Online beliefs of a fitted :class:`LinearIDDM` for B streams (:meth:`LinearIDDM.stream`).
 
     Every :meth:`update` brings the next frame of all B streams, which therefore share their
-    frame index (the phase). A row with a NaN or inf is missing for its stream alone: the
-    transitions into and out of it carry no evidence, and ``belief.rejected`` flags it. With
-    ``forgetting > 0`` every stream's log belief decays at every frame after the first, its row
-    missing or not (as :class:`~hgpdm_torch.inference.OnlineIntentionFilter` does).
+    frame index (the phase). The frames are taken as by
+    :class:`~hgpdm_torch.inference.OnlineIntentionFilter`, through the same code
+    (:func:`~hgpdm_torch.inference.intention.streams.screen_observations`): a row of NaN is a
+    missing frame; a bad row (an inf, a NaN in some dimensions only, or more than the model's
+    ``outlier_sd`` training standard deviations from the training mean in a dimension) is
+    *rejected*: it counts as missing, ``belief.rejected`` flags it and ``rejected_count``
+    counts it (``strict``: a ``ValueError`` naming the stream, frame and dimension, with no
+    state changed). A missing or rejected frame is missing for its stream alone: the
+    transitions into and out of it carry no evidence. A frame whose transition's density
+    overflows the arithmetic (possible only with ``outlier_sd=None``) is rejected too. The
+    belief follows Algorithm 3.2 (:func:`~hgpdm_torch.inference.intention.streams.belief_step`):
+    with ``forgetting > 0`` every stream's log belief decays at every frame after the first,
+    its row missing or not.
+
+    Stream isolation: every stream's transition is computed at every frame (an unusable one at
+    the training mean, and discarded), so nothing one stream receives changes another's belief,
+    not even its rounding.
+
+    Attributes:
+        log_weights: ``[B, K]`` log belief (normalised after the first frame).
+        previous: ``[B, Dz]`` each stream's last usable frame; ``has_previous [B]``: whether
+            it was the frame just before.
+        frames: frames given so far (the next frame's index).
+        rejected_count: ``[B]`` int64, rejected frames of each stream since :meth:`reset`.
+        check: the :class:`~hgpdm_torch.inference.filtering.ObservationCheck` in use.
     """
 
-    def __init__(self, model: LinearIDDM, batch_size: int, grid: Any, log_prior: Any) -> None:
+    def __init__(
+        self, model: LinearIDDM, batch_size: int, grid: Any, log_prior: Any, *,
+        strict: bool = False,
+    ) -> None:  # fmt: skip
         model._check_fitted()
         if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral) or (
             batch_size < 1
         ):  # fmt: skip
             raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
-        self.model, self.batch_size = model, int(batch_size)
+        if not isinstance(strict, bool):
+            raise TypeError(f"strict must be a bool, got {strict!r}")
+        self.model, self.batch_size, self.strict = model, int(batch_size), strict
         self.values = model.grid(grid)
         self._feats = model._features(self.values)
         self._prior = model._log_prior(log_prior, len(self.values))
+        self.check = model._observation_check()
         self.reset()
 
     def reset(self) -> None:
@@ -952,48 +1075,64 @@ class LinearIDDMStream:
         self.previous = torch.zeros(b, d, dtype=self.model.dtype, device=device)
         self.has_previous = torch.zeros(b, dtype=torch.bool, device=device)
         self.log_weights = self._prior.expand(b, -1).clone()
+        self.rejected_count = torch.zeros(b, dtype=torch.long, device=device)
+
+    def _where(self, b: int) -> str:
+        return f"z[{b}] (stream {b}, frame {self.frames})"
 
     def update(self, z: Any) -> IntentionBelief:
-        """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream); returns the belief
-        ``[B, K]`` after it (``[K]``, with a scalar ``rejected``, for a ``[Dz]`` row, as
-        :meth:`~hgpdm_torch.inference.OnlineIntentionFilter.update`).
+        """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream) of every stream.
+
+        Returns:
+            The belief ``[B, K]`` after it (``[K]``, with a scalar ``rejected``, for a ``[Dz]``
+            row, as :meth:`~hgpdm_torch.inference.OnlineIntentionFilter.update`), with
+            ``rejected [B]``: the streams whose frame was bad and taken as missing.
 
         Raises:
-            ValueError: a row of the wrong size, or (``phase=True``) a frame past the longest
-                training sequence; the streams are then left as they were.
+            ValueError: a row of the wrong size, (``phase=True``) a frame past the longest
+                training sequence, or (``strict``) a bad frame; the streams are then left as
+                they were.
         """
-        from ..inference.filtering import _as_observations
-        from ..inference.intention.grid import IntentionBelief
+        from ..inference.intention.streams import belief_step, flagged_belief, screen_observations
 
-        z = _as_observations(z, min_ndim=1).to(self.model.dtype).to(self.model.coef.device)
-        single = z.dim() == 1
-        z = z[None] if single else z
-        if self.model.phase and self.frames > self.model.num_phases:
+        model = self.model
+        if model.phase and self.frames > model.num_phases:
             raise ValueError(
                 f"frame {self.frames} has no transition: the training sequences had at most "
-                f"{self.model.num_phases + 1} frames (phase=True); reset() the streams"
+                f"{model.num_phases + 1} frames (phase=True); reset() the streams"
             )
-        if z.shape != (self.batch_size, self.model.obs_dim):
-            raise ValueError(
-                f"z must be [B = {self.batch_size}, Dz = {self.model.obs_dim}], got "
-                f"{tuple(z.shape)}"
+        z, rejected, single = screen_observations(
+            z, self.check, self.batch_size, model.obs_dim, device=model.coef.device,
+            strict=self.strict, where=self._where,
+        )  # fmt: skip
+        z = z.to(model.dtype)
+        good = torch.isfinite(z).all(-1)  # neither missing nor rejected
+        log_weights = self.log_weights
+        if self.frames > 0:  # the transition from the previous frame, for every stream
+            use = good & self.has_previous
+            fill = model.obs_mean.expand_as(z)
+            a = torch.where(use[:, None], self.previous, fill)
+            b = torch.where(use[:, None], z, fill)
+            evidence = model._log_predictive(a, b, self._feats, self.frames - 1)
+            overflow = use & ~torch.isfinite(evidence).all(-1)
+            if bool(overflow.any()):  # outlier_sd=None let a frame through that overflows
+                bad = int(torch.nonzero(overflow)[0])
+                if self.strict:
+                    raise ValueError(
+                        f"{self._where(bad)} cannot be used: the density of its transition is "
+                        f"not finite (the frame overflows {model.dtype} arithmetic); rescale "
+                        "the observations or keep outlier_sd finite"
+                    )
+                rejected, good, use = rejected | overflow, good & ~overflow, use & ~overflow
+            # every stream forgets at every frame, its row missing or not
+            log_weights = belief_step(
+                log_weights, evidence, use, model.forgetting, model.temperature
             )
-        good = torch.isfinite(z).all(-1)
-        use = good & self.has_previous
-        evidence = None
-        if self.frames > 0 and bool(use.any()):  # before any change: an error leaves the state
-            step = self.frames - 1
-            evidence = self.model._log_predictive(self.previous[use], z[use], self._feats, step)
-        if self.frames > 0:  # every stream forgets at every frame, its row missing or not
-            self.log_weights *= 1.0 - self.model.forgetting
-        if evidence is not None:
-            self.log_weights[use] += evidence / self.model.temperature
+        self.log_weights = log_weights
         self.previous = torch.where(good[:, None], z, self.previous)
         self.has_previous = good
+        self.rejected_count += rejected
         self.frames += 1
-        log_weights = self.log_weights[0] if single else self.log_weights
-        belief = IntentionBelief.from_log(
-            log_weights, self.values, self.model.intention == "continuous"
+        return flagged_belief(
+            self.log_weights, self.values, model.intention == "continuous", single, rejected
         )
-        belief.rejected = ~good[0] if single else ~good
-        return belief

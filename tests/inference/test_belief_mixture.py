@@ -69,16 +69,32 @@ def test_stream_matches_beliefs_and_flags_a_bad_row(generator):
         assert not bool(step.rejected.any())
     stream.reset()
     frames = test[:, :3].clone()
-    frames[2, 1] = float("nan")
+    frames[2, 1, 0] = float("inf")
     for t in range(3):
         step = stream.update(frames[:, t])
-    assert not bool(step.rejected.any())  # the NaN row was one frame back
-    stream.reset()
-    stream.update(frames[:, 0])
-    flagged = stream.update(frames[:, 1])
-    assert flagged.rejected.tolist() == [j == 2 for j in range(10)]
-    # the other streams are untouched by the bad one
-    torch.testing.assert_close(flagged.prob[:2], batch.prob[:2, 1], rtol=1e-10, atol=1e-12)
+    assert not bool(step.rejected.any())  # the bad row was one frame back
+    # as the online filter: a bad row (inf, partly NaN, 1e200: implausible) is rejected and
+    # flagged, a row of NaN is missing and not flagged; the other streams are untouched
+    for bad, flagged in ((float("inf"), True), (1e200, True), (float("nan"), False)):
+        stream.reset()
+        frames = test[:, :3].clone()
+        frames[2, 1, 0] = bad
+        if flagged is False:
+            frames[2, 1] = bad  # the whole row
+        stream.update(frames[:, 0])
+        step = stream.update(frames[:, 1])
+        assert step.rejected.tolist() == [flagged and j == 2 for j in range(10)]
+        assert bool(torch.isfinite(step.log_prob).all())
+        others = [j for j in range(10) if j != 2]
+        torch.testing.assert_close(step.prob[others], batch.prob[others, 1], rtol=1e-10, atol=1e-12)
+        # stream 2 took no evidence into or out of the frame: still its prior
+        torch.testing.assert_close(step.prob[2], batch.prob[2, 0], rtol=1e-10, atol=1e-12)
+        step = stream.update(frames[:, 2])
+        torch.testing.assert_close(step.prob[2], batch.prob[2, 0], rtol=1e-10, atol=1e-12)
+    # the batch beliefs refuse the bad frame, naming it
+    frames[2, 1] = 1e200
+    with pytest.raises(ValueError, match=r"obs\[2, 1\] cannot be used"):
+        mix.beliefs(frames, grid)
 
 
 class _FlagsFirst:
@@ -153,5 +169,45 @@ def test_rejects_bad_input(generator):
         with pytest.raises(ValueError, match="weights"):
             BeliefMixture(models, weights=bad)
     discrete, _ = _members(generator, discrete=True)
-    with pytest.raises(ValueError, match="same intention on the same grid"):
-        BeliefMixture([models[0], discrete[0]]).beliefs(test, grid=torch.arange(3.0))
+    with pytest.raises(ValueError, match="score different intention values"):
+        BeliefMixture([models[0], discrete[0]])
+
+
+def test_members_with_different_value_sets_raise_in_either_order(generator):
+    # a 2-code and a 3-code member: before, the first order scored the 3-code member on codes
+    # {0, 1} only (renormalising its belief there) while the other raised
+    models, test = _members(generator, discrete=True)
+    train, labels = models[0]._sequences, models[0].intentions[:, 0].long()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        two = LinearIDDM(intention="discrete").fit(train, labels.clamp(max=1))
+    sets = {id(two): r"2 values \[0.0, 1.0\]", id(models[0]): r"3 values \[0.0, 1.0, 2.0\]"}
+    for order in ([two, models[0]], [models[0], two]):
+        match = (
+            r"models\[0\] and models\[1\] score different intention values: "
+            rf"models\[0\] {sets[id(order[0])]}, models\[1\] {sets[id(order[1])]}"
+        )
+        with pytest.raises(ValueError, match=match):
+            BeliefMixture(order)
+    # a continuous g over different ranges: different default grids, named by their range
+    cont, _ = _members(generator)
+    g = cont[0].intentions[:, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        narrow = LinearIDDM().fit(cont[0]._sequences, 0.5 * g)
+    for order in ([cont[0], narrow], [narrow, cont[0]]):
+        with pytest.raises(ValueError, match=r"25 values over \[.*\], models\[1\] 25 values"):
+            BeliefMixture(order)
+    # the same value sets mix, in either order; a float32 member's rounded grid too
+    BeliefMixture([models[1], models[0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        single = LinearIDDM(dtype=torch.float32).fit(cont[0]._sequences, g)
+    BeliefMixture([single, cont[0]])
+    # a member without a default value set (a 2-D g) takes the grid it is given
+    g2 = torch.stack([g, -g], 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        flat = [LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(cont[0]._sequences, g2)] * 2
+    grid = torch.tensor([[0.0, 0.0], [0.5, -0.5]])
+    assert BeliefMixture(flat).beliefs(test, grid).prob.shape == (10, 5, 2)

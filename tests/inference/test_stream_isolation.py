@@ -323,3 +323,112 @@ def test_indefinite_state_restarts_its_stream(model, streams, clean, fresh):
     assert_same(poisoned, clean, others(MID))
     assert_same(poisoned, fresh[3], [MID], first=3)
     assert poisoned["reset"][:, 3].nonzero().flatten().tolist() == [MID]
+
+
+# ----- LinearIDDM streams: the same rule, through the same code ------------------------------
+
+LINEAR_B, LINEAR_T = 8, 5
+LINEAR_POISONED = [(7, 0), (7, 2), (3, 3)]  # (stream, frame)
+
+
+def _linear_model(generator, **options):
+    """A LinearIDDM with forgetting and a temperature (both parts of the recursion run), and 8
+    held-out ``[T, Dz]`` streams."""
+    from hgpdm_torch.models import LinearIDDM
+
+    n = 60
+    g = 2 * torch.rand(n, generator=generator) - 1
+    z = [torch.randn(n, 4, generator=generator)]
+    for _ in range(LINEAR_T - 1):
+        z.append(0.8 * z[-1] + 0.5 * g[:, None] + 0.3 * torch.randn(n, 4, generator=generator))
+    obs = torch.stack(z, 1)
+    model = LinearIDDM(noise="diagonal", coef_precision=1.0, noise_prior=0.1, forgetting=0.2,
+                       temperature=1.5, **options).fit(obs[:50], g[:50])  # fmt: skip
+    return model, obs[50 : 50 + LINEAR_B]
+
+
+def _linear_run(model, z, **options):
+    """``model.stream`` over ``z [S, T, Dz]``: the stream and its log weights ``[S, T, K]`` and
+    flags ``[S, T]`` after each frame."""
+    stream = model.stream(z.shape[0], **options)
+    weights, flags = [], []
+    for t in range(z.shape[1]):
+        belief = stream.update(z[:, t])
+        weights.append(stream.log_weights.clone())
+        flags.append(belief.rejected.clone())
+    return stream, torch.stack(weights, 1), torch.stack(flags, 1)
+
+
+@pytest.mark.parametrize("kind", ["1e200", "+inf", "-inf", "partial NaN", "implausible"])
+def test_linear_iddm_stream_rejects_a_bad_row_for_its_stream_only(generator, kind):
+    """As the online filter: the bad row is rejected and flagged, its stream takes it as a
+    missing frame (no evidence into or out of it; it forgets), and every other stream's belief
+    is as without it, bit for bit. Before, a 1e200 row left its stream NaN until reset()."""
+    model, z = _linear_model(generator)
+    bad, missing = z.clone(), z.clone()
+    for b, t in LINEAR_POISONED:
+        bad[b, t] = poison_row(z[b, t], kind)
+        missing[b, t] = math.nan
+    stream, poisoned, flags = _linear_run(model, bad)
+    _, clean, _ = _linear_run(model, z)
+    _, as_missing, missing_flags = _linear_run(model, missing)
+    keep = [b for b in range(LINEAR_B) if b not in (3, 7)]
+    assert torch.equal(poisoned[keep], clean[keep])
+    assert torch.equal(poisoned, as_missing)
+    assert not torch.equal(poisoned[3], clean[3]) and not torch.equal(poisoned[7], clean[7])
+    expected = torch.zeros(LINEAR_B, LINEAR_T, dtype=torch.bool)
+    for b, t in LINEAR_POISONED:
+        expected[b, t] = True
+    assert torch.equal(flags, expected)
+    assert not bool(missing_flags.any())  # a row of NaN is missing, not rejected
+    assert stream.rejected_count.tolist() == [2 if b == 7 else int(b == 3) for b in range(8)]
+    assert bool(torch.isfinite(poisoned).all())
+
+
+def test_linear_iddm_stream_strict_and_without_the_threshold(generator):
+    model, z = _linear_model(generator)
+    stream = model.stream(LINEAR_B, strict=True)
+    for t in range(2):
+        stream.update(z[:, t])
+    keys = ("log_weights", "previous", "has_previous", "rejected_count")
+    before = {key: getattr(stream, key).clone() for key in keys}
+    row = z[:, 2].clone()
+    row[3, 1] = 1e200
+    with pytest.raises(ValueError, match=r"z\[3\] \(stream 3, frame 2\) cannot be used: channel 1"):
+        stream.update(row)
+    assert stream.frames == 2
+    assert all(torch.equal(getattr(stream, key), value) for key, value in before.items())
+    # outlier_sd=None takes any finite row; one whose transition overflows is rejected for its
+    # stream alone (strict: raised), never NaN
+    loose, _ = _linear_model(torch.Generator().manual_seed(1234), outlier_sd=None)
+    bad, missing = z.clone(), z.clone()
+    bad[3, 2], missing[3, 2] = 1e200, math.nan
+    _, poisoned, flags = _linear_run(loose, bad)
+    _, clean, _ = _linear_run(loose, z)
+    _, as_missing, _ = _linear_run(loose, missing)
+    keep = [b for b in range(LINEAR_B) if b != 3]
+    assert torch.equal(poisoned[keep], clean[keep]) and torch.equal(poisoned, as_missing)
+    assert flags.nonzero().tolist() == [[3, 2]]
+    strict = loose.stream(LINEAR_B, strict=True)
+    for t in range(2):
+        strict.update(z[:, t])
+    with pytest.raises(ValueError, match=r"z\[3\] \(stream 3, frame 2\).* not finite"):
+        strict.update(bad[:, 2])
+
+
+def test_every_online_belief_screens_rows_through_one_function(model, streams, monkeypatch):
+    """The online filter and the LinearIDDM stream check and reject rows in one place."""
+    from hgpdm_torch.inference.intention import streams as shared
+
+    linear, z = _linear_model(torch.Generator().manual_seed(0))
+    calls = []
+    screen = shared.screen_observations
+
+    def counting(*args, **kwargs):
+        calls.append(args[1])  # the ObservationCheck
+        return screen(*args, **kwargs)
+
+    monkeypatch.setattr(shared, "screen_observations", counting)
+    OnlineIntentionFilter(model, GRID).update(streams[0, 0])
+    linear.stream(LINEAR_B).update(z[:, 0])
+    assert [type(check) for check in calls] == [ObservationCheck, ObservationCheck]

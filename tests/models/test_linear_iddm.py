@@ -429,6 +429,7 @@ def test_stream_matches_beliefs_and_isolates_bad_rows(generator):
     for t in range(6):
         b = stream.update(bad[:, t])
         assert bool(b.rejected[2]) == (t == 3) and int(b.rejected.sum()) == (t == 3)
+    assert stream.rejected_count.tolist() == [int(i == 2) for i in range(10)]
     others = [i for i in range(10) if i != 2]
     assert torch.allclose(b.prob[others], batch.prob[others, -1], atol=1e-12)
     log_w = prior.clone()
@@ -445,7 +446,7 @@ def test_stream_matches_beliefs_and_isolates_bad_rows(generator):
         single.update(torch.full((3,), float("nan")))
     assert single.frames == 6
     stream.reset()
-    with pytest.raises(ValueError, match="B = 10"):
+    with pytest.raises(ValueError, match=r"\[B, Dz\] = \[10, 3\]"):
         stream.update(obs[30:35, 0])
     with pytest.raises(ValueError, match="batch_size"):
         model.stream(0)
@@ -491,7 +492,7 @@ def test_temperature_tempers_the_evidence_in_batch_and_stream(generator):
         with pytest.raises(ValueError, match="forgetting"):
             LinearIDDM(forgetting=bad)
     assert LinearIDDM(forgetting=np.float32(0.25)).forgetting == 0.25
-    with pytest.raises(ValueError, match="2 training sequences"), warnings.catch_warnings():
+    with pytest.raises(ValueError, match="two sequences"), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # one sequence: too few transitions per phase
         LinearIDDM(temperature="cv").fit(obs[:1], g[:1])
 
@@ -650,7 +651,7 @@ def test_cv_on_separable_discrete_data_warns_at_the_temperature_bound(generator)
     with pytest.warns(UserWarning, match="temperature is at its bound"):
         model = LinearIDDM(intention="discrete", temperature="cv", cv_folds=3).fit(obs, g.long())
     assert model.temperature < 0.0011
-    with pytest.raises(ValueError, match="2 intention values"):
+    with pytest.raises(ValueError, match="at least 2 distinct values"):
         LinearIDDM(intention="discrete", temperature="cv").fit(obs, torch.zeros(60).long())
 
 
@@ -785,6 +786,7 @@ def test_interaction_discrete_shared_phase_stream_and_bad_rank(generator):
 
 
 @pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has 1 training transitions for")
+@pytest.mark.filterwarnings("ignore:LinearIDDM. a phase has 3 training transitions for")
 @pytest.mark.filterwarnings("ignore:LinearIDDM. the evidence chose")
 def test_interaction_with_short_phases_and_constant_intentions_warns(generator):
     obs, g = _phase_system(40, generator)
@@ -793,7 +795,88 @@ def test_interaction_with_short_phases_and_constant_intentions_warns(generator):
         model = LinearIDDM(interaction_rank=1, temperature="cv", cv_folds=4).fit(seqs, g)
     assert bool((model.directions[4] == 0).all()) and bool((model.directions[0] != 0).any())
     assert math.isfinite(model.temperature)
+    # only sequences of one intention reach the last phase: no direction there
+    same = g.clone()
+    same[:3] = 0.3
+    seqs = [s if j < 3 else s[:5] for j, s in enumerate(obs)]
     with pytest.warns(UserWarning, match="intentions are all equal"):
-        LinearIDDM(interaction_rank=1, coef_precision=1.0, noise_prior=0.1).fit(
-            obs, torch.full((40,), 0.3)
-        )
+        model = LinearIDDM(interaction_rank=1, coef_precision=1.0, noise_prior=0.1).fit(seqs, same)
+    assert bool((model.directions[4] == 0).all()) and bool((model.directions[3] != 0).any())
+
+
+# ------------------------------------------------------------------------------ bad data
+def test_batch_refuses_implausible_and_overflowing_frames(generator):
+    # a frame far out (1e160: its squares overflow float64) is a clear error naming its stream
+    # and frame, as infer_intention's for a bad row; never a NaN belief
+    obs, g = _phase_system(40, generator)
+    model = LinearIDDM().fit(obs[:30], g[:30])
+    bad = obs[30:].clone()
+    bad[1, 2, 0] = 1e160
+    for method in (model.beliefs, model.log_evidence):
+        with pytest.raises(
+            ValueError, match=r"obs\[1, 2\] cannot be used: channel 0 .* implausible"
+        ):
+            method(bad)
+    with pytest.raises(ValueError, match=r"obs\[2\] cannot be used"):  # one [T, Dz] stream
+        model.beliefs(bad[1])
+    with pytest.raises(ValueError, match=r"z_next\[0\] cannot be used"):
+        model.log_predictive(obs[30:32, 1], bad[1:3, 2])
+    # the threshold is in training standard deviations of each dimension
+    near = obs[30:].clone()
+    near[0, 3] = model.obs_mean + 99.0 * model.obs_std
+    assert bool(torch.isfinite(model.beliefs(near).prob).all())
+    near[0, 3, 1] = model.obs_mean[1] + 101.0 * model.obs_std[1]
+    with pytest.raises(ValueError, match=r"obs\[0, 3\] cannot be used: channel 1"):
+        model.beliefs(near)
+    # without the threshold a finite frame is taken, and one that overflows still raises
+    loose = LinearIDDM(outlier_sd=None).fit(obs[:30], g[:30])
+    assert loose.config()["outlier_sd"] is None and model.config()["outlier_sd"] == 100.0
+    assert bool(torch.isfinite(loose.beliefs(near).prob).all())
+    with pytest.raises(ValueError, match=r"obs\[1, 2\]: the density .* not finite.*rescale"):
+        loose.beliefs(bad)
+    with pytest.raises(ValueError, match=r"z_next\[0\]: the density .* not finite"):
+        loose.log_predictive(obs[30:32, 1], bad[1:3, 2])
+
+
+def test_outlier_sd_default_and_validation():
+    import inspect
+
+    from hgpdm_torch.inference.filtering import DEFAULT_OUTLIER_SD
+
+    assert inspect.signature(LinearIDDM).parameters["outlier_sd"].default == DEFAULT_OUTLIER_SD
+    for bad, err in ((0.0, ValueError), (-1.0, ValueError), ("100", TypeError)):
+        with pytest.raises(err, match="outlier_sd"):
+            LinearIDDM(outlier_sd=bad)
+
+
+@pytest.mark.filterwarnings("ignore:LinearIDDM")
+def test_fit_refuses_data_that_overflow_its_dtype(generator):
+    obs, g = _phase_system(20, generator)
+    with pytest.raises(ValueError, match=r"sequences overflow torch.float64.*rescale"):
+        LinearIDDM().fit(obs * 1e200, g)
+    with pytest.raises(ValueError, match=r"intentions overflow torch.float64.*rescale g"):
+        LinearIDDM().fit(obs, g * 1e200)  # a continuous g enters the inputs as given
+    with pytest.raises(ValueError, match="intentions overflow"):
+        LinearIDDM(temperature="cv").fit(obs, g * 1e200)
+    # large but representable data fit (standardised), and their beliefs are finite
+    model = LinearIDDM().fit(obs * 1e100, g)
+    assert bool(torch.isfinite(model.beliefs(obs[:3] * 1e100).prob).all())
+    model = LinearIDDM(dtype=torch.float32).fit(obs * 1e30, g)  # squares beyond float32's range
+    assert bool(torch.isfinite(model.beliefs(obs[:3] * 1e30).prob).all())
+
+
+def test_fit_needs_two_distinct_intention_values(generator):
+    obs, g = _phase_system(20, generator)
+    match = "intentions must take at least 2 distinct values, got the single value 0.3 for all"
+    with pytest.raises(ValueError, match=match + " 20 sequence"):
+        LinearIDDM().fit(obs, torch.full((20,), 0.3))
+    with pytest.raises(ValueError, match="at least two sequences"):
+        LinearIDDM().fit(obs[:1], torch.tensor([0.3]))
+    with pytest.raises(ValueError, match="single value 0"):
+        LinearIDDM(intention="discrete", num_values=3).fit(obs, torch.zeros(20).long())
+    with pytest.raises(ValueError, match="single value 0.5, -1"):
+        LinearIDDM().fit(obs, torch.tensor([[0.5, -1.0]]).expand(20, 2))
+    # two values, or a 2-D g that varies in one component, are enough to fit
+    two = (torch.arange(20) % 2).double()
+    assert LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, two).grid().shape == (25, 1)
+    LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, torch.stack([two, 0 * two], 1))

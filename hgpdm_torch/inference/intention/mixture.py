@@ -31,9 +31,17 @@ class BeliefMixture:
     Args:
         models: ``M >= 1`` fitted models with ``beliefs(obs, grid, log_prior)``,
             ``stream(batch_size, grid, log_prior)`` and ``grid(values)``, as
-            :class:`~hgpdm_torch.models.LinearIDDM` has; all score the same intention.
+            :class:`~hgpdm_torch.models.LinearIDDM` has; all score the same intention over the
+            same values: their value sets (``grid()``, the codes of a discrete g or the default
+            grid over the training range of a continuous one) must agree, to rounding.
         weights: ``[M]`` non-negative finite weights, not all zero (a list, array or tensor;
             normalised to sum 1); default equal.
+
+    Raises:
+        TypeError: a member without those methods.
+        ValueError: bad weights, or members with different value sets (naming them and their
+            values, whatever their order: a member scored on a part of its values only would
+            renormalise its belief over that part without a word).
     """
 
     def __init__(self, models: Sequence[Any], weights: Sequence[float] | None = None) -> None:
@@ -66,6 +74,7 @@ class BeliefMixture:
         if not (np.isfinite(w).all() and (w >= 0).all() and (w > 0).any()):
             raise ValueError(f"weights must be finite and >= 0, not all zero, got {weights!r}")
         w = w / w.max()  # then the sum cannot overflow
+        _check_value_sets(models)
         self.models = list(models)
         self.weights = (w / w.sum()).tolist()
 
@@ -162,6 +171,42 @@ class BeliefMixtureStream:
         if flags:
             out.rejected = torch.stack(flags).any(0)
         return out
+
+
+def _check_value_sets(models: Sequence[Any]) -> None:
+    """Raise unless every member's value set (its default ``grid()`` ``[K, Dg]``; a member
+    without one, e.g. a multi-dimensional continuous g, takes any grid) is the first such
+    member's: the same shape and, in float64, the same values up to ``1e-5`` relative (a
+    float32 member's grid rounds)."""
+    sets = []
+    for m, model in enumerate(models):
+        try:
+            values = model.grid()
+        except ValueError:  # no default value set: it scores the grid it is given
+            continue
+        sets.append((m, values.detach().to("cpu", torch.float64)))
+    for m, values in sets[1:]:
+        first, ref = sets[0]
+        scale = float(ref.abs().max()) if ref.numel() else 1.0
+        if values.shape != ref.shape or not torch.allclose(
+            values, ref, rtol=1e-5, atol=1e-5 * max(scale, 1.0)
+        ):  # fmt: skip
+            raise ValueError(
+                f"models[{first}] and models[{m}] score different intention values: "
+                f"models[{first}] {_describe(ref)}, models[{m}] {_describe(values)}; the "
+                "members of a mixture must score the same values (fit them on the same codes, "
+                "or on the same range of a continuous g)"
+            )
+
+
+def _describe(values: torch.Tensor) -> str:
+    """A value set ``[K, Dg]`` in words: its values when few, else its size and range."""
+    if len(values) <= 8:
+        return f"{len(values)} values {values.squeeze(-1).tolist()}"
+    lo, hi = values.min(0).values.tolist(), values.max(0).values.tolist()
+    if values.shape[1] == 1:
+        return f"{len(values)} values over [{lo[0]:.6g}, {hi[0]:.6g}]"
+    return f"{len(values)} values over {lo} .. {hi}"
 
 
 def _snapshot(stream: Any) -> dict[str, Any]:

@@ -39,7 +39,7 @@ from .grid import _check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import _measurement_update
 from .state_prior import STATE_PRIORS, _first_state_prior, _state_prior
-from .streams import IsolatedStreams
+from .streams import IsolatedStreams, belief_step
 from .transition import _check_precision, transition_moments
 
 __all__ = ["OnlineIntentionFilter"]
@@ -288,10 +288,7 @@ class OnlineIntentionFilter(IsolatedStreams):
             mf, Pf, evidence = self._predictive_step(m, P, z)
         else:
             mf, Pf, evidence = self._bound_step(m, P, log_belief, z)
-        new = (1.0 - self.forgetting) * log_belief
-        evidence = evidence / self.temperature
-        new = new + torch.where(observed[:, None], evidence, torch.zeros_like(evidence))
-        new = new - torch.logsumexp(new, -1, keepdim=True)
+        new = belief_step(log_belief, evidence, observed, self.forgetting, self.temperature)
         if self.evidence == "predictive":
             mf, Pf = mixture_moments(new.exp(), mf, Pf)
         return mf, Pf, new

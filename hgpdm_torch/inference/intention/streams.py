@@ -9,6 +9,12 @@ bisection and restarted at the prior. The filter's algorithm itself (Algorithm 3
 subclass's :meth:`~IsolatedStreams._step` and :meth:`~IsolatedStreams._initialise`
 (:class:`~hgpdm_torch.inference.intention.online.OnlineIntentionFilter`).
 
+Two pieces are shared with every online belief of the toolkit, so that all treat a frame the
+same way: :func:`screen_observations` (the shape check of one update's rows and the rejection of
+bad rows, which then count as missing) and :func:`belief_step` (the forgetful, tempered belief
+recursion of Algorithm 3.2, lines 10-11). :class:`~hgpdm_torch.models.LinearIDDMStream` uses
+both.
+
 Shapes: ``B`` streams, ``K`` intention values, ``Dx`` latent, ``Dz`` observed dims.
 """
 
@@ -24,7 +30,7 @@ from ...linalg import CholeskyError, positive_definite
 from ..filtering import ObservationCheck, _bad_observation
 from .grid import IntentionBelief, _check_observations
 
-__all__ = ["IsolatedStreams"]
+__all__ = ["IsolatedStreams", "belief_step", "flagged_belief", "screen_observations"]
 
 #: What a failed update of one stream raises: a covariance that does not factorise
 #: (:func:`~hgpdm_torch.linalg.psd_cholesky`: ``CholeskyError``, or ``ValueError`` for NaN/inf),
@@ -32,6 +38,101 @@ __all__ = ["IsolatedStreams"]
 _NUMERICAL_ERRORS = (CholeskyError, torch.linalg.LinAlgError, ValueError)
 #: Streams initialised together (a measurement update is cheap; fixed ranges, see ``update``).
 _INIT_CHUNK = 4096
+
+
+def screen_observations(
+    z: Any,
+    check: ObservationCheck,
+    batch_size: int,
+    obs_dim: int,
+    *,
+    device: torch.device,
+    strict: bool,
+    where: Callable[[int], str],
+) -> tuple[torch.Tensor, torch.Tensor, bool]:
+    """One update's observations of B streams, checked; bad rows become missing ones.
+
+    Args:
+        z: ``[B, Dz]`` rows (``[Dz]`` for one stream, ``B = 1``); a row of NaN is missing.
+        check: classifies the rows: a row that is not missing but has a NaN, an inf or a value
+            beyond the check's threshold is bad
+            (:meth:`~hgpdm_torch.inference.filtering.ObservationCheck.classify`).
+        batch_size, obs_dim: the expected B and Dz.
+        device: where the streams' state lives (the rows, flags and counts go there).
+        strict: raise for a bad row instead of rejecting it.
+        where: ``b -> str``, how an error names row ``b`` (e.g. ``"z[3] (stream 3, step 7)"``).
+
+    Returns:
+        ``z [B, Dz]`` on ``device`` in its own floating dtype, with the bad rows set to NaN
+        (missing); ``rejected [B]`` bool, the bad rows; whether the input was one ``[Dz]`` row.
+
+    Raises:
+        ValueError: a wrong shape; with ``strict``, the first bad row, naming it (``where``) and
+            its first bad channel. Nothing is changed: the caller's state is not touched here.
+    """
+    z = _check_observations(z, obs_dim, min_ndim=1)
+    single = z.dim() == 1
+    if single:
+        z = z[None]
+    if z.shape != (batch_size, obs_dim):
+        raise ValueError(
+            f"z must have shape [B, Dz] = [{batch_size}, {obs_dim}], got {tuple(z.shape)}"
+        )
+    z = z.to(device)  # the checks, flags and counts live on the streams' device
+    _, rejected = check.classify(z)
+    if bool(rejected.any()):
+        b = int(torch.nonzero(rejected)[0])
+        if strict:
+            raise _bad_observation(where(b), check.reason(z[b]))
+        z = z.masked_fill(rejected[:, None], math.nan)
+    return z, rejected, single
+
+
+def belief_step(
+    log_belief: torch.Tensor,
+    evidence: torch.Tensor,
+    observed: torch.Tensor,
+    forgetting: float,
+    temperature: float,
+) -> torch.Tensor:
+    """Algorithm 3.2, lines 10-11: ``B_t = (1 - eps) B_{t-1} + E_t / T`` where the stream's step
+    was observed (``B_t = (1 - eps) B_{t-1}`` where not), normalised.
+
+    Args:
+        log_belief: ``[S, K]`` log belief ``B_{t-1}`` (normalised or not; ``-inf`` excludes a
+            value).
+        evidence: ``[S, K]`` evidence ``E_t(g)`` of this step; read only where ``observed``
+            (elsewhere it may be anything, NaN included).
+        observed: ``[S]`` bool, the streams whose step carries evidence.
+        forgetting: ``eps`` in ``[0, 1)``.
+        temperature: ``T > 0``.
+
+    Returns:
+        ``[S, K]`` normalised log belief ``B_t``.
+    """
+    new = (1.0 - forgetting) * log_belief
+    evidence = evidence / temperature
+    new = new + torch.where(observed[:, None], evidence, torch.zeros_like(evidence))
+    return new - torch.logsumexp(new, -1, keepdim=True)
+
+
+def flagged_belief(
+    log_belief: torch.Tensor,
+    values: torch.Tensor,
+    continuous: bool,
+    single: bool,
+    rejected: torch.Tensor,
+    reset: torch.Tensor | None = None,
+) -> IntentionBelief:
+    """The belief an online ``update`` returns: over ``log_belief [B, K]`` and ``values
+    [K, Dg]``, with the flags ``rejected`` (and ``reset_streams``) ``[B]``; for one ``[Dz]``
+    row (``single``) ``[K]`` with ``[]`` flags."""
+    if single:
+        log_belief, rejected = log_belief[0], rejected[0]
+        reset = None if reset is None else reset[0]
+    out = IntentionBelief.from_log(log_belief, values, continuous)
+    out.rejected, out.reset_streams = rejected, reset
+    return out
 
 
 def _usable_state(mean: torch.Tensor, cov: torch.Tensor, log_belief: torch.Tensor) -> torch.Tensor:
@@ -151,25 +252,12 @@ class IsolatedStreams:
             ValueError: a wrong shape; with ``strict``, a bad observation or a failed stream
                 (naming the stream, step and channel); the filter's state is then unchanged.
         """
-        z = _check_observations(z, self.obs_dim, min_ndim=1)
-        single = z.dim() == 1
-        if single:
-            z = z[None]
         B = self.batch_size
-        if z.shape != (B, self.obs_dim):
-            raise ValueError(
-                f"z must have shape [B, Dz] = [{self.batch_size}, {self.obs_dim}], got "
-                f"{tuple(z.shape)}"
-            )
-        z = z.to(self.mean.device)  # the checks, flags and counts live on the filter's device
-        _, rejected = self.check.classify(z)
-        any_rejected = bool(rejected.any())
-        if any_rejected:
-            b = int(torch.nonzero(rejected)[0])
-            if self.strict:
-                raise _bad_observation(self._where(b), self.check.reason(z[b]))
-            z = z.masked_fill(rejected[:, None], math.nan)
-        z = z.to(self.mean.device, self.dtype)
+        z, rejected, single = screen_observations(
+            z, self.check, B, self.obs_dim, device=self.mean.device, strict=self.strict,
+            where=self._where,
+        )  # fmt: skip
+        z = z.to(self.dtype)
         # the update works on copies, written back at the end: a strict error changes nothing
         mean, cov, log_belief = self.mean.clone(), self.cov.clone(), self.log_belief.clone()
         started = self.started.clone()
@@ -226,15 +314,10 @@ class IsolatedStreams:
             # a stream restarted before its step counts this observation, one that failed not
             self.steps.copy_(torch.where(broken, 1, self.steps).masked_fill_(failed, 0))
             self.reset_count += reset
-        if any_rejected:
-            self.rejected_count += rejected
-        if single:
-            out = IntentionBelief.from_log(self.log_belief[0], self.values, self.continuous)
-            out.rejected, out.reset_streams = rejected[0], reset[0]
-        else:
-            out = self.belief()
-            out.rejected, out.reset_streams = rejected, reset
-        return out
+        self.rejected_count += rejected
+        return flagged_belief(
+            self.log_belief, self.values, self.continuous, single, rejected, reset
+        )
 
     def _where(self, b: int) -> str:
         return f"z[{b}] (stream {b}, step {int(self.steps[b])})"
