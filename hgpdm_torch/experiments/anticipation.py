@@ -93,10 +93,11 @@ class AnticipationConfig:
         iddm_trials: training strokes the IDDM of a fold is fitted on (all when larger).
         latent_dim, fit_steps, alpha, alpha_g: IDDM latent dimension, optimiser steps,
             transition kernel and g kernel. ``fit_steps`` is a budget: on the demo's 150
-            watched strokes (seed 0) the MAP loss still falls after 60 L-BFGS steps, but 150
-            steps (4x the time) moved the belief-mean error on 80 other strokes at 320, 240,
-            160, 80, 0 ms by -0.8, -3.3, -4.4, -0.8, +0.2 cm (43.0, 46.4, 44.0, 40.1, 26.5 cm
-            at 60 steps); each result reports its fits (``FitResult.summary``). The latents
+            watched strokes (seed 0) the MAP loss still falls after 60 L-BFGS steps (and after
+            400), but the belief-mean error on 80 other strokes at 320, 240, 160, 80, 0 ms,
+            43.0, 46.4, 44.0, 40.1, 26.5 cm at 60 steps, moved by -0.8, -3.3, -4.4, -0.8, +0.2
+            cm at 150 steps (4x the time) and -0.8, -2.8, -2.6, -1.9, -0.2 cm at 400; each
+            result reports its fits (``FitResult.summary``). The latents
             start from partial least squares on the training targets
             (:func:`~.target_prediction.supervised_init`), as in the target-prediction
             experiment (with PCA the latent keeps the ball's flight and loses the target).
