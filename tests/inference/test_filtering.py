@@ -348,7 +348,7 @@ def test_fitted_discrete_iddm_prefers_the_true_style():
 
     data = styled_movements(3, 2, 30, 6, noise=0.02, seed=0)
     model = IDDM(data.sequences, data.labels, 3, measurement="linear", intention="discrete")
-    model.fit(40)
+    model.fit(40, warn=False)  # a few steps suffice for the belief checked here
     trans, meas = model.transition_posterior(), model.measurement_posterior()
     codes = torch.arange(model.num_values).double()[:, None]
     for j, z in enumerate(data.sequences):
@@ -369,7 +369,7 @@ def test_fitted_continuous_iddm_infers_the_target():
 
     data = targeted_movements(8, 25, 6, seed=0)
     model = IDDM(data.sequences, data.labels, 3, measurement="linear", intention="continuous")
-    model.fit(40)
+    model.fit(40, warn=False)  # a few steps suffice for the belief checked here
     trans, meas = model.transition_posterior(), model.measurement_posterior()
     grid = torch.linspace(-1, 1, 21)[:, None, None]
     for j, z in enumerate(data.sequences):
