@@ -42,6 +42,8 @@ def test_log_density_matches_scipy_with_broadcasting(generator):
     assert got.shape == (5, 3)
     for j in range(3):
         ref = stats.multivariate_normal(mean[j].numpy(), S[j].numpy()).logpdf(x[:, j].numpy())
+        # another factorisation (scipy: eigh) of a 4 x 4 matrix of condition number < ~20:
+        # n^2 cond eps ~ 1e-13 of the log-density's terms, themselves ~ its size
         np.testing.assert_allclose(got[:, j].numpy(), ref, rtol=1e-12)
 
 
@@ -62,11 +64,11 @@ def test_entropy_matches_scipy_and_torch(generator):
     L = torch.linalg.cholesky(S)
     got = G.entropy(L)
     ref = [stats.multivariate_normal(np.zeros(5), S[b].numpy()).entropy() for b in range(2)]
-    np.testing.assert_allclose(got.numpy(), ref, rtol=1e-12)
+    np.testing.assert_allclose(got.numpy(), ref, rtol=1e-12)  # as above: a log-determinant
     torch.testing.assert_close(got, MultivariateNormal(torch.zeros(5), S).entropy())
     # the sign of the factor's diagonal does not matter (L diag(+-1) is a factor of S too)
     flip = L * torch.tensor([1.0, -1.0, 1.0, -1.0, -1.0])
-    torch.testing.assert_close(G.entropy(flip), got, rtol=0, atol=0)
+    torch.testing.assert_close(G.entropy(flip), got, rtol=0, atol=0)  # log |L_ii|: exact
 
 
 def test_expected_log_density_closed_form_scalar():
@@ -99,9 +101,11 @@ def test_kl_divergence_matches_torch_batched(generator):
     Lq, Lp = torch.linalg.cholesky(Sq), torch.linalg.cholesky(Sp)
     got = G.kl_divergence(mq, Lq, mp, Lp)
     ref = kl_divergence(MultivariateNormal(mq, Sq), MultivariateNormal(mp, Sp))
+    # 3 x 3 solves and log-determinants of condition number < ~20: ~1e-14 of terms of size ~1
     torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
     # KL = -E_q[log p] - H(q); KL(q || q) = 0
     torch.testing.assert_close(got, -G.expected_log_density(mq, Lq, mp, Lp) - G.entropy(Lq))
+    # zero up to the rounding of terms of size ~1 (d = 3): ~1e-15
     torch.testing.assert_close(G.kl_divergence(mq, Lq, mq, Lq), torch.zeros(4), atol=1e-13, rtol=0)
     with pytest.raises(ValueError, match="q_scale_tril"):
         G.kl_divergence(mq, Lq[..., :2, :2], mp, Lp)
@@ -121,6 +125,8 @@ def test_conditional_matches_dense_formula(generator):
     mean = mx + ((y - my)[None, :] @ gain_t)[0]
     Sxn, Cn, Syn = Sx.numpy(), C.numpy(), Sy.numpy()
     K = Cn @ np.linalg.inv(Syn)
+    # a 2 x 2 inverse of condition number < ~20 against a Cholesky solve: ~1e-14 relative;
+    # a covariance entry near zero carries the rounding of the whole matrix (atol)
     np.testing.assert_allclose(gain_t.numpy(), K.T, rtol=1e-10)
     np.testing.assert_allclose(mean.numpy(), mx.numpy() + K @ (y - my).numpy(), rtol=1e-10)
     np.testing.assert_allclose(cov.numpy(), Sxn - K @ Cn.T, rtol=1e-10, atol=1e-13)
@@ -193,7 +199,8 @@ def test_mixture_moments_brute_force(generator, with_covs):
             wb[k] * ((covs[b, k].numpy() if with_covs else 0.0) + np.outer(mb[k], mb[k]))
             for k in range(K)
         )
-        np.testing.assert_allclose(mean[b].numpy(), m_ref, rtol=1e-12)
+        # sums of K = 4 terms of size ~1 in another order: ~4 eps, relative to the terms (atol)
+        np.testing.assert_allclose(mean[b].numpy(), m_ref, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(cov[b].numpy(), second - np.outer(m_ref, m_ref), atol=1e-12)
         cr_ref = sum(wb[k] * cross[b, k].numpy() for k in range(K))
         np.testing.assert_allclose(cr[b].numpy(), cr_ref, rtol=1e-12, atol=1e-14)

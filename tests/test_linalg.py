@@ -44,6 +44,7 @@ def test_gaussian_nll_value_and_gradient(generator):
     y = torch.randn(5, 3, generator=generator)
     cov = a @ a.T + torch.eye(5)
     want = -sum(multivariate_normal.logpdf(y[:, d].numpy(), cov=cov.numpy()) for d in range(3))
+    # a 5 x 5 matrix of condition number ~11, by scipy (eigh) and by Cholesky: ~1e-14 relative
     assert float(gaussian_nll(cov, y)) == pytest.approx(want, rel=1e-12)
     a_ = a.clone().requires_grad_(True)
     y_ = y.clone().requires_grad_(True)

@@ -110,18 +110,37 @@ def run_online(model, z: torch.Tensor, chunk: int, **options) -> dict[str, torch
     return {key: torch.stack(v, 1) for key, v in out.items()}
 
 
-def assert_same(a: dict, b: dict, rows_a, rows_b) -> None:
+def assert_same(a: dict, b: dict, rows_a, rows_b, rounding: float | None = None) -> None:
+    """The streams ``rows_a`` of run ``a`` against ``rows_b`` of run ``b``.
+
+    ``rounding=None``: bit for bit, for two runs of the same shapes and chunks (the same code
+    path on the same memory layout: the filter promises that a stream's rounding does not
+    depend on the other streams). Otherwise a stream's rows lie at another offset of a smaller
+    batch, and MKL's kernels round differently with the memory alignment (bit for bit again
+    with ``MKL_CBWR=COMPATIBLE``): every step's moments solve with the transition GP's kinv,
+    and the states agree to ``rounding`` (``gp_rounding``, N EPS times its condition number,
+    ~3e-8) times the quantity's scale per step, for T steps (measured: up to a hundredth of
+    it); the probabilities move by the log beliefs' error, so on their scale.
+    """
     for key in (*STATE, "prob"):
-        torch.testing.assert_close(a[key][rows_a], b[key][rows_b], rtol=0, atol=1e-12, msg=key)
+        got, want = a[key][rows_a], b[key][rows_b]
+        if rounding is None:
+            assert torch.equal(got, want), key
+        elif want.numel():
+            scale = b["log_belief" if key == "prob" else key][rows_b].abs().max()
+            tol = T * rounding
+            atol = tol * max(float(scale), 1.0)
+            torch.testing.assert_close(got, want, rtol=tol, atol=atol, msg=key)
 
 
 # ------------------------------------------------------------------ (a) online stream isolation
 @FAST
 @given(data=st.data())
-def test_online_bad_rows_touch_only_their_stream(model, windows, data):
+def test_online_bad_rows_touch_only_their_stream(model, windows, data, gp_rounding):
     """Wherever bad rows land, in any chunking: their streams take a prediction-only step
-    (exactly as for a NaN row) and are flagged; every other stream is bit-for-bit (1e-12) as in
-    a run with the bad rows cleaned, and as in a run without the bad streams at all."""
+    (exactly as for a NaN row) and are flagged; every other stream is bit for bit as in a run
+    with the bad rows cleaned, and up to rounding as in a run without the bad streams at all
+    (a smaller batch: other memory alignment, so other rounding in MKL's kernels)."""
     num = data.draw(st.integers(1, 8), label="streams")
     chunk = data.draw(st.integers(1, num), label="chunk_size")
     z = windows[:num].clone()
@@ -145,15 +164,19 @@ def test_online_bad_rows_touch_only_their_stream(model, windows, data):
     assert torch.equal(got["rejected"], flags)
     assert not bool(got["reset"].any())
     assert not bool(got["prob"].isnan().any()) and bool(torch.isfinite(got["log_belief"]).all())
+    # 5 probabilities exp(log_belief), log_belief normalised by a logsumexp of terms up to ~300
+    # in size: each off by ~300 eps relative, their sum by ~1e-13
     torch.testing.assert_close(got["prob"].sum(-1), torch.ones(num, T), rtol=0, atol=1e-12)
     # a rejected row is a missing row, for its own stream and for every other one
     assert_same(got, run_online(model, missing, chunk), slice(None), slice(None))
     # the other streams are as if the bad rows had been clean
     assert_same(got, run_online(model, clean, chunk), ~hit, ~hit)
-    # ... and as if the bad streams did not exist (chunks of one: the same chunks in both runs)
+    # ... and as if the bad streams did not exist (chunks of one in both runs, but at other
+    # offsets of a smaller batch: other memory alignment, other rounding)
     if bool(hit.any()) and not bool(hit.all()):
         alone = run_online(model, bad, 1)
-        assert_same(alone, run_online(model, bad[~hit], 1), ~hit, slice(None))
+        rounding = gp_rounding(model.transition_posterior())
+        assert_same(alone, run_online(model, bad[~hit], 1), ~hit, slice(None), rounding)
 
 
 @FAST

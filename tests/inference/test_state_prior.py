@@ -51,11 +51,13 @@ def test_class_prior_moments_against_numpy(located):
         xk = x[codes == k]
         n = len(xk)
         expected = ((n - 1) * np.cov(xk.T) + dx * marginal) / (n + dx)
+        # means and covariances of n ~ 50 latent points of size ~1 by torch and numpy: sums of
+        # n terms, n eps ~ 1e-14 of the scale (measured: 3e-16, 2e-15)
         np.testing.assert_allclose(mu[k].numpy(), xk.mean(0), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(Sigma[k].numpy(), expected, rtol=1e-10, atol=1e-12)
 
 
-def test_first_online_update_is_the_gp_adf_evidence_of_each_class_prior(located):
+def test_first_online_update_is_the_gp_adf_evidence_of_each_class_prior(located, gp_rounding):
     """``B_1(g) = log p(g) + log q(z_1 | g)``: against GP-ADF on the measurement GP itself."""
     model, z, _ = located
     values = intention_grid(model)
@@ -64,7 +66,10 @@ def test_first_online_update_is_the_gp_adf_evidence_of_each_class_prior(located)
     belief = f.update(z[:, 0])
     meas = model.measurement_posterior()
     _, _, ll = gp_adf_update(meas, mu[:, None], Sigma[:, None], z[None, :, 0])  # [K, B]
-    torch.testing.assert_close(belief.prob, torch.softmax(ll.T, -1), rtol=1e-9, atol=1e-12)
+    # one measurement update by other code and shapes: the evidence agrees to gp_rounding of
+    # its scale, and the probabilities move by that much (measured: 2e-7 of it)
+    rel = gp_rounding(meas) * max(1.0, float(ll.abs().max()))
+    torch.testing.assert_close(belief.prob, torch.softmax(ll.T, -1), rtol=rel, atol=rel)
     # the marginal prior leaves the first belief uniform (Algorithm 3.2, lines 1-3)
     g = OnlineIntentionFilter(model, batch_size=z.shape[0])
     torch.testing.assert_close(g.update(z[:, 0]).prob, torch.full((z.shape[0], 3), 1 / 3.0))

@@ -468,6 +468,8 @@ def test_batched_windows_equal_one_window_at_a_time(planted):
     batched = vb.infer(z[:6])
     for i in range(6):
         one = vb.infer(z[i])
+        # equal up to LM's stopping tolerance, 1e-3 nats: rounding in another batch shape can
+        # move a window's stop by a step that gains less than that (measured: up to 1.6e-4)
         torch.testing.assert_close(batched.log_evidence[i], one.log_evidence, rtol=0, atol=1e-3)
         assert torch.equal(batched.g_ml[i], one.g_ml)
 

@@ -240,7 +240,7 @@ def test_value_noise_is_saved_and_loaded(fitted, tmp_path):
     assert loaded.loss().item() == fitted.loss().item()
 
 
-def test_online_first_prediction_per_class_equals_gp_adf(fitted, styles):
+def test_online_first_prediction_per_class_equals_gp_adf(fitted, styles, gp_rounding):
     model = fitted
     trans, meas = model.transition_posterior(), model.measurement_posterior()
     codes = torch.arange(3).double()[:, None]
@@ -252,20 +252,28 @@ def test_online_first_prediction_per_class_equals_gp_adf(fitted, styles):
     m1, P1 = f.mean.clone(), f.cov.clone()
     # the per-class prediction from q(x_1 | z_1): SharedTransition vs GP-ADF per code
     mean, cov, cross = f.transition.moments(m1, P1)
+    # the same moments by other algebra and shapes: rounding of solves with K + noise I,
+    # gp_rounding (N EPS cond) of each quantity's scale (measured: up to 0.06 of it)
+    rel = gp_rounding(trans)
     for k in range(3):
         ref = trans.predict_gaussian(m1, P1, g=codes[k], include_noise=True)
         for a, b in zip((mean[:, k], cov[:, k], cross[:, k]), ref, strict=True):
-            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+            torch.testing.assert_close(a, b, rtol=rel, atol=rel * float(b.abs().max()))
     assert not torch.allclose(cov[:, 0], cov[:, 1])
     # a grid of some codes, in any order, takes each code's own noise
     sub = SharedTransition(trans, torch.tensor([[2.0], [0.0]]))
     torch.testing.assert_close(sub.noise, model.value_noise[[2, 0]])
     for j, k in enumerate((2, 0)):
+        # each code's block is computed on its own, the same shapes in both: the same rounding
+        # (measured: bit for bit), 1e-12 for any kernel that blocks the codes differently
         torch.testing.assert_close(sub.moments(m1, P1)[1][:, j], cov[:, k], rtol=1e-12, atol=0)
     # the belief after z_2 is the GP-ADF evidence of each code (z_1's is the same for all)
     belief = f.update(z[:, 1])
     ll = filter_sequence(trans, meas, z, f.mu0, f.Sigma0, g=codes[:, None, :]).log_likelihood
-    torch.testing.assert_close(belief.prob, torch.softmax(ll.T, -1), rtol=1e-8, atol=1e-12)
+    # two filter steps by other code: the log-likelihoods agree to 2 gp_rounding of their
+    # scale, and the probabilities move by that much (measured: up to 0.001 of it)
+    rel = 2 * gp_rounding(trans, meas) * max(1.0, float(ll.abs().max()))
+    torch.testing.assert_close(belief.prob, torch.softmax(ll.T, -1), rtol=rel, atol=rel)
 
 
 def test_bad_arguments_raise(styles, fitted):

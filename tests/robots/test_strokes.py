@@ -82,6 +82,8 @@ def test_blocks_of_the_reference_equal_its_steps() -> None:
             for target in zip(*qu.at(ts), strict=True):
                 one.update(target, 1e-3)
             many.update_many(*qu.at(ts), 1e-3)
+            # the same elementwise steps, vectorised over a block: up to 400 steps rounding a
+            # few eps of a state of size <= ~3 each, ~1e-12 at worst (measured: 1e-14)
             np.testing.assert_allclose(many.q, one.q, atol=1e-12, rtol=0)
             np.testing.assert_allclose(many.v, one.v, atol=1e-12, rtol=0)
         for t, pos, vel, acc in zip(ts, *qu.at(ts), strict=True):
