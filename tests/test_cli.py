@@ -20,6 +20,7 @@ from hgpdm_torch.models import HGPDM
 HEAVY = ("torch", "gpytorch", "pyro", "sapien", "numpy", "scipy", "sklearn", "matplotlib")
 
 
+@pytest.mark.filterwarnings("ignore::hgpdm_torch.fitting.ConvergenceWarning")  # smoke-size fits
 def test_style_discovery_runs_and_discovers_styles(tmp_path, capsys):
     assert cli.main(["style-discovery", "--quick", "--out", str(tmp_path)]) == 0
     table = json.loads((tmp_path / "style_discovery.json").read_text())

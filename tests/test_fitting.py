@@ -73,7 +73,7 @@ def test_converges_to_the_rosenbrock_minimum():
     result = fit_map(model, 500)
     assert isinstance(result, FitResult) and result.converged, result.reason
     assert torch.allclose(model.x.detach(), torch.ones(2, dtype=torch.float64), atol=1e-5)
-    assert result.final_loss == pytest.approx(float(model.loss()), abs=0)
+    assert result.final_loss == pytest.approx(float(model.loss().detach()), abs=0)
     assert result.evaluations >= result.steps and result.grad_norm < 1e-3
     # A second fit from the converged state hardly moves.
     again = fit_map(model, 50)

@@ -57,7 +57,8 @@ def screen_observations(
         check: classifies the rows: a row that is not missing but has a NaN, an inf or a value
             beyond the check's threshold is bad
             (:meth:`~hgpdm_torch.inference.filtering.ObservationCheck.classify`).
-        batch_size, obs_dim: the expected B and Dz.
+        batch_size: the expected number of streams B.
+        obs_dim: the expected observation size Dz.
         device: where the streams' state lives (the rows, flags and counts go there).
         strict: raise for a bad row instead of rejecting it.
         where: ``b -> str``, how an error names row ``b`` (e.g. ``"z[3] (stream 3, step 7)"``).
