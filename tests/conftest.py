@@ -88,3 +88,20 @@ def gp_rounding():
     COMPATIBLE paths with 1 or 2 threads.
     """
     return _gp_rounding
+
+
+def _rbf_rounding(a: torch.Tensor, b: torch.Tensor, lengthscales: torch.Tensor) -> float:
+    """How far two implementations of an RBF Gram matrix ``exp(-|a - b|^2 / 2)`` (inputs scaled
+    by ``lengthscales``) may differ: gpytorch forms ``|a|^2 + |b|^2 - 2 a.b``, which rounds to
+    ``(D + 2) eps (|a| + |b|)^2 <= 2 (D + 2) eps (|a|^2 + |b|^2)`` in each; the kernel moves by
+    at most half the difference of the two."""
+    a, b = a / lengthscales, b / lengthscales
+    norms = float(a.pow(2).sum(-1).max() + b.pow(2).sum(-1).max())
+    return 2 * (a.shape[-1] + 2) * EPS * norms
+
+
+@pytest.fixture(scope="session")
+def rbf_rounding():
+    """``rbf_rounding(a, b, lengthscales)``: the bound :func:`_rbf_rounding` on the difference of
+    two implementations of one RBF Gram matrix."""
+    return _rbf_rounding

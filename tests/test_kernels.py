@@ -133,17 +133,7 @@ def test_discrete_kernel_and_posterior_refuse_codes_outside_the_values(code):
         post.kernel(good, torch.tensor([[0.0, 0.0, code]], dtype=torch.float64)).to_dense()
 
 
-def _rbf_rounding(a: torch.Tensor, b: torch.Tensor, lengthscales: torch.Tensor) -> float:
-    """How far two implementations of an RBF Gram matrix ``exp(-|a - b|^2 / 2)`` (inputs scaled
-    by ``lengthscales``) may differ: gpytorch forms ``|a|^2 + |b|^2 - 2 a.b``, which rounds to
-    ``(D + 2) eps (|a| + |b|)^2 <= 2 (D + 2) eps (|a|^2 + |b|^2)`` in each; the kernel moves by
-    at most half the difference of the two."""
-    a, b = a / lengthscales, b / lengthscales
-    norms = float(a.pow(2).sum(-1).max() + b.pow(2).sum(-1).max())
-    return 2 * (a.shape[-1] + 2) * torch.finfo(a.dtype).eps * norms
-
-
-def test_intention_rbf_product_equals_the_bespoke_kernel(generator):
+def test_intention_rbf_product_equals_the_bespoke_kernel(generator, rbf_rounding):
     """gpytorch's RBF(x) * RBF(g) (a ProductKernel) is IntentionRBFKernel to an ulp."""
     old = IntentionRBFKernel(3, 2)
     old.lengthscale_x, old.lengthscale_g = 0.7, 1.9
@@ -154,7 +144,7 @@ def test_intention_rbf_product_equals_the_bespoke_kernel(generator):
     ls = old.lengthscale_vector().detach()
     for a, b in ((x1, x2), (x1, x1)):
         # squared distances formed two ways (measured: up to 0.01 of the bound, ~1.5e-13)
-        tol = _rbf_rounding(a, b, ls)
+        tol = rbf_rounding(a, b, ls)
         torch.testing.assert_close(new(a, b).to_dense(), old(a, b).to_dense(), rtol=0, atol=tol)
     # the diagonal is exp(0) = 1 both ways: exact
     torch.testing.assert_close(new(x1, diag=True), old(x1, diag=True), rtol=0, atol=0)
@@ -163,7 +153,7 @@ def test_intention_rbf_product_equals_the_bespoke_kernel(generator):
 
 
 @pytest.mark.parametrize("kind", ["iddm_continuous", "continuous"])
-def test_intention_rbf_loads_the_bespoke_kernels_state_dict(kind, generator):
+def test_intention_rbf_loads_the_bespoke_kernels_state_dict(kind, generator, rbf_rounding):
     """A state dict holding IntentionRBFKernel entries (the transition kernel of a model saved
     before the switch to the product form) loads into today's transition kernel, nested at any
     prefix, with the same Gram matrix."""
@@ -188,7 +178,7 @@ def test_intention_rbf_loads_the_bespoke_kernels_state_dict(kind, generator):
     # the RBF part's squared distances formed two ways, times its output scale; the other
     # terms are the same code (measured: up to 0.02 of the bound)
     with torch.no_grad():
-        tol = float(old_scaled.outputscale) * _rbf_rounding(x, x, bespoke.lengthscale_vector())
+        tol = float(old_scaled.outputscale) * rbf_rounding(x, x, bespoke.lengthscale_vector())
     torch.testing.assert_close(new(x).to_dense(), old(x).to_dense(), rtol=0, atol=tol)
     lx, lg = (k.lengthscale for k in scaled.base_kernel.kernels)
     ref = old if kind == "iddm_continuous" else old.kernels[0]

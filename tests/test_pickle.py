@@ -210,18 +210,8 @@ def test_kernel_round_trip_keeps_the_gram_matrix_and_priors(name, trip):
         assert torch.equal(prior2.log_prob(closure2(module2)), prior.log_prob(closure(module)))
 
 
-def _rbf_rounding(a: torch.Tensor, b: torch.Tensor, lengthscales: torch.Tensor) -> float:
-    """How far two implementations of an RBF Gram matrix ``exp(-|a - b|^2 / 2)`` (inputs scaled
-    by ``lengthscales``) may differ: gpytorch forms ``|a|^2 + |b|^2 - 2 a.b``, which rounds to
-    ``(D + 2) eps (|a| + |b|)^2 <= 2 (D + 2) eps (|a|^2 + |b|^2)`` in each; the kernel moves by
-    at most half the difference of the two."""
-    a, b = a / lengthscales, b / lengthscales
-    norms = float(a.pow(2).sum(-1).max() + b.pow(2).sum(-1).max())
-    return 2 * (a.shape[-1] + 2) * torch.finfo(a.dtype).eps * norms
-
-
 @pytest.mark.parametrize("trip", ROUND_TRIPS)
-def test_intention_rbf_keeps_its_state_dict_upgrade(trip):
+def test_intention_rbf_keeps_its_state_dict_upgrade(trip, rbf_rounding):
     """The copied product kernel still loads an IntentionRBFKernel state dict (its pre-hook)."""
     old = _with_random_hyperparameters(IntentionRBFKernel(2, 1).to(torch.float64))
     new = ROUND_TRIPS[trip](intention_rbf(2, 1).to(torch.float64))
@@ -229,5 +219,5 @@ def test_intention_rbf_keeps_its_state_dict_upgrade(trip):
     x = torch.cat([_X, _TARGET], -1)
     # the product form and the bespoke kernel form their squared distances two ways
     # (measured: 8.9e-16, 0.025 of the bound)
-    tol = _rbf_rounding(x, x, old.lengthscale_vector().detach())
+    tol = rbf_rounding(x, x, old.lengthscale_vector().detach())
     torch.testing.assert_close(new(x).to_dense(), old(x).to_dense(), rtol=0, atol=tol)
