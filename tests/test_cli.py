@@ -120,7 +120,7 @@ BAD_ARGUMENTS = [
     (["games", "switch", "--json", "{dir}"], "argument --json: {dir} is a folder"),
     (["games", "poker"], "argument experiment: invalid choice"),
     (["demo", "--trials", "0"], "argument --trials: expected a positive integer"),
-    (["demo", "--watched", "-1"], "argument --watched: expected a non-negative integer"),
+    (["demo", "--watched", "-1"], "argument --watched: expected an integer >= 10"),
     (["demo", "--workers", "0"], "argument --workers: expected a positive integer"),
     (["demo", "--seed", "-1"], "argument --seed"),
     (["demo", "--out", "{file}"], "argument --out: {file} is a file"),

@@ -23,7 +23,7 @@ from sklearn.cluster import KMeans
 
 from ..validation import as_tensor
 
-__all__ = ["RadialBasis", "action_features"]
+__all__ = ["MomentBasis", "RadialBasis", "action_features"]
 
 
 class RadialBasis:
@@ -112,6 +112,52 @@ class RadialBasis:
         if self.bias:
             phi = torch.cat([phi, torch.ones_like(phi[..., :1])], -1)
         return phi
+
+
+class MomentBasis:
+    """Per decision step, a polynomial in the belief's mean and standard deviation of the target.
+
+    Takes the ``[..., 2 + T]`` vectors of :func:`~hgpdm_torch.decision.sources.moment_vector`
+    (mean ``m``, sd ``s``, one-hot step) and returns, in the block of the vector's step, every
+    monomial ``m^i s^j`` with ``i + j <= degree`` (a constant included): ``phi'(theta)`` of
+    ``T (degree + 1) (degree + 2) / 2`` features. A movement's stopping value is the chance that
+    the target lies where the movement returns the ball, which moves with the mean and flattens
+    with the spread, and differently at each start time: a low-degree polynomial per step
+    represents it with few weights, where RBFs on the histogram (Eq. 37) need many centres.
+
+    Args:
+        num_steps: T, decision steps.
+        degree: the polynomial degree (default 3).
+    """
+
+    def __init__(self, num_steps: int, degree: int = 3) -> None:
+        for name, value in (("num_steps", num_steps), ("degree", degree)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        self.num_steps, self.degree = num_steps, degree
+        self._powers = [(i, d - i) for d in range(degree + 1) for i in range(d, -1, -1)]
+
+    def fit(self, states: torch.Tensor) -> MomentBasis:
+        """Nothing to learn (the polynomial is fixed); checks the width. Returns ``self``."""
+        self(states)
+        return self
+
+    @property
+    def num_features(self) -> int:
+        """Length of ``phi'``: ``T (degree + 1) (degree + 2) / 2``."""
+        return self.num_steps * len(self._powers)
+
+    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+        """``[..., 2 + T] -> [..., num_features]``."""
+        x = as_tensor(states, "states", min_ndim=1)
+        if x.shape[-1] != 2 + self.num_steps:
+            raise ValueError(
+                f"states must have 2 + T = {2 + self.num_steps} entries (mean, sd, one-hot "
+                f"step), got {x.shape[-1]}"
+            )
+        m, s, step = x[..., :1], x[..., 1:2], x[..., 2:]
+        mono = torch.cat([m**i * s**j for i, j in self._powers], -1)
+        return (step[..., :, None] * mono[..., None, :]).flatten(-2)
 
 
 def action_features(phi: torch.Tensor, action: torch.Tensor, num_actions: int) -> torch.Tensor:

@@ -20,7 +20,14 @@ from ..validation import as_tensor
 from .mcp import Belief
 from .stopping import belief_vector
 
-__all__ = ["BeliefConfig", "Beliefs", "decision_indices", "fit_beliefs"]
+__all__ = [
+    "BeliefConfig",
+    "Beliefs",
+    "decision_indices",
+    "filter_beliefs",
+    "fit_beliefs",
+    "fit_iddm",
+]
 
 
 def decision_indices(obs_times: torch.Tensor, start_times: tuple[float, ...]) -> list[int]:
@@ -117,14 +124,36 @@ def fit_beliefs(
     """
     gen = torch.Generator().manual_seed(config.seed)
     chosen = train[torch.randperm(len(train), generator=gen)[: config.iddm_trials]]
+    model = fit_iddm(obs[chosen], targets[chosen], config)
+    return filter_beliefs(model, obs, steps_at, config, train, test)
+
+
+def fit_iddm(obs: torch.Tensor, targets: torch.Tensor, config: BeliefConfig) -> IDDM:
+    """The IDDM of :func:`fit_beliefs` fitted on all the strokes ``obs [J, T_obs, Dz]`` with
+    targets ``[J]`` (``config.fit_steps`` steps, no warning: ``model.fit_result`` says whether
+    it converged)."""
     model = IDDM(
-        [obs[i] for i in chosen.tolist()], targets[chosen], config.latent_dim,
+        list(obs), targets, config.latent_dim,
         intention="continuous", measurement="linear", alpha=config.alpha, alpha_g=config.alpha_g,
-        init=config.initial_latents(obs[chosen], targets[chosen]),
+        init=config.initial_latents(obs, targets),
     )  # fmt: skip
     # a step budget, not a convergence promise: the experiments report model.fit_result (whether
     # the criteria were met, and why it stopped) in their results instead of a warning
     model.fit(config.fit_steps, warn=False)
+    return model
+
+
+def filter_beliefs(
+    model: IDDM,
+    obs: torch.Tensor,
+    steps_at: list[int],
+    config: BeliefConfig,
+    train: torch.Tensor | None = None,
+    test: torch.Tensor | None = None,
+) -> Beliefs:
+    """The online filter (Algorithm 3.2) of ``model`` over all strokes ``obs [n, T_obs, Dz]``,
+    its beliefs kept at the decision steps ``steps_at`` (grid and forgetting from ``config``);
+    ``train``/``test`` are recorded in the result (default: none / all)."""
     grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
     f = OnlineIntentionFilter(model, grid, forgetting=config.forgetting, batch_size=obs.shape[0])
     means, covs, logs = [], [], []
@@ -136,4 +165,6 @@ def fit_beliefs(
                 covs.append(f.cov.clone())
                 logs.append(f.log_belief.clone())
     stack = [torch.stack(v, 1) for v in (means, covs, logs)]
+    train = torch.zeros(0, dtype=torch.long) if train is None else train
+    test = torch.arange(obs.shape[0]) if test is None else test
     return Beliefs(model, f, *stack, train, test)

@@ -62,7 +62,14 @@ from ..validation import as_tensor, check_choice
 from .lspi import LinearQ
 from .stopping import WAIT, _belief_vector, belief_vector
 
-__all__ = ["Belief", "MCPDecision", "MonteCarloPlanner", "ParticleUpdate"]
+__all__ = [
+    "Belief",
+    "EarlyStopping",
+    "MCPDecision",
+    "MonteCarloPlanner",
+    "ParticleProjector",
+    "ParticleUpdate",
+]
 
 
 def _check_filter(belief_filter: object) -> None:
@@ -166,8 +173,78 @@ def _randn(
     return out.to(like.device)
 
 
-class MonteCarloPlanner:
-    """Anticipatory action selection by Monte-Carlo planning (Algorithms 4.2-4.3).
+class EarlyStopping:
+    """Algorithm 4.3 on any particle projection: sample the value of waiting in chunks until a
+    Student-t confidence interval of its mean excludes the best stopping value.
+
+    Args:
+        num_particles: I, the sampling budget per decision.
+        confidence: level of the two-sided interval.
+        min_particles: particles drawn before the interval is first checked.
+        chunk_size: particles drawn at once; the interval is checked after each chunk.
+    """
+
+    def __init__(
+        self, num_particles: int = 500, confidence: float = 0.99, min_particles: int = 100,
+        chunk_size: int = 100,
+    ) -> None:  # fmt: skip
+        for name, value, low in (
+            ("num_particles", num_particles, 2),
+            ("min_particles", min_particles, 2),
+            ("chunk_size", chunk_size, 1),
+        ):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+        if isinstance(confidence, bool) or not (
+            isinstance(confidence, numbers.Real) and 0.0 < float(confidence) < 1.0
+        ):
+            raise ValueError(f"confidence must be a float in (0, 1), got {confidence!r}")
+        self.num_particles, self.min_particles = num_particles, min_particles
+        self.chunk_size, self.confidence = chunk_size, confidence
+        # interval half-width factors c(n) of Algorithm 4.3 for every checkpoint n
+        checks = range(chunk_size, num_particles + chunk_size, chunk_size)
+        self._c = {
+            min(n, num_particles): float(
+                stats.t.ppf(0.5 + confidence / 2, min(n, num_particles) - 1)
+            )
+            for n in checks
+        }
+
+    def choose(
+        self,
+        q_stop: torch.Tensor,
+        draw: Callable[[int], torch.Tensor],
+        *,
+        can_wait: bool = True,
+        early_stop: bool = True,
+    ) -> MCPDecision:
+        """Wait or stop, given the stopping values ``q_stop [S]`` now and ``draw(m)``, ``m``
+        sampled values ``max_a Q(theta^i_{t+1}, a)`` of the next belief (Algorithm 4.2)."""
+        best_stop, best = q_stop.max(-1)
+        stop = MCPDecision(int(best) + 1, q_stop, math.nan, 0)
+        if not can_wait:
+            return stop
+        samples, n = [], 0
+        while n < self.num_particles:
+            size = min(self.chunk_size, self.num_particles - n)
+            samples.append(draw(size))
+            n += size
+            if early_stop and n >= self.min_particles and n < self.num_particles:
+                r = torch.cat(samples)
+                mean = float(r.mean())
+                half = self._c[n] * float(r.std()) / math.sqrt(n)
+                if mean + half < best_stop:  # waiting is very likely worse
+                    return MCPDecision(stop.action, q_stop, mean, n)
+                if mean - half > best_stop:  # waiting is very likely better
+                    return MCPDecision(WAIT, q_stop, mean, n)
+        q_wait = float(torch.cat(samples).mean())
+        action = WAIT if q_wait > float(best_stop) else stop.action
+        return MCPDecision(action, q_stop, q_wait, n)
+
+
+class ParticleProjector:
+    """Algorithm 4.2's particles for an IDDM belief: sampled next observations and the online
+    filter's update on them (module docstring).
 
     Args:
         model: the fitted IDDM, H-GPDM or GPDM (its measurement GP, and its transition GP for
@@ -175,29 +252,11 @@ class MonteCarloPlanner:
         belief_filter: the online filter of this model whose belief update the particles replay
             (its ``evidence`` must be ``"predictive"``; its grid, forgetting factor and shared
             transition moments are used, not its streams).
-        q: stopping values ``Q^(theta, a) = phi'(theta)^T w_a`` (e.g. ``lspi(...).q``); row 0
-            (waiting) is not used.
-        features: state feature map ``phi'`` from belief vectors ``[..., F]`` (e.g. a fitted
-            :class:`~hgpdm_torch.decision.basis.RadialBasis`).
-        num_particles: I, the sampling budget per decision.
-        confidence: level of the two-sided Student-t interval of Algorithm 4.3.
-        min_particles: particles drawn before the interval is first checked.
-        chunk_size: particles advanced per batched update; the interval is checked after each.
         sampling: ``"moments"`` or ``"points"`` (module docstring).
     """
 
     def __init__(
-        self,
-        model: GPDM,
-        belief_filter: OnlineIntentionFilter,
-        q: LinearQ,
-        features: Callable[[torch.Tensor], torch.Tensor],
-        *,
-        num_particles: int = 500,
-        confidence: float = 0.99,
-        min_particles: int = 100,
-        chunk_size: int = 100,
-        sampling: str = "moments",
+        self, model: GPDM, belief_filter: OnlineIntentionFilter, *, sampling: str = "moments"
     ) -> None:
         if not isinstance(model, GPDM):
             raise TypeError(f"model must be a GPDM/HGPDM/IDDM, got {type(model).__name__}")
@@ -211,37 +270,25 @@ class MonteCarloPlanner:
                 "MonteCarloPlanner replays the filter's predictive-evidence update; got a filter "
                 f"with evidence={belief_filter.evidence!r}"
             )
-        if not isinstance(q, LinearQ):
-            raise TypeError(f"q must be a LinearQ, got {type(q).__name__}")
-        if not callable(features):
-            raise TypeError("features must be callable (belief vectors -> state features)")
-        for name, value, low in (
-            ("num_particles", num_particles, 2),
-            ("min_particles", min_particles, 2),
-            ("chunk_size", chunk_size, 1),
-        ):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
-        if isinstance(confidence, bool) or not (
-            isinstance(confidence, numbers.Real) and 0.0 < float(confidence) < 1.0
-        ):
-            raise ValueError(f"confidence must be a float in (0, 1), got {confidence!r}")
         check_choice(sampling, "sampling", ("moments", "points"))
-        self.filter = belief_filter
-        self.q, self.features = q, features
+        self.filter, self.sampling = belief_filter, sampling
         self.measurement = model.measurement_posterior()
         # the filter's transition GP (sparse where the filter's is)
         self.transition = belief_filter.posterior if sampling == "points" else None
-        self.num_particles, self.min_particles = num_particles, min_particles
-        self.chunk_size, self.confidence, self.sampling = chunk_size, confidence, sampling
-        # interval half-width factors c(n) of Algorithm 4.3 for every checkpoint n
-        checks = range(chunk_size, num_particles + chunk_size, chunk_size)
-        self._c = {
-            min(n, num_particles): float(
-                stats.t.ppf(0.5 + confidence / 2, min(n, num_particles) - 1)
-            )
-            for n in checks
-        }
+
+    def sample_beliefs(
+        self, belief: Belief, num: int, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``num`` particles of the next belief: ``mean [I, Dx]``, ``cov [I, Dx, Dx]`` and
+        ``log_prob [I, K]`` after a sampled observation (Algorithm 4.2, lines 3-6)."""
+        if isinstance(num, bool) or not isinstance(num, int) or num < 1:
+            raise ValueError(f"num must be a positive int, got {num!r}")
+        return self._particles(self._shared(self._check_belief(belief)), num, generator)
+
+    def _particles(self, shared: _Shared, num: int, generator: torch.Generator | None):
+        z = self._sample_observations(shared, num, generator)
+        usable = self.filter.check.usable(z)
+        return self._update(shared, z, None if bool(usable.all()) else ~usable)
 
     # ----- Algorithm 4.2: particle projection -------------------------------------------------
 
@@ -385,14 +432,62 @@ class MonteCarloPlanner:
             cov = torch.where(missing[:, None, None], predicted, cov)
         return mean, symmetrize(cov + spread), log_prob
 
+
+class MonteCarloPlanner(ParticleProjector):
+    """Anticipatory action selection by Monte-Carlo planning (Algorithms 4.2-4.3).
+
+    Args:
+        model: the fitted IDDM, H-GPDM or GPDM (its measurement GP, and its transition GP for
+            ``sampling="points"``).
+        belief_filter: the online filter of this model whose belief update the particles replay
+            (its ``evidence`` must be ``"predictive"``; its grid, forgetting factor and shared
+            transition moments are used, not its streams).
+        q: stopping values ``Q^(theta, a) = phi'(theta)^T w_a`` (e.g. ``lspi(...).q``); row 0
+            (waiting) is not used.
+        features: state feature map ``phi'`` from belief vectors ``[..., F]`` (e.g. a fitted
+            :class:`~hgpdm_torch.decision.basis.RadialBasis`).
+        num_particles: I, the sampling budget per decision.
+        confidence: level of the two-sided Student-t interval of Algorithm 4.3.
+        min_particles: particles drawn before the interval is first checked.
+        chunk_size: particles advanced per batched update; the interval is checked after each.
+        sampling: ``"moments"`` or ``"points"`` (module docstring).
+        vectorize: ``(mean, cov, prob) -> [..., F]`` belief vectors that ``features`` takes
+            (default :func:`~hgpdm_torch.decision.stopping.belief_vector`, the thesis's).
+    """
+
+    def __init__(
+        self,
+        model: GPDM,
+        belief_filter: OnlineIntentionFilter,
+        q: LinearQ,
+        features: Callable[[torch.Tensor], torch.Tensor],
+        *,
+        num_particles: int = 500,
+        confidence: float = 0.99,
+        min_particles: int = 100,
+        chunk_size: int = 100,
+        sampling: str = "moments",
+        vectorize: Callable[..., torch.Tensor] | None = None,
+    ) -> None:
+        super().__init__(model, belief_filter, sampling=sampling)
+        if not isinstance(q, LinearQ):
+            raise TypeError(f"q must be a LinearQ, got {type(q).__name__}")
+        if not callable(features):
+            raise TypeError("features must be callable (belief vectors -> state features)")
+        if vectorize is not None and not callable(vectorize):
+            raise TypeError("vectorize must be callable ((mean, cov, prob) -> vectors) or None")
+        self.rule = EarlyStopping(num_particles, confidence, min_particles, chunk_size)
+        self.q, self.features = q, features
+        self.vectorize = vectorize or _belief_vector
+        self.num_particles, self.min_particles = num_particles, min_particles
+        self.chunk_size, self.confidence = chunk_size, confidence
+
     def _stop_values(self, vectors: torch.Tensor) -> torch.Tensor:
         return self.q.values(self.features(vectors))[..., WAIT + 1 :]
 
     def _project(self, shared: _Shared, num: int, generator: torch.Generator | None):
-        z = self._sample_observations(shared, num, generator)
-        usable = self.filter.check.usable(z)
-        mean, cov, log_prob = self._update(shared, z, None if bool(usable.all()) else ~usable)
-        return self._stop_values(_belief_vector(mean, cov, log_prob.exp())).max(-1).values
+        mean, cov, log_prob = self._particles(shared, num, generator)
+        return self._stop_values(self.vectorize(mean, cov, log_prob.exp())).max(-1).values
 
     def project(
         self, belief: Belief, num: int | None = None, *, generator: torch.Generator | None = None
@@ -434,25 +529,11 @@ class MonteCarloPlanner:
             generator: random generator.
         """
         belief = self._check_belief(belief)
-        q_stop = self._stop_values(belief.vector().to(self.filter.dtype))
-        best_stop, best = q_stop.max(-1)
-        stop = MCPDecision(int(best) + 1, q_stop, math.nan, 0)
+        vector = self.vectorize(belief.mean, belief.cov, belief.log_prob.exp())
+        q_stop = self._stop_values(vector.to(self.filter.dtype))
         if not can_wait:
-            return stop
+            return self.rule.choose(q_stop, None, can_wait=False)
         shared = self._shared(belief)
-        samples, n = [], 0
-        while n < self.num_particles:
-            size = min(self.chunk_size, self.num_particles - n)
-            samples.append(self._project(shared, size, generator))
-            n += size
-            if early_stop and n >= self.min_particles and n < self.num_particles:
-                r = torch.cat(samples)
-                mean = float(r.mean())
-                half = self._c[n] * float(r.std()) / math.sqrt(n)
-                if mean + half < best_stop:  # waiting is very likely worse
-                    return MCPDecision(stop.action, q_stop, mean, n)
-                if mean - half > best_stop:  # waiting is very likely better
-                    return MCPDecision(WAIT, q_stop, mean, n)
-        q_wait = float(torch.cat(samples).mean())
-        action = WAIT if q_wait > float(best_stop) else stop.action
-        return MCPDecision(action, q_stop, q_wait, n)
+        return self.rule.choose(
+            q_stop, lambda n: self._project(shared, n, generator), early_stop=early_stop
+        )

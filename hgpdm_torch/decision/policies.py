@@ -8,15 +8,29 @@ Each is a :data:`~hgpdm_torch.decision.stopping.Policy` for
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
-from .basis import RadialBasis
+from ..validation import as_tensor, check_choice
+from .basis import MomentBasis, RadialBasis
 from .beliefs import Beliefs
 from .lspi import LinearQ, lspi
-from .mcp import MonteCarloPlanner
+from .mcp import EarlyStopping, MonteCarloPlanner
+from .sources import FEATURES, BeliefTrack
 from .stopping import WAIT, Policy, StoppingProblem
 
-__all__ = ["fixed_time_policy", "greedy_policy", "mcp_policy", "stop_only_q"]
+__all__ = [
+    "blind_choice",
+    "cv_return_rate",
+    "decision_basis",
+    "fixed_time_choice",
+    "fixed_time_policy",
+    "greedy_policy",
+    "mcp_policy",
+    "planning_policy",
+    "stop_only_q",
+]
 
 
 def stop_only_q(problem: StoppingProblem, step: int, basis: RadialBasis, ridge: float) -> LinearQ:
@@ -61,3 +75,102 @@ def mcp_policy(
         return torch.tensor([d.action for d in actions], dtype=torch.long)
 
     return policy
+
+
+def planning_policy(
+    track: BeliefTrack,
+    test: torch.Tensor,
+    q: LinearQ,
+    basis: Callable[[torch.Tensor], torch.Tensor],
+    rule: EarlyStopping,
+    horizon: int,
+    features: str = "moments",
+    generator: torch.Generator | None = None,
+) -> Policy:
+    """Monte-Carlo planning (Algorithms 4.2-4.3) on any belief source: at each step, the
+    stopping values of the belief of stroke ``test[i]`` against the sampled values of waiting
+    one step (particles from :meth:`BeliefTrack.draw_next`)."""
+    vectors = track.vectors(features)
+
+    def stop_values(v: torch.Tensor) -> torch.Tensor:
+        return q.values(basis(v))[..., WAIT + 1 :]
+
+    def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
+        actions = []
+        for i in idx.tolist():
+            trial = int(test[i])
+
+            def draw(m: int, trial: int = trial) -> torch.Tensor:
+                nxt = track.draw_next(trial, t, m, generator, features)
+                return stop_values(nxt).max(-1).values
+
+            decision = rule.choose(stop_values(vectors[trial, t]), draw, can_wait=t < horizon - 1)
+            actions.append(decision.action)
+        return torch.tensor(actions, dtype=torch.long)
+
+    return policy
+
+
+def decision_basis(
+    features: str, states: torch.Tensor, num_steps: int, *, centres: int = 20, seed: int = 0
+) -> MomentBasis | RadialBasis:
+    """The state features of a belief source's vectors: a :class:`MomentBasis` for
+    ``features="moments"``, else RBFs on K-means centres of the training ``states [M, F]``
+    (Eq. 37, with a constant feature)."""
+    check_choice(features, "features", FEATURES)
+    if features == "moments":
+        return MomentBasis(num_steps).fit(states)
+    return RadialBasis(centres, seed=seed, bias=True).fit(states)
+
+
+def blind_choice(rewards: torch.Tensor) -> tuple[int, int]:
+    """The best *blind* strategy on training strokes ``rewards [n, S, T]``: the (movement index,
+    step) returning most of them (the first on ties), one movement at one start time for every
+    stroke, no belief."""
+    rewards = as_tensor(rewards, "rewards", ndim=3)
+    wins = (rewards > 0).sum(0)
+    a, t = divmod(int(wins.flatten().argmax()), wins.shape[1])
+    return a, t
+
+
+def fixed_time_choice(
+    problem: StoppingProblem, basis: Callable[[torch.Tensor], torch.Tensor], ridge: float
+) -> tuple[int, LinearQ]:
+    """The best *fixed-time* strategy on the training ``problem``: for every step, stopping
+    values learned from that step's rewards (:func:`stop_only_q`); the step whose greedy
+    movement returns most training strokes (the first on ties), with its values."""
+    best = None
+    for step in range(problem.horizon):
+        q = stop_only_q(problem, step, basis, ridge)
+        wins = int((problem.run(fixed_time_policy(q, basis, step)).reward > 0).sum())
+        if best is None or wins > best[0]:
+            best = (wins, step, q)
+    return best[1], best[2]
+
+
+def cv_return_rate(
+    vectors: torch.Tensor, rewards: torch.Tensor, features: str, *, folds: int = 3,
+    centres: int = 20, ridge: float = 1e-3, seed: int = 0,
+) -> float:  # fmt: skip
+    """The return rate of LSPI's greedy player by ``folds``-fold cross-validation over the given
+    strokes (``vectors [n, T, F]`` of one belief source, ``rewards [n, S, T]``): how the
+    players choose their belief source on training strokes only."""
+    vectors = as_tensor(vectors, "vectors", ndim=3)
+    rewards = as_tensor(rewards, "rewards", ndim=3, dtype=vectors.dtype)
+    n = len(vectors)
+    if n < 2 * folds:
+        raise ValueError(f"cv_return_rate needs at least {2 * folds} strokes, got {n}")
+    gen = torch.Generator().manual_seed(seed)
+    fold_of = torch.empty(n, dtype=torch.long)
+    fold_of[torch.randperm(n, generator=gen)] = torch.arange(n) % folds
+    problem = StoppingProblem(vectors, rewards)
+    won = 0
+    for k in range(folds):
+        train = problem.subset(torch.nonzero(fold_of != k).flatten())
+        test = problem.subset(torch.nonzero(fold_of == k).flatten())
+        basis = decision_basis(features, train.beliefs.flatten(0, 1), problem.horizon,
+                               centres=centres, seed=seed)  # fmt: skip
+        transitions = train.transitions(train.enumerate_episodes(), unique=True)
+        q = lspi(transitions, features=basis, ridge=ridge).q
+        won += int((test.run(greedy_policy(q, basis, test)).reward > 0).sum())
+    return won / n

@@ -5,22 +5,26 @@ r"""``hgpdm demo``: the anticipatory table-tennis player, end to end (thesis Ch.
    with the Barrett WAM (:func:`~hgpdm_torch.robots.table_tennis.trials.reward_table`, cached on
    disk). Strokes outside the robot's hitting region (no movement at any time returns them) are
    dropped.
-2. Fit the IDDM (continuous target, Ch. 3) on further opponent strokes that the robot only
-   watched (observations and targets, no SAPIEN: watching the opponent is cheap, trying
-   movements is not); the online filter (Algorithm 3.2) gives every stroke's belief (latent
-   state and target histogram) at every decision time. The IDDM never sees a test stroke.
+2. Fit the belief sources (:mod:`~hgpdm_torch.decision.sources`: the ``LinearIDDM`` mixture and
+   the thesis's GP IDDM) on further opponent strokes that the robot only watched (observations
+   and targets, no SAPIEN: watching the opponent is cheap, trying movements is not) and track
+   every stroke's belief over the target at every decision time. No model sees a test stroke.
 3. Cross-fitting over ``folds`` folds of the simulated strokes, so that every stroke inside the
-   hitting region is a test rally exactly once: per fold, learn when and how to hit (Ch. 4) on
-   the other folds -- LSPI (Algorithm 4.1) on the enumerated training episodes and Monte-Carlo
-   planning (Algorithms 4.2-4.3) on top of LSPI's stopping values -- and the fixed-strategy
-   baselines (each single movement started 240 ms before the hit; the best movement chosen at
-   a fixed time).
+   hitting region is a test rally exactly once. Per fold, on the other folds only: the belief
+   source (``belief="auto"``: the one whose LSPI player returns most training strokes in a
+   3-fold cross-validation), LSPI (Algorithm 4.1) on the enumerated training episodes,
+   Monte-Carlo planning (Algorithms 4.2-4.3) on LSPI's stopping values with particles from the
+   source's own model, and two baselines: the best *blind* strategy (one movement at one start
+   time) and the best *fixed-time* strategy (the movement the belief favours, always at one
+   start time). Reference rows: LSPI on every candidate source, MCP on the true target as a
+   point belief (oracle belief), the oracle that knows the best movement and time of every
+   stroke, and the blind strategy picked after the fact on the test rallies.
 4. Play the test rallies: at each decision time the player, with MCP, waits or starts a movement;
    the chosen movement is executed in SAPIEN and the ball is returned or missed.
 5. Print each player's return rate with an exact 95% interval (Clopper-Pearson) and the paired
-   difference MCP - best fixed strategy over the same rallies with its 95% interval (Newcombe's
-   square-and-add interval for paired proportions), then save figures: return rates with their
-   intervals, one played rally in 3-D and the belief over the target during that stroke.
+   differences MCP / LSPI - each baseline over the same rallies with their 95% intervals
+   (Newcombe's square-and-add interval for paired proportions), then save figures: return rates
+   with their intervals, one played rally in 3-D and the belief the players used over it.
 
 ``hgpdm demo --full`` runs the whole Sec. 4.3 experiment instead (``hgpdm anticipation --full``).
 """
@@ -32,26 +36,31 @@ import math
 import os
 import sys
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
-from ..decision.basis import RadialBasis
-from ..decision.beliefs import decision_indices, fit_beliefs
+from ..decision.beliefs import decision_indices
 from ..decision.lspi import lspi
-from ..decision.mcp import MonteCarloPlanner
-from ..decision.policies import fixed_time_policy, greedy_policy, mcp_policy, stop_only_q
+from ..decision.mcp import EarlyStopping
+from ..decision.policies import (
+    blind_choice,
+    cv_return_rate,
+    decision_basis,
+    fixed_time_choice,
+    fixed_time_policy,
+    greedy_policy,
+    planning_policy,
+)
+from ..decision.sources import FEATURES, SELECTABLE_SOURCES, BeliefTrack, track_beliefs
 from ..decision.stopping import StoppingProblem
-from ..inference import BeliefMixture
-from ..models import LinearIDDM
 from ..parallel import Executor, available_cpus, get_executor, ray_address_type
+from ..validation import check_choice
 from . import anticipation as ant
 from .arguments import (
     int_at_least,
-    non_negative_int,
     output_folder,
     positive_int,
     random_seed,
@@ -61,6 +70,7 @@ from .intervals import paired_difference_interval, return_rate_interval
 from .table import ResultTable
 
 __all__ = [
+    "BELIEFS",
     "DEFAULT_TRIALS",
     "DEFAULT_WATCHED",
     "DemoResult",
@@ -71,13 +81,14 @@ __all__ = [
     "summary",
 ]
 
-#: Strokes simulated in SAPIEN by default: about 85% fall inside the hitting region, so that the
-#: default run (seed 0) plays more than 60 test rallies.
-DEFAULT_TRIALS = 80
-#: Further opponent strokes the IDDM is fitted on by default (observed only, never played).
-DEFAULT_WATCHED = 150
-#: Fixed strategies: the players whose timing does not depend on the belief.
-FIXED_PREFIXES = ("always ", "best movement @")
+#: Strokes simulated in SAPIEN by default: about 80% fall inside the hitting region, so that the
+#: default run plays about 300 test rallies (a paired 95% interval of about +-0.06).
+DEFAULT_TRIALS = 380
+#: Further opponent strokes the belief models learn from by default (observed only, never
+#: played; watching is cheap, trying movements in SAPIEN is not).
+DEFAULT_WATCHED = 600
+#: ``belief`` values: ``"auto"`` or one of the selectable sources.
+BELIEFS = ("auto", *SELECTABLE_SOURCES)
 
 
 @dataclass
@@ -103,15 +114,12 @@ class DemoResult:
     """What :func:`run_demo` returns: the table, the played rallies and the beliefs to draw.
 
     ``rallies`` are the test rallies in stroke order (every stroke inside the hitting region);
-    ``target_probs [n_test, T, K]`` is the belief over the target grid ``grid [K]`` of each of
-    them at the ``T`` decision times ``start_times``; ``successes`` maps each player of the
-    table to its ``[n_test]`` returns on the same rallies (the pairs behind the paired
-    difference). ``linear_probs [n_test, T, K]`` is the belief README recommends for target
-    prediction, the :class:`~hgpdm_torch.inference.BeliefMixture` of two
-    :class:`~hgpdm_torch.models.LinearIDDM` (without and with the rank-1 intention-state
-    interaction, everything chosen by cross-validation) fitted on the IDDM's training strokes
-    (all of them, also where the IDDM takes a subset), for comparison only: the players decide
-    on the IDDM's belief.
+    ``target_probs [n_test, T, K]`` is the belief the players decided on (the source chosen for
+    the rally's fold) over the target grid ``grid [K]`` at the ``T`` decision times
+    ``start_times``; ``beliefs`` maps every source tracked (the candidates and the oracle) to
+    its ``[n_test, T, K]`` beliefs; ``sources [n_test]`` names the source of each rally's fold;
+    ``successes`` maps each player of the table to its ``[n_test]`` returns on the same rallies
+    (the pairs behind the paired differences).
     """
 
     table: ResultTable
@@ -121,24 +129,8 @@ class DemoResult:
     target_probs: torch.Tensor
     meta: dict = field(default_factory=dict)
     successes: dict[str, torch.Tensor] = field(default_factory=dict)
-    linear_probs: torch.Tensor | None = None
-
-
-def _linear_beliefs(
-    obs: torch.Tensor, targets: torch.Tensor, train: torch.Tensor, test: torch.Tensor,
-    steps_at: list[int], grid: torch.Tensor,
-) -> torch.Tensor:  # fmt: skip
-    """``[len(test), T, K]`` beliefs, at the decision steps, of the equal mixture of two
-    :class:`LinearIDDM` (without and with the rank-1 interaction; noise kind, prior, T and eps
-    by cross-validation) fitted on the ``train`` strokes."""
-    models = []
-    for rank in (0, 1):
-        model = LinearIDDM(interaction_rank=rank, select="cv", temperature="cv", forgetting="cv")
-        with warnings.catch_warnings():  # a comparison only: a prior scale at its grid's edge
-            warnings.simplefilter("ignore")  # (the held-out likelihood is flat in it) is fine
-            models.append(model.fit(obs[train], targets[train]))
-    belief = BeliefMixture(models).beliefs(obs[test][:, : max(steps_at) + 1], grid)
-    return belief.prob[:, steps_at]
+    beliefs: dict[str, torch.Tensor] = field(default_factory=dict)
+    sources: list[str] = field(default_factory=list)
 
 
 def _play_rally(job: tuple) -> object:
@@ -155,16 +147,38 @@ def _play_rally(job: tuple) -> object:
         torch.set_default_dtype(previous)
 
 
-def _verdict(low: float, high: float, best: str, n: int) -> str:
-    """One honest sentence on the paired interval MCP - best fixed strategy."""
+def _verdict(low: float, high: float, other: str, n: int) -> str:
+    """One honest sentence on a paired interval MCP - ``other``."""
     if low > 0:
-        return f"MCP returns more balls than {best} (the 95% interval is above 0, {n} rallies)"
+        return f"MCP returns more balls than the {other} (95% interval above 0, {n} rallies)"
     if high < 0:
-        return f"MCP returns fewer balls than {best} (the 95% interval is below 0, {n} rallies)"
+        return f"MCP returns fewer balls than the {other} (95% interval below 0, {n} rallies)"
     return (
-        f"no significant difference between MCP and {best} at the 95% level over {n} rallies "
-        "(the interval contains 0)"
+        f"no significant difference between MCP and the {other} at the 95% level over {n} "
+        "rallies (the interval contains 0)"
     )
+
+
+def _strategy_name(names: list[str]) -> str:
+    """One name for a strategy chosen per fold: the name, or ``"per fold: a / b / c"``."""
+    return names[0] if len(set(names)) == 1 else "per fold: " + " / ".join(names)
+
+
+def _check_sizes(num_trials, watched, folds, workers, executor, status, belief, features) -> None:
+    for name, value, low in (("num_trials", num_trials, 1), ("watched", watched, 10),
+                             ("folds", folds, 2)):  # fmt: skip
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
+    ):
+        raise ValueError(f"workers must be a positive int or None, got {workers!r}")
+    if workers is not None and executor is not None:
+        raise ValueError("give workers or an executor, not both")
+    if status is not None and not callable(status):
+        raise TypeError(f"status must be callable or None, got {type(status).__name__}")
+    check_choice(belief, "belief", BELIEFS)
+    check_choice(features, "features", FEATURES)
 
 
 def run_demo(
@@ -172,6 +186,8 @@ def run_demo(
     num_trials: int = DEFAULT_TRIALS,
     watched: int = DEFAULT_WATCHED,
     folds: int = 3,
+    belief: str = "auto",
+    features: str = "moments",
     config: ant.AnticipationConfig | None = None,
     workers: int | None = None,
     executor: Executor | None = None,
@@ -183,18 +199,24 @@ def run_demo(
     """Train the anticipatory player on simulated strokes and play the test rallies in SAPIEN.
 
     Every simulated stroke inside the robot's hitting region is a test rally once (cross-fitting
-    over ``folds`` folds): the decision layers (LSPI, MCP and the fixed-time baselines) are
-    learned on the other folds, the IDDM on the ``watched`` strokes only.
+    over ``folds`` folds): the belief source, the decision layers (LSPI, MCP) and the baselines
+    are chosen and learned on the other folds, the belief models on the ``watched`` strokes.
 
     Args:
         num_trials: opponent strokes played in SAPIEN (before excluding those outside the
             robot's hitting region).
-        watched: further opponent strokes the IDDM is trained on (no robot movements). With
-            ``0`` the IDDM of each fold is fitted on that fold's training strokes instead.
+        watched: further opponent strokes (``>= 10``) the belief models learn from (no robot
+            movements).
         folds: cross-fitting folds (``>= 2``); each learns from ``(folds - 1) / folds`` of the
             strokes.
-        config: IDDM, basis, LSPI and MCP settings (default: the full experiment's with 20
-            RBF centres; learning takes seconds, the SAPIEN simulation minutes).
+        belief: the belief source the players decide on: ``"auto"`` (default: per fold, the
+            source of :data:`~hgpdm_torch.decision.sources.SELECTABLE_SOURCES` whose LSPI
+            player returns most training strokes in a 3-fold cross-validation), or one of them
+            (``"linear-iddm"``, ``"gp-iddm"``, the thesis's).
+        features: the decision features (:data:`~hgpdm_torch.decision.sources.FEATURES`):
+            ``"moments"`` (default) or the thesis's ``"rbf"``.
+        config: GP IDDM, basis, LSPI and MCP settings (default: the full experiment's with 20
+            RBF centres and the GP IDDM on 150 of the watched strokes).
         workers: SAPIEN processes for the reward table and the live rallies (default: all
             cores, at most 4).
         executor: an :class:`~hgpdm_torch.parallel.Executor` (e.g. a Ray cluster) to simulate
@@ -207,34 +229,22 @@ def run_demo(
 
     Returns:
         A :class:`DemoResult`; its table has each player's returns, rate and exact 95%
-        interval, and its meta the paired difference MCP - best fixed strategy with its 95%
-        interval (:func:`paired_difference_interval`).
+        interval, and its meta the paired differences of MCP and LSPI against the best blind and
+        the best fixed-time strategy chosen on the training folds, with their 95% intervals
+        (:func:`paired_difference_interval`).
 
     Raises:
-        ValueError: bad sizes (``num_trials``, ``watched``, ``workers``, ``folds``), ``workers``
-            with an ``executor``, or too few strokes inside the hitting region for the folds.
+        ValueError: bad sizes (``num_trials``, ``watched``, ``workers``, ``folds``), an unknown
+            ``belief`` or ``features``, ``workers`` with an ``executor``, or too few strokes
+            inside the hitting region for the folds.
     """
     from tqdm.auto import tqdm
 
     from ..robots.table_tennis import strokes
     from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
 
-    for name, value, low in (
-        ("num_trials", num_trials, 1),
-        ("watched", watched, 0),
-        ("folds", folds, 2),
-    ):
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
-    if workers is not None and (
-        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
-    ):
-        raise ValueError(f"workers must be a positive int or None, got {workers!r}")
-    if workers is not None and executor is not None:
-        raise ValueError("give workers or an executor, not both")
-    if status is not None and not callable(status):
-        raise TypeError(f"status must be callable or None, got {type(status).__name__}")
-    config = config or ant.AnticipationConfig(centres=20, iddm_trials=10_000, seed=seed)
+    _check_sizes(num_trials, watched, folds, workers, executor, status, belief, features)
+    config = config or ant.AnticipationConfig(centres=20, iddm_trials=150, seed=seed)
     movements = tuple(strokes.MOVEMENTS)
     if movements != ant.MOVEMENTS:
         raise RuntimeError(f"robot movements {movements} differ from actions {ant.MOVEMENTS}")
@@ -260,7 +270,7 @@ def run_demo(
                 f"simulate: {num_trials} strokes x {rewards[0].numel()} (movement, start) in "
                 f"SAPIEN, {n} inside the hitting region ({t_sim:.0f} s)"
             )
-            if n < folds or n - math.ceil(n / folds) < 4:
+            if n < folds or n - math.ceil(n / folds) < 6:
                 raise ValueError(
                     f"only {n} of {num_trials} strokes are inside the hitting region; "
                     f"{folds} folds need more: simulate more (num_trials)"
@@ -269,98 +279,39 @@ def run_demo(
             fold_of = torch.empty(n, dtype=torch.long)
             fold_of[torch.randperm(n, generator=gen)] = torch.arange(n) % folds
 
+            # the belief models learn from the watched strokes only
             clock = time.perf_counter()
-            obs, targets = trials.obs, trials.targets
+            seen = make_trials(watched, seed=seed + 1, progress=progress)
+            if not torch.equal(seen.obs_times, trials.obs_times):
+                raise RuntimeError("watched strokes must share the trials' observation times")
             steps_at = decision_indices(trials.obs_times, start_times)
-            shared = None
-            if watched:
-                seen = make_trials(watched, seed=seed + 1, progress=progress)
-                if not torch.equal(seen.obs_times, trials.obs_times):
-                    raise RuntimeError("watched strokes must share the trials' observation times")
-                obs, targets = torch.cat([obs, seen.obs]), torch.cat([targets, seen.targets])
-                iddm_train = num_trials + torch.arange(watched)
-                shared = fit_beliefs(obs, targets, steps_at, iddm_train, valid, config)
+            last = max(steps_at) + 1
+            candidates = SELECTABLE_SOURCES if belief == "auto" else (belief,)
+            tracks = {
+                src: track_beliefs(src, seen.obs[:, :last], seen.targets, trials.obs[:, :last],
+                                   trials.targets, steps_at, config)  # fmt: skip
+                for src in (*candidates, "oracle")
+            }
             t_fit = time.perf_counter() - clock
-            fits = []  # FitResult summaries of the IDDM(s), for the result
-            if shared is not None:
-                fits.append(shared.model.fit_result.summary())
-                say(f"fit: IDDM on {watched} watched strokes ({_fit_words(fits)}), beliefs "
-                    f"filtered ({t_fit:.0f} s)")  # fmt: skip
+            fits = {src: track.fits for src, track in tracks.items() if track.fits}
+            say(f"fit: {', '.join(candidates)} on {watched} watched strokes, beliefs tracked "
+                f"({t_fit:.0f} s)")  # fmt: skip
 
-            # per fold: the baselines and LSPI are scored on the reward table, MCP decides
-            players = [f"always {m} @240ms" for m in movements]
-            players += [f"best movement @{round(-1000 * s)}ms" for s in ant.ORACLE_TIMES]
-            players += ["LSPI", "MCP"]
-            won = {p: torch.zeros(n, dtype=torch.bool) for p in players}
-            stop_step = torch.zeros(n, dtype=torch.long)
-            stop_action = torch.zeros(n, dtype=torch.long)
-            table_reward = torch.zeros(n)
-            probs = torch.zeros(n, len(start_times), config.grid_size)
-            linear_probs = torch.zeros_like(probs)
-            grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
-            single = start_times.index(ant.SINGLE_TIME)
-            t_learn = t_plan = 0.0
-            decisions = 0
-            bar = tqdm(total=folds, disable=not progress, desc="learn + plan (folds)", leave=False)
-            for k in range(folds):
-                at = torch.nonzero(fold_of == k).flatten()  # positions among the valid strokes
-                train, test = valid[fold_of != k], valid[at]
-                clock = time.perf_counter()
-                beliefs = shared
-                if beliefs is None:  # no watched strokes: this fold's IDDM on its training set
-                    beliefs = fit_beliefs(obs, targets, steps_at, train, valid, config)
-                    fits.append(beliefs.model.fit_result.summary())
-                    t_fit += time.perf_counter() - clock
-                    clock = time.perf_counter()
-                vectors = beliefs.vectors()[:num_trials]
-                problem = StoppingProblem(vectors, rewards)
-                train_p, test_p = problem.subset(train), problem.subset(test)
-                basis = RadialBasis(config.centres, seed=seed, bias=True).fit(
-                    train_p.beliefs.reshape(-1, vectors.shape[-1])
-                )
-                for a, name in enumerate(movements):
-                    won[f"always {name} @240ms"][at] = test_p.rewards[:, a, single] > 0
-                for s in ant.ORACLE_TIMES:
-                    step = start_times.index(s)
-                    q_t = stop_only_q(train_p, step, basis, config.ridge)
-                    episodes = test_p.run(fixed_time_policy(q_t, basis, step))
-                    won[f"best movement @{round(-1000 * s)}ms"][at] = episodes.reward > 0
-                enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
-                q = lspi(enumerated, features=basis, ridge=config.ridge).q
-                won["LSPI"][at] = test_p.run(greedy_policy(q, basis, test_p)).reward > 0
-                planner = MonteCarloPlanner(
-                    beliefs.model, beliefs.belief_filter, q, basis,
-                    num_particles=config.particles, confidence=config.confidence,
-                )  # fmt: skip
-                t_learn += time.perf_counter() - clock
-                clock = time.perf_counter()
-                # the MCP player's decisions on this fold's rallies (positions in `valid` of
-                # the fold's trials index the beliefs)
-                decided = test_p.run(mcp_policy(planner, beliefs, test, test_p.horizon, gen))
-                t_plan += time.perf_counter() - clock
-                decisions += int((decided.stop_step + 1).sum())
-                stop_step[at], stop_action[at] = decided.stop_step, decided.stop_action
-                table_reward[at] = decided.reward.to(table_reward.dtype)
-                probs[at] = beliefs.log_prob[test].exp().to(probs.dtype)
-                seen_by = iddm_train if watched else train  # the IDDM's strokes
-                linear = _linear_beliefs(obs, targets, seen_by, test, steps_at, grid)
-                linear_probs[at] = linear.to(probs.dtype)
-                bar.update()
-            bar.close()
-            if shared is None:
-                say(f"fit: one IDDM per fold on its training strokes ({_fit_words(fits)}; "
-                    f"{t_fit:.0f} s)")  # fmt: skip
+            play = _learn_and_decide(
+                tracks, rewards, valid, fold_of, candidates, features, config, gen,
+                progress=progress,
+            )  # fmt: skip
             say(
-                f"learn: LSPI, baselines and MCP decisions on {folds} folds "
-                f"({t_learn + t_plan:.0f} s)"
+                f"learn: belief choice, baselines, LSPI and MCP decisions on {folds} folds "
+                f"({play.seconds:.0f} s)"
             )
 
             # every MCP decision executed in SAPIEN
             clock = time.perf_counter()
             dtype = torch.get_default_dtype()
             jobs = [
-                (trials[int(i)], movements[int(stop_action[j]) - 1],
-                 start_times[int(stop_step[j])], dtype)
+                (trials[int(i)], movements[int(play.stop_action[j]) - 1],
+                 start_times[int(play.stop_step[j])], dtype)
                 for j, i in enumerate(valid.tolist())
             ]  # fmt: skip
             outcomes = list(
@@ -376,60 +327,165 @@ def run_demo(
     finally:
         if executor is None:
             pool.close()
+    won = play.won
     won["MCP"] = torch.tensor([bool(r.outcome.success) for r in rallies])
     # the scene is deterministic: each live rally must reproduce the reward the stopping
     # problem gave the planner's (step, action) decision
-    agree = int((won["MCP"] == (table_reward > 0)).sum())
+    agree = int((won["MCP"] == (play.table_reward > 0)).sum())
 
     table = ResultTable(
         f"hgpdm demo: anticipatory table tennis, {n} test rallies ({folds}-fold cross-fitting "
         f"over {n} of {num_trials} strokes)",
         ["player", "returns", "rate", "95% low", "95% high", "played in"],
         meta={"num_trials": num_trials, "watched": watched, "valid": n, "folds": folds,
-              "seed": seed},
+              "seed": seed, "belief": belief, "features": features},
     )  # fmt: skip
-    for p in players:
+    for p in won:
         k = int(won[p].sum())
         low, high = return_rate_interval(k, n)
         where = "SAPIEN" if p == "MCP" else "reward table (SAPIEN)"
         table.add(**{"player": p, "returns": k, "rate": k / n, "95% low": low, "95% high": high,
                      "played in": where})  # fmt: skip
-    fixed = [p for p in players if p.startswith(FIXED_PREFIXES)]
-    best = max(fixed, key=lambda p: int(won[p].sum()))  # first of the best on ties
-    diff, low, high = paired_difference_interval(won["MCP"], won[best])
     meta = {
-        "best fixed": best,
-        "MCP - best fixed": diff,
-        "MCP - best fixed 95% low": low,
-        "MCP - best fixed 95% high": high,
-        "MCP only / best fixed only": f"{int((won['MCP'] & ~won[best]).sum())}/"
-        f"{int((~won['MCP'] & won[best]).sum())}",
-        "verdict": _verdict(low, high, best, n),
+        "belief used": _strategy_name(play.sources),
+        "belief CV return rates": play.cv_rates,
+        BLIND: _strategy_name(play.blind),
+        FIXED_TIME: _strategy_name(play.fixed_time),
+    }
+    for player in ("MCP", "LSPI"):
+        for other in (BLIND, FIXED_TIME):
+            diff, low, high = paired_difference_interval(won[player], won[other])
+            meta[f"{player} - {other}"] = diff
+            meta[f"{player} - {other} 95% low"] = low
+            meta[f"{player} - {other} 95% high"] = high
+    meta["MCP / best blind (training folds)"] = int(won["MCP"].sum()) / max(
+        1, int(won[BLIND].sum())
+    )
+    meta["verdict"] = "; ".join(
+        _verdict(meta[f"MCP - {o} 95% low"], meta[f"MCP - {o} 95% high"], o, n)
+        for o in (BLIND, FIXED_TIME)
+    )
+    meta.update({
         "simulate [s]": t_sim,
         "fit [s]": t_fit,
-        "learn [s]": t_learn,
-        "MCP per decision [ms]": 1e3 * t_plan / max(1, decisions),
+        "learn [s]": play.seconds,
+        "MCP per decision [ms]": 1e3 * play.plan_seconds / max(1, play.decisions),
         "play [s]": t_play,
         "live = table": f"{agree}/{n}",
-        "IDDM fits": fits,
-    }
+        "belief fits": fits,
+    })  # fmt: skip
     # how far each belief's mean lies from the true target at each decision time
-    truth = trials.targets[valid].to(probs.dtype)
-    for name, p in (("IDDM", probs), ("linear IDDM", linear_probs)):
-        err = 100 * ((p * grid.to(p.dtype)).sum(-1) - truth[:, None]).abs().mean(0)
-        meta[f"belief mean MAE [cm], {name}"] = [round(float(e), 1) for e in err]
+    truth = trials.targets[valid]
+    beliefs = {src: track.prob[valid] for src, track in tracks.items()}
+    for src, track in tracks.items():
+        err = 100 * (track.mean()[valid] - truth[:, None]).abs().mean(0)
+        meta[f"belief mean MAE [cm], {src}"] = [round(float(e), 1) for e in err]
     table.meta.update(meta)
-    return DemoResult(table, rallies, grid, start_times, probs, meta, won, linear_probs)
+    used = torch.stack([tracks[s].prob[int(i)] for s, i in zip(play.sources_per_rally, valid,
+                                                                strict=True)])  # fmt: skip
+    return DemoResult(table, rallies, tracks["oracle"].grid, start_times, used, meta, won,
+                      beliefs, play.sources_per_rally)  # fmt: skip
 
 
-def _fit_words(fits: list[dict[str, object]]) -> str:
-    """``"60 L-BFGS steps, at the step limit"`` for the IDDM fits' summaries (the budget is
-    :attr:`AnticipationConfig.fit_steps`; the reasons are in the result's meta)."""
-    steps = sorted({f["steps"] for f in fits})
-    done = sum(f["converged"] for f in fits)
-    state = "converged" if done == len(fits) else (
-        "at the step limit" if done == 0 else f"{done} of {len(fits)} converged")  # fmt: skip
-    return f"{'/'.join(map(str, steps))} L-BFGS steps, {state}"
+BLIND = "best blind (training folds)"
+FIXED_TIME = "best fixed time (training folds)"
+
+
+@dataclass
+class _Play:
+    """The learning stage's decisions on every rally (positions among the valid strokes)."""
+
+    won: dict[str, torch.Tensor]
+    stop_step: torch.Tensor
+    stop_action: torch.Tensor
+    table_reward: torch.Tensor
+    sources: list[str]
+    sources_per_rally: list[str]
+    cv_rates: list[dict[str, float]]
+    blind: list[str]
+    fixed_time: list[str]
+    seconds: float
+    plan_seconds: float
+    decisions: int
+
+
+def _learn_and_decide(
+    tracks: dict[str, BeliefTrack], rewards: torch.Tensor, valid: torch.Tensor,
+    fold_of: torch.Tensor, candidates: tuple[str, ...], features: str,
+    config: ant.AnticipationConfig, gen: torch.Generator, *, progress: bool = False,
+) -> _Play:  # fmt: skip
+    """Per fold: the belief source (by CV on the training folds when there are candidates), the
+    baselines chosen on the training folds, LSPI and the MCP decisions on the test rallies,
+    and the oracle-belief MCP player; the reward table scores all but MCP's live play."""
+    from tqdm.auto import tqdm
+
+    from ..robots.table_tennis.trials import DEFAULT_START_TIMES
+
+    n, folds = len(valid), int(fold_of.max()) + 1
+    num_steps = rewards.shape[-1]
+    movements = ant.MOVEMENTS
+    rule = EarlyStopping(config.particles, config.confidence, min(100, config.particles))
+    players = [BLIND, FIXED_TIME, "LSPI", "MCP", *(f"LSPI ({s} belief)" for s in candidates),
+               "MCP (oracle belief)", "oracle (best movement and time per stroke)",
+               "best blind (after the fact)"]  # fmt: skip
+    won = {p: torch.zeros(n, dtype=torch.bool) for p in players}
+    stop_step = torch.zeros(n, dtype=torch.long)
+    stop_action = torch.zeros(n, dtype=torch.long)
+    table_reward = torch.zeros(n)
+    sources, per_rally, rates, blind, fixed = [], [""] * n, [], [], []
+    clock, t_plan, decisions = time.perf_counter(), 0.0, 0
+    reward = rewards[valid]
+    vectors = {src: track.vectors(features)[valid] for src, track in tracks.items()}
+    start_times = DEFAULT_START_TIMES
+    for k in tqdm(range(folds), disable=not progress, desc="learn + plan (folds)", leave=False):
+        at = torch.nonzero(fold_of == k).flatten()  # positions among the valid strokes
+        tr = torch.nonzero(fold_of != k).flatten()
+        cv = {
+            src: cv_return_rate(vectors[src][tr], reward[tr], features, centres=config.centres,
+                                ridge=config.ridge, seed=config.seed)  # fmt: skip
+            for src in candidates
+        } if len(candidates) > 1 else {}  # fmt: skip
+        source = max(candidates, key=lambda s: cv.get(s, 0.0))  # first of the best on ties
+        sources.append(source)
+        rates.append(cv)
+        for j in at.tolist():
+            per_rally[j] = source
+        a, t = blind_choice(reward[tr])
+        blind.append(f"always {movements[a]} @{round(-1000 * start_times[t])}ms")
+        won[BLIND][at] = reward[at, a, t] > 0
+        for src in (*candidates, "oracle"):
+            problem = StoppingProblem(vectors[src], reward)
+            train, test = problem.subset(tr), problem.subset(at)
+            basis = decision_basis(features, train.beliefs.flatten(0, 1), num_steps,
+                                   centres=config.centres, seed=config.seed)  # fmt: skip
+            enumerated = train.transitions(train.enumerate_episodes(), unique=True)
+            q = lspi(enumerated, features=basis, ridge=config.ridge).q
+            if src in candidates:
+                won[f"LSPI ({src} belief)"][at] = test.run(greedy_policy(q, basis, test)).reward > 0
+            if src == source:
+                won["LSPI"][at] = test.run(greedy_policy(q, basis, test)).reward > 0
+                step, q_t = fixed_time_choice(train, basis, config.ridge)
+                fixed.append(f"belief's movement @{round(-1000 * start_times[step])}ms")
+                won[FIXED_TIME][at] = test.run(fixed_time_policy(q_t, basis, step)).reward > 0
+            if src in (source, "oracle"):
+                c = time.perf_counter()
+                policy = planning_policy(tracks[src], valid[at], q, basis, rule, num_steps,
+                                         features, gen)  # fmt: skip
+                decided = test.run(policy)
+                t_plan += time.perf_counter() - c
+                if src == "oracle":
+                    won["MCP (oracle belief)"][at] = decided.reward > 0
+                else:
+                    decisions += int((decided.stop_step + 1).sum())
+                    stop_step[at], stop_action[at] = decided.stop_step, decided.stop_action
+                    table_reward[at] = decided.reward.to(table_reward.dtype)
+    won["oracle (best movement and time per stroke)"][:] = (reward > 0).flatten(1).any(1)
+    after = (reward > 0).sum(0)
+    a, t = divmod(int(after.flatten().argmax()), num_steps)
+    won["best blind (after the fact)"] = reward[:, a, t] > 0
+    # won["MCP"] is the reward table's; the caller replaces it by the live SAPIEN rallies
+    return _Play(won, stop_step, stop_action, table_reward, sources, per_rally, rates, blind,
+                 fixed, time.perf_counter() - clock, t_plan, decisions)  # fmt: skip
 
 
 def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
@@ -448,24 +504,23 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     lows, highs = table.column("95% low"), table.column("95% high")
     errors = [[r - lo for r, lo in zip(rates, lows, strict=True)],
               [hi - r for r, hi in zip(rates, highs, strict=True)]]  # fmt: skip
-    fig = Figure(figsize=(8.5, 4.0))
+    fig = Figure(figsize=(10.5, 4.4))
     ax = fig.subplots()
-    colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:orange", "tab:green"]
-    bars = ax.bar(range(len(names)), rates, color=colours[: len(names)], yerr=errors, capsize=4,
-                  error_kw={"lw": 1, "ecolor": "k"})  # fmt: skip
-    best = result.meta.get("best fixed")
-    if best in names:
-        bars[names.index(best)].set_hatch("//")
-    ax.set_xticks(range(len(names)), [n.replace(" ", "\n") for n in names], fontsize=8)
+    colour_of = {BLIND: "0.7", FIXED_TIME: "tab:blue", "LSPI": "tab:orange", "MCP": "tab:green"}
+    colours = [colour_of.get(p, "0.85") for p in names]
+    ax.bar(range(len(names)), rates, color=colours, yerr=errors, capsize=4,
+           error_kw={"lw": 1, "ecolor": "k"})  # fmt: skip
+    ax.set_xticks(range(len(names)), [_wrap(p) for p in names], fontsize=7)
     ax.set_ylabel("return rate on the test rallies\n(exact 95% interval)")
-    ax.set_ylim(0, 1)
+    ax.set_ylim(0, 1.05)
+    m = result.meta
     title = table.title
-    if "MCP - best fixed" in result.meta:
-        m = result.meta
-        title += (
-            f"\nMCP - {m['best fixed']} (hatched), paired: {m['MCP - best fixed']:+.3f} "
-            f"[{m['MCP - best fixed 95% low']:+.3f}, {m['MCP - best fixed 95% high']:+.3f}]"
-        )
+    for other in (BLIND, FIXED_TIME):
+        if f"MCP - {other}" in m:
+            title += (
+                f"\nMCP - {other}, paired: {m[f'MCP - {other}']:+.3f} "
+                f"[{m[f'MCP - {other} 95% low']:+.3f}, {m[f'MCP - {other} 95% high']:+.3f}]"
+            )
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
     paths.append(out / "return_rates.png")
@@ -474,7 +529,11 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     # the first returned rally (else the first one) and the belief that led to it
     j = next((k for k, r in enumerate(result.rallies) if r.outcome.success), 0)
     rally = result.rallies[j]
-    columns = 2 if result.linear_probs is None else 3
+    used = result.sources[j] if result.sources else "the players'"
+    beliefs = [(f"belief used by the players ({used})", result.target_probs)]
+    beliefs += [(f"belief ({src}, not used)", probs) for src, probs in result.beliefs.items()
+                if src not in (used, "oracle")]  # fmt: skip
+    columns = 1 + len(beliefs)
     fig = Figure(figsize=(5.5 * columns, 4.2))
     ax3 = fig.add_subplot(1, columns, 1, projection="3d")
     draw_table(ax3)
@@ -484,11 +543,8 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
         f"before the hit -> {'returned' if rally.outcome.success else 'missed'}",
         fontsize=9,
     )
-    beliefs = [("belief (online IDDM, used by the players)", result.target_probs)]
-    if result.linear_probs is not None:
-        beliefs.append(("belief (linear IDDMs, same strokes)", result.linear_probs))
     for k, (label, probs) in enumerate(beliefs):
-        ax = fig.add_subplot(1, 1 + len(beliefs), 2 + k)
+        ax = fig.add_subplot(1, columns, 2 + k)
         for t, s in enumerate(result.start_times):
             ax.plot(result.grid, probs[j, t], label=f"{round(-1000 * s)} ms before the hit")
         ax.axvline(rally.target, color="k", ls="--", lw=1, label="true target")
@@ -500,20 +556,30 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     return paths
 
 
+def _wrap(name: str) -> str:
+    """A player's name on two or three lines for the bar chart."""
+    return name.replace(" (", "\n(").replace(" @", "\n@")
+
+
 def summary(result: DemoResult) -> str:
-    """The paired comparison MCP - best fixed strategy as printed under the table."""
+    """The paired comparisons of MCP and LSPI with the baselines chosen on the training folds,
+    as printed under the table."""
     m = result.meta
-    return (
-        f"MCP - best fixed strategy ({m['best fixed']}), paired over the same rallies: "
-        f"{m['MCP - best fixed']:+.3f}, 95% interval [{m['MCP - best fixed 95% low']:+.3f}, "
-        f"{m['MCP - best fixed 95% high']:+.3f}] (Newcombe square-and-add; rallies returned by "
-        f"MCP only / by {m['best fixed']} only: {m['MCP only / best fixed only']}): "
-        f"{m['verdict']}."
-    )
+    lines = [f"belief: {m['belief used']}; {BLIND}: {m[BLIND]}; {FIXED_TIME}: {m[FIXED_TIME]}"]
+    for player in ("MCP", "LSPI"):
+        for other in (BLIND, FIXED_TIME):
+            key = f"{player} - {other}"
+            lines.append(
+                f"{key}, paired over the same rallies: {m[key]:+.3f}, 95% interval "
+                f"[{m[key + ' 95% low']:+.3f}, {m[key + ' 95% high']:+.3f}]"
+            )
+    lines.append(f"(Newcombe square-and-add intervals) {m['verdict']}.")
+    return "\n".join(lines)
 
 
 def main(argv: list[str]) -> int:
-    """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--folds K] [--workers W]
+    """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--folds K] [--belief SOURCE]
+    [--features moments|rbf] [--workers W]
     [--ray-address ADDRESS] [--seed S] [--out DIR] [--cache-dir DIR] [--full]
     [--progress | --quiet]``.
 
@@ -527,10 +593,20 @@ def main(argv: list[str]) -> int:
     )  # fmt: skip
     parser.add_argument(
         "--watched",
-        type=non_negative_int,
+        type=int_at_least(10),
         default=None,
-        help=f"further strokes the IDDM learns from ({DEFAULT_WATCHED})",
+        help=f"further strokes the belief models learn from ({DEFAULT_WATCHED})",
     )
+    parser.add_argument(
+        "--belief", choices=BELIEFS, default="auto",
+        help="the belief source the players decide on: auto (the source with the best "
+        "cross-validated return rate on the training folds), linear-iddm or gp-iddm (the "
+        "thesis's)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--features", choices=FEATURES, default="moments",
+        help="decision features: moments (belief mean, sd and step) or rbf (the thesis's)",
+    )  # fmt: skip
     parser.add_argument(
         "--folds", type=int_at_least(2), default=3,
         help="cross-fitting folds: every stroke in the hitting region is a test rally once (3)",
@@ -586,7 +662,7 @@ def main(argv: list[str]) -> int:
         result = run_demo(
             num_trials=DEFAULT_TRIALS if args.trials is None else args.trials,
             watched=DEFAULT_WATCHED if args.watched is None else args.watched,
-            folds=args.folds,
+            folds=args.folds, belief=args.belief, features=args.features,
             workers=None if executor is not None else args.workers, executor=executor,
             seed=args.seed, cache_dir=args.cache_dir, progress=bars,
             status=None if args.quiet else status,
@@ -598,8 +674,8 @@ def main(argv: list[str]) -> int:
     print()
     print(summary(result))
     print()
-    skip = {"best fixed", "MCP - best fixed", "MCP - best fixed 95% low",
-            "MCP - best fixed 95% high", "MCP only / best fixed only", "verdict"}  # fmt: skip
+    skip = {"verdict", "belief used", BLIND, FIXED_TIME}
+    skip |= {k for k in result.meta if k.startswith(("MCP - ", "LSPI - "))}
     print(", ".join(f"{k}: {v:.3g}" if isinstance(v, float) else f"{k}: {v}"
                     for k, v in result.meta.items() if k not in skip))  # fmt: skip
     out = Path(args.out)

@@ -661,46 +661,97 @@ class LinearIDDM:
     ) -> torch.Tensor:
         """``[B, K]`` log predictive of raw ``b [B, Dz]`` from raw ``a [B, Dz]`` (not finite
         where the rows overflow the arithmetic: the callers check)."""
+        bsz, k, d = len(a), len(feats), self.obs_dim
+        za, zb = self._standardise(a), self._standardise(b)
+        phi = feats[None].expand(bsz, k, -1)
+        df, loc, scale = self._predictive(za[:, None].expand(bsz, k, d), phi, step)
+        if self.noise_kind == "diagonal":  # independent dimensions, each a Student-t
+            logp = StudentT(df, loc, scale, validate_args=False).log_prob(zb[:, None]).sum(-1)
+        else:
+            logp = MultivariateStudentT(df, loc, scale, validate_args=False).log_prob(
+                zb[:, None].expand_as(loc)
+            )
+        # an overflow gives NaN or inf (the distributions do not validate): the callers check
+        return logp - self.obs_std.log().sum()
+
+    def _predictive(
+        self, za: torch.Tensor, phi: torch.Tensor, step: int
+    ) -> tuple[float | torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The Student-t posterior predictive of the next standardised frame from standardised
+        ``za [..., Dz]`` under intention features ``phi [..., P]``: ``(df, loc [..., Dz],
+        scale)``, ``scale`` a Cholesky factor ``[..., Dz, Dz]`` (full and isotropic noise) or
+        per-dimension scales ``[..., Dz]`` (diagonal noise)."""
         s = step if self.phase else 0
         if s >= self.num_phases:
             raise ValueError(
                 f"step {step} has no transition: the training sequences had at most "
                 f"{self.num_phases + 1} frames (phase=True fits one transition per frame index)"
             )
-        za, zb = self._standardise(a), self._standardise(b)
-        bsz, k, d = len(za), len(feats), self.obs_dim
-        u = _inputs(za[:, None].expand(bsz, k, d), feats[None].expand(bsz, k, -1),
-                    self.directions[s])  # fmt: skip
-        loc = u @ self.coef[s]  # [B, K, Dz]
+        d = self.obs_dim
+        u = _inputs(za, phi, self.directions[s])
+        loc = u @ self.coef[s]  # [..., Dz]
         # 1 + u^T Lambda_n^-1 u, with the Cholesky factor of Lambda_n
-        v = torch.linalg.solve_triangular(self.precision_tril[s], u.reshape(-1, u.shape[-1]).T,
-                                          upper=False)  # fmt: skip
-        inflate = (1.0 + v.pow(2).sum(0)).reshape(bsz, k)
+        flat = u.reshape(-1, u.shape[-1])
+        v = torch.linalg.solve_triangular(self.precision_tril[s], flat.T, upper=False)
+        inflate = (1.0 + v.pow(2).sum(0)).reshape(u.shape[:-1])
         nu, scatter = self.dof[s], self.scatter[s]
         if self.noise_kind == "full":
-            df = nu - d + 1
-            tril = torch.linalg.cholesky(scatter / df)
-            scale = tril * inflate[..., None, None].sqrt()
-            logp = MultivariateStudentT(df, loc, scale, validate_args=False).log_prob(
-                zb[:, None].expand_as(loc)
-            )
-        elif self.noise_kind == "diagonal":
+            tril = torch.linalg.cholesky(scatter / (nu - d + 1))
+            return nu - d + 1, loc, tril * inflate[..., None, None].sqrt()
+        if self.noise_kind == "diagonal":
             # per dimension the Dz = 1 prior, with the same nu_n - Dz + 1 = 3 + n
             df = nu - d + 1
-            sd = (scatter.diagonal() / df).sqrt() * inflate[..., None].sqrt()
-            logp = StudentT(df, loc, sd, validate_args=False).log_prob(zb[:, None]).sum(-1)
-        else:  # sigma^2 ~ IG(2, psi): a_n = 2 + n Dz / 2, b_n = psi + tr(Psi_n - psi I) / 2
-            n = nu - d - 2
-            a_n = 2.0 + n * d / 2
-            psi = self.prior[1]
-            b_n = psi + 0.5 * (scatter.trace() - d * psi)
-            eye = torch.eye(d, dtype=za.dtype, device=za.device)
-            scale = eye * (b_n / a_n * inflate)[..., None, None].sqrt()
-            logp = MultivariateStudentT(2 * a_n, loc, scale, validate_args=False).log_prob(
-                zb[:, None].expand_as(loc)
+            return df, loc, (scatter.diagonal() / df).sqrt() * inflate[..., None].sqrt()
+        # isotropic: sigma^2 ~ IG(2, psi): a_n = 2 + n Dz / 2, b_n = psi + tr(Psi_n - psi I) / 2
+        n = nu - d - 2
+        a_n = 2.0 + n * d / 2
+        psi = self.prior[1]
+        b_n = psi + 0.5 * (scatter.trace() - d * psi)
+        eye = torch.eye(d, dtype=za.dtype, device=za.device)
+        return 2 * a_n, loc, eye * (b_n / a_n * inflate)[..., None, None].sqrt()
+
+    def sample_next(
+        self, z_prev: Any, g: Any, step: int, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """Draw the next frame of each stream from the posterior predictive
+        ``p(z_{t+1} | z_t, g, data)`` (the density :meth:`log_predictive` scores).
+
+        Args:
+            z_prev: ``[B, Dz]`` raw frames at frame index ``step``.
+            g: ``[B]`` or ``[B, Dg]`` intention value of each stream (codes for a discrete g).
+            step: the frame index of ``z_prev`` (its phase).
+            generator: random generator (the Student-t's chi-square scale is drawn from a
+                NumPy generator seeded by it, so a seeded generator gives the same draws).
+
+        Returns:
+            ``[B, Dz]`` raw frames.
+        """
+        self._check_fitted()
+        a = self._check_obs(z_prev, "z_prev", min_ndim=2)
+        if a.dim() != 2:
+            raise ValueError(f"z_prev must be [B, Dz], got {tuple(a.shape)}")
+        values = as_tensor(g, "g", dtype=self.dtype, device=a.device)
+        values = values[:, None] if values.dim() == 1 else values
+        if values.shape != (len(a), self.intention_dim):
+            raise ValueError(
+                f"g must be [B = {len(a)}] or [B, Dg = {self.intention_dim}], got "
+                f"{tuple(values.shape)}"
             )
-        # an overflow gives NaN or inf (the distributions do not validate): the callers check
-        return logp - self.obs_std.log().sum()
+        if isinstance(step, bool) or not isinstance(step, numbers.Integral) or step < 0:
+            raise ValueError(f"step must be a non-negative int, got {step!r}")
+        df, loc, scale = self._predictive(self._standardise(a), self._features(values), int(step))
+        draw_on = a.device if generator is None else generator.device
+        eps = torch.randn(loc.shape, generator=generator, dtype=loc.dtype, device=draw_on)
+        eps = eps.to(a.device)
+        seed = int(torch.randint(2**62, (1,), generator=generator, device=draw_on))
+        shape = loc.shape if self.noise_kind == "diagonal" else loc.shape[:-1]
+        chi2 = np.random.default_rng(seed).chisquare(float(df), size=tuple(shape))
+        t_scale = (float(df) / torch.as_tensor(chi2, dtype=loc.dtype, device=a.device)).sqrt()
+        if self.noise_kind == "diagonal":
+            z = loc + scale * eps * t_scale
+        else:
+            z = loc + (scale @ eps[..., None])[..., 0] * t_scale[..., None]
+        return z * self.obs_std + self.obs_mean
 
     def log_evidence(self, obs: Any, grid: Any = None) -> torch.Tensor:
         """Cumulative ``log p(z_{1:t} | z_0, g, data)`` after every frame.
@@ -908,6 +959,13 @@ def _check_evidence(evidence: torch.Tensor, name: str, what: str) -> None:
         )
 
 
+def _check_index(index: int, size: int) -> None:
+    if isinstance(index, bool) or not isinstance(index, numbers.Integral) or not (
+        0 <= index < size
+    ):  # fmt: skip
+        raise ValueError(f"index must be an int in [0, {size}), got {index!r}")
+
+
 def _forget(steps: torch.Tensor, eps: float) -> torch.Tensor:
     """``B_t = (1 - eps) B_{t-1} + steps_t`` along dim -2 from ``B_0 = steps_0``:
     ``[..., T, K] -> [..., T, K]`` (a cumulative sum for ``eps = 0``)."""
@@ -1079,6 +1137,35 @@ class LinearIDDMStream:
 
     def _where(self, b: int) -> str:
         return f"z[{b}] (stream {b}, frame {self.frames})"
+
+    def repeat(self, index: int, num: int) -> LinearIDDMStream:
+        """A new stream object holding ``num`` copies of stream ``index`` (its belief, last frame
+        and frame count): the particles of a look-ahead (Monte-Carlo planning) start there."""
+        _check_index(index, self.batch_size)
+        if isinstance(num, bool) or not isinstance(num, numbers.Integral) or num < 1:
+            raise ValueError(f"num must be a positive int, got {num!r}")
+        out = object.__new__(LinearIDDMStream)
+        out.__dict__.update(self.__dict__)
+        out.batch_size = int(num)
+        for name in ("previous", "has_previous", "log_weights", "rejected_count"):
+            value = getattr(self, name)[index]
+            setattr(out, name, value.expand(num, *value.shape).clone())
+        return out
+
+    def sample_next(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """``[B, Dz]``: each stream's next frame drawn from the model given its belief, with
+        ``g ~ p(g | z_{0:t})`` over the grid and ``z_{t+1} ~ p(z_{t+1} | z_t, g, data)``
+        (:meth:`LinearIDDM.sample_next`). Every stream needs its last frame (``has_previous``)
+        and a transition after it."""
+        if self.frames == 0 or not bool(self.has_previous.all()):
+            raise ValueError(
+                "sample_next needs every stream's frame just before (update them with a usable "
+                "frame first)"
+            )
+        prob = self.log_weights.softmax(-1)
+        draw_on = prob.device if generator is None else generator.device
+        k = torch.multinomial(prob.to(draw_on), 1, generator=generator)[:, 0].to(prob.device)
+        return self.model.sample_next(self.previous, self.values[k], self.frames - 1, generator)
 
     def update(self, z: Any) -> IntentionBelief:
         """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream) of every stream.

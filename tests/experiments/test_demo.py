@@ -9,6 +9,7 @@ import sys
 import warnings
 
 import pytest
+import torch
 
 pytest.importorskip("sapien")
 
@@ -21,7 +22,7 @@ STAGES = ("simulate:", "fit:", "learn:", "play:")
 
 @pytest.fixture(scope="module")
 def played(tmp_path_factory):
-    """One small CLI run (12 strokes, 20 watched, 1 process): its output folder, stdout, stderr
+    """One small CLI run (16 strokes, 20 watched, 1 process): its output folder, stdout, stderr
     and the :class:`~hgpdm_torch.experiments.demo.DemoResult` it printed; the warnings it
     raised are in ``played_warnings``."""
     tmp = tmp_path_factory.mktemp("demo")
@@ -33,7 +34,7 @@ def played(tmp_path_factory):
         results.append(real(**kwargs))
         return results[-1]
 
-    args = ["demo", "--trials", "12", "--watched", "20", "--workers", "1", "--out", str(out)]
+    args = ["demo", "--trials", "16", "--watched", "20", "--workers", "1", "--out", str(out)]
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(demo, "run_demo", spy)
         stdout, stderr = io.StringIO(), io.StringIO()
@@ -53,24 +54,30 @@ PLAYED_WARNINGS: list[warnings.WarningMessage] = []
 
 def test_the_main_job_warns_of_nothing_and_reports_its_fit(played):
     """No warning a user cannot act on (a fit at its step budget, SAPIEN's missing Vulkan): the
-    IDDM's FitResult is in the result instead."""
+    GP IDDM's FitResult and the LinearIDDMs' chosen settings are in the result instead."""
     out, _, stderr, _ = played
     assert [str(w.message) for w in PLAYED_WARNINGS] == []
     assert "Warning" not in stderr
-    fits = json.loads((out / "demo.json").read_text())["meta"]["IDDM fits"]
-    assert len(fits) == 1  # the one IDDM of the watched strokes
-    assert fits[0]["steps"] >= 1 and isinstance(fits[0]["converged"], bool) and fits[0]["reason"]
+    fits = json.loads((out / "demo.json").read_text())["meta"]["belief fits"]
+    assert sorted(fits) == ["gp-iddm", "linear-iddm"]  # the candidates of --belief auto
+    (gp,) = fits["gp-iddm"]  # the one GP IDDM of the watched strokes
+    assert gp["steps"] >= 1 and isinstance(gp["converged"], bool) and gp["reason"]
+    assert [f["interaction_rank"] for f in fits["linear-iddm"]] == [0, 1]
 
 
 def test_demo_plays_rallies_in_sapien(played):
     out, stdout, stderr, result = played
     table = json.loads((out / "demo.json").read_text())
     players = [r["player"] for r in table["rows"]]
-    assert players[-2:] == ["LSPI", "MCP"] and len(players) == 8
+    assert players == [
+        demo.BLIND, demo.FIXED_TIME, "LSPI", "MCP", "LSPI (linear-iddm belief)",
+        "LSPI (gp-iddm belief)", "MCP (oracle belief)",
+        "oracle (best movement and time per stroke)", "best blind (after the fact)",
+    ]  # fmt: skip
     assert table["columns"] == ["player", "returns", "rate", "95% low", "95% high", "played in"]
     n_test = table["meta"]["valid"]
     # cross-fitting: every stroke inside the hitting region is a test rally once
-    assert len(result.rallies) == n_test == len({r.trial for r in result.rallies}) >= 6
+    assert len(result.rallies) == n_test == len({r.trial for r in result.rallies}) >= 9
     assert f"{n_test} test rallies" in table["title"]
     for row in table["rows"]:
         assert 0 <= row["returns"] <= n_test
@@ -78,18 +85,33 @@ def test_demo_plays_rallies_in_sapien(played):
         low, high = intervals.return_rate_interval(row["returns"], n_test)
         assert (row["95% low"], row["95% high"]) == pytest.approx((low, high))
         assert row["95% low"] <= row["rate"] <= row["95% high"]
-    # the paired difference: MCP against the best fixed strategy on the same rallies
+    returns = {r["player"]: r["returns"] for r in table["rows"]}
+    # the oracle knows each stroke's best movement and time: every kept stroke is returnable
+    assert returns["oracle (best movement and time per stroke)"] == n_test
+    # no strategy chosen on the training folds beats the one chosen on the test rallies
+    assert returns[demo.BLIND] <= returns["best blind (after the fact)"]
+    # the paired differences: MCP and LSPI against both baselines on the same rallies
     meta = table["meta"]
-    fixed = {r["player"]: r["returns"] for r in table["rows"][:6]}
-    assert fixed[meta["best fixed"]] == max(fixed.values())
-    mcp = table["rows"][-1]["returns"]
-    assert meta["MCP - best fixed"] == pytest.approx((mcp - fixed[meta["best fixed"]]) / n_test)
-    expected = intervals.paired_difference_interval(
-        result.successes["MCP"], result.successes[meta["best fixed"]]
+    assert meta["belief used"] in ("linear-iddm", "gp-iddm") or meta["belief used"].startswith(
+        "per fold: "
     )
-    got = (meta["MCP - best fixed"], meta["MCP - best fixed 95% low"])
-    assert (*got, meta["MCP - best fixed 95% high"]) == pytest.approx(expected)
-    assert meta["verdict"] in stdout and "MCP - best fixed strategy" in stdout
+    assert meta[demo.BLIND].startswith(("always ", "per fold: "))
+    assert "@" in meta[demo.FIXED_TIME]
+    for player in ("MCP", "LSPI"):
+        for other in (demo.BLIND, demo.FIXED_TIME):
+            key = f"{player} - {other}"
+            expected = intervals.paired_difference_interval(
+                result.successes[player], result.successes[other]
+            )
+            got = (meta[key], meta[f"{key} 95% low"], meta[f"{key} 95% high"])
+            assert got == pytest.approx(expected)
+            assert meta[key] == pytest.approx((returns[player] - returns[other]) / n_test)
+            assert key in stdout
+    assert meta["verdict"] in stdout
+    # the rally figure's belief is the one the players used for that rally's fold
+    assert result.target_probs.shape == (n_test, 5, 25)
+    for j, source in enumerate(result.sources):
+        assert torch.equal(result.target_probs[j], result.beliefs[source][j])
     # the live SAPIEN rallies reproduce the reward table of the deterministic scene
     assert meta["live = table"] == f"{n_test}/{n_test}"
     for name in ("return_rates.png", "rally.png"):
@@ -133,7 +155,7 @@ def test_progress_follows_the_terminal_and_the_flags(
     assert cli.main(["demo", "--out", str(tmp_path), *flags]) == 0
     assert seen["progress"] is bars and (seen["status"] is not None) is lines
     out, err = capsys.readouterr()
-    assert "| MCP |" in out and "MCP - best fixed strategy" in out
+    assert "| MCP |" in out and f"MCP - {demo.FIXED_TIME}" in out
     status = [line for line in err.splitlines() if line.startswith("[hgpdm demo")]
     assert len(status) == (len(STAGES) + 1 if lines else 0), err
     if not lines:
@@ -151,10 +173,17 @@ def test_demo_rejects_bad_arguments(capsys):
         run_demo(workers=-2)
     with pytest.raises(TypeError, match="status"):
         run_demo(status="loud")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown belief .oracle."):
+        run_demo(belief="oracle")  # a reference row, never the players' belief
+    with pytest.raises(ValueError, match="features"):
+        run_demo(features="histogram")
     for argv, fragment in [
         (["--folds", "1"], "argument --folds: expected an integer >= 2"),
         (["--quiet", "--progress"], "argument --progress: not allowed with argument --quiet"),
         (["--trials", "many"], "argument --trials: expected a positive integer"),
+        (["--belief", "psychic"], "argument --belief: invalid choice: 'psychic'"),
+        (["--belief", "oracle"], "argument --belief: invalid choice: 'oracle'"),
+        (["--features", "pixels"], "argument --features: invalid choice: 'pixels'"),
     ]:
         with pytest.raises(SystemExit) as exit_info:
             cli.main(["demo", *argv])

@@ -148,6 +148,22 @@ class BeliefMixtureStream:
         for s in self.streams:
             s.reset()
 
+    def repeat(self, index: int, num: int) -> BeliefMixtureStream:
+        """``num`` copies of stream ``index`` in every member (the particles of a look-ahead)."""
+        return BeliefMixtureStream(
+            self.mixture, [s.repeat(index, num) for s in self.streams], self.values
+        )
+
+    def sample_next(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """``[B, Dz]``: each stream's next frame from one member drawn by the mixture weights,
+        that member's ``sample_next`` (so ``g`` follows the mixed belief)."""
+        draws = torch.stack([s.sample_next(generator) for s in self.streams])  # [M, B, Dz]
+        weights = torch.tensor(self.mixture.weights, dtype=torch.float64)
+        on = weights.device if generator is None else generator.device
+        member = torch.multinomial(weights.to(on), draws.shape[1], replacement=True,
+                                   generator=generator).to(draws.device)  # fmt: skip
+        return draws[member, torch.arange(draws.shape[1], device=draws.device)]
+
     def update(self, z: Any) -> IntentionBelief:
         """Add the next frame ``z [B, Dz]`` (``[Dz]`` for one stream) to every member; returns
         the mixed belief ``[B, K]`` (``[K]``). ``rejected`` flags a stream whose frame any

@@ -1,0 +1,266 @@
+"""Belief sources of the anticipatory player (decision/sources.py) on a small SAPIEN-free problem.
+
+The problem has a known optimal stopping rule. A stroke's target ``g`` is uniform on
+``+-[0.15, 1.1]``; its observations show ``g`` only from frame 2 on (frames 0-1 are the same
+for every stroke, up to noise). The forehand returns ``g > 0`` if started at the first two
+decisions (frames 1-2), the backhand returns ``g < 0`` at any decision, the middle never. So
+the optimum waits at frame 1 (nothing is known yet) and at frame 2 plays the forehand for
+``g > 0``: every stroke returned. A blind strategy returns about half of them.
+
+Oracles: the known optimum (LSPI and MCP on every source return >= 95% / 90% of held-out
+strokes), Monte Carlo against the closed-form Student-t predictive (``LinearIDDM.sample_next``),
+the batch beliefs of the extended stream (``repeat`` + ``update``), and a leak check of the
+baselines' choice on the training folds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+import torch
+
+from hgpdm_torch.decision.basis import MomentBasis
+from hgpdm_torch.decision.lspi import lspi
+from hgpdm_torch.decision.mcp import EarlyStopping
+from hgpdm_torch.decision.policies import (
+    blind_choice,
+    cv_return_rate,
+    decision_basis,
+    fixed_time_choice,
+    greedy_policy,
+    planning_policy,
+)
+from hgpdm_torch.decision.sources import (
+    BELIEF_SOURCES,
+    BeliefTrack,
+    moment_vector,
+    track_beliefs,
+)
+from hgpdm_torch.decision.stopping import StoppingProblem
+from hgpdm_torch.models import LinearIDDM
+
+STEPS_AT = [1, 2, 3, 4]  # decisions after observation frames 1 .. 4
+T_OBS, DZ = 5, 3
+
+
+@dataclass(frozen=True)
+class _Config:
+    """The settings track_beliefs reads (the GP IDDM's, small, and the grid)."""
+
+    seed: int = 0
+    iddm_trials: int = 40
+    latent_dim: int = 2
+    alpha: tuple = (0.9, 0.3, 0.1, 1e-2)
+    alpha_g: tuple = (4.0, 0.1)
+    fit_steps: int = 15
+    grid_size: int = 13
+    grid_max: float = 1.2
+    forgetting: float = 0.1
+
+    def initial_latents(self, obs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        from hgpdm_torch.experiments.target_prediction import supervised_init
+
+        return supervised_init(obs, targets, self.latent_dim)
+
+
+def _strokes(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``obs [n, 5, 3]``, ``targets [n]`` and ``rewards [n, 3, 4]`` (module docstring)."""
+    gen = torch.Generator().manual_seed(seed)
+    sign = torch.where(torch.rand(n, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
+    g = sign * (0.15 + 0.95 * torch.rand(n, generator=gen, dtype=torch.float64))
+    t = torch.arange(T_OBS, dtype=torch.float64)
+    shown = (t >= 2).double()  # g enters the observations from frame 2
+    obs = torch.stack(
+        [t.expand(n, -1), g[:, None] * shown, (g[:, None] * shown).pow(2) + 0.3 * t], -1
+    )
+    obs = obs + 0.03 * torch.randn(obs.shape, generator=gen, dtype=torch.float64)
+    rewards = -torch.ones(n, 3, len(STEPS_AT), dtype=torch.float64)
+    rewards[g > 0, 0, :2] = 1.0  # forehand: only when started early
+    rewards[g < 0, 2, :] = 1.0  # backhand: any time
+    return obs, g, rewards
+
+
+@pytest.fixture(scope="module")
+def problem():
+    obs, g, rewards = _strokes(120, seed=0)
+    train = torch.arange(60)  # the models learn from the first 60 strokes
+    tracks = {
+        src: track_beliefs(src, obs[train], g[train], obs, g, STEPS_AT, _Config())
+        for src in BELIEF_SOURCES
+    }
+    return obs, g, rewards, tracks
+
+
+@pytest.mark.filterwarnings("ignore::hgpdm_torch.fitting.ConvergenceWarning")
+@pytest.mark.parametrize("source", BELIEF_SOURCES)
+def test_every_source_finds_the_known_optimal_stopping(problem, source):
+    obs, g, rewards, tracks = problem
+    track = tracks[source]
+    n, T = len(g), len(STEPS_AT)
+    assert track.prob.shape == (n, T, 13)
+    assert torch.allclose(track.prob.sum(-1), torch.ones(n, T, dtype=torch.float64))
+    # the belief learns the sign from frame 2 (step 1) on, not before
+    sign = (track.mean()[60:, 1:] > 0) == (g[60:, None] > 0)
+    assert bool(sign.all())
+    vectors = track.vectors("moments")
+    p = StoppingProblem(vectors[60:], rewards[60:])
+    train, test = p.subset(torch.arange(40)), p.subset(torch.arange(40, 60))
+    basis = decision_basis("moments", train.beliefs.flatten(0, 1), T)
+    q = lspi(train.transitions(train.enumerate_episodes(), unique=True), features=basis).q
+    assert float((test.run(greedy_policy(q, basis, test)).reward > 0).double().mean()) >= 0.95
+    gen = torch.Generator().manual_seed(1)
+    rule = EarlyStopping(200, 0.99, 100, 100)
+    policy = planning_policy(track, torch.arange(100, 120), q, basis, rule, T, "moments", gen)
+    played = test.run(policy)
+    # MCP samples the value of waiting (200 particles): one stroke in ten may be stopped on a
+    # sampled underestimate; it misses the optimum by at most that
+    assert float((played.reward > 0).double().mean()) >= 0.9
+    # particles of the next belief: the right width, normalised beliefs, the next step's block
+    nxt = track.draw_next(100, 0, 50, gen, "moments")
+    assert nxt.shape == (50, 2 + T) and bool((nxt[:, 2 + 1] == 1).all())
+    if source == "oracle":  # waiting teaches a point belief nothing
+        assert torch.equal(nxt, vectors[100, 1].expand(50, -1))
+    # at step 0 the sign is unknown: the particles' beliefs at step 1 split by sign
+    if source != "oracle":
+        means = nxt[:, 0]
+        assert bool((means > 0.3).any()) and bool((means < -0.3).any())
+    # the blind strategy and the fixed-time one cannot reach the optimum
+    a, t = blind_choice(rewards[:60])
+    assert float((rewards[60:, a, t] > 0).double().mean()) <= 0.65
+
+
+def test_rbf_vectors_are_the_thesis_belief_vector_for_the_gp_iddm(problem):
+    _, _, _, tracks = problem
+    gp = tracks["gp-iddm"]
+    assert gp.vectors("rbf").shape[-1] == 2 + 3 + 13  # latent mean, cov triangle, histogram
+    assert torch.equal(tracks["linear-iddm"].vectors("rbf"), tracks["linear-iddm"].prob)
+    assert gp.draw_next(0, 0, 5, torch.Generator().manual_seed(0), "rbf").shape == (5, 18)
+
+
+def test_sources_reject_bad_arguments(problem):
+    obs, g, _, tracks = problem
+    with pytest.raises(ValueError, match="source"):
+        track_beliefs("psychic", obs, g, obs, g, STEPS_AT, _Config())
+    with pytest.raises(ValueError, match="consecutive"):
+        track_beliefs("oracle", obs, g, obs, g, [1, 3], _Config())
+    with pytest.raises(ValueError, match="same length"):
+        track_beliefs("oracle", obs, g[:5], obs, g, STEPS_AT, _Config())
+    with pytest.raises(ValueError, match="features"):
+        tracks["oracle"].vectors("histogram")
+    with pytest.raises(ValueError, match="step"):
+        tracks["oracle"].draw_next(0, 3, 5)  # no decision after the last
+
+
+def test_moment_vector_and_basis():
+    grid = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)
+    prob = torch.tensor([[0.25, 0.5, 0.25], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    v = moment_vector(prob, grid, 1, 3)
+    # mean 0 and sd sqrt(0.5); mean 1 and sd 0; the one-hot step 1
+    expected = torch.tensor([[0.0, 0.5**0.5, 0, 1, 0], [1.0, 0.0, 0, 1, 0]], dtype=torch.float64)
+    assert torch.allclose(v, expected, atol=1e-15)
+    basis = MomentBasis(3, degree=2)
+    phi = basis(v)
+    assert phi.shape == (2, 3 * 6) == (2, basis.num_features)
+    # only step 1's block is filled: 1, m, s, m^2, m s, s^2
+    block = phi[:, 6:12]
+    assert torch.allclose(block[1], torch.tensor([1.0, 1, 0, 1, 0, 0], dtype=torch.float64))
+    assert torch.allclose(block[0], torch.tensor([1.0, 0, 0.5**0.5, 0, 0, 0.5],
+                                                 dtype=torch.float64), atol=1e-15)  # fmt: skip
+    assert float(phi[:, :6].abs().sum() + phi[:, 12:].abs().sum()) == 0.0
+    with pytest.raises(ValueError, match="2 \\+ T"):
+        basis(torch.zeros(4))
+    with pytest.raises(ValueError, match="degree"):
+        MomentBasis(3, degree=0)
+
+
+@pytest.mark.parametrize("noise", ["full", "diagonal", "isotropic"])
+def test_linear_sample_next_follows_the_student_t_predictive(noise):
+    """Monte Carlo: 40,000 draws' mean and covariance against the closed-form predictive's
+    (loc; scale scale^T df / (df - 2)); standard errors of a mean of 40,000 draws are below
+    1% of a standard deviation, so 5 sigma bounds the mean error by 0.03 sd."""
+    obs, g, _ = _strokes(80, seed=3)
+    model = LinearIDDM(noise=noise, coef_precision=1.0, noise_prior=0.1).fit(obs, g)
+    z_prev = obs[0, 2].expand(40_000, -1)
+    draws = model.sample_next(z_prev, torch.full((40_000,), 0.6), 2,
+                              torch.Generator().manual_seed(0))  # fmt: skip
+    df, loc, scale = model._predictive(model._standardise(z_prev[:1]),
+                                       model._features(torch.tensor([[0.6]])), 2)  # fmt: skip
+    cov = (scale**2 if noise == "diagonal" else scale @ scale.mT)[0]
+    cov = torch.diag(cov) if noise == "diagonal" else cov
+    cov = cov * float(df) / (float(df) - 2) * torch.outer(model.obs_std, model.obs_std)
+    mean = loc[0] * model.obs_std + model.obs_mean
+    sd = cov.diagonal().sqrt()
+    assert bool(((draws.mean(0) - mean).abs() <= 5 * sd / 200).all())
+    emp = torch.cov(draws.T)
+    # the sample covariance of 40,000 draws: relative error about sqrt(2 / 40,000) = 0.7% (Gaussian
+    # fourth moments; heavier with df ~ 300, still far below 5%)
+    assert bool(((emp - cov).abs() <= 0.05 * torch.outer(sd, sd)).all())
+
+
+def test_repeated_stream_updates_like_the_batch_beliefs():
+    """``repeat`` + ``update`` on drawn frames = ``beliefs`` of the extended sequences."""
+    obs, g, _ = _strokes(60, seed=4)
+    model = LinearIDDM(interaction_rank=1, forgetting=0.2, temperature=2.0, coef_precision=1.0,
+                       noise_prior=0.1).fit(obs[:40], g[:40])  # fmt: skip
+    stream = model.stream(20)
+    for t in range(3):
+        stream.update(obs[40:, t])
+    particles = stream.repeat(5, 7)
+    z = particles.sample_next(torch.Generator().manual_seed(0))
+    got = particles.update(z).prob
+    extended = torch.cat([obs[45, :3].expand(7, -1, -1), z[:, None]], 1)
+    want = model.beliefs(extended).prob[:, -1]
+    # the same recursion over the same frames; only the batch shapes differ (rounding of
+    # K = 25 softmax terms of O(1) log weights: a few eps)
+    assert torch.allclose(got, want, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="index"):
+        stream.repeat(20, 2)
+
+
+def test_baselines_are_chosen_on_the_training_folds_only():
+    """A test fold whose best blind strategy differs from the training folds' must be played
+    with the training folds' choice: it returns none of its strokes here."""
+    from hgpdm_torch.experiments import anticipation as ant
+    from hgpdm_torch.experiments.demo import BLIND, FIXED_TIME, _learn_and_decide
+
+    n = 30
+    fold_of = torch.arange(n) % 3
+    rewards = -torch.ones(n, 3, 5, dtype=torch.float64)
+    rewards[fold_of == 0, 2, :] = 1.0  # fold 0: only the backhand
+    rewards[fold_of != 0, 0, :] = 1.0  # folds 1-2: only the forehand
+    grid = torch.linspace(-1.2, 1.2, 13, dtype=torch.float64)
+    # an uninformative belief: the fixed-time player cannot tell the folds apart either
+    prob = torch.full((n, 5, 13), 1 / 13, dtype=torch.float64)
+    track = BeliefTrack("linear-iddm", prob, grid, [1, 2, 3, 4, 5],
+                        _sampler=lambda i, t, m, gen: (prob[i, t + 1].expand(m, -1), None, None))
+    oracle = BeliefTrack("oracle", prob, grid, [1, 2, 3, 4, 5],
+                         _sampler=lambda i, t, m, gen: (prob[i, t + 1].expand(m, -1), None, None))
+    config = ant.AnticipationConfig(centres=5, particles=100)
+    play = _learn_and_decide({"linear-iddm": track, "oracle": oracle}, rewards,
+                             torch.arange(n), fold_of, ("linear-iddm",), "moments", config,
+                             torch.Generator().manual_seed(0))  # fmt: skip
+    for player in (BLIND, FIXED_TIME):
+        assert not bool(play.won[player][fold_of == 0].any()), player
+        assert bool(play.won[player][fold_of != 0].all()), player
+    # after the fact, on all rallies, the forehand still wins 20 of 30
+    assert int(play.won["best blind (after the fact)"].sum()) == 20
+    # the choice itself reads the training rewards only
+    assert blind_choice(rewards[fold_of != 0]) == (0, 0)
+    p = StoppingProblem(track.vectors(), rewards).subset(torch.nonzero(fold_of == 0).flatten())
+    step, _ = fixed_time_choice(p, MomentBasis(5), 1e-3)
+    assert step == 0  # the first of the (all equal) best steps
+
+
+def test_cv_return_rate_prefers_the_informative_source(problem):
+    obs, g, rewards, tracks = problem
+    rates = {
+        src: cv_return_rate(tracks[src].vectors("moments")[60:], rewards[60:], "moments")
+        for src in ("linear-iddm", "oracle")
+    }
+    assert rates["oracle"] >= 0.95 and rates["linear-iddm"] >= 0.9
+    flat = torch.full_like(tracks["oracle"].prob, 1 / 13)
+    blind = BeliefTrack("linear-iddm", flat, tracks["oracle"].grid, STEPS_AT)
+    assert cv_return_rate(blind.vectors()[60:], rewards[60:], "moments") <= 0.65
+    with pytest.raises(ValueError, match="at least"):
+        cv_return_rate(blind.vectors()[:4], rewards[:4], "moments")
