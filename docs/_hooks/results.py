@@ -2,9 +2,10 @@
 
 A page line ``<!-- results: gpu-check -->`` becomes the latest accelerator check
 (``benchmarks/results/gpu_check.json``, written by ``make gpu-check``) and the benchmark tables
-it names, each through :meth:`hgpdm_torch.experiments.table.ResultTable.to_markdown`, so the
-page shows what the files hold and never a copy typed by hand. A missing file is a warning (the
-strict build fails).
+it names; ``<!-- results: table PATH -->`` becomes the table of the JSON file ``PATH`` (relative
+to the repository root) that a command wrote, with the settings in its meta. Each goes through
+:meth:`hgpdm_torch.experiments.table.ResultTable.to_markdown`, so the page shows what the files
+hold and never a copy typed by hand. A missing file is a warning (the strict build fails).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from hgpdm_torch.experiments.table import ResultTable
 
 log = logging.getLogger("mkdocs.hooks.results")
 
-_MARKER = re.compile(r"^<!-- results: ([\w-]+) -->$", re.MULTILINE)
+_MARKER = re.compile(r"^<!-- results: ([\w-]+)(?: ([\w./-]+))? -->$", re.MULTILINE)
 
 
 def _gpu_check(root: Path) -> str:
@@ -47,7 +48,20 @@ def _gpu_check(root: Path) -> str:
     return "\n".join(lines)
 
 
-_RENDERERS = {"gpu-check": _gpu_check}
+def _table(root: Path, name: str | None) -> str:
+    """A command's result table (``ResultTable.to_json``) and the scalar settings of its meta."""
+    path = root / (name or "")
+    if not name or not path.is_file():
+        log.warning(f"results table {name!r} is missing")
+        return f"*Missing result file `{name}`.*"
+    table = ResultTable.from_json(path)
+    facts = [f"{k}: {v:.4g}" if isinstance(v, float) else f"{k}: {v}"
+             for k, v in table.meta.items() if isinstance(v, str | int | float)]  # fmt: skip
+    return "\n".join([table.to_markdown(".3g"), "", f"*Source: `{name}`; " + "; ".join(facts)
+                      + ".*"])  # fmt: skip
+
+
+_RENDERERS = {"gpu-check": lambda root, arg: _gpu_check(root), "table": _table}
 
 
 def on_page_markdown(markdown: str, page: Any, config: Any, **kwargs: Any) -> str:
@@ -58,6 +72,6 @@ def on_page_markdown(markdown: str, page: Any, config: Any, **kwargs: Any) -> st
         if name not in _RENDERERS:
             log.warning(f"{page.file.src_uri}: unknown results block {name!r}")
             return match.group(0)
-        return _RENDERERS[name](root)
+        return _RENDERERS[name](root, match.group(2))
 
     return _MARKER.sub(render, markdown)

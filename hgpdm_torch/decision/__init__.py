@@ -1,7 +1,7 @@
 """Decision making: anticipatory action selection as optimal stopping (Ch. 4: LSPI, Monte-Carlo
 planning, NAC) and delta-safe opponent modeling in repeated games (Ch. 5)."""
 
-from .basis import RadialBasis, action_features
+from .basis import MomentBasis, RadialBasis, action_features
 from .games import (
     RPS_REWARD,
     TABLE_TENNIS_REWARD,
@@ -15,7 +15,14 @@ from .games import (
     two_stage_rps,
 )
 from .lspi import LinearQ, LSPIResult, lspi, lstdq
-from .mcp import Belief, MCPDecision, MonteCarloPlanner, ParticleUpdate
+from .mcp import (
+    Belief,
+    EarlyStopping,
+    MCPDecision,
+    MonteCarloPlanner,
+    ParticleProjector,
+    ParticleUpdate,
+)
 from .nac import NACResult, SoftmaxPolicy, nac, natural_gradient
 from .opponent import (
     AdaptiveLearner,
@@ -43,11 +50,14 @@ __all__ = [
     "ACTIONS",
     "Belief",
     "EXPLORATION",
+    "EarlyStopping",
     "Episodes",
     "LSPIResult",
     "LinearQ",
     "MCPDecision",
+    "MomentBasis",
     "MonteCarloPlanner",
+    "ParticleProjector",
     "ParticleUpdate",
     "NACResult",
     "RadialBasis",

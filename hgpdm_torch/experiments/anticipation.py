@@ -44,15 +44,25 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from ..decision.basis import RadialBasis
 from ..decision.beliefs import Beliefs, decision_indices, fit_beliefs
 from ..decision.lspi import lspi
-from ..decision.mcp import MonteCarloPlanner
+from ..decision.mcp import EarlyStopping
 from ..decision.nac import nac
-from ..decision.policies import fixed_time_policy, greedy_policy, mcp_policy, stop_only_q
+from ..decision.policies import (
+    blind_choice,
+    cv_return_rate,
+    decision_basis,
+    fixed_time_choice,
+    fixed_time_policy,
+    greedy_policy,
+    mcp_policy,
+    planning_policy,
+    stop_only_q,
+)
+from ..decision.sources import FEATURES, SELECTABLE_SOURCES, track_beliefs
 from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
 from ..parallel import Executor, get_executor, ray_address_type
-from ..validation import as_tensor
+from ..validation import as_tensor, check_choice
 from .arguments import int_at_least, output_folder, positive_int, random_seed
 from .dtype import float64_default
 from .table import ResultTable
@@ -80,6 +90,14 @@ __all__ = [
 MOVEMENTS = ACTIONS[1:]
 ORACLE_TIMES = (-0.24, -0.16, -0.08)
 SINGLE_TIME = -0.24
+BLIND = "best blind (training folds)"
+"""The row of the best blind strategy (one movement at one start time) chosen on the training
+folds."""
+FIXED_TIME = "best fixed time (training folds)"
+"""The row of the best fixed-time strategy (the belief's movement at one start time) chosen on
+the training folds."""
+BELIEFS = ("auto", *SELECTABLE_SOURCES)
+"""``belief`` settings: ``"auto"`` (by cross-validated return rate) or one selectable source."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +121,12 @@ class AnticipationConfig:
             experiment (with PCA the latent keeps the ball's flight and loses the target).
         grid_size: K, targets in the belief histogram, evenly over +-grid_max.
         forgetting: the online filter's forgetting factor.
+        belief: the players' belief source (:mod:`~hgpdm_torch.decision.sources`): ``"auto"``
+            (per fold, the selectable source whose LSPI player returns most training strokes in
+            a 3-fold cross-validation), ``"linear-iddm"`` or ``"gp-iddm"`` (the thesis's).
+        features: decision features, ``"moments"`` (belief mean, sd and step;
+            :class:`~hgpdm_torch.decision.basis.MomentBasis`) or ``"rbf"`` (the thesis's RBFs
+            on the belief vector, Eq. 37).
         centres: RBF centres (100 in the thesis); ridge: LSPI's delta.
         particles: MCP budget per decision; confidence: its early-termination level.
         nac_iterations, nac_episodes, nac_step: NAC updates, episodes per trial, step size.
@@ -121,6 +145,8 @@ class AnticipationConfig:
     grid_size: int = 25
     grid_max: float = 1.2
     forgetting: float = 0.1
+    belief: str = "auto"
+    features: str = "moments"
     centres: int = 100
     ridge: float = 1e-3
     particles: int = 500
@@ -149,6 +175,8 @@ class AnticipationConfig:
             raise ValueError(
                 f"folds must be in [2, num_trials={self.num_trials}], got {self.folds}"
             )
+        check_choice(self.belief, "belief", BELIEFS)
+        check_choice(self.features, "features", FEATURES)
         if not self.episodes or any(
             isinstance(e, bool) or not isinstance(e, int) or e < 1 for e in self.episodes
         ):
@@ -234,9 +262,11 @@ def run_protocol(
     fold_of = torch.empty(n, dtype=torch.long)
     fold_of[perm] = torch.arange(n) % config.folds
 
+    candidates = SELECTABLE_SOURCES if config.belief == "auto" else (config.belief,)
     methods = [f"single {m} @240ms" for m in MOVEMENTS]
     methods += [f"oracle timing @{int(round(-1000 * s))}ms" for s in ORACLE_TIMES]
-    methods += ["NAC", "LSPI", "MCP"]
+    methods += [BLIND, FIXED_TIME, "NAC", "LSPI", "MCP"]
+    methods += [f"LSPI ({src} belief)" for src in candidates] + ["MCP (oracle belief)"]
     counts = {m: torch.zeros(config.repetitions) for m in methods}
     sample_counts = {
         (a, e): torch.zeros(config.repetitions) for a in ("LSPI", "MCP") for e in config.episodes
@@ -244,18 +274,37 @@ def run_protocol(
 
     bar = tqdm(total=config.folds * config.repetitions, disable=not progress, desc="anticipation")
     start = time.perf_counter()
-    fits = []
+    fits, chosen, rates = {}, [], []
+    num_steps = len(start_times)
+    rule = EarlyStopping(config.particles, config.confidence, min(100, config.particles))
     for k in range(config.folds):
         train = torch.nonzero(fold_of != k).flatten()
         test = torch.nonzero(fold_of == k).flatten()
-        fold = fit_beliefs(obs, targets, steps_at, train, test, config)
-        fits.append(fold.model.fit_result.summary())
-        vectors = fold.vectors()
-        problem = StoppingProblem(vectors, rewards)
-        train_p, test_p = problem.subset(train), problem.subset(test)
-        basis = RadialBasis(config.centres, seed=config.seed, bias=True).fit(
-            train_p.beliefs.reshape(-1, vectors.shape[-1])
-        )
+        tracks = {
+            src: track_beliefs(src, obs[train], targets[train], obs, targets, steps_at, config)
+            for src in (*candidates, "oracle")
+        }
+        for src, track in tracks.items():
+            fits.setdefault(src, []).extend(track.fits)
+        vectors = {src: track.vectors(config.features) for src, track in tracks.items()}
+        cv = {
+            src: cv_return_rate(vectors[src][train], rewards[train], config.features,
+                                centres=config.centres, ridge=config.ridge, seed=config.seed)
+            for src in candidates
+        } if len(candidates) > 1 else {}  # fmt: skip
+        source = max(candidates, key=lambda s: cv.get(s, 0.0))  # first of the best on ties
+        chosen.append(source)
+        rates.append(cv)
+        learned = {}
+        for src in (*candidates, "oracle"):
+            problem = StoppingProblem(vectors[src], rewards)
+            train_p, test_p = problem.subset(train), problem.subset(test)
+            basis = decision_basis(config.features, train_p.beliefs.flatten(0, 1), num_steps,
+                                   centres=config.centres, seed=config.seed)  # fmt: skip
+            enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
+            q = lspi(enumerated, features=basis, ridge=config.ridge).q
+            learned[src] = (train_p, test_p, basis, q)
+        train_p, test_p, basis, q = learned[source]
         # deterministic methods: the same in every repetition
         fixed = {}
         for a, name in enumerate(MOVEMENTS):
@@ -266,19 +315,32 @@ def run_protocol(
             q_t = stop_only_q(train_p, step_of[s], basis, config.ridge)
             ep = test_p.run(fixed_time_policy(q_t, basis, step_of[s]))
             fixed[f"oracle timing @{int(round(-1000 * s))}ms"] = successes(ep)
-        enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
-        q = lspi(enumerated, features=basis, ridge=config.ridge).q
+        a, t = blind_choice(rewards[train])
+        fixed[BLIND] = int((rewards[test, a, t] > 0).sum())
+        step, q_t = fixed_time_choice(train_p, basis, config.ridge)
+        fixed[FIXED_TIME] = successes(test_p.run(fixed_time_policy(q_t, basis, step)))
         fixed["LSPI"] = successes(test_p.run(greedy_policy(q, basis, test_p)))
+        for src in candidates:
+            _, tp, b, qs = learned[src]
+            fixed[f"LSPI ({src} belief)"] = successes(tp.run(greedy_policy(qs, b, tp)))
         for r in range(config.repetitions):
             gen = torch.Generator().manual_seed(config.seed + 1000 * r + k)
             for name, value in fixed.items():
                 counts[name][r] += value
-            planner = MonteCarloPlanner(
-                fold.model, fold.belief_filter, q, basis,
-                num_particles=config.particles, confidence=config.confidence,
-            )  # fmt: skip
             counts["MCP"][r] += successes(
-                test_p.run(mcp_policy(planner, fold, test, test_p.horizon, gen))
+                test_p.run(
+                    planning_policy(
+                        tracks[source], test, q, basis, rule, test_p.horizon, config.features, gen
+                    )
+                )
+            )
+            _, tp, b, qs = learned["oracle"]
+            counts["MCP (oracle belief)"][r] += successes(
+                tp.run(
+                    planning_policy(
+                        tracks["oracle"], test, qs, b, rule, tp.horizon, config.features, gen
+                    )
+                )
             )
             result = nac(
                 train_p, basis(train_p.beliefs), iterations=config.nac_iterations,
@@ -294,17 +356,14 @@ def run_protocol(
                 sample_counts[("LSPI", e)][r] += successes(
                     test_p.run(greedy_policy(q_e, basis, test_p))
                 )
-                planner_e = MonteCarloPlanner(
-                    fold.model, fold.belief_filter, q_e, basis,
-                    num_particles=config.particles, confidence=config.confidence,
-                )  # fmt: skip
-                sample_counts[("MCP", e)][r] += successes(
-                    test_p.run(mcp_policy(planner_e, fold, test, test_p.horizon, gen))
-                )
+                sample_counts[("MCP", e)][r] += successes(test_p.run(planning_policy(
+                    tracks[source], test, q_e, basis, rule, test_p.horizon, config.features,
+                    gen)))  # fmt: skip
             bar.update()
     bar.close()
-    meta = {**dataclasses.asdict(config), "valid trials": n, "seconds": time.perf_counter() - start,
-            "IDDM fits": fits}  # fmt: skip
+    meta = {**dataclasses.asdict(config), "valid trials": n,
+            "seconds": time.perf_counter() - start, "belief used": chosen,
+            "belief CV return rates": rates, "belief fits": fits}  # fmt: skip
 
     def stats(v: torch.Tensor) -> tuple[float, float]:
         sem = float(v.std() / v.numel() ** 0.5) if v.numel() > 1 else 0.0
@@ -417,6 +476,7 @@ def connect(
 
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm anticipation [--full] [--trials N] [--folds K] [--repetitions R]
+    [--belief SOURCE] [--features moments|rbf]
     [--workers W] [--ray-address ADDRESS] [--seed S] [--out DIR] [--cache-dir DIR]
     [--progress]``."""
     parser = argparse.ArgumentParser(prog="hgpdm anticipation", description=__doc__.split("\n")[0])
@@ -440,13 +500,23 @@ def main(argv: list[str]) -> int:
         help="simulate the rewards on Ray: 'local' (a Ray instance here), 'auto' ($RAY_ADDRESS "
         "or the cluster `ray start` runs here) or HOST:PORT of a head node",
     )
+    parser.add_argument(
+        "--belief", choices=BELIEFS, default="auto",
+        help="the players' belief source: auto (best cross-validated return rate on the "
+        "training folds), linear-iddm or gp-iddm (the thesis's)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--features", choices=FEATURES, default="moments",
+        help="decision features: moments (belief mean, sd and step) or rbf (the thesis's)",
+    )  # fmt: skip
     parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--out", type=output_folder, default="hgpdm_anticipation_output")
     parser.add_argument("--cache-dir", type=output_folder, default=None)
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
     smoke = os.environ.get("HGPDM_SMOKE") == "1" or not args.full
-    changes = {"seed": args.seed, "workers": args.workers or 1}
+    changes = {"seed": args.seed, "workers": args.workers or 1, "belief": args.belief,
+               "features": args.features}  # fmt: skip
     for key, name in (("num_trials", "trials"), ("folds", "folds"), ("repetitions", "repetitions")):
         if getattr(args, name) is not None:
             changes[key] = getattr(args, name)

@@ -59,6 +59,7 @@ from ..decision.stopping import StoppingProblem
 from ..parallel import Executor, available_cpus, get_executor, ray_address_type
 from ..validation import check_choice
 from . import anticipation as ant
+from .anticipation import BELIEFS, BLIND, FIXED_TIME
 from .arguments import (
     int_at_least,
     output_folder,
@@ -87,8 +88,6 @@ DEFAULT_TRIALS = 380
 #: Further opponent strokes the belief models learn from by default (observed only, never
 #: played; watching is cheap, trying movements in SAPIEN is not).
 DEFAULT_WATCHED = 600
-#: ``belief`` values: ``"auto"`` or one of the selectable sources.
-BELIEFS = ("auto", *SELECTABLE_SOURCES)
 
 
 @dataclass
@@ -288,8 +287,15 @@ def run_demo(
             last = max(steps_at) + 1
             candidates = SELECTABLE_SOURCES if belief == "auto" else (belief,)
             tracks = {
-                src: track_beliefs(src, seen.obs[:, :last], seen.targets, trials.obs[:, :last],
-                                   trials.targets, steps_at, config)  # fmt: skip
+                src: track_beliefs(
+                    src,
+                    seen.obs[:, :last],
+                    seen.targets,
+                    trials.obs[:, :last],
+                    trials.targets,
+                    steps_at,
+                    config,
+                )  # fmt: skip
                 for src in (*candidates, "oracle")
             }
             t_fit = time.perf_counter() - clock
@@ -385,10 +391,6 @@ def run_demo(
                                                                 strict=True)])  # fmt: skip
     return DemoResult(table, rallies, tracks["oracle"].grid, start_times, used, meta, won,
                       beliefs, play.sources_per_rally)  # fmt: skip
-
-
-BLIND = "best blind (training folds)"
-FIXED_TIME = "best fixed time (training folds)"
 
 
 @dataclass

@@ -51,8 +51,16 @@ def test_tables_and_bookkeeping(result):
     rows = {r["method"]: r for r in fig6.rows}
     assert list(rows) == [
         "single forehand @240ms", "single middle @240ms", "single backhand @240ms",
-        "oracle timing @240ms", "oracle timing @160ms", "oracle timing @80ms", "NAC", "LSPI", "MCP",
+        "oracle timing @240ms", "oracle timing @160ms", "oracle timing @80ms",
+        "best blind (training folds)", "best fixed time (training folds)", "NAC", "LSPI", "MCP",
+        "LSPI (linear-iddm belief)", "LSPI (gp-iddm belief)", "MCP (oracle belief)",
     ]  # fmt: skip
+    # the belief of each fold, chosen among the candidates by CV on its training strokes
+    assert len(fig6.meta["belief used"]) == 3
+    assert set(fig6.meta["belief used"]) <= {"linear-iddm", "gp-iddm"}
+    for used, cv in zip(fig6.meta["belief used"], fig6.meta["belief CV return rates"],
+                        strict=True):  # fmt: skip
+        assert cv[used] == max(cv.values())
     # every valid trial is tested once per repetition: the single-movement counts are direct sums
     for a, name in enumerate(("forehand", "middle", "backhand")):
         row = rows[f"single {name} @240ms"]
@@ -61,6 +69,8 @@ def test_tables_and_bookkeeping(result):
     for r in fig6.rows:
         assert 0 <= r["returns"] <= n
     assert rows["LSPI"]["SEM"] == 0.0  # deterministic given the folds
+    # a blind strategy chosen on the training folds: the same in every repetition
+    assert rows["best blind (training folds)"]["SEM"] == 0.0
     assert fig7.column("episodes") == [2]
 
 
@@ -70,6 +80,7 @@ def test_learning_beats_single_movements(result):
     best_single = max(v for k, v in rows.items() if k.startswith("single"))
     assert rows["oracle timing @80ms"] > best_single
     assert rows["LSPI"] > best_single and rows["MCP"] > best_single
+    assert rows["MCP (oracle belief)"] >= rows["best blind (training folds)"]
 
 
 def test_plots(result, tmp_path):
@@ -94,3 +105,7 @@ def test_decision_indices_and_bad_input():
         AnticipationConfig(folds=1)
     with pytest.raises(ValueError, match="episodes"):
         AnticipationConfig(episodes=(0,))
+    with pytest.raises(ValueError, match="unknown belief 'oracle'"):
+        AnticipationConfig(belief="oracle")
+    with pytest.raises(ValueError, match="unknown features"):
+        AnticipationConfig(features="pixels")
