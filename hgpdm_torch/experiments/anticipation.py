@@ -286,7 +286,16 @@ def run_protocol(
         }
         for src, track in tracks.items():
             fits.setdefault(src, []).extend(track.fits)
-        vectors = {src: track.vectors(config.features) for src, track in tracks.items()}
+        # the training strokes' beliefs for choosing the source and learning the players come
+        # from models that did not see them (2-fold cross-fitting within the training folds):
+        # a model's beliefs on its own training strokes are better than on new ones, which
+        # would favour the more flexible source and teach the players to trust it too much
+        vectors = {}
+        for src, track in tracks.items():
+            v = track.vectors(config.features).clone()
+            if src != "oracle":
+                v[train] = _cross_fitted(src, obs, targets, steps_at, train, config)
+            vectors[src] = v
         cv = {
             src: cv_return_rate(vectors[src][train], rewards[train], config.features,
                                 centres=config.centres, ridge=config.ridge, seed=config.seed)
@@ -388,6 +397,27 @@ def run_protocol(
         (lm, ls), (mm, ms) = stats(sample_counts[("LSPI", e)]), stats(sample_counts[("MCP", e)])
         fig7.add(**{"episodes": e, "LSPI": lm, "LSPI SEM": ls, "MCP": mm, "MCP SEM": ms})
     return fig6, fig7
+
+
+def _cross_fitted(
+    source: str, obs: torch.Tensor, targets: torch.Tensor, steps_at: list[int],
+    train: torch.Tensor, config: AnticipationConfig, folds: int = 2,
+) -> torch.Tensor:  # fmt: skip
+    """``[len(train), T, F]`` decision features of the strokes ``train``, each from a model of
+    ``source`` fitted on the other ``folds - 1`` parts of ``train`` only."""
+    gen = torch.Generator().manual_seed(config.seed + 1)
+    part = torch.empty(len(train), dtype=torch.long)
+    part[torch.randperm(len(train), generator=gen)] = torch.arange(len(train)) % folds
+    out = None
+    for j in range(folds):
+        fit_on, held = train[part != j], train[part == j]
+        track = track_beliefs(source, obs[fit_on], targets[fit_on], obs[held], targets[held],
+                              steps_at, config)  # fmt: skip
+        v = track.vectors(config.features)
+        if out is None:
+            out = v.new_empty(len(train), *v.shape[1:])
+        out[part == j] = v
+    return out
 
 
 def run_experiment(
