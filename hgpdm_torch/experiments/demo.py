@@ -644,7 +644,16 @@ def main(argv: list[str]) -> int:
         parser.error("--trials and --watched set the demo's sizes; --full uses the thesis's")
     bars = not args.quiet and (args.progress or sys.stderr.isatty())
     if args.full:
-        extra = ["--out", str(args.out), "--seed", str(args.seed)]
+        extra = [
+            "--out",
+            str(args.out),
+            "--seed",
+            str(args.seed),
+            "--belief",
+            args.belief,
+            "--features",
+            args.features,
+        ]
         if args.ray_address is None:
             extra += ["--workers", str(args.workers or max(1, os.cpu_count() or 1))]
         else:

@@ -189,3 +189,15 @@ def test_demo_rejects_bad_arguments(capsys):
             cli.main(["demo", *argv])
         assert exit_info.value.code == 2
         assert fragment in capsys.readouterr().err
+
+
+def test_demo_full_forwards_the_belief_and_features(monkeypatch, tmp_path):
+    """``hgpdm demo --full`` runs the full protocol with the demo's --belief and --features."""
+    seen = []
+    monkeypatch.setattr(demo.ant, "main", lambda argv: seen.append(argv) or 0)
+    args = ["demo", "--full", "--belief", "gp-iddm", "--features", "rbf", "--out", str(tmp_path)]
+    assert cli.main(args) == 0
+    (argv,) = seen
+    assert argv[0] == "--full"
+    assert argv[argv.index("--belief") + 1] == "gp-iddm"
+    assert argv[argv.index("--features") + 1] == "rbf"
