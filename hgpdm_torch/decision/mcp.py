@@ -437,11 +437,7 @@ class MonteCarloPlanner(ParticleProjector):
     """Anticipatory action selection by Monte-Carlo planning (Algorithms 4.2-4.3).
 
     Args:
-        model: the fitted IDDM, H-GPDM or GPDM (its measurement GP, and its transition GP for
-            ``sampling="points"``).
-        belief_filter: the online filter of this model whose belief update the particles replay
-            (its ``evidence`` must be ``"predictive"``; its grid, forgetting factor and shared
-            transition moments are used, not its streams).
+        model, belief_filter: as for :class:`ParticleProjector`, whose particles it values.
         q: stopping values ``Q^(theta, a) = phi'(theta)^T w_a`` (e.g. ``lspi(...).q``); row 0
             (waiting) is not used.
         features: state feature map ``phi'`` from belief vectors ``[..., F]`` (e.g. a fitted
@@ -450,7 +446,7 @@ class MonteCarloPlanner(ParticleProjector):
         confidence: level of the two-sided Student-t interval of Algorithm 4.3.
         min_particles: particles drawn before the interval is first checked.
         chunk_size: particles advanced per batched update; the interval is checked after each.
-        sampling: ``"moments"`` or ``"points"`` (module docstring).
+        sampling: as for :class:`ParticleProjector`.
         vectorize: ``(mean, cov, prob) -> [..., F]`` belief vectors that ``features`` takes
             (default :func:`~hgpdm_torch.decision.stopping.belief_vector`, the thesis's).
     """

@@ -22,11 +22,13 @@ from .stopping import WAIT, Policy, StoppingProblem
 
 __all__ = [
     "blind_choice",
+    "choose_source",
     "cv_return_rate",
     "decision_basis",
     "fixed_time_choice",
     "fixed_time_policy",
     "greedy_policy",
+    "learn_stopping",
     "mcp_policy",
     "planning_policy",
     "stop_only_q",
@@ -168,9 +170,37 @@ def cv_return_rate(
     for k in range(folds):
         train = problem.subset(torch.nonzero(fold_of != k).flatten())
         test = problem.subset(torch.nonzero(fold_of == k).flatten())
-        basis = decision_basis(features, train.beliefs.flatten(0, 1), problem.horizon,
-                               centres=centres, seed=seed)  # fmt: skip
-        transitions = train.transitions(train.enumerate_episodes(), unique=True)
-        q = lspi(transitions, features=basis, ridge=ridge).q
+        basis, q = learn_stopping(train, features, centres=centres, ridge=ridge, seed=seed)
         won += int((test.run(greedy_policy(q, basis, test)).reward > 0).sum())
     return won / n
+
+
+def learn_stopping(
+    problem: StoppingProblem, features: str, *, centres: int = 20, ridge: float = 1e-3,
+    seed: int = 0,
+) -> tuple[MomentBasis | RadialBasis, LinearQ]:  # fmt: skip
+    """The state features (:func:`decision_basis`) of a training ``problem``'s beliefs and LSPI's
+    values learned from its enumerated episodes."""
+    basis = decision_basis(features, problem.beliefs.flatten(0, 1), problem.horizon,
+                           centres=centres, seed=seed)  # fmt: skip
+    transitions = problem.transitions(problem.enumerate_episodes(), unique=True)
+    return basis, lspi(transitions, features=basis, ridge=ridge).q
+
+
+def choose_source(
+    vectors: dict[str, torch.Tensor], rewards: torch.Tensor, candidates: tuple[str, ...],
+    features: str, *, centres: int = 20, ridge: float = 1e-3, seed: int = 0,
+) -> tuple[str, dict[str, float]]:  # fmt: skip
+    """The belief source the players decide on: of ``candidates``, the one whose
+    :func:`cv_return_rate` on the training strokes (``vectors[source] [n, T, F]``,
+    ``rewards [n, S, T]``) is largest, the first on ties; with one candidate, it (no CV).
+    Returns the source and the rates."""
+    if len(candidates) == 1:
+        return candidates[0], {}
+    rates = {
+        src: cv_return_rate(
+            vectors[src], rewards, features, centres=centres, ridge=ridge, seed=seed
+        )  # fmt: skip
+        for src in candidates
+    }
+    return max(candidates, key=rates.__getitem__), rates

@@ -50,11 +50,11 @@ from ..decision.mcp import EarlyStopping
 from ..decision.nac import nac
 from ..decision.policies import (
     blind_choice,
-    cv_return_rate,
-    decision_basis,
+    choose_source,
     fixed_time_choice,
     fixed_time_policy,
     greedy_policy,
+    learn_stopping,
     mcp_policy,
     planning_policy,
     stop_only_q,
@@ -275,7 +275,6 @@ def run_protocol(
     bar = tqdm(total=config.folds * config.repetitions, disable=not progress, desc="anticipation")
     start = time.perf_counter()
     fits, chosen, rates = {}, [], []
-    num_steps = len(start_times)
     rule = EarlyStopping(config.particles, config.confidence, min(100, config.particles))
     for k in range(config.folds):
         train = torch.nonzero(fold_of != k).flatten()
@@ -296,22 +295,17 @@ def run_protocol(
             if src != "oracle":
                 v[train] = _cross_fitted(src, obs, targets, steps_at, train, config)
             vectors[src] = v
-        cv = {
-            src: cv_return_rate(vectors[src][train], rewards[train], config.features,
-                                centres=config.centres, ridge=config.ridge, seed=config.seed)
-            for src in candidates
-        } if len(candidates) > 1 else {}  # fmt: skip
-        source = max(candidates, key=lambda s: cv.get(s, 0.0))  # first of the best on ties
+        source, cv = choose_source({s: v[train] for s, v in vectors.items()}, rewards[train],
+                                   candidates, config.features, centres=config.centres,
+                                   ridge=config.ridge, seed=config.seed)  # fmt: skip
         chosen.append(source)
         rates.append(cv)
         learned = {}
         for src in (*candidates, "oracle"):
             problem = StoppingProblem(vectors[src], rewards)
             train_p, test_p = problem.subset(train), problem.subset(test)
-            basis = decision_basis(config.features, train_p.beliefs.flatten(0, 1), num_steps,
-                                   centres=config.centres, seed=config.seed)  # fmt: skip
-            enumerated = train_p.transitions(train_p.enumerate_episodes(), unique=True)
-            q = lspi(enumerated, features=basis, ridge=config.ridge).q
+            basis, q = learn_stopping(train_p, config.features, centres=config.centres,
+                                      ridge=config.ridge, seed=config.seed)  # fmt: skip
             learned[src] = (train_p, test_p, basis, q)
         train_p, test_p, basis, q = learned[source]
         # deterministic methods: the same in every repetition

@@ -43,15 +43,14 @@ from pathlib import Path
 import torch
 
 from ..decision.beliefs import decision_indices
-from ..decision.lspi import lspi
 from ..decision.mcp import EarlyStopping
 from ..decision.policies import (
     blind_choice,
-    cv_return_rate,
-    decision_basis,
+    choose_source,
     fixed_time_choice,
     fixed_time_policy,
     greedy_policy,
+    learn_stopping,
     planning_policy,
 )
 from ..decision.sources import FEATURES, SELECTABLE_SOURCES, BeliefTrack, track_beliefs
@@ -442,12 +441,9 @@ def _learn_and_decide(
     for k in tqdm(range(folds), disable=not progress, desc="learn + plan (folds)", leave=False):
         at = torch.nonzero(fold_of == k).flatten()  # positions among the valid strokes
         tr = torch.nonzero(fold_of != k).flatten()
-        cv = {
-            src: cv_return_rate(vectors[src][tr], reward[tr], features, centres=config.centres,
-                                ridge=config.ridge, seed=config.seed)  # fmt: skip
-            for src in candidates
-        } if len(candidates) > 1 else {}  # fmt: skip
-        source = max(candidates, key=lambda s: cv.get(s, 0.0))  # first of the best on ties
+        source, cv = choose_source({s: v[tr] for s, v in vectors.items()}, reward[tr],
+                                   candidates, features, centres=config.centres,
+                                   ridge=config.ridge, seed=config.seed)  # fmt: skip
         sources.append(source)
         rates.append(cv)
         for j in at.tolist():
@@ -458,10 +454,8 @@ def _learn_and_decide(
         for src in (*candidates, "oracle"):
             problem = StoppingProblem(vectors[src], reward)
             train, test = problem.subset(tr), problem.subset(at)
-            basis = decision_basis(features, train.beliefs.flatten(0, 1), num_steps,
-                                   centres=config.centres, seed=config.seed)  # fmt: skip
-            enumerated = train.transitions(train.enumerate_episodes(), unique=True)
-            q = lspi(enumerated, features=basis, ridge=config.ridge).q
+            basis, q = learn_stopping(train, features, centres=config.centres,
+                                      ridge=config.ridge, seed=config.seed)  # fmt: skip
             if src in candidates:
                 won[f"LSPI ({src} belief)"][at] = test.run(greedy_policy(q, basis, test)).reward > 0
             if src == source:
@@ -482,8 +476,7 @@ def _learn_and_decide(
                     stop_step[at], stop_action[at] = decided.stop_step, decided.stop_action
                     table_reward[at] = decided.reward.to(table_reward.dtype)
     won["oracle (best movement and time per stroke)"][:] = (reward > 0).flatten(1).any(1)
-    after = (reward > 0).sum(0)
-    a, t = divmod(int(after.flatten().argmax()), num_steps)
+    a, t = blind_choice(reward)  # on all the rallies: after the fact
     won["best blind (after the fact)"] = reward[:, a, t] > 0
     # won["MCP"] is the reward table's; the caller replaces it by the live SAPIEN rallies
     return _Play(won, stop_step, stop_action, table_reward, sources, per_rally, rates, blind,

@@ -232,19 +232,13 @@ def test_baselines_are_chosen_on_the_training_folds_only():
     grid = torch.linspace(-1.2, 1.2, 13, dtype=torch.float64)
     # an uninformative belief: the fixed-time player cannot tell the folds apart either
     prob = torch.full((n, 5, 13), 1 / 13, dtype=torch.float64)
-    track = BeliefTrack(
-        "linear-iddm",
-        prob,
-        grid,
-        [1, 2, 3, 4, 5],
-        _sampler=lambda i, t, m, gen: (prob[i, t + 1].expand(m, -1), None, None),
-    )
-    oracle = BeliefTrack(
-        "oracle",
-        prob,
-        grid,
-        [1, 2, 3, 4, 5],
-        _sampler=lambda i, t, m, gen: (prob[i, t + 1].expand(m, -1), None, None),
+
+    def same(i, t, m, gen):  # waiting teaches this belief nothing
+        return prob[i, t + 1].expand(m, -1), None, None
+
+    track, oracle = (
+        BeliefTrack(src, prob, grid, [1, 2, 3, 4, 5], _sampler=same)
+        for src in ("linear-iddm", "oracle")
     )
     config = ant.AnticipationConfig(centres=5, particles=100)
     play = _learn_and_decide({"linear-iddm": track, "oracle": oracle}, rewards,
