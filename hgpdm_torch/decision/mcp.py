@@ -437,7 +437,8 @@ class MonteCarloPlanner(ParticleProjector):
     """Anticipatory action selection by Monte-Carlo planning (Algorithms 4.2-4.3).
 
     Args:
-        model, belief_filter: as for :class:`ParticleProjector`, whose particles it values.
+        model: as for :class:`ParticleProjector`, whose particles it values.
+        belief_filter: as for :class:`ParticleProjector`.
         q: stopping values ``Q^(theta, a) = phi'(theta)^T w_a`` (e.g. ``lspi(...).q``); row 0
             (waiting) is not used.
         features: state feature map ``phi'`` from belief vectors ``[..., F]`` (e.g. a fitted
