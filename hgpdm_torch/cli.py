@@ -36,7 +36,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "walkers": (
         "hgpdm_torch.experiments.walkers",
-        "real CMU walks: VB style recognition and pose forecasts vs baselines (Sec. 2.4.1)",
+        "CMU Walkers / Weird Walking: VB recognition and pose forecasts (Tables 2.1-2.4)",
+    ),
+    "gap-recovery": (
+        "hgpdm_torch.experiments.gap_recovery",
+        "CMU Four Walkers: recovery of 31 missing frames (Sec. 2.4.1, Table 2.5)",
     ),
     "target-prediction": (
         "hgpdm_torch.experiments.target_prediction",

@@ -16,17 +16,20 @@ names (``from hgpdm_torch.baselines import WindowGPR``):
 * :mod:`~hgpdm_torch.baselines.classification`: a class (:class:`WindowSVM`, :class:`WindowGPC`,
   :class:`HMMClassifier`);
 * :mod:`~hgpdm_torch.baselines.forecasting`: the next frame (:class:`LastFrameForecaster`,
-  :class:`RidgeAR`).
+  :class:`RidgeAR`);
+* :mod:`~hgpdm_torch.baselines.recurrent`: the next frame by a GRU (:class:`GRUForecaster`).
 """
 
 from __future__ import annotations
 
 from .classification import HMMClassifier, WindowGPC, WindowSVM
 from .forecasting import LastFrameForecaster, RidgeAR
+from .recurrent import GRUForecaster
 from .regression import MedianPredictor, WindowGPR, WindowRidge
 from .windows import window_features
 
 __all__ = [
+    "GRUForecaster",
     "HMMClassifier",
     "LastFrameForecaster",
     "MedianPredictor",

@@ -1,5 +1,6 @@
 """Datasets: seeded synthetic generators and loaders for real movement data."""
 
+from .cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol, load_trials
 from .mocap import load_mocap, read_amc, read_asf
 from .msrc12 import (
     MSRC12,
@@ -12,21 +13,24 @@ from .msrc12 import (
     read_msrc12_recording,
 )
 from .synthetic import MovementSet, styled_movements, targeted_movements
-from .walkers import Standardizer, Walkers, load_walkers, motion_features
+from .walkers import Standardizer, motion_features
 
 __all__ = [
     "MSRC12",
     "MSRC12Recording",
+    "MotionTrials",
     "MissingTagstreamError",
     "MovementSet",
+    "PROTOCOLS",
     "PosePCA",
+    "Protocol",
     "Standardizer",
-    "Walkers",
     "kinect_features",
     "load_mocap",
     "load_msrc12_folder",
     "load_msrc12_npz",
-    "load_walkers",
+    "load_protocol",
+    "load_trials",
     "motion_features",
     "read_amc",
     "read_asf",

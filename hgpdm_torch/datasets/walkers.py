@@ -1,11 +1,9 @@
-"""The *Walkers* data of thesis Sec. 2.4.1: CMU walks of two subjects, preprocessed as in Taylor
-et al. (2007, 2011).
+"""Preprocessing of CMU walks (thesis Sec. 2.4.1) as in Taylor et al. (2007, 2011); the trials
+and protocols themselves are in :mod:`hgpdm_torch.datasets.cmu`.
 
 - :func:`motion_features`: one trial's raw ASF/AMC channels ``[T, C]`` -> features ``[T', F]``:
   root velocity in the heading frame, root height, yaw rate, pitch and roll, and joint angles in
   radians wrapped to ``[-pi, pi)``, after resampling to a common frame rate.
-- :func:`load_walkers`: subject 07's two walks (ASF/AMC at 120 frames/s) and subject 35's
-  fifteen walks (a NumPy archive at 30 frames/s) as :class:`Walkers`, both at ``target_fps``.
 - :class:`Standardizer`: drops the channels that are constant in the training trials and
   standardises the rest with training statistics; maps back to the full channel layout.
 
@@ -22,17 +20,15 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from ..validation import as_tensor
-from .mocap import Skeleton, read_amc, read_asf
+from .mocap import Skeleton
 
-__all__ = ["Standardizer", "Walkers", "load_walkers", "motion_features"]
+__all__ = ["Standardizer", "motion_features"]
 
 ROOT_FEATURES = (
     "root.vx_heading",
@@ -202,103 +198,6 @@ def motion_features(
         columns.append(_wrap(to_rad * v) if name.split(".")[1] in _ROTATIONS else v)
         names.append(name)
     return np.stack(columns, axis=1), names
-
-
-# ------------------------------------------------------------------------------------------
-# The Walkers data
-# ------------------------------------------------------------------------------------------
-
-SUBJECT_IDS = ("07", "35")
-_WALKS_07 = ("07_01", "07_02")
-_WALKS_35 = (1, 2, 3, 11, 12, 13, 14, 15, 16, 26, 27, 28, 29, 30, 31)  # col17-25: jog/run
-_ARCHIVE_35 = "cmu35_walk_jog_dev.npz"
-
-
-@dataclass
-class Walkers:
-    """Walks of several subjects as feature sequences (thesis Sec. 2.4.1).
-
-    Attributes:
-        sequences: J trials ``[T_j, F]`` (float64) of :func:`motion_features`.
-        subject: ``[J]`` (long) index of each trial's subject in ``subject_ids``.
-        subject_ids: the CMU subject numbers, ``("07", "35")``.
-        trials: CMU trial names, e.g. ``"07_01"``, ``"35_26"``.
-        features: the ``F`` feature names.
-        fps: the common frame rate.
-    """
-
-    sequences: list[torch.Tensor]
-    subject: torch.Tensor
-    subject_ids: tuple[str, ...]
-    trials: list[str]
-    features: list[str]
-    fps: float
-
-    def __len__(self) -> int:
-        return len(self.sequences)
-
-
-def load_walkers(folder: str | Path = "../shared/data/cmu", target_fps: float = 15.0) -> Walkers:
-    """Load the CMU walks of subjects 07 and 35 at one frame rate.
-
-    Reads ``07.asf`` with ``07_01.amc`` and ``07_02.amc`` (120 frames/s), and ``35.asf`` with
-    the walks of ``cmu35_walk_jog_dev.npz`` (30 frames/s, keys ``col01``-``col03``,
-    ``col11``-``col16``, ``col26``-``col31``; the jog/run trials ``col17``-``col25`` are left
-    out): 2 + 15 trials, features as :func:`motion_features` makes them.
-
-    Args:
-        folder: the folder holding those files.
-        target_fps: common frame rate; must divide 120 and 30 by integers (15, 30, 10, ...).
-
-    Returns:
-        :class:`Walkers`, trials ordered as listed above.
-
-    Raises:
-        FileNotFoundError: the folder or one of the files is missing.
-        ValueError: the two skeletons have different channels, the archive lacks a walk or its
-            arrays do not match ``35.asf``, or a bad ``target_fps``.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"CMU data folder not found: {folder}")
-    files = ["07.asf", *(f"{t}.amc" for t in _WALKS_07), "35.asf", _ARCHIVE_35]
-    for name in files:
-        if not (folder / name).is_file():
-            raise FileNotFoundError(f"{name} is missing from the CMU data folder {folder}")
-    sk07, sk35 = read_asf(folder / "07.asf"), read_asf(folder / "35.asf")
-    if sk07.channels() != sk35.channels():
-        raise ValueError(
-            f"07.asf and 35.asf in {folder} have different channels: "
-            f"{sorted(set(sk07.channels()) ^ set(sk35.channels()))}"
-        )
-    raw: list[tuple[str, int, np.ndarray, list[str], Skeleton, float]] = []
-    for name in _WALKS_07:
-        trial = read_amc(folder / f"{name}.amc", sk07)
-        raw.append((name, 0, trial.values, trial.channels, sk07, 120.0))
-    with np.load(folder / _ARCHIVE_35) as archive:
-        for number in _WALKS_35:
-            key = f"col{number:02d}"
-            if key not in archive:
-                raise ValueError(f"{folder / _ARCHIVE_35} has no array {key!r}")
-            values = archive[key]
-            if values.ndim != 2 or values.shape[1] != len(sk35.channels()):
-                raise ValueError(
-                    f"{folder / _ARCHIVE_35}[{key!r}] must be [T, {len(sk35.channels())}] "
-                    f"channels of 35.asf, got shape {values.shape}"
-                )
-            raw.append((f"35_{number:02d}", 1, values, sk35.channels(), sk35, 30.0))
-    sequences, names = [], None
-    for _, _, values, channels, skeleton, fps in raw:
-        features, names = motion_features(values, channels, skeleton, fps, target_fps)
-        sequences.append(torch.as_tensor(features, dtype=torch.float64))
-    return Walkers(
-        sequences=sequences,
-        subject=torch.tensor([r[1] for r in raw], dtype=torch.long),
-        subject_ids=SUBJECT_IDS,
-        trials=[r[0] for r in raw],
-        features=names,
-        fps=float(target_fps),
-    )
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,27 +1,33 @@
-"""*Walkers* on real CMU motion capture (thesis Sec. 2.4.1, Tables 2.1-2.2).
+"""Next-pose prediction on the thesis's CMU protocols (Sec. 2.4.1, Tables 2.1-2.4).
 
-Protocol: walks of subjects 07 and 35 (``../shared/data/cmu``, see its README), Taylor-style
-features at 15 frames/s (:func:`~hgpdm_torch.datasets.load_walkers`), channels constant in
-training dropped and the rest standardised with training statistics only. The thesis's test
-trials are held back, so the evaluation is a grouped cross-validation over the trials that are
-there: in fold f each subject's trials are rotated so that one block is tested and the next
-``train_per_subject`` trials train (subject 07 has two walks: one trains, one tests); no trial
-is on both sides of a fold, every trial is tested at least once.
+Protocols (:data:`~hgpdm_torch.datasets.cmu.PROTOCOLS`): ``walkers`` (g = subject 07, 08, 16,
+35) and ``weird-walking`` (g = one of subject 132's four styles), both down-sampled by ten
+(12 frames/s), Taylor-style features (:func:`~hgpdm_torch.datasets.walkers.motion_features`),
+channels constant in training dropped and the rest standardised with training statistics only.
 
-Per fold an H-GPDM (g = subject) and a GPDM are fitted (MAP, :meth:`GPDM.fit`); every test
-trial is cut into sliding windows of T frames and each method forecasts the next frame:
+Two evaluations:
 
-- VB H-GPDM: Algorithm 2.2 over both subjects, the ML subject's forecast; its recognition
-  accuracy, the 90%-set coverage of the subject posterior and its expected calibration error;
-- oracle H-GPDM (true subject given): VB and MAP; GPDM: VB and MAP;
-- the VB forecasts again with the window's deviation from the model's reconstruction carried
-  forward as an AR(1) process (``forecast(..., residual="ar1")``, coefficient estimated from
-  each window alone; not in the thesis);
-- baselines: repeat the last frame; ridge AR(k) with k and the ridge strength chosen by
-  cross-validation grouped by training trial (:class:`~hgpdm_torch.baselines.RidgeAR`).
+- **leave-one-trial-out cross-validation** within the training trials (the default, and how the
+  options are chosen): each trial whose label has another training trial is held out in turn,
+  the models are fitted on the rest; a trial that is its label's only one is listed as not
+  testable (the models could not know its label);
+- **test trials** (``test_folder``): the models are fitted once on all training trials and score
+  the protocol's test trials found there (those absent are listed).
 
-RMSE is over all standardised channels of all windows; the table gives the mean over folds
-with its standard error, and per subject. ``HGPDM_SMOKE=1`` shrinks the run.
+Every held-out trial is cut into windows of T frames (every ``stride`` frames) and each method
+forecasts the next frame. From one VB posterior per window over all g (every candidate refined):
+
+- ``VB H-GPDM``: the ML g's forecast (Algorithm 2.2, the thesis's column), its recognition
+  accuracy and the 90%-set coverage of the posterior over g;
+- ``VB H-GPDM (BMA)``: the forecasts of all g averaged under the posterior over g;
+- ``oracle VB``: the true g's forecast; with ``+ AR(1) residual``: the window's deviation from
+  the model's reconstruction carried on as an AR(1) process (not in the thesis);
+
+and ``oracle MAP`` (conditional GPDM), ``GPDM VB`` / ``GPDM MAP``, and the baselines: repeat the
+last frame, ridge AR (order and penalty by CV grouped by trial) and a GRU (hidden size and
+epochs by grouped CV). RMSE is over all standardised channels of a trial's windows; the
+``average`` row is the mean over trials (with its standard error), as the thesis's tables.
+``HGPDM_SMOKE=1`` shrinks the run.
 """
 
 from __future__ import annotations
@@ -37,74 +43,63 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from ..baselines import LastFrameForecaster, RidgeAR
-from ..datasets.walkers import Standardizer, Walkers, load_walkers
+from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
+from ..datasets.cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol
+from ..datasets.walkers import Standardizer
 from ..inference.calibration import calibration
 from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
+from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
-from .arguments import output_file
+from .arguments import output_file, positive_int
 from .style_recognition import chunked_forecast, forecast_windows
 from .table import ResultTable
 
-__all__ = ["METHODS", "main", "walker_folds", "walkers"]
+__all__ = ["FORECAST_PROTOCOLS", "METHODS", "loto_folds", "main", "walkers"]
 
 SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
+FORECAST_PROTOCOLS = ("walkers", "weird-walking")
 METHODS = (
     "VB H-GPDM",
+    "VB H-GPDM (BMA)",
     "oracle VB",
     "oracle MAP",
     "GPDM VB",
     "GPDM MAP",
     "VB H-GPDM + AR(1) residual",
+    "VB H-GPDM (BMA) + AR(1) residual",
     "oracle VB + AR(1) residual",
     "GPDM VB + AR(1) residual",
     "repeat last frame",
     "ridge AR (CV)",
+    "GRU (CV)",
 )
+# one VB window over K candidates holds about K (T + 1) N^2 numbers of psi2: chunk to this
+_MAX_ENTRIES = 2e7
 
 
-def walker_folds(
-    subject: Any, folds: int = 5, train_per_subject: int = 3
-) -> list[tuple[list[int], list[int]]]:
-    """Grouped folds over trials, balanced across subjects.
-
-    For each subject with n trials (in order), block size ``b = max(1, min(n // folds, n - 1))``;
-    fold f tests its trials ``f b .. f b + b - 1`` (cyclically) and trains on the next
-    ``min(train_per_subject, n - b)`` trials after that block.
+def loto_folds(labels: Any) -> tuple[list[tuple[list[int], list[int]]], list[int]]:
+    """Leave-one-trial-out folds over the trials whose label has at least one other trial.
 
     Args:
-        subject: ``[J]`` subject code per trial.
-        folds: number of folds (>= 1).
-        train_per_subject: training trials per subject and fold (>= 1).
+        labels: ``[J]`` label code per trial.
 
     Returns:
-        ``(train, test)`` trial indices per fold; disjoint within a fold.
+        ``(train, [held-out trial])`` per testable trial, in trial order, and the trials that
+        cannot be held out (their label's only trial; they always train).
     """
-    codes = np.asarray(subject).reshape(-1)
-    if not isinstance(folds, int) or folds < 1:
-        raise ValueError(f"folds must be a positive int, got {folds!r}")
-    if not isinstance(train_per_subject, int) or train_per_subject < 1:
-        raise ValueError(f"train_per_subject must be a positive int, got {train_per_subject!r}")
-    out = []
-    for f in range(folds):
-        train, test = [], []
-        for s in np.unique(codes):
-            idx = np.flatnonzero(codes == s).tolist()
-            n = len(idx)
-            if n < 2:
-                raise ValueError(f"subject {s} has {n} trial; each subject needs at least 2")
-            b = max(1, min(n // folds, n - 1))  # at least one trial left to train on
-            k = min(train_per_subject, n - b)
-            test += [idx[(f * b + i) % n] for i in range(b)]
-            train += [idx[(f * b + b + i) % n] for i in range(k)]
-        out.append((sorted(train), sorted(test)))
-    return out
+    codes = np.asarray(labels).reshape(-1)
+    folds, untestable = [], []
+    for j, code in enumerate(codes.tolist()):
+        if int((codes == code).sum()) < 2:
+            untestable.append(j)
+            continue
+        folds.append(([i for i in range(len(codes)) if i != j], [j]))
+    return folds, untestable
 
 
-def _rmse(pred: torch.Tensor, truth: torch.Tensor, keep: torch.Tensor | None = None) -> float:
-    err = pred - truth if keep is None else pred[keep] - truth[keep]
-    return float(err.pow(2).mean().sqrt()) if err.numel() else math.nan
+def _rmse(pred: torch.Tensor, truth: torch.Tensor) -> float:
+    return float((pred - truth).pow(2).mean().sqrt())
 
 
 def _mean_sem(values: list[float]) -> tuple[float, float | None]:
@@ -113,186 +108,344 @@ def _mean_sem(values: list[float]) -> tuple[float, float | None]:
     return float(v.mean()), sem
 
 
+def _chunks(n_windows: int, per_window: float) -> list[slice]:
+    size = max(1, int(_MAX_ENTRIES // max(per_window, 1.0)))
+    return [slice(i, i + size) for i in range(0, n_windows, size)]
+
+
+def _vb_forecasts(
+    vb: VariationalInference, z: torch.Tensor, y: torch.Tensor
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """The VB rows of one model from one posterior per window (see the module docstring).
+
+    Returns:
+        forecasts by method suffix, the ML g (index into ``vb.values``) ``[W]`` and the
+        posterior over g ``[W, K]``.
+    """
+    n = vb.model.observations.shape[0]
+    K = int(vb.values.numel()) if vb.kind == "discrete" else 1
+    out: dict[str, list[torch.Tensor]] = {}
+    g_ml, post = [], []
+    truth = (vb.values[None, :] == y[:, None]).long().argmax(-1) if K > 1 else None
+    for part in _chunks(z.shape[0], K * (z.shape[1] + 1) * n * n):
+        cf = candidate_forecasts(vb, z[part], prune=None)
+        ml = cf.result.g_ml
+        rows = {"": cf.pick(ml), " + AR(1) residual": cf.pick(ml, ar1=True)}
+        if truth is not None:
+            rows |= {
+                " (BMA)": cf.averaged(),
+                " (BMA) + AR(1) residual": cf.averaged(ar1=True),
+                " oracle": cf.pick(truth[part]),
+                " oracle + AR(1) residual": cf.pick(truth[part], ar1=True),
+            }
+        for key, value in rows.items():
+            out.setdefault(key, []).append(value)
+        g_ml.append(ml)
+        post.append(cf.result.posterior)
+    return {k: torch.cat(v) for k, v in out.items()}, torch.cat(g_ml), torch.cat(post)
+
+
+def _score_split(
+    train: list[torch.Tensor],
+    train_labels: torch.Tensor,
+    test: list[torch.Tensor],
+    test_labels: torch.Tensor,
+    *,
+    lengths: tuple[int, ...],
+    stride: int,
+    latent_dim: int,
+    fit_steps: int,
+    options: dict[str, Any],
+    sharing: float,
+) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
+    """Fit every model on ``train`` (raw features) and score each ``test`` trial.
+
+    Returns:
+        per window length, one row per test trial (``windows``, every method's RMSE,
+        ``accuracy``, ``coverage``), and the fits' summaries.
+    """
+    std = Standardizer().fit(train)
+    tr = [std.transform(s) for s in train]
+    te = [std.transform(s) for s in test]
+    start = time.perf_counter()
+    hg = HGPDM(tr, train_labels, latent_dim, sharing=sharing, **options)
+    gp = GPDM(tr, latent_dim, **options)
+    fits: dict[str, Any] = {
+        name: m.fit(fit_steps).summary() for name, m in (("H-GPDM", hg), ("GPDM", gp))
+    }
+    fits["seconds"] = time.perf_counter() - start
+    last, ridge = LastFrameForecaster().fit(tr), RidgeAR().fit(tr)
+    fits["ridge_order"] = ridge.order_
+    vb_hg, vb_gp = VariationalInference(hg), VariationalInference(gp)
+    rows: dict[int, list[dict[str, Any]]] = {}
+    for T in lengths:
+        gru = GRUForecaster().fit(tr, T)
+        fits[f"gru T={T}"] = {"hidden": gru.hidden_, "epochs": gru.epochs_}
+        start = time.perf_counter()
+        z, nxt, y = forecast_windows(te, test_labels, T, stride)
+        trial = torch.cat(
+            [torch.full((len(range(0, s.shape[0] - T, stride)),), j) for j, s in enumerate(te)]
+        )
+        hg_rows, g_ml, post = _vb_forecasts(vb_hg, z, y)
+        gp_rows, _, _ = _vb_forecasts(vb_gp, z, y)
+        preds = {
+            "VB H-GPDM": hg_rows[""],
+            "VB H-GPDM (BMA)": hg_rows[" (BMA)"],
+            "oracle VB": hg_rows[" oracle"],
+            "oracle MAP": chunked_forecast(MAPInference(hg), z, y[:, None])[0],
+            "GPDM VB": gp_rows[""],
+            "GPDM MAP": chunked_forecast(MAPInference(gp), z)[0],
+            "VB H-GPDM + AR(1) residual": hg_rows[" + AR(1) residual"],
+            "VB H-GPDM (BMA) + AR(1) residual": hg_rows[" (BMA) + AR(1) residual"],
+            "oracle VB + AR(1) residual": hg_rows[" oracle + AR(1) residual"],
+            "GPDM VB + AR(1) residual": gp_rows[" + AR(1) residual"],
+            "repeat last frame": last.predict(z),
+            "ridge AR (CV)": ridge.predict(z),
+            "GRU (CV)": gru.predict(z),
+        }
+        truth = (vb_hg.values[None, :] == y[:, None]).long().argmax(-1)
+        rows[T] = []
+        for j in range(len(te)):
+            keep = trial == j
+            row: dict[str, Any] = {"windows": int(keep.sum())}
+            row |= {name: _rmse(p[keep], nxt[keep]) for name, p in preds.items()}
+            row["accuracy"] = float((g_ml[keep] == truth[keep]).double().mean())
+            row["coverage"] = calibration(post[keep], truth[keep])["coverage"]
+            rows[T].append(row)
+        fits[f"forecast seconds T={T}"] = time.perf_counter() - start
+    return rows, fits
+
+
 def walkers(
-    data: Walkers | None = None,
+    protocol: str | Protocol = "walkers",
     *,
     folder: str | Path = "../shared/data/cmu",
+    test_folder: str | Path | None = None,
     lengths: tuple[int, ...] = (5, 10),
     latent_dim: int = 3,
     fit_steps: int = 300,
-    folds: int = 5,
-    train_per_subject: int = 3,
     stride: int = 2,
     model_options: dict[str, Any] | None = None,
     sharing: float = 0.0,
+    max_folds: int | None = None,
     progress: bool = False,
 ) -> ResultTable:
-    """Tables 2.1-2.2 on the real Walkers trials, with baselines (see the module docstring).
+    """Tables 2.1-2.4 on a CMU protocol, with baselines (see the module docstring).
 
     Args:
-        data: the trials (default :func:`load_walkers` of ``folder``).
-        folder: where the CMU files are.
+        protocol: ``"walkers"``, ``"weird-walking"`` or a :class:`~hgpdm_torch.datasets.cmu.
+            Protocol` of one's own.
+        folder: the training trials' folder.
+        test_folder: score the protocol's test trials found there (models fitted on all training
+            trials); ``None``: leave-one-trial-out CV within the training trials.
         lengths: window lengths T.
         latent_dim: Dx of both models.
         fit_steps: maximum MAP steps per fit.
-        folds: see :func:`walker_folds`.
-        train_per_subject: see :func:`walker_folds`.
         stride: step between windows.
         model_options: further constructor arguments of both models (e.g.
-            ``{"back_constraint": "kernel"}``, ``{"learn_noise": True}``).
-        sharing: the H-GPDM's share of dynamics common to both subjects
-            (:class:`~hgpdm_torch.models.HGPDM`; 0 is the thesis's independent dynamics).
+            ``{"back_constraint": "kernel"}``).
+        sharing: the H-GPDM's share of dynamics common to all g (0: the thesis's model).
+        max_folds: CV only: hold out at most this many trials (spread over the labels), for a
+            quick look; ``None`` holds out every testable trial.
         progress: progress bar over folds.
 
     Returns:
-        A :class:`ResultTable`: one row per window length and method; ``meta`` holds the
-        per-fold numbers, the fits' convergence and the folds.
+        A :class:`ResultTable`: per window length, one row per held-out (or test) trial and an
+        ``average`` row (mean over trials, ``SEM`` columns); ``meta`` holds per-label means,
+        the fits' convergence, the ratios to GPDM VB and which trials were missing.
     """
-    if data is None:
-        data = load_walkers(folder)
-    splits = walker_folds(data.subject, folds, train_per_subject)
+    if isinstance(protocol, Protocol):
+        spec = protocol
+    elif protocol in FORECAST_PROTOCOLS:
+        spec = PROTOCOLS[protocol]
+    else:
+        raise ValueError(f"protocol must be one of {FORECAST_PROTOCOLS}, got {protocol!r}")
+    data = load_protocol(spec, "train", folder)
     options = dict(model_options or {})
-    per: dict[tuple[int, str], list[dict[str, float]]] = {}
     meta: dict[str, Any] = {
+        "protocol": spec.name,
+        "evaluation": "test trials" if test_folder is not None else "leave-one-trial-out CV",
         "latent_dim": latent_dim,
         "model_options": {k: str(v) for k, v in options.items()},
         "sharing": sharing,
         "fit_steps": fit_steps,
         "stride": stride,
         "fps": data.fps,
-        "subjects": list(data.subject_ids),
-        "folds": [
-            {"train": [data.trials[i] for i in tr], "test": [data.trials[i] for i in te]}
-            for tr, te in splits
-        ],
+        "labels": list(spec.label_names),
+        "training trials": data.trials,
+        "missing training trials": data.missing,
         "fits": [],
-        "calibration": {},
     }
-    for train, test in tqdm(splits, disable=not progress, desc="walkers"):
-        std = Standardizer().fit([data.sequences[i] for i in train])
-        tr = [std.transform(data.sequences[i]) for i in train]
-        te = [std.transform(data.sequences[i]) for i in test]
-        y_tr, y_te = data.subject[train], data.subject[test]
-        start = time.perf_counter()
-        hg = HGPDM(tr, y_tr, latent_dim, sharing=sharing, **options)
-        gp = GPDM(tr, latent_dim, **options)
-        fits = {name: m.fit(fit_steps).summary() for name, m in (("H-GPDM", hg), ("GPDM", gp))}
-        meta["fits"].append({**fits, "seconds": time.perf_counter() - start})
-        last, ridge = LastFrameForecaster().fit(tr), RidgeAR().fit(tr)
-        vb_hg, vb_gp = VariationalInference(hg), VariationalInference(gp)
-        for T in lengths:
-            z, nxt, y = forecast_windows(te, y_te, T, stride)
-            mean, g_ml, post = chunked_forecast(vb_hg, z)
-            preds = {
-                "VB H-GPDM": mean,
-                "oracle VB": chunked_forecast(vb_hg, z, y[:, None])[0],
-                "oracle MAP": chunked_forecast(MAPInference(hg), z, y[:, None])[0],
-                "GPDM VB": chunked_forecast(vb_gp, z)[0],
-                "GPDM MAP": chunked_forecast(MAPInference(gp), z)[0],
-                "VB H-GPDM + AR(1) residual": chunked_forecast(vb_hg, z, residual="ar1")[0],
-                "oracle VB + AR(1) residual": chunked_forecast(
-                    vb_hg, z, y[:, None], residual="ar1"
-                )[0],
-                "GPDM VB + AR(1) residual": chunked_forecast(vb_gp, z, residual="ar1")[0],
-                "repeat last frame": last.predict(z),
-                "ridge AR (CV)": ridge.predict(z),
-            }
-            truth = vb_hg.values[y.to(vb_hg.values.device)]
-            cal = calibration(post, (vb_hg.values[None, :] == truth[:, None]).long().argmax(-1))
-            meta["calibration"].setdefault(str(T), []).append(cal)
-            acc = float((vb_hg.values[g_ml] == y).double().mean())
-            for name, pred in preds.items():
-                row = {"rmse": _rmse(pred, nxt)}
-                for s, sid in enumerate(data.subject_ids):
-                    row[sid] = _rmse(pred, nxt, y == s)
-                if name == "VB H-GPDM":
-                    row.update(accuracy=acc, **cal)
-                per.setdefault((T, name), []).append(row)
-        meta.setdefault("ridge_order", []).append(ridge.order_)
-    columns = ["T", "method", "RMSE", "SEM"]
-    columns += [f"RMSE {sid}" for sid in data.subject_ids]
-    columns += ["x GPDM VB", "accuracy", "90% set coverage", "ECE"]
+    scored: list[tuple[str, str, dict[int, dict[str, Any]]]] = []  # (trial, label, rows by T)
+    kwargs = {
+        "lengths": tuple(lengths),
+        "stride": stride,
+        "latent_dim": latent_dim,
+        "fit_steps": fit_steps,
+        "options": options,
+        "sharing": sharing,
+    }
+    if test_folder is not None:
+        test = load_protocol(spec, "test", [test_folder, folder])
+        meta["test trials"], meta["missing test trials"] = test.trials, test.missing
+        if not len(test):
+            raise FileNotFoundError(
+                f"none of the {spec.name} test trials {[t for t, _ in spec.test]} is in "
+                f"{test_folder}"
+            )
+        known = set(data.labels.tolist())
+        keep = [j for j in range(len(test)) if int(test.labels[j]) in known]
+        meta["test trials without a training trial of their label"] = [
+            test.trials[j] for j in range(len(test)) if j not in keep
+        ]
+        test.sequences = [test.sequences[j] for j in keep]
+        test.trials, test.labels = [test.trials[j] for j in keep], test.labels[keep]
+        rows, fits = _score_split(
+            data.sequences, data.labels, test.sequences, test.labels, **kwargs
+        )
+        meta["fits"].append(fits)
+        for j, name in enumerate(test.trials):
+            label = test.label_names[int(test.labels[j])]
+            scored.append((name, label, {T: rows[T][j] for T in lengths}))
+    else:
+        folds, untestable = loto_folds(data.labels)
+        folds = _spread(folds, data, max_folds)
+        meta["not testable by leave-one-trial-out"] = [data.trials[j] for j in untestable]
+        for train, held in tqdm(folds, disable=not progress, desc=spec.name):
+            rows, fits = _score_split(
+                [data.sequences[i] for i in train],
+                data.labels[train],
+                [data.sequences[i] for i in held],
+                data.labels[held],
+                **kwargs,
+            )
+            fits["held out"] = data.trials[held[0]]
+            meta["fits"].append(fits)
+            label = data.label_names[int(data.labels[held[0]])]
+            scored.append((data.trials[held[0]], label, {T: rows[T][0] for T in lengths}))
+    return _table(spec.table, spec.name, scored, tuple(lengths), meta)
+
+
+def _spread(
+    folds: list[tuple[list[int], list[int]]], data: MotionTrials, max_folds: int | None
+) -> list[tuple[list[int], list[int]]]:
+    """At most ``max_folds`` folds, taking the labels' trials in turn."""
+    if max_folds is None or max_folds >= len(folds):
+        return folds
+    by_label: dict[int, list[tuple[list[int], list[int]]]] = {}
+    for fold in folds:
+        by_label.setdefault(int(data.labels[fold[1][0]]), []).append(fold)
+    order = [f for i in range(len(folds)) for group in by_label.values() for f in group[i : i + 1]]
+    return sorted(order[:max_folds], key=lambda f: f[1][0])
+
+
+def _table(
+    thesis_table: str,
+    protocol: str,
+    scored: list[tuple[str, str, dict[int, dict[str, Any]]]],
+    lengths: tuple[int, ...],
+    meta: dict[str, Any],
+) -> ResultTable:
+    columns = ["T", "trial", "label", "windows", *METHODS, "accuracy", "90% set coverage"]
+    columns += [f"SEM {m}" for m in METHODS]
     table = ResultTable(
-        "Walkers (Tables 2.1-2.2): next-pose RMSE (standardised), mean over grouped folds",
+        f"{protocol} ({thesis_table}): next-pose RMSE (standardised) per "
+        f"{'test' if meta['evaluation'] == 'test trials' else 'held-out'} trial",
         columns,
         meta=meta,
     )
+    summary: dict[str, Any] = {}
     for T in lengths:
-        ref = _mean_sem([r["rmse"] for r in per[(T, "GPDM VB")]])[0]
-        for name in METHODS:
-            rows = per[(T, name)]
-            mean, sem = _mean_sem([r["rmse"] for r in rows])
-            cells: dict[str, Any] = {"T": T, "method": name, "RMSE": mean, "SEM": sem}
-            for sid in data.subject_ids:
-                cells[f"RMSE {sid}"] = _mean_sem([r[sid] for r in rows])[0]
-            cells["x GPDM VB"] = mean / ref
-            if name == "VB H-GPDM":
-                cells["accuracy"] = _mean_sem([r["accuracy"] for r in rows])[0]
-                cells["90% set coverage"] = _mean_sem([r["coverage"] for r in rows])[0]
-                cells["ECE"] = _mean_sem([r["ece"] for r in rows])[0]
-            table.add(**cells)
-        meta.setdefault("per_fold", {})[str(T)] = {n: per[(T, n)] for n in METHODS}
+        for trial, label, rows in scored:
+            row = rows[T]
+            table.add(
+                T=T,
+                trial=trial,
+                label=label,
+                windows=row["windows"],
+                accuracy=row["accuracy"],
+                **{"90% set coverage": row["coverage"]},
+                **{m: row[m] for m in METHODS},
+            )
+        cells: dict[str, Any] = {"T": T, "trial": "average", "label": "all"}
+        cells["windows"] = sum(r[T]["windows"] for _, _, r in scored)
+        for m in METHODS:
+            cells[m], cells[f"SEM {m}"] = _mean_sem([r[T][m] for _, _, r in scored])
+        cells["accuracy"] = _mean_sem([r[T]["accuracy"] for _, _, r in scored])[0]
+        cells["90% set coverage"] = _mean_sem([r[T]["coverage"] for _, _, r in scored])[0]
+        table.add(**cells)
+        labels = sorted({lab for _, lab, _ in scored})
+        summary[str(T)] = {
+            "VB H-GPDM / GPDM VB": cells["VB H-GPDM"] / cells["GPDM VB"],
+            "per label": {
+                lab: {
+                    m: _mean_sem([r[T][m] for _, lb, r in scored if lb == lab])[0]
+                    for m in (*METHODS, "accuracy")
+                }
+                for lab in labels
+            },
+        }
+    meta["summary"] = summary
     return table
 
 
 def main(argv: list[str]) -> int:
-    """``hgpdm walkers [--data DIR] [--lengths 5 10] [--latent-dim 3] [--fit-steps 300]
-    [--folds 5] [--out table.json]``."""
+    """``hgpdm walkers [--protocol walkers|weird-walking] [--data DIR] [--test-data DIR]
+    [--lengths 5 10] [--latent-dim 3] [--fit-steps 300] [--stride 2] [--out table.json]``."""
     parser = argparse.ArgumentParser(prog="hgpdm walkers", description=__doc__)
+    parser.add_argument("--protocol", choices=FORECAST_PROTOCOLS, default="walkers")
     parser.add_argument("--data", type=Path, default=Path("../shared/data/cmu"))
-    parser.add_argument("--lengths", nargs="+", type=_positive, default=[5, 10])
-    parser.add_argument("--latent-dim", type=_positive, default=3)
-    parser.add_argument("--fit-steps", type=_positive, default=60 if SMOKE else 300)
-    parser.add_argument("--folds", type=_positive, default=2 if SMOKE else 5)
-    parser.add_argument("--train-per-subject", type=_positive, default=1 if SMOKE else 3)
-    parser.add_argument("--stride", type=_positive, default=4 if SMOKE else 2)
+    parser.add_argument(
+        "--test-data",
+        type=Path,
+        default=None,
+        help="score the protocol's test trials found in this folder (default: leave-one-trial-"
+        "out CV within the training trials)",
+    )
+    parser.add_argument("--lengths", nargs="+", type=positive_int, default=[5, 10])
+    parser.add_argument("--latent-dim", type=positive_int, default=3)
+    parser.add_argument("--fit-steps", type=positive_int, default=40 if SMOKE else 300)
+    parser.add_argument("--stride", type=positive_int, default=4 if SMOKE else 2)
+    parser.add_argument(
+        "--max-folds", type=positive_int, default=2 if SMOKE else None, help="CV: at most N folds"
+    )
     parser.add_argument("--back-constraint", choices=("kernel", "mlp"), default=None)
     parser.add_argument("--learn-noise", action="store_true", help="learn alpha_4 (MAP)")
     parser.add_argument(
         "--sharing",
         type=float,
         default=0.0,
-        help="H-GPDM: share of the dynamics common to both subjects, in [0, 1) (default 0)",
-    )
-    parser.add_argument(
-        "--fixed-measurement-width",
-        action="store_true",
-        help="keep the RBF measurement width at its initial value (no length-scale collapse)",
+        help="H-GPDM: share of the dynamics common to all g, in [0, 1) (default 0)",
     )
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
-    options: dict[str, Any] = {
-        "learn_noise": args.learn_noise,
-        "learn_measurement_width": not args.fixed_measurement_width,
-    }
+    options: dict[str, Any] = {"learn_noise": args.learn_noise}
     if args.back_constraint is not None:
         options["back_constraint"] = args.back_constraint
     if not 0.0 <= args.sharing < 1.0:
         parser.error(f"--sharing must lie in [0, 1), got {args.sharing}")
-    if not args.data.is_dir():
-        parser.error(f"--data {args.data} is not a folder (it needs the CMU files, see README)")
+    for name, path in (("--data", args.data), ("--test-data", args.test_data)):
+        if path is not None and not path.is_dir():
+            parser.error(f"{name} {path} is not a folder (it needs the CMU files, see README)")
     torch.set_default_dtype(torch.float64)
     table = walkers(
+        args.protocol,
         folder=args.data,
+        test_folder=args.test_data,
         lengths=tuple(args.lengths),
         latent_dim=args.latent_dim,
         fit_steps=args.fit_steps,
-        folds=args.folds,
-        train_per_subject=args.train_per_subject,
         stride=args.stride,
         model_options=options,
         sharing=args.sharing,
+        max_folds=args.max_folds,
         progress=args.progress,
     )
     print(table.to_markdown(".3f"))
+    for key in ("missing training trials", "missing test trials"):
+        if table.meta.get(key):
+            print(f"{key}: {', '.join(table.meta[key])}")
     if args.out is not None:
         table.to_json(args.out)
     return 0
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return value

@@ -1,10 +1,9 @@
 """Walkers preprocessing: synthetic trajectories with known answers, scipy's rotations as the
-oracle for the Euler split, and the real CMU walks when ../shared/data/cmu is present."""
+oracle for the Euler split (the real trials: test_cmu.py)."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,11 +11,8 @@ import torch
 from scipy.spatial.transform import Rotation
 from sklearn.preprocessing import StandardScaler
 
-from hgpdm_torch.datasets import Standardizer, load_walkers, motion_features
+from hgpdm_torch.datasets import Standardizer, motion_features
 from hgpdm_torch.datasets.mocap import Bone, Skeleton
-
-CMU = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "cmu"
-UNIT_METRES = 0.0254 / 0.45  # CMU ASF "length 0.45": inches / 0.45
 
 
 def skeleton(root_order=("tx", "ty", "tz", "rx", "ry", "rz"), angle="deg") -> Skeleton:
@@ -212,98 +208,3 @@ def test_standardizer_bad_inputs():
         st.kept(["a"])
     with pytest.raises(RuntimeError, match="fit"):
         Standardizer().transform(torch.zeros(2, 3))
-
-
-# ------------------------------------------------------------------------------------------
-# The loader
-# ------------------------------------------------------------------------------------------
-
-SMALL_ASF = """:version 1.10
-:name VICON
-:units
-  length 0.45
-  angle deg
-:root
-   order TX TY TZ RX RY RZ
-   axis XYZ
-   position 0 0 0
-   orientation 0 0 0
-:bonedata
-  begin
-     id 1
-     name {bone}
-     direction 0 -1 0
-     length 7
-     axis 0 0 20  XYZ
-    dof rx
-  end
-:hierarchy
-  begin
-    root {bone}
-  end
-"""
-
-
-def test_loader_missing_files_and_mismatched_skeletons(tmp_path):
-    with pytest.raises(FileNotFoundError, match="nowhere"):
-        load_walkers(tmp_path / "nowhere")
-    for name in ("07.asf", "07_01.amc", "07_02.amc", "35.asf"):
-        (tmp_path / name).write_text("")
-    with pytest.raises(FileNotFoundError, match=r"cmu35_walk_jog_dev\.npz.*" + tmp_path.name):
-        load_walkers(tmp_path)
-    np.savez(tmp_path / "cmu35_walk_jog_dev.npz", col01=np.zeros((4, 7)))
-    (tmp_path / "07.asf").write_text(SMALL_ASF.format(bone="lfemur"))
-    (tmp_path / "35.asf").write_text(SMALL_ASF.format(bone="rfemur"))
-    with pytest.raises(ValueError, match="different channels"):
-        load_walkers(tmp_path)
-
-
-@pytest.fixture(scope="module")
-def walkers():
-    if not CMU.is_dir():
-        pytest.skip(f"../shared/data/cmu absent: no real CMU walks at {CMU}")
-    return load_walkers(CMU)
-
-
-def test_walkers_trials_and_frame_rate(walkers):
-    assert len(walkers) == 17 and walkers.fps == 15.0
-    assert walkers.trials[:3] == ["07_01", "07_02", "35_01"] and walkers.trials[-1] == "35_31"
-    assert not any(f"35_{k}" in walkers.trials for k in range(17, 26))  # jog/run left out
-    assert walkers.subject.tolist() == [0, 0] + [1] * 15
-    assert walkers.subject_ids == ("07", "35")
-    assert all(s.shape[1] == len(walkers.features) == 62 for s in walkers.sequences)
-    assert all(
-        s.dtype == torch.float64 and bool(torch.isfinite(s).all()) for s in walkers.sequences
-    )
-    # 07_01: 316 frames at 120 frames/s -> 40 at 15 -> 39 rows; 35_01: 90 at 30 -> 45 -> 44
-    assert walkers.sequences[0].shape[0] == 39 and walkers.sequences[2].shape[0] == 44
-    angles = torch.cat(walkers.sequences)[:, 3:]
-    assert bool((angles >= -math.pi).all()) and bool((angles < math.pi).all())
-
-
-def test_walkers_walk_forward_at_a_plausible_speed(walkers):
-    """Both subjects advance along their heading (+z of the root frame) at 1-1.6 m/s; the
-    pelvis sways sideways with the steps but does not drift."""
-    fwd = walkers.features.index("root.vz_heading")
-    side = walkers.features.index("root.vx_heading")
-    for subject in (0, 1):
-        seqs = [s for s, g in zip(walkers.sequences, walkers.subject, strict=True) if g == subject]
-        v = torch.cat(seqs)
-        speed = float(v[:, fwd].mean()) * walkers.fps * UNIT_METRES
-        assert 1.0 < speed < 1.6
-        assert bool((v[:, fwd] > 0).all())
-        assert abs(float(v[:, side].mean())) < 0.1 * float(v[:, fwd].mean())
-    height = torch.cat(walkers.sequences)[:, walkers.features.index("root.ty")] * UNIT_METRES
-    assert 0.8 < float(height.mean()) < 1.1
-
-
-def test_walkers_standardised_with_training_statistics(walkers):
-    train = [s for s, t in zip(walkers.sequences, walkers.trials, strict=True) if t != "35_31"]
-    st = Standardizer().fit(train)
-    dropped = [n for n, k in zip(walkers.features, st.keep_.tolist(), strict=True) if not k]
-    assert "root.vz_heading" not in dropped and 0 < len(dropped) < 10
-    u = st.transform(walkers.sequences[-1])
-    assert u.shape[1] == int(st.keep_.sum()) and bool(torch.isfinite(u).all())
-    torch.testing.assert_close(
-        st.inverse_transform(u)[:, st.keep_], walkers.sequences[-1][:, st.keep_]
-    )

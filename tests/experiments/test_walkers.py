@@ -1,78 +1,102 @@
-"""The Walkers experiment (real CMU walks): folds and a small real run."""
+"""The CMU forecasting experiment (Walkers / Weird Walking): folds, a small real run in both
+evaluations, and the command line."""
 
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 
 import pytest
 
-from hgpdm_torch.experiments.walkers import METHODS, main, walker_folds, walkers
+from hgpdm_torch.datasets.cmu import Protocol, load_protocol
+from hgpdm_torch.datasets.walkers import Standardizer
+from hgpdm_torch.experiments.style_recognition import forecast_windows
+from hgpdm_torch.experiments.walkers import METHODS, loto_folds, main, walkers
 
 #: the experiment at smoke sizes fits its models a few steps on purpose (each FitResult says it
 #: stopped at the step limit): their ConvergenceWarnings are expected here, and only here
 SHORT_FITS = pytest.mark.filterwarnings("ignore::hgpdm_torch.fitting.ConvergenceWarning")
-
 CMU = Path("../shared/data/cmu")
+REAL = pytest.mark.skipif(not CMU.is_dir(), reason="../shared/data/cmu absent: real-data test")
 
 
-def test_folds_are_grouped_balanced_and_cover_every_trial():
-    subject = [0, 0] + [1] * 15
-    splits = walker_folds(subject, folds=5, train_per_subject=3)
-    assert len(splits) == 5
-    tested = set()
-    for train, test in splits:
-        assert not set(train) & set(test)
-        assert sorted(subject[i] for i in train) == [0, 1, 1, 1]
-        assert sorted(subject[i] for i in test) == [0, 1, 1, 1]
-        tested |= set(test)
-    assert tested == set(range(17))
-    with pytest.raises(ValueError, match="at least 2"):
-        walker_folds([0, 1, 1])
-    with pytest.raises(ValueError, match="folds"):
-        walker_folds(subject, folds=0)
-    with pytest.raises(ValueError, match="train_per_subject"):
-        walker_folds(subject, train_per_subject=0)
+def test_leave_one_trial_out_folds_skip_a_labels_only_trial():
+    folds, untestable = loto_folds([0, 0, 1, 2, 2, 2])
+    assert untestable == [2]
+    assert [held for _, held in folds] == [[0], [1], [3], [4], [5]]
+    for train, held in folds:  # every other trial trains, the untestable one included
+        assert held[0] not in train and sorted(train + held) == list(range(6))
 
 
-@pytest.mark.skipif(not CMU.is_dir(), reason="../shared/data/cmu absent: real-data test skipped")
+@REAL
 @SHORT_FITS
-def test_small_real_run_has_every_method_and_an_exact_baseline():
-    from hgpdm_torch.datasets import load_walkers
-    from hgpdm_torch.experiments.style_recognition import forecast_windows
-
-    data = load_walkers(CMU)
-    table = walkers(
-        data, lengths=(4,), fit_steps=4, folds=1, train_per_subject=1, stride=8, sharing=0.5
-    )
-    assert [r["method"] for r in table.rows] == list(METHODS)
-    assert table.meta["sharing"] == 0.5
-    for row in table.rows:
-        assert math.isfinite(row["RMSE"]) and row["RMSE"] > 0
-    fits = table.meta["fits"][0]
-    assert {"H-GPDM", "GPDM"} <= set(fits) and fits["H-GPDM"]["steps"] == 4
-    # Repeat-last-frame RMSE recomputed independently from the same fold.
-    from hgpdm_torch.datasets import Standardizer
-
-    train, test = walker_folds(data.subject, 1, 1)[0]
-    std = Standardizer().fit([data.sequences[i] for i in train])
-    z, nxt, _ = forecast_windows(
-        [std.transform(data.sequences[i]) for i in test], data.subject[test], 4, 8
-    )
+def test_small_cv_run_has_every_method_and_an_exact_baseline():
+    table = walkers("walkers", lengths=(4,), fit_steps=3, stride=8, max_folds=1)
+    rows = {r["trial"]: r for r in table.rows}
+    assert set(rows) == {"07_01", "average"}
+    assert table.meta["not testable by leave-one-trial-out"] == ["08_02"]
+    assert table.meta["missing training trials"] == ["07_03", "08_01", "08_03"]
+    for m in METHODS:
+        assert math.isfinite(rows["07_01"][m]) and rows["07_01"][m] > 0
+    assert 0 <= rows["07_01"]["accuracy"] <= 1
+    # repeat-last-frame RMSE recomputed independently: 07_01 held out, the 7 others train
+    data = load_protocol("walkers", folder=CMU)
+    train = [s for s, t in zip(data.sequences, data.trials, strict=True) if t != "07_01"]
+    std = Standardizer().fit(train)
+    z, nxt, _ = forecast_windows([std.transform(data.sequences[0])], [0], 4, 8)
     want = float((z[:, -1] - nxt).pow(2).mean().sqrt())
-    got = table.rows[list(METHODS).index("repeat last frame")]["RMSE"]
-    assert got == pytest.approx(want, rel=1e-12)
-    cal = table.meta["calibration"]["4"][0]
-    assert 0 <= cal["ece"] <= 1 and 1 <= cal["set_size"] <= 2
+    assert rows["07_01"]["repeat last frame"] == pytest.approx(want, rel=1e-12)
+    fits = table.meta["fits"][0]
+    assert fits["held out"] == "07_01" and fits["H-GPDM"]["steps"] == 3
+
+
+@REAL
+@SHORT_FITS
+def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
+    """A protocol of one's own: two subjects, test trials in a separate folder without the
+    skeletons (they come from the training folder), one test trial absent."""
+    for name in ("07_02.amc", "35_03.amc"):
+        shutil.copy(CMU / name, tmp_path / name)
+    mine = Protocol(
+        "mine",
+        "subject",
+        ("07", "35"),
+        (("07_01", "07"), ("35_01", "35"), ("35_02", "35")),
+        (("07_02", "07"), ("35_03", "35"), ("35_09", "35")),
+        10,
+        "none",
+    )
+    table = walkers(mine, folder=CMU, test_folder=tmp_path, lengths=(3,), fit_steps=3, stride=6)
+    assert table.meta["evaluation"] == "test trials"
+    assert table.meta["test trials"] == ["07_02", "35_03"]
+    assert table.meta["missing test trials"] == ["35_09"]
+    assert [r["trial"] for r in table.rows] == ["07_02", "35_03", "average"]
+    avg = table.rows[-1]
+    for m in METHODS:
+        want = (table.rows[0][m] + table.rows[1][m]) / 2
+        assert avg[m] == pytest.approx(want, rel=1e-12)
+        assert avg[f"SEM {m}"] == pytest.approx(abs(table.rows[0][m] - table.rows[1][m]) / 2)
+    summary = table.meta["summary"]["3"]
+    assert summary["VB H-GPDM / GPDM VB"] == pytest.approx(avg["VB H-GPDM"] / avg["GPDM VB"])
+    assert set(summary["per label"]) == {"07", "35"}
 
 
 def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
     with pytest.raises(SystemExit):
-        main(["--folds", "0"])
+        main(["--stride", "0"])
     assert "positive integer" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--data", str(tmp_path / "missing")])
     assert "not a folder" in capsys.readouterr().err
     with pytest.raises(SystemExit):
+        main(["--test-data", str(tmp_path / "missing")])
+    assert "--test-data" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--protocol", "four-walkers"])
+    assert "invalid choice" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
         main(["--sharing", "1.0"])
     assert "--sharing" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="protocol"):
+        walkers("dancers")

@@ -22,6 +22,7 @@ from hgpdm_torch.inference.variational import (
     condition_gaussian,
     window_mask,
 )
+from hgpdm_torch.inference.variational.prediction import candidate_forecasts
 from hgpdm_torch.models import GPDM, HGPDM
 
 # A nonlinear transition (alpha_2 = 1: length scale 1) and a noise large enough for a sharp
@@ -285,6 +286,34 @@ def test_forecast_and_gap_shapes_batched(hgpdm, styles):
     assert (rv[:, 1:3] > 0).all() and torch.all(rv[:, 0] == 0)
     oracle = vb.infer(gap, values=styles.labels[:4, None], steps=10)
     assert oracle.log_evidence.shape == (4, 1)
+
+
+def test_candidate_forecasts_match_separate_inferences(hgpdm, styles):
+    """One posterior over all g gives the ML g's forecast (plain and AR(1)) of
+    ``VariationalInference.forecast``, the oracle's (a separate inference with the true g) and
+    their Bayesian average. Tolerances: the same algebra batched over K candidates (1e-9 on O(1)
+    forecasts: reductions in another order); the oracle's own inference stops at the optimiser's
+    tolerance (1e-6)."""
+    vb = VariationalInference(hgpdm)
+    z = torch.stack([styles.sequences[j][3:8] for j in range(4)])
+    cf = candidate_forecasts(vb, z, prune=None)
+    assert cf.mean.shape == cf.ar1_mean.shape == (4, 2, 5)
+    for residual in (None, "ar1"):
+        mean, _, res = vb.forecast(z, residual=residual, prune=None)
+        got = cf.pick(res.g_ml, ar1=residual is not None)
+        torch.testing.assert_close(got, mean, rtol=0, atol=1e-9)
+    truth = styles.labels[:4]
+    oracle, _, _ = vb.forecast(z, values=truth[:, None], prune=None)
+    index = (vb.values[None] == truth[:, None]).long().argmax(-1)
+    torch.testing.assert_close(cf.pick(index), oracle, rtol=0, atol=1e-6)
+    post = cf.result.posterior
+    want = post[:, 0, None] * cf.mean[:, 0] + post[:, 1, None] * cf.mean[:, 1]
+    torch.testing.assert_close(cf.averaged(), want, rtol=0, atol=1e-12)
+    # a GPDM has one candidate: the average is its forecast
+    gp = GPDM(styles.sequences, 2)
+    gp.fit(5, warn=False)
+    one = candidate_forecasts(VariationalInference(gp), z)
+    torch.testing.assert_close(one.averaged(), one.pick(one.result.g_ml), rtol=0, atol=1e-12)
 
 
 def test_bad_input(hgpdm, styles):

@@ -18,6 +18,7 @@ dims.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
@@ -26,10 +27,13 @@ from ...gaussian import condition_gaussian
 from ...linalg import symmetrize
 from ...validation import as_tensor, check_choice
 from ..residual import ar1_residual_forecast
-from .window import WindowModel
+from .window import WindowModel, window_mask
 
 __all__ = [
+    "CandidateForecasts",
     "Forecaster",
+    "candidate_forecasts",
+    "candidate_predictions",
     "forecast",
     "observation_joint",
     "observation_marginals",
@@ -164,3 +168,80 @@ def forecast(
     rec, var = engine.reconstruct(res)
     mean, var, _ = ar1_residual_forecast(z, rec[..., :-1, :], rec[..., -1, :], var[..., -1, :])
     return mean, var, res
+
+
+def candidate_predictions(engine: Any, z: object, result: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`predict_observations` (joint, conditioned on the observed rows) under every
+    candidate's ``q(x)`` of a VB ``result`` of the windows ``z [..., T, Dz]``: ``mean`` and
+    ``var`` ``[..., K, T, Dz]`` (missing rows forecast or recovered, App. 2.B)."""
+    w = engine.window
+    padded, observed = window_mask(z, engine.obs_dim, w.x1_mean)
+    return predict_observations(
+        w, padded[..., None, :, :], observed[..., None, :], result.mean, result.cov
+    )
+
+
+@dataclass
+class CandidateForecasts:
+    """Next-frame forecasts of windows under every candidate value of g, from one VB posterior
+    (:func:`candidate_forecasts`).
+
+    Attributes:
+        mean: ``[..., K, Dz]`` the thesis's forecast (joint ``q(z)`` conditioned on the window)
+            under each candidate's ``q(x)``; var: ``[..., K, Dz]`` its variance.
+        ar1_mean, ar1_var: ``[..., K, Dz]`` the same with the AR(1) residual
+            (:func:`~hgpdm_torch.inference.residual.ar1_residual_forecast`).
+        result: the :class:`~hgpdm_torch.inference.variational.VBResult` of the windows.
+    """
+
+    mean: torch.Tensor
+    var: torch.Tensor
+    ar1_mean: torch.Tensor
+    ar1_var: torch.Tensor
+    result: Any
+
+    def pick(self, index: torch.Tensor, *, ar1: bool = False) -> torch.Tensor:
+        """The forecast mean ``[..., Dz]`` under candidate ``index [...]`` (e.g. ``g_ml``)."""
+        mean = self.ar1_mean if ar1 else self.mean
+        i = index.to(mean.device)[..., None, None].expand(*index.shape, 1, mean.shape[-1])
+        return mean.gather(-2, i)[..., 0, :]
+
+    def averaged(self, *, ar1: bool = False) -> torch.Tensor:
+        """Bayesian model averaging over g: ``sum_k p(g_k | z) mean_k`` ``[..., Dz]``, the mean of
+        the mixture of the candidates' forecasts under the posterior over g."""
+        mean = self.ar1_mean if ar1 else self.mean
+        return (self.result.posterior[..., None] * mean).sum(-2)
+
+
+def candidate_forecasts(engine: Any, z: object, **infer_kwargs: Any) -> CandidateForecasts:
+    """Forecast ``z_{T+1}`` of windows ``z_{1:T}`` under every candidate g from one inference.
+
+    One ``engine.infer`` (a :class:`~hgpdm_torch.inference.variational.VariationalInference`) on
+    the windows with a missing row appended gives ``q(x)`` for every candidate; the forecasts of
+    :func:`forecast` (ML g), of the oracle (true g) and their Bayesian average all follow from it
+    without another inference. Pass ``prune=None`` so that every candidate's ``q(x)`` is refined
+    (an oracle forecast under a pruned candidate is from a looser posterior).
+
+    Args:
+        engine: the VB engine.
+        z: ``[..., T, Dz]`` windows (NaN marks missing values; the last row must be observed).
+        **infer_kwargs: passed to ``engine.infer``.
+
+    Returns:
+        :class:`CandidateForecasts`.
+    """
+    z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+    nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype, device=z.device)
+    window = torch.cat([z, nan], -2)
+    res = engine.infer(window, **infer_kwargs)
+    mean, var = candidate_predictions(engine, window, res)
+    with torch.no_grad():
+        rec, rec_cov = observation_marginals(engine.window, res.mean, res.cov)
+    rec_var = rec_cov.diagonal(dim1=-2, dim2=-1)
+    ar1_mean, ar1_var, _ = ar1_residual_forecast(
+        z[..., None, :, :].expand(*rec[..., :-1, :].shape),
+        rec[..., :-1, :],
+        rec[..., -1, :],
+        rec_var[..., -1, :],
+    )
+    return CandidateForecasts(mean[..., -1, :], var[..., -1, :], ar1_mean, ar1_var, res)

@@ -1,0 +1,231 @@
+"""Recovery of missing frames on the *Four Walkers* protocol (thesis Sec. 2.4.1, Table 2.5).
+
+Protocol (:data:`~hgpdm_torch.datasets.cmu.PROTOCOLS` ``four-walkers``, after Wang et al. 2008):
+models fitted on one walk per subject (35_02, 10_04, 12_01, 16_05; g = subject), all trials
+down-sampled by four (30 frames/s), Taylor-style features standardised with training
+statistics. From each test trial (35_03, 12_02, 12_03, 16_21) the first 50 frames are taken and
+31 consecutive frames removed, at the 12 placements 5-35, 6-36, ..., 16-46 (frames counted from
+1); every method recovers them:
+
+- ``VB H-GPDM``: Algorithm 2.2 on the 50-frame window with missing rows, the joint ``q(z)`` of
+  the ML subject conditioned on the observed rows (App. 2.B); ``(BMA)``: averaged over subjects
+  under the posterior; ``oracle VB``: the true subject's;
+- ``oracle MAP`` (conditional GPDM: GP mean at the MAP states of the true subject), ``GPDM VB``,
+  ``GPDM MAP``;
+- baselines: ``linear interpolation`` between the frames either side of the gap, and
+  ``template copy``: the 50-frame stretch of a training trial closest (least squares) to the
+  observed frames, its frames copied into the gap.
+
+RMSE is over the missing frames and all standardised channels of a trial's 12 placements; a
+subject with no training trial here can be tested (VB picks among the known subjects) but has no
+oracle rows. The test trials found in ``test_folder`` are scored (absent ones listed); 35_03 is
+among the training data of ``../shared/data/cmu``, so the default finds one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..datasets.cmu import PROTOCOLS, load_protocol
+from ..datasets.walkers import Standardizer
+from ..inference.map import MAPInference
+from ..inference.variational import VariationalInference
+from ..inference.variational.prediction import candidate_predictions
+from ..models import GPDM, HGPDM
+from .arguments import output_file, positive_int
+from .table import ResultTable
+
+__all__ = ["METHODS", "gap_recovery", "linear_interpolation", "main", "template_copy"]
+
+SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
+METHODS = (
+    "VB H-GPDM",
+    "VB H-GPDM (BMA)",
+    "oracle VB",
+    "oracle MAP",
+    "GPDM VB",
+    "GPDM MAP",
+    "linear interpolation",
+    "template copy",
+)
+#: the thesis's windows: 50 frames, 31 missing, first missing frame 5 ... 16 (1-based)
+FRAMES, GAP, FIRST_GAPS = 50, 31, tuple(range(4, 16))
+
+
+def linear_interpolation(z: torch.Tensor) -> torch.Tensor:
+    """Fill the missing (NaN) rows of windows ``[W, T, Dz]`` linearly between the observed rows
+    either side (the first / last observed row where the gap touches an end)."""
+    out = z.clone()
+    observed = ~torch.isnan(z).any(-1)
+    for w in range(z.shape[0]):
+        seen = torch.nonzero(observed[w]).flatten().numpy()
+        if seen.size == 0:
+            raise ValueError(f"window {w} has no observed row")
+        t = np.arange(z.shape[1])
+        for d in range(z.shape[2]):
+            out[w, :, d] = torch.as_tensor(np.interp(t, seen, z[w, seen, d].numpy())).to(z)
+    return out
+
+
+def template_copy(z: torch.Tensor, train: list[torch.Tensor]) -> torch.Tensor:
+    """Fill the missing rows of windows ``[W, T, Dz]`` from the closest stretch of ``T`` training
+    frames: the one with the least squared distance over the observed rows."""
+    parts = [s.unfold(0, z.shape[1], 1).transpose(1, 2) for s in train if s.shape[0] >= z.shape[1]]
+    if not parts:
+        raise ValueError(f"train: no training sequence has {z.shape[1]} frames")
+    stretches = torch.cat(parts)  # [S, T, Dz]
+    observed = ~torch.isnan(z).any(-1)  # [W, T]
+    diff = torch.nan_to_num(z)[:, None] - stretches[None]  # [W, S, T, Dz]
+    cost = (diff.pow(2).sum(-1) * observed[:, None]).sum(-1)
+    best = stretches[cost.argmin(1)]
+    return torch.where(observed[..., None], z, best)
+
+
+def gap_recovery(
+    *,
+    folder: str | Path = "../shared/data/cmu",
+    test_folder: str | Path | None = None,
+    latent_dim: int = 3,
+    fit_steps: int = 300,
+    gaps: tuple[int, ...] = FIRST_GAPS,
+    model_options: dict[str, Any] | None = None,
+) -> ResultTable:
+    """Table 2.5 on the Four Walkers trials that are present (see the module docstring).
+
+    Args:
+        folder: the training trials' folder.
+        test_folder: where to look for the test trials (default ``folder``).
+        latent_dim: Dx of both models.
+        fit_steps: maximum MAP steps per fit.
+        gaps: first missing frame of each placement (0-based; the thesis's 4 ... 15).
+        model_options: further constructor arguments of both models.
+
+    Returns:
+        A :class:`ResultTable`: one row per test trial and an ``average`` row (mean over trials
+        with ``SEM`` columns); ``meta`` lists the trials used and missing, and the fits.
+    """
+    spec = PROTOCOLS["four-walkers"]
+    data = load_protocol(spec, "train", folder)
+    test = load_protocol(spec, "test", [test_folder or folder, folder])
+    if len(data) == 0 or len(test) == 0:
+        raise FileNotFoundError(
+            f"four-walkers needs training and test trials: found {data.trials} and {test.trials} "
+            f"(missing {data.missing + test.missing})"
+        )
+    if any(g < 0 or g + GAP > FRAMES for g in gaps):
+        raise ValueError(f"gaps must lie in [0, {FRAMES - GAP}], got {gaps}")
+    short = [t for t, s in zip(test.trials, test.sequences, strict=True) if s.shape[0] < FRAMES]
+    if short:
+        raise ValueError(f"test trials {short} have fewer than {FRAMES} frames")
+    options = dict(model_options or {})
+    # the models know only the subjects with a training trial here
+    present = sorted(set(data.labels.tolist()))
+    std = Standardizer().fit(data.sequences)
+    tr = [std.transform(s) for s in data.sequences]
+    start = time.perf_counter()
+    hg = HGPDM(tr, data.labels, latent_dim, **options)
+    gp = GPDM(tr, latent_dim, **options)
+    fits: dict[str, Any] = {
+        n: m.fit(fit_steps).summary() for n, m in (("H-GPDM", hg), ("GPDM", gp))
+    }
+    fits["seconds"] = time.perf_counter() - start
+    vb_hg, vb_gp = VariationalInference(hg), VariationalInference(gp)
+    map_hg, map_gp = MAPInference(hg), MAPInference(gp)
+    table = ResultTable(
+        "four-walkers (Table 2.5): RMSE of the recovered frames (standardised)",
+        ["trial", "label", *METHODS, "accuracy", *(f"SEM {m}" for m in METHODS)],
+        meta={
+            "training trials": data.trials,
+            "missing training trials": data.missing,
+            "test trials": test.trials,
+            "missing test trials": test.missing,
+            "fps": data.fps,
+            "latent_dim": latent_dim,
+            "fit_steps": fit_steps,
+            "gaps (0-based first missing frame)": list(gaps),
+            "fits": fits,
+        },
+    )
+    per: dict[str, list[float]] = {m: [] for m in (*METHODS, "accuracy")}
+    for j, seq in enumerate(test.sequences):
+        z = std.transform(seq[:FRAMES]).expand(len(gaps), FRAMES, -1).clone()
+        holed = z.clone()
+        missing = torch.zeros(len(gaps), FRAMES, dtype=torch.bool)
+        for i, g in enumerate(gaps):
+            missing[i, g : g + GAP] = True
+        holed[missing] = float("nan")
+        label = int(test.labels[j])
+        known = label in present
+        res = vb_hg.infer(holed, prune=None)
+        idx = torch.arange(len(gaps))
+        cand, _ = candidate_predictions(vb_hg, holed, res)  # [W, K, T, Dz]
+        recs = {
+            "VB H-GPDM": cand[idx, res.g_ml],
+            "VB H-GPDM (BMA)": (res.posterior[..., None, None] * cand).sum(1),
+            "GPDM VB": vb_gp.predict_observations(holed, vb_gp.infer(holed))[0],
+            "GPDM MAP": map_gp.predict_observations(holed, map_gp.infer(holed))[0],
+            "linear interpolation": linear_interpolation(holed),
+            "template copy": template_copy(holed, tr),
+        }
+        if known:
+            k = int((vb_hg.values == label).nonzero()[0, 0])
+            recs["oracle VB"] = cand[:, k]
+            val = torch.full((len(gaps), 1), label)
+            recs["oracle MAP"] = map_hg.predict_observations(
+                holed, map_hg.infer(holed, values=val)
+            )[0]
+        row: dict[str, Any] = {"trial": test.trials[j], "label": test.label_names[label]}
+        for m in METHODS:
+            row[m] = float((recs[m] - z)[missing].pow(2).mean().sqrt()) if m in recs else None
+        row["accuracy"] = (
+            float((vb_hg.values[res.g_ml] == label).double().mean()) if known else None
+        )
+        table.add(**row)
+        for key in per:
+            if row[key] is not None:
+                per[key].append(row[key])
+    cells: dict[str, Any] = {"trial": "average", "label": "all"}
+    for key, values in per.items():
+        v = np.asarray(values)
+        cells[key] = float(v.mean()) if v.size else None
+        if key in METHODS and v.size > 1:
+            cells[f"SEM {key}"] = float(v.std(ddof=1) / math.sqrt(v.size))
+    table.add(**cells)
+    return table
+
+
+def main(argv: list[str]) -> int:
+    """``hgpdm gap-recovery [--data DIR] [--test-data DIR] [--latent-dim 3] [--fit-steps 300]
+    [--out table.json]``."""
+    parser = argparse.ArgumentParser(prog="hgpdm gap-recovery", description=__doc__)
+    parser.add_argument("--data", type=Path, default=Path("../shared/data/cmu"))
+    parser.add_argument("--test-data", type=Path, default=None, help="default: --data")
+    parser.add_argument("--latent-dim", type=positive_int, default=3)
+    parser.add_argument("--fit-steps", type=positive_int, default=40 if SMOKE else 300)
+    parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
+    args = parser.parse_args(argv)
+    for name, path in (("--data", args.data), ("--test-data", args.test_data)):
+        if path is not None and not path.is_dir():
+            parser.error(f"{name} {path} is not a folder (it needs the CMU files, see README)")
+    torch.set_default_dtype(torch.float64)
+    table = gap_recovery(
+        folder=args.data,
+        test_folder=args.test_data,
+        latent_dim=args.latent_dim,
+        fit_steps=args.fit_steps,
+    )
+    print(table.to_markdown(".3f"))
+    for key in ("missing training trials", "missing test trials"):
+        if table.meta.get(key):
+            print(f"{key}: {', '.join(table.meta[key])}")
+    if args.out is not None:
+        table.to_json(args.out)
+    return 0

@@ -1,0 +1,80 @@
+"""Four Walkers gap recovery: the two baselines against exact answers, and a small real run."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from hgpdm_torch.datasets.cmu import load_protocol
+from hgpdm_torch.datasets.walkers import Standardizer
+from hgpdm_torch.experiments.gap_recovery import (
+    FRAMES,
+    GAP,
+    METHODS,
+    gap_recovery,
+    linear_interpolation,
+    main,
+    template_copy,
+)
+
+CMU = Path("../shared/data/cmu")
+
+
+def test_linear_interpolation_is_exact_on_straight_lines_and_holds_the_ends():
+    t = torch.arange(10, dtype=torch.float64)
+    z = torch.stack([2 * t - 1, -0.5 * t + 3], -1)[None].repeat(2, 1, 1)
+    holed = z.clone()
+    holed[0, 3:7] = float("nan")
+    holed[1, 7:] = float("nan")  # a gap at the end keeps the last observed row
+    out = linear_interpolation(holed)
+    torch.testing.assert_close(out[0], z[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[1, 7:], z[1, 6].expand(3, 2), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="no observed row"):
+        linear_interpolation(torch.full((1, 4, 2), float("nan")))
+
+
+def test_template_copy_finds_the_training_stretch_a_window_was_cut_from():
+    g = torch.Generator().manual_seed(0)
+    train = [torch.randn(30, 3, generator=g, dtype=torch.float64) for _ in range(3)]
+    z = train[1][7:19][None].clone()
+    holed = z.clone()
+    holed[0, 4:9] = float("nan")
+    torch.testing.assert_close(template_copy(holed, train), z, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="40 frames"):
+        template_copy(torch.zeros(1, 40, 3), train)
+
+
+@pytest.mark.skipif(not CMU.is_dir(), reason="../shared/data/cmu absent: real-data test")
+@pytest.mark.filterwarnings("ignore::hgpdm_torch.fitting.ConvergenceWarning")
+def test_small_real_run_scores_the_test_trial_that_is_there():
+    table = gap_recovery(folder=CMU, fit_steps=3, gaps=(4, 15))
+    assert table.meta["training trials"] == ["35_02", "16_05"]
+    assert table.meta["missing test trials"] == ["12_02", "12_03", "16_21"]
+    row = table.rows[0]
+    assert row["trial"] == "35_03" and table.rows[-1]["trial"] == "average"
+    for m in METHODS:
+        assert math.isfinite(row[m]) and row[m] > 0
+    assert 0 <= row["accuracy"] <= 1
+    # the interpolation baseline recomputed by hand on the first placement and the last
+    train = load_protocol("four-walkers", folder=CMU)
+    std = Standardizer().fit(train.sequences)
+    z = std.transform(load_protocol("four-walkers", "test", CMU).sequences[0][:FRAMES])
+    errs = []
+    for g in (4, 15):
+        a, b = z[g - 1], z[g + GAP]
+        w = torch.arange(1, GAP + 1, dtype=z.dtype)[:, None] / (GAP + 1)
+        errs.append((a + w * (b - a) - z[g : g + GAP]).pow(2))
+    want = float(torch.cat(errs).mean().sqrt())
+    assert row["linear interpolation"] == pytest.approx(want, rel=1e-10)
+
+
+def test_cli_rejects_bad_values(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--test-data", str(tmp_path / "missing")])
+    assert "not a folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--fit-steps", "0"])
+    assert "positive integer" in capsys.readouterr().err
