@@ -165,7 +165,7 @@ def chunked_forecast(
         ``mean [W, Dz]`` of the next frame, ``g_ml [W]`` (index into ``inf.values``) and the
         posterior over g ``[W, K]``.
     """
-    n = inf.model.observations.shape[0]
+    n = inf.measurement.train_inputs.shape[0]  # pseudo-inputs of a sparse GP
     K = 1 if values is not None or inf.kind != "discrete" else int(inf.values.numel())
     per_window = K * (z.shape[-2] + 1) * n * n
     kw = {} if values is None else {"values": values}

@@ -51,7 +51,7 @@ from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
-from .arguments import output_file, positive_int
+from .arguments import int_at_least, output_file, positive_int
 from .style_recognition import chunked_forecast, forecast_windows
 from .table import ResultTable
 
@@ -122,7 +122,7 @@ def _vb_forecasts(
         forecasts by method suffix, the ML g (index into ``vb.values``) ``[W]`` and the
         posterior over g ``[W, K]``.
     """
-    n = vb.model.observations.shape[0]
+    n = vb.measurement.train_inputs.shape[0]  # pseudo-inputs of a sparse GP
     K = int(vb.values.numel()) if vb.kind == "discrete" else 1
     out: dict[str, list[torch.Tensor]] = {}
     g_ml, post = [], []
@@ -157,6 +157,7 @@ def _score_split(
     fit_steps: int,
     options: dict[str, Any],
     sharing: float,
+    measurement_points: int | None,
 ) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
     """Fit every model on ``train`` (raw features) and score each ``test`` trial.
 
@@ -176,7 +177,9 @@ def _score_split(
     fits["seconds"] = time.perf_counter() - start
     last, ridge = LastFrameForecaster().fit(tr), RidgeAR().fit(tr)
     fits["ridge_order"] = ridge.order_
-    vb_hg, vb_gp = VariationalInference(hg), VariationalInference(gp)
+    sparse = {"measurement_points": measurement_points}
+    vb_hg, vb_gp = VariationalInference(hg, **sparse), VariationalInference(gp, **sparse)
+    map_hg, map_gp = MAPInference(hg, **sparse), MAPInference(gp, **sparse)
     rows: dict[int, list[dict[str, Any]]] = {}
     for T in lengths:
         gru = GRUForecaster().fit(tr, T)
@@ -192,9 +195,9 @@ def _score_split(
             "VB H-GPDM": hg_rows[""],
             "VB H-GPDM (BMA)": hg_rows[" (BMA)"],
             "oracle VB": hg_rows[" oracle"],
-            "oracle MAP": chunked_forecast(MAPInference(hg), z, y[:, None])[0],
+            "oracle MAP": chunked_forecast(map_hg, z, y[:, None])[0],
             "GPDM VB": gp_rows[""],
-            "GPDM MAP": chunked_forecast(MAPInference(gp), z)[0],
+            "GPDM MAP": chunked_forecast(map_gp, z)[0],
             "VB H-GPDM + AR(1) residual": hg_rows[" + AR(1) residual"],
             "VB H-GPDM (BMA) + AR(1) residual": hg_rows[" (BMA) + AR(1) residual"],
             "oracle VB + AR(1) residual": hg_rows[" oracle + AR(1) residual"],
@@ -227,6 +230,7 @@ def walkers(
     stride: int = 2,
     model_options: dict[str, Any] | None = None,
     sharing: float = 0.0,
+    measurement_points: int | None = None,
     max_folds: int | None = None,
     progress: bool = False,
 ) -> ResultTable:
@@ -245,6 +249,9 @@ def walkers(
         model_options: further constructor arguments of both models (e.g.
             ``{"back_constraint": "kernel"}``).
         sharing: the H-GPDM's share of dynamics common to all g (0: the thesis's model).
+        measurement_points: VB and MAP inference route the measurement GP through at most this
+            many pseudo-inputs (DTC, :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`):
+            a window then costs ``M^2`` instead of ``N^2``; ``None``: the exact GP.
         max_folds: CV only: hold out at most this many trials (spread over the labels), for a
             quick look; ``None`` holds out every testable trial.
         progress: progress bar over folds.
@@ -268,6 +275,7 @@ def walkers(
         "latent_dim": latent_dim,
         "model_options": {k: str(v) for k, v in options.items()},
         "sharing": sharing,
+        "measurement_points": measurement_points,
         "fit_steps": fit_steps,
         "stride": stride,
         "fps": data.fps,
@@ -284,6 +292,7 @@ def walkers(
         "fit_steps": fit_steps,
         "options": options,
         "sharing": sharing,
+        "measurement_points": measurement_points,
     }
     if test_folder is not None:
         test = load_protocol(spec, "test", [test_folder, folder])
@@ -417,6 +426,12 @@ def main(argv: list[str]) -> int:
         default=0.0,
         help="H-GPDM: share of the dynamics common to all g, in [0, 1) (default 0)",
     )
+    parser.add_argument(
+        "--measurement-points",
+        type=int_at_least(2),
+        default=None,
+        help="inference routes the measurement GP through M pseudo-inputs (DTC; default: exact)",
+    )
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
@@ -439,6 +454,7 @@ def main(argv: list[str]) -> int:
         stride=args.stride,
         model_options=options,
         sharing=args.sharing,
+        measurement_points=args.measurement_points,
         max_folds=args.max_folds,
         progress=args.progress,
     )

@@ -74,6 +74,7 @@ class MAPInference:
             supported: the thesis compares MAP only for known or discrete g).
         x1_prior: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
         g_prior: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
+        measurement_points: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
 
     Attributes:
         window: the shared window model.
@@ -86,8 +87,11 @@ class MAPInference:
         *,
         x1_prior: tuple[object, object] | None = None,
         g_prior: object = None,
+        measurement_points: int | None = None,
     ) -> None:
-        self.window = w = WindowModel(model, x1_prior=x1_prior, g_prior=g_prior)
+        self.window = w = WindowModel(
+            model, x1_prior=x1_prior, g_prior=g_prior, measurement_points=measurement_points
+        )
         if w.kind == "continuous":
             raise ValueError("MAPInference supports a GPDM or a discrete g, not a continuous g")
         self.model, self.kind, self.values = w.model, w.kind, w.values

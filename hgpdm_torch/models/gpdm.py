@@ -615,14 +615,26 @@ class GPDM(gpytorch.Module):
         return result
 
     # ----------------------------------------------------------------- posteriors
-    def measurement_posterior(self) -> GPPosterior:
+    def measurement_posterior(self, points: int | None = None) -> GPPosterior:
         """The measurement GP ``x -> z`` conditioned on the fitted model (detached).
 
         Predictions are in the units of the observations: mean ``k^T K_z^-1 (Z - mean) + mean``,
         variance per dim ``sigma^2(x) / w_d^2``.
+
+        Args:
+            points: route the GP through at most this many pseudo-inputs, the latents of evenly
+                spaced training frames (the DTC sparse GP of :meth:`GPPosterior.sparse`, on all
+                the data, with the fitted hyperparameters): prediction at a Gaussian input then
+                costs ``points^2`` instead of ``N^2``. ``None`` (default) or ``points >= N``:
+                the exact GP.
         """
+        n = self.latent.shape[0]
+        if points is not None and (
+            isinstance(points, bool) or not isinstance(points, int) or points < 2
+        ):
+            raise ValueError(f"points must be an int >= 2 or None, got {points!r}")
         with torch.no_grad():
-            return GPPosterior(
+            exact = GPPosterior(
                 self.measurement_kernel,
                 self.latent.detach(),
                 self.observations - self.obs_mean,
@@ -630,6 +642,10 @@ class GPDM(gpytorch.Module):
                 scale=1.0 / self.scales.detach(),
                 offset=self.obs_mean,
             )
+            if points is None or points >= n:
+                return exact
+            rows = torch.linspace(0, n - 1, points, device=self.latent.device).round().long()
+            return exact.sparse(self.latent.detach()[rows])
 
     def transition_posterior(self) -> GPPosterior:
         """The transition GP ``[x_t, g] -> x_{t+1}`` conditioned on the fitted model (detached)."""

@@ -107,6 +107,10 @@ class VariationalInference:
             anywhere in a movement (the thesis's ``N(m_1, S_1)``).
         g_prior: for a discrete g, ``[K]`` prior probabilities (default uniform); for a continuous
             g, ``(mean [Dg], cov [Dg, Dg])`` (default: fitted to the training intentions).
+        measurement_points: condition the measurement GP on at most this many training frames,
+            evenly spaced (a subset-of-data sparse GP: each window's kernel expectations cost
+            ``M^2`` instead of ``N^2``; :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`).
+            Default: all frames, the thesis's model.
 
     Attributes:
         window: the :class:`~hgpdm_torch.inference.variational.window.WindowModel` (GPs, priors,
@@ -125,8 +129,11 @@ class VariationalInference:
         *,
         x1_prior: tuple[object, object] | None = None,
         g_prior: object = None,
+        measurement_points: int | None = None,
     ) -> None:
-        self.window = w = WindowModel(model, x1_prior=x1_prior, g_prior=g_prior)
+        self.window = w = WindowModel(
+            model, x1_prior=x1_prior, g_prior=g_prior, measurement_points=measurement_points
+        )
         self.model, self.kind, self.values = w.model, w.kind, w.values
         self.measurement, self.transition = w.measurement, w.transition
         self.latent_dim, self.obs_dim = w.latent_dim, w.obs_dim

@@ -103,6 +103,8 @@ class WindowModel:
             :class:`~hgpdm_torch.inference.variational.VariationalInference`).
         x1_prior: ``(mean, cov)`` of ``p(x_1)`` (default: fitted to the training latents).
         g_prior: the prior over g (default: uniform / fitted to the training intentions).
+        measurement_points: condition the measurement GP on at most this many training frames
+            (:meth:`~hgpdm_torch.models.GPDM.measurement_posterior`; default all).
 
     Attributes:
         kind: ``"none"`` (GPDM), ``"discrete"`` or ``"continuous"``.
@@ -117,12 +119,13 @@ class WindowModel:
         *,
         x1_prior: tuple[object, object] | None = None,
         g_prior: object = None,
+        measurement_points: int | None = None,
     ) -> None:
         if not isinstance(model, GPDM):
             raise TypeError(f"model must be a GPDM/HGPDM, got {type(model).__name__}")
         self.model = model
         self.kind = model.intention if isinstance(model, HGPDM) else "none"
-        self.measurement = model.measurement_posterior()
+        self.measurement = model.measurement_posterior(measurement_points)
         self.transition = model.transition_posterior()
         if self.transition.noise.dim() != 0:
             raise ValueError(
