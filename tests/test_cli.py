@@ -14,7 +14,7 @@ import hgpdm_torch
 from hgpdm_torch import cli
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.experiments.arguments import MAX_SEED
-from hgpdm_torch.experiments.style_discovery import style_purity
+from hgpdm_torch.experiments.style_discovery import run_style_discovery, style_purity
 from hgpdm_torch.models import HGPDM
 
 HEAVY = ("torch", "gpytorch", "pyro", "sapien", "numpy", "scipy", "sklearn", "matplotlib")
@@ -24,10 +24,20 @@ HEAVY = ("torch", "gpytorch", "pyro", "sapien", "numpy", "scipy", "sklearn", "ma
 def test_style_discovery_runs_and_discovers_styles(tmp_path, capsys):
     assert cli.main(["style-discovery", "--quick", "--out", str(tmp_path)]) == 0
     table = json.loads((tmp_path / "style_discovery.json").read_text())
-    discovered = [r for r in table["rows"] if r["styles"].startswith("discovered")][0]
-    assert discovered["style purity"] >= 0.9
+    discovered = [r for r in table["rows"] if r["styles"] == "discovered (Alg. 2.1)"][0]
+    assert discovered["style purity"] >= 0.9 and discovered["adjusted Rand index"] >= 0.7
+    kmeans = [r for r in table["rows"] if r["model"].startswith("k-means")][0]
+    assert 0 < kmeans["style purity"] <= 1 and -1 <= kmeans["adjusted Rand index"] <= 1
     assert (tmp_path / "latent_trajectories.png").stat().st_size > 10_000
     assert "style purity" in capsys.readouterr().out
+
+
+def test_style_discovery_on_weird_walking_needs_the_cmu_folder(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["style-discovery", "--data", "weird-walking", "--cmu", str(tmp_path / "no")])
+    assert "--cmu" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="data must be"):
+        run_style_discovery(data="dancers")
 
 
 def test_help_and_unknown_command(capsys):

@@ -1,8 +1,13 @@
-"""``hgpdm style-discovery``: fit models on synthetic styled movements and discover the styles.
+"""``hgpdm style-discovery``: fit models on styled movements and discover the styles.
 
-Fits a GPDM (no style), a supervised H-GPDM (styles given) and an unsupervised H-GPDM whose styles
-are discovered by Algorithm 2.1; prints style purity, log posterior and fit time of each, and saves
-a figure of the latent trajectories coloured by style.
+Data: synthetic styled movements, or the *Weird Walking* training trials (``--data
+weird-walking``: subject 132's 14 walks in four styles, Sec. 2.4.1, standardised). Fits a GPDM
+(no style), a supervised H-GPDM (styles given) and an unsupervised H-GPDM whose styles are
+discovered by Algorithm 2.1, and as a baseline k-means on summaries of the GPDM's latent
+trajectories (mean position and RMS step, :func:`~hgpdm_torch.models.hgpdm.
+trajectory_summaries`); prints the style purity and adjusted Rand index against the true styles,
+log posterior and fit time of each, and saves a figure of the latent trajectories coloured by
+style.
 """
 
 from __future__ import annotations
@@ -13,9 +18,14 @@ import time
 from pathlib import Path
 
 import torch
+from sklearn.cluster import KMeans
+from sklearn.metrics import adjusted_rand_score
 
 from ..datasets import styled_movements
+from ..datasets.cmu import load_protocol
+from ..datasets.walkers import Standardizer
 from ..models import GPDM, HGPDM
+from ..models.hgpdm import trajectory_summaries
 from .arguments import output_folder, random_seed
 from .table import ResultTable
 
@@ -39,6 +49,8 @@ def style_purity(truth: torch.Tensor, found: torch.Tensor) -> float:
 
 def run_style_discovery(
     *,
+    data: str = "synthetic",
+    folder: str | Path = "../shared/data/cmu",
     num_styles: int = 3,
     per_style: int = 4,
     length: int = 40,
@@ -51,19 +63,40 @@ def run_style_discovery(
 ) -> tuple[ResultTable, dict[str, GPDM]]:
     """Fit GPDM, supervised H-GPDM and discovered H-GPDM on synthetic styles.
 
+    Args:
+        data: ``"synthetic"`` (``num_styles`` x ``per_style`` sequences of ``length`` frames,
+            ``obs_dim`` channels) or ``"weird-walking"`` (the protocol's training trials from
+            ``folder``; four styles).
+        folder: the CMU files (``data="weird-walking"``).
+        latent_dim, steps, iterations, seed, progress: Dx, MAP steps (Alg. 2.1 uses half per
+            alternation), alternations of Alg. 2.1, seed of its start and of k-means, bars.
+
     Returns:
         The result table and the fitted models by name.
     """
-    data = styled_movements(num_styles, per_style, length, obs_dim, seed=seed)
+    if data == "weird-walking":
+        walks = load_protocol("weird-walking", "train", folder, require_all=True)
+        std = Standardizer().fit(walks.sequences)
+        sequences = [std.transform(s) for s in walks.sequences]
+        labels, num_styles = walks.labels, len(walks.label_names)
+        title = "Weird Walking training trials (subject 132, four styles)"
+    elif data == "synthetic":
+        synthetic = styled_movements(num_styles, per_style, length, obs_dim, seed=seed)
+        sequences, labels = synthetic.sequences, synthetic.labels
+        title = "synthetic styled movements"
+    else:
+        raise ValueError(f"data must be 'synthetic' or 'weird-walking', got {data!r}")
     table = ResultTable(
-        "hgpdm style-discovery: synthetic styled movements",
-        ["model", "styles", "style purity", "log posterior", "fit time [s]"],
-        meta={"num_styles": num_styles, "per_style": per_style, "length": length, "seed": seed},
+        f"hgpdm style-discovery: {title}",
+        ["model", "styles", "style purity", "adjusted Rand index", "log posterior", "fit time [s]"],
+        meta={"data": data, "num_styles": num_styles, "sequences": len(sequences), "seed": seed},
     )
+    if data == "synthetic":
+        table.meta |= {"per_style": per_style, "length": length}
     models: dict[str, GPDM] = {}
 
     start = time.perf_counter()
-    gpdm = GPDM(data.sequences, latent_dim)
+    gpdm = GPDM(sequences, latent_dim)
     gpdm.fit(steps, progress=progress)
     table.add(
         model="GPDM",
@@ -71,15 +104,26 @@ def run_style_discovery(
         **{"log posterior": gpdm.log_posterior(), "fit time [s]": time.perf_counter() - start},
     )
     models["GPDM"] = gpdm
+    km = KMeans(num_styles, n_init=10, random_state=seed)
+    codes = torch.as_tensor(km.fit_predict(trajectory_summaries(gpdm.latent_sequences())))
+    table.add(
+        model="k-means on the GPDM's latent trajectories",
+        styles="discovered",
+        **{
+            "style purity": style_purity(labels, codes),
+            "adjusted Rand index": adjusted_rand_score(labels.numpy(), codes.numpy()),
+        },
+    )
 
     start = time.perf_counter()
-    sup = HGPDM(data.sequences, data.labels, latent_dim)
+    sup = HGPDM(sequences, labels, latent_dim)
     sup.fit(steps, progress=progress)
     table.add(
         model="H-GPDM",
         styles="given",
         **{
             "style purity": 1.0,
+            "adjusted Rand index": 1.0,
             "log posterior": sup.log_posterior(),
             "fit time [s]": time.perf_counter() - start,
         },
@@ -88,7 +132,7 @@ def run_style_discovery(
 
     start = time.perf_counter()
     found = HGPDM.discover(
-        data.sequences,
+        sequences,
         num_styles,
         iterations,
         steps=max(steps // 2, 1),
@@ -100,7 +144,10 @@ def run_style_discovery(
         model="H-GPDM",
         styles="discovered (Alg. 2.1)",
         **{
-            "style purity": style_purity(data.labels, found.intention_codes()),
+            "style purity": style_purity(labels, found.intention_codes()),
+            "adjusted Rand index": adjusted_rand_score(
+                labels.numpy(), found.intention_codes().cpu().numpy()
+            ),
             "log posterior": found.log_posterior(),
             "fit time [s]": time.perf_counter() - start,
         },
@@ -130,7 +177,8 @@ def plot_latents(models: dict[str, GPDM], path: str | Path) -> Path:
 
 
 def main(argv: list[str]) -> int:
-    """CLI entry: ``hgpdm style-discovery [--out DIR] [--seed N] [--quick]``."""
+    """CLI entry: ``hgpdm style-discovery [--data synthetic|weird-walking] [--cmu DIR]
+    [--out DIR] [--seed N] [--quick]``."""
     parser = argparse.ArgumentParser(prog="hgpdm style-discovery", description=__doc__)
     parser.add_argument(
         "--out",
@@ -138,13 +186,25 @@ def main(argv: list[str]) -> int:
         default="hgpdm_style_discovery_output",
         help="folder for the figure and table",
     )
+    parser.add_argument("--data", choices=("synthetic", "weird-walking"), default="synthetic")
+    parser.add_argument(
+        "--cmu", type=Path, default=Path("../shared/data/cmu"), help="CMU files (weird-walking)"
+    )
     parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--quick", action="store_true", help="smaller problem (also HGPDM_SMOKE=1)")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
+    if args.data == "weird-walking" and not args.cmu.is_dir():
+        parser.error(f"--cmu {args.cmu} is not a folder (it needs the CMU files, see README)")
     quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
-    sizes = {"per_style": 3, "length": 25, "steps": 20, "iterations": 3} if quick else {}
-    table, models = run_style_discovery(seed=args.seed, progress=args.progress, **sizes)
+    sizes: dict[str, int] = {"steps": 20, "iterations": 3} if quick else {}
+    if quick and args.data == "synthetic":
+        sizes |= {"per_style": 3, "length": 25}
+    if args.data == "weird-walking":
+        torch.set_default_dtype(torch.float64)
+    table, models = run_style_discovery(
+        data=args.data, folder=args.cmu, seed=args.seed, progress=args.progress, **sizes
+    )
     print(table.to_markdown())
     out = Path(args.out)
     table.to_json(out / "style_discovery.json")

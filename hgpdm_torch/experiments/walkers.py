@@ -257,8 +257,9 @@ def walkers(
         progress: progress bar over folds.
 
     Returns:
-        A :class:`ResultTable`: per window length, one row per held-out (or test) trial and an
-        ``average`` row (mean over trials, ``SEM`` columns); ``meta`` holds per-label means,
+        A :class:`ResultTable`: per window length, one row per held-out (or test) trial, an
+        ``average`` row (mean over trials) and a ``SEM`` row (its standard error); ``meta``
+        holds per-label means,
         the fits' convergence, the ratios to GPDM VB and which trials were missing.
     """
     if isinstance(protocol, Protocol):
@@ -356,7 +357,6 @@ def _table(
     meta: dict[str, Any],
 ) -> ResultTable:
     columns = ["T", "trial", "label", "windows", *METHODS, "accuracy", "90% set coverage"]
-    columns += [f"SEM {m}" for m in METHODS]
     table = ResultTable(
         f"{protocol} ({thesis_table}): next-pose RMSE (standardised) per "
         f"{'test' if meta['evaluation'] == 'test trials' else 'held-out'} trial",
@@ -377,12 +377,14 @@ def _table(
                 **{m: row[m] for m in METHODS},
             )
         cells: dict[str, Any] = {"T": T, "trial": "average", "label": "all"}
+        sem: dict[str, Any] = {"T": T, "trial": "SEM", "label": "all"}
         cells["windows"] = sum(r[T]["windows"] for _, _, r in scored)
         for m in METHODS:
-            cells[m], cells[f"SEM {m}"] = _mean_sem([r[T][m] for _, _, r in scored])
+            cells[m], sem[m] = _mean_sem([r[T][m] for _, _, r in scored])
         cells["accuracy"] = _mean_sem([r[T]["accuracy"] for _, _, r in scored])[0]
         cells["90% set coverage"] = _mean_sem([r[T]["coverage"] for _, _, r in scored])[0]
         table.add(**cells)
+        table.add(**sem)
         labels = sorted({lab for _, lab, _ in scored})
         summary[str(T)] = {
             "VB H-GPDM / GPDM VB": cells["VB H-GPDM"] / cells["GPDM VB"],
@@ -427,6 +429,11 @@ def main(argv: list[str]) -> int:
         help="H-GPDM: share of the dynamics common to all g, in [0, 1) (default 0)",
     )
     parser.add_argument(
+        "--fixed-measurement-width",
+        action="store_true",
+        help="keep the RBF measurement width at its initial value (no length-scale collapse)",
+    )
+    parser.add_argument(
         "--measurement-points",
         type=int_at_least(2),
         default=None,
@@ -435,7 +442,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
-    options: dict[str, Any] = {"learn_noise": args.learn_noise}
+    options: dict[str, Any] = {
+        "learn_noise": args.learn_noise,
+        "learn_measurement_width": not args.fixed_measurement_width,
+    }
     if args.back_constraint is not None:
         options["back_constraint"] = args.back_constraint
     if not 0.0 <= args.sharing < 1.0:

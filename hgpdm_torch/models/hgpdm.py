@@ -26,7 +26,7 @@ from ..linalg import gaussian_nll
 from ..validation import as_tensor, check_choice
 from .gpdm import GPDM, NOISE_FLOOR, SequencesLike, _check_sequences
 
-__all__ = ["HGPDM", "IDDM"]
+__all__ = ["HGPDM", "IDDM", "trajectory_summaries"]
 
 INTENTION_KINDS = ("discrete", "continuous")
 
@@ -76,6 +76,17 @@ def _check_intentions(
             f"got {values.shape[0]} intentions for {num_sequences} sequences; need one per sequence"
         )
     return values, k
+
+
+def trajectory_summaries(latents: Sequence[torch.Tensor]) -> np.ndarray:
+    """Per-sequence summaries of latent trajectories ``[T_j, Dx]``: the mean position and the
+    root-mean-square step per latent dim, ``[J, 2 Dx]`` (the k-means features that start
+    :meth:`HGPDM.discover`, and the k-means baseline of style discovery)."""
+    feats = []
+    for lat in latents:
+        step = lat[1:] - lat[:-1]
+        feats.append(torch.cat([lat.mean(0), step.pow(2).mean(0).sqrt()]).cpu().numpy())
+    return np.stack(feats)
 
 
 class HGPDM(GPDM):
@@ -392,12 +403,9 @@ class HGPDM(GPDM):
         if init == "random":
             codes = rng.permutation(np.arange(model.num_sequences) % num_styles)
         else:
-            feats = []
-            for lat in model.latent_sequences():
-                step = lat[1:] - lat[:-1]
-                feats.append(torch.cat([lat.mean(0), step.pow(2).mean(0).sqrt()]).cpu().numpy())
+            feats = trajectory_summaries(model.latent_sequences())
             km = KMeans(num_styles, n_init=10, random_state=int(rng.integers(2**31)))
-            codes = km.fit_predict(np.stack(feats))
+            codes = km.fit_predict(feats)
         model.set_intentions(codes)
         model.discovery_history = []
         for _ in trange(iterations, disable=not progress, desc="discover styles"):

@@ -34,7 +34,7 @@ def test_leave_one_trial_out_folds_skip_a_labels_only_trial():
 def test_small_cv_run_has_every_method_and_an_exact_baseline():
     table = walkers("walkers", lengths=(4,), fit_steps=3, stride=8, max_folds=1)
     rows = {r["trial"]: r for r in table.rows}
-    assert set(rows) == {"07_01", "average"}
+    assert set(rows) == {"07_01", "average", "SEM"}
     assert table.meta["not testable by leave-one-trial-out"] == ["08_02"]
     assert table.meta["missing training trials"] == ["07_03", "08_01", "08_03"]
     for m in METHODS:
@@ -71,12 +71,12 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     assert table.meta["evaluation"] == "test trials"
     assert table.meta["test trials"] == ["07_02", "35_03"]
     assert table.meta["missing test trials"] == ["35_09"]
-    assert [r["trial"] for r in table.rows] == ["07_02", "35_03", "average"]
-    avg = table.rows[-1]
+    assert [r["trial"] for r in table.rows] == ["07_02", "35_03", "average", "SEM"]
+    avg, sem = table.rows[-2:]
     for m in METHODS:
         want = (table.rows[0][m] + table.rows[1][m]) / 2
         assert avg[m] == pytest.approx(want, rel=1e-12)
-        assert avg[f"SEM {m}"] == pytest.approx(abs(table.rows[0][m] - table.rows[1][m]) / 2)
+        assert sem[m] == pytest.approx(abs(table.rows[0][m] - table.rows[1][m]) / 2)
     summary = table.meta["summary"]["3"]
     assert summary["VB H-GPDM / GPDM VB"] == pytest.approx(avg["VB H-GPDM"] / avg["GPDM VB"])
     assert set(summary["per label"]) == {"07", "35"}
