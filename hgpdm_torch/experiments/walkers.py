@@ -55,7 +55,7 @@ from .arguments import int_at_least, output_file, positive_int
 from .style_recognition import chunked_forecast, forecast_windows
 from .table import ResultTable
 
-__all__ = ["FORECAST_PROTOCOLS", "METHODS", "loto_folds", "main", "walkers"]
+__all__ = ["FORECAST_PROTOCOLS", "METHODS", "compare_runs", "loto_folds", "main", "walkers"]
 
 SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 FORECAST_PROTOCOLS = ("walkers", "weird-walking")
@@ -400,6 +400,70 @@ def _table(
     return table
 
 
+#: the rows of :func:`compare_runs`: the best H-GPDM forecast and the baselines it must beat
+COMPARED = (
+    "VB H-GPDM",
+    "GPDM VB",
+    "VB H-GPDM + AR(1) residual",
+    "GPDM VB + AR(1) residual",
+    "ridge AR (CV)",
+    "GRU (CV)",
+    "repeat last frame",
+)
+#: the per-label columns of :func:`compare_runs`
+PER_LABEL = ("VB H-GPDM + AR(1) residual", "ridge AR (CV)", "GRU (CV)")
+
+
+def compare_runs(tables: list[ResultTable]) -> ResultTable:
+    """One row per run and window length: its options, the ratio VB H-GPDM / GPDM VB,
+    recognition, the mean RMSE (``+- SEM``) of :data:`COMPARED` and, per label, of
+    :data:`PER_LABEL`.
+
+    Args:
+        tables: tables :func:`walkers` wrote for one protocol and evaluation (e.g. CV runs with
+            different options).
+    """
+    if not tables:
+        raise ValueError("tables must hold at least one walkers table")
+    labels = sorted(
+        {lab for t in tables for s in t.meta["summary"].values() for lab in s["per label"]}
+    )
+    columns = ["options", "T", "VB H-GPDM / GPDM VB", "accuracy", "90% set coverage"]
+    columns += [*COMPARED, *(f"{m} ({lab})" for m in PER_LABEL for lab in labels)]
+    first = tables[0].meta
+    out = ResultTable(
+        f"{first['protocol']} ({first['evaluation']}): runs compared, mean RMSE over trials",
+        columns,
+        meta={"protocol": first["protocol"], "evaluation": first["evaluation"]},
+    )
+    for table in tables:
+        meta = table.meta
+        opts = meta["model_options"]
+        parts = [f"Dx {meta['latent_dim']}", f"sharing {meta['sharing']}"]
+        if "back_constraint" in opts:
+            parts.append(f"{opts['back_constraint']} back-constraint")
+        if opts.get("learn_measurement_width") == "False":
+            parts.append("fixed measurement width")
+        if opts.get("learn_noise") == "True":
+            parts.append("learned alpha_4")
+        name = ", ".join(parts)
+        if meta.get("measurement_points"):
+            name += f", measurement_points {meta['measurement_points']}"
+        for T, summary in meta["summary"].items():
+            rows = {r["trial"]: r for r in table.rows if str(r["T"]) == T}
+            cells: dict[str, Any] = {"options": name, "T": int(T)}
+            cells["VB H-GPDM / GPDM VB"] = summary["VB H-GPDM / GPDM VB"]
+            cells["accuracy"] = rows["average"]["accuracy"]
+            cells["90% set coverage"] = rows["average"]["90% set coverage"]
+            for m in COMPARED:
+                cells[m] = f"{rows['average'][m]:.3f} +- {rows['SEM'][m]:.3f}"
+            for m in PER_LABEL:
+                for lab in labels:
+                    cells[f"{m} ({lab})"] = summary["per label"].get(lab, {}).get(m)
+            out.add(**cells)
+    return out
+
+
 def main(argv: list[str]) -> int:
     """``hgpdm walkers [--protocol walkers|weird-walking] [--data DIR] [--test-data DIR]
     [--lengths 5 10] [--latent-dim 3] [--fit-steps 300] [--stride 2] [--out table.json]``."""
@@ -441,7 +505,25 @@ def main(argv: list[str]) -> int:
     )
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument(
+        "--compare",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="TABLE",
+        help="instead of a run: compare the JSON tables of earlier runs (options, ratios, "
+        "RMSE per label) and print / --out that comparison",
+    )
     args = parser.parse_args(argv)
+    if args.compare is not None:
+        missing = [str(p) for p in args.compare if not p.is_file()]
+        if missing:
+            parser.error(f"--compare: no such file {', '.join(missing)}")
+        table = compare_runs([ResultTable.from_json(p) for p in args.compare])
+        print(table.to_markdown(".3f"))
+        if args.out is not None:
+            table.to_json(args.out)
+        return 0
     options: dict[str, Any] = {
         "learn_noise": args.learn_noise,
         "learn_measurement_width": not args.fixed_measurement_width,

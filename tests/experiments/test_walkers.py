@@ -12,7 +12,7 @@ import pytest
 from hgpdm_torch.datasets.cmu import Protocol, load_protocol
 from hgpdm_torch.datasets.walkers import Standardizer
 from hgpdm_torch.experiments.style_recognition import forecast_windows
-from hgpdm_torch.experiments.walkers import METHODS, loto_folds, main, walkers
+from hgpdm_torch.experiments.walkers import METHODS, compare_runs, loto_folds, main, walkers
 
 #: the experiment at smoke sizes fits its models a few steps on purpose (each FitResult says it
 #: stopped at the step limit): their ConvergenceWarnings are expected here, and only here
@@ -80,6 +80,11 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     summary = table.meta["summary"]["3"]
     assert summary["VB H-GPDM / GPDM VB"] == pytest.approx(avg["VB H-GPDM"] / avg["GPDM VB"])
     assert set(summary["per label"]) == {"07", "35"}
+    compared = compare_runs([table, table]).rows
+    assert len(compared) == 2 and compared[0]["options"] == "Dx 3, sharing 0.0"
+    assert compared[0]["VB H-GPDM / GPDM VB"] == summary["VB H-GPDM / GPDM VB"]
+    assert compared[0]["ridge AR (CV) (35)"] == table.rows[1]["ridge AR (CV)"]
+    assert compared[0]["GRU (CV)"] == f"{avg['GRU (CV)']:.3f} +- {sem['GRU (CV)']:.3f}"
 
 
 def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
@@ -100,3 +105,6 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
     assert "--sharing" in capsys.readouterr().err
     with pytest.raises(ValueError, match="protocol"):
         walkers("dancers")
+    with pytest.raises(SystemExit):
+        main(["--compare", str(tmp_path / "none.json")])
+    assert "--compare" in capsys.readouterr().err
