@@ -81,7 +81,9 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     assert summary["VB H-GPDM / GPDM VB"] == pytest.approx(avg["VB H-GPDM"] / avg["GPDM VB"])
     assert set(summary["per label"]) == {"07", "35"}
     compared = compare_runs([table, table]).rows
-    assert len(compared) == 2 and compared[0]["options"] == "Dx 3, sharing 0.0"
+    assert len(compared) == 2 and compared[0]["options"] == (
+        "Dx 3, sharing 0.0, fixed measurement width"
+    )
     assert compared[0]["VB H-GPDM / GPDM VB"] == summary["VB H-GPDM / GPDM VB"]
     assert compared[0]["ridge AR (CV) (35)"] == table.rows[1]["ridge AR (CV)"]
     assert compared[0]["GRU (CV)"] == f"{avg['GRU (CV)']:.3f} +- {sem['GRU (CV)']:.3f}"
