@@ -42,6 +42,7 @@ from ..inference.variational.prediction import candidate_predictions
 from ..models import GPDM, HGPDM
 from .arguments import output_file, positive_int
 from .table import ResultTable
+from .walkers import DEFAULT_OPTIONS
 
 __all__ = ["METHODS", "gap_recovery", "linear_interpolation", "main", "template_copy"]
 
@@ -106,7 +107,9 @@ def gap_recovery(
         latent_dim: Dx of both models.
         fit_steps: maximum MAP steps per fit.
         gaps: first missing frame of each placement (0-based; the thesis's 4 ... 15).
-        model_options: further constructor arguments of both models.
+        model_options: constructor arguments of both models, over the Walkers defaults
+            (:data:`~hgpdm_torch.experiments.walkers.DEFAULT_OPTIONS`: with one training trial
+            per subject, Four Walkers allows no leave-one-trial-out choice of its own).
 
     Returns:
         A :class:`ResultTable`: one row per test trial, an ``average`` row (mean over trials)
@@ -126,7 +129,7 @@ def gap_recovery(
     short = [t for t, s in zip(test.trials, test.sequences, strict=True) if s.shape[0] < FRAMES]
     if short:
         raise ValueError(f"test trials {short} have fewer than {FRAMES} frames")
-    options = dict(model_options or {})
+    options = DEFAULT_OPTIONS | dict(model_options or {})
     # the models know only the subjects with a training trial here
     present = sorted(set(data.labels.tolist()))
     std = Standardizer().fit(data.sequences)
@@ -151,6 +154,7 @@ def gap_recovery(
             "fps": data.fps,
             "latent_dim": latent_dim,
             "fit_steps": fit_steps,
+            "model_options": {k: str(v) for k, v in options.items()},
             "gaps (0-based first missing frame)": list(gaps),
             "fits": fits,
         },
