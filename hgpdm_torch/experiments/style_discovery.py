@@ -26,7 +26,7 @@ from ..datasets.cmu import load_protocol
 from ..datasets.walkers import Standardizer
 from ..models import GPDM, HGPDM
 from ..models.hgpdm import trajectory_summaries
-from .arguments import output_folder, random_seed
+from .arguments import output_folder, positive_int, random_seed
 from .table import ResultTable
 
 __all__ = ["main", "run_style_discovery", "style_purity"]
@@ -178,7 +178,7 @@ def plot_latents(models: dict[str, GPDM], path: str | Path) -> Path:
 
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm style-discovery [--data synthetic|weird-walking] [--cmu DIR]
-    [--out DIR] [--seed N] [--quick]``."""
+    [--out DIR] [--seed N] [--steps N] [--iterations N] [--quick]``."""
     parser = argparse.ArgumentParser(prog="hgpdm style-discovery", description=__doc__)
     parser.add_argument(
         "--out",
@@ -191,6 +191,10 @@ def main(argv: list[str]) -> int:
         "--cmu", type=Path, default=Path("../shared/data/cmu"), help="CMU files (weird-walking)"
     )
     parser.add_argument("--seed", type=random_seed, default=0)
+    parser.add_argument(
+        "--steps", type=positive_int, default=None, help="MAP steps (Alg. 2.1: half per round)"
+    )
+    parser.add_argument("--iterations", type=positive_int, default=None, help="Alg. 2.1 rounds")
     parser.add_argument("--quick", action="store_true", help="smaller problem (also HGPDM_SMOKE=1)")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
@@ -200,6 +204,9 @@ def main(argv: list[str]) -> int:
     sizes: dict[str, int] = {"steps": 20, "iterations": 3} if quick else {}
     if quick and args.data == "synthetic":
         sizes |= {"per_style": 3, "length": 25}
+    for name in ("steps", "iterations"):
+        if getattr(args, name) is not None:
+            sizes[name] = getattr(args, name)
     if args.data == "weird-walking":
         torch.set_default_dtype(torch.float64)
     table, models = run_style_discovery(
