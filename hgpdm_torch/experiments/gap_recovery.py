@@ -42,21 +42,12 @@ from ..inference.variational.prediction import candidate_predictions
 from ..models import GPDM, HGPDM
 from .arguments import output_file, positive_int
 from .table import ResultTable
-from .walkers import DEFAULT_OPTIONS
+from .walkers import DEFAULT_OPTIONS, MODEL_METHODS, report
 
 __all__ = ["METHODS", "gap_recovery", "linear_interpolation", "main", "template_copy"]
 
 SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
-METHODS = (
-    "VB H-GPDM",
-    "VB H-GPDM (BMA)",
-    "oracle VB",
-    "oracle MAP",
-    "GPDM VB",
-    "GPDM MAP",
-    "linear interpolation",
-    "template copy",
-)
+METHODS = (*MODEL_METHODS, "linear interpolation", "template copy")
 #: the thesis's windows: 50 frames, 31 missing, first missing frame 5 ... 16 (1-based)
 FRAMES, GAP, FIRST_GAPS = 50, 31, tuple(range(4, 16))
 
@@ -236,10 +227,5 @@ def main(argv: list[str]) -> int:
         latent_dim=args.latent_dim,
         fit_steps=args.fit_steps,
     )
-    print(table.to_markdown(".3f"))
-    for key in ("missing training trials", "missing test trials"):
-        if table.meta.get(key):
-            print(f"{key}: {', '.join(table.meta[key])}")
-    if args.out is not None:
-        table.to_json(args.out)
+    report(table, args.out)
     return 0

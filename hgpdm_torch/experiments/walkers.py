@@ -59,21 +59,20 @@ __all__ = [
     "DEFAULT_OPTIONS",
     "FORECAST_PROTOCOLS",
     "METHODS",
+    "MODEL_METHODS",
     "compare_runs",
     "loto_folds",
     "main",
+    "report",
     "walkers",
 ]
 
 SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 FORECAST_PROTOCOLS = ("walkers", "weird-walking")
+#: the models' rows, shared with gap recovery (:mod:`~hgpdm_torch.experiments.gap_recovery`)
+MODEL_METHODS = ("VB H-GPDM", "VB H-GPDM (BMA)", "oracle VB", "oracle MAP", "GPDM VB", "GPDM MAP")
 METHODS = (
-    "VB H-GPDM",
-    "VB H-GPDM (BMA)",
-    "oracle VB",
-    "oracle MAP",
-    "GPDM VB",
-    "GPDM MAP",
+    *MODEL_METHODS,
     "VB H-GPDM + AR(1) residual",
     "VB H-GPDM (BMA) + AR(1) residual",
     "oracle VB + AR(1) residual",
@@ -477,6 +476,16 @@ def compare_runs(tables: list[ResultTable]) -> ResultTable:
     return out
 
 
+def report(table: ResultTable, out: Path | None) -> None:
+    """Print a CMU experiment's table and the trials it did not find; write it to ``out``."""
+    print(table.to_markdown(".3f"))
+    for key in ("missing training trials", "missing test trials"):
+        if table.meta.get(key):
+            print(f"{key}: {', '.join(table.meta[key])}")
+    if out is not None:
+        table.to_json(out)
+
+
 def main(argv: list[str]) -> int:
     """``hgpdm walkers [--protocol walkers|weird-walking] [--data DIR] [--test-data DIR]
     [--lengths 5 10] [--latent-dim 3] [--fit-steps 300] [--stride 2] [--out table.json]``."""
@@ -564,10 +573,5 @@ def main(argv: list[str]) -> int:
         max_folds=args.max_folds,
         progress=args.progress,
     )
-    print(table.to_markdown(".3f"))
-    for key in ("missing training trials", "missing test trials"):
-        if table.meta.get(key):
-            print(f"{key}: {', '.join(table.meta[key])}")
-    if args.out is not None:
-        table.to_json(args.out)
+    report(table, args.out)
     return 0
