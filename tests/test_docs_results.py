@@ -1,0 +1,30 @@
+"""Every result table a docs page cites is a committed JSON file that reads as a ResultTable."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from hgpdm_torch.experiments.table import ResultTable
+
+ROOT = Path(__file__).resolve().parents[1]
+MARKER = re.compile(r"^<!-- results: table ([\w./-]+) -->$", re.MULTILINE)
+CITED = sorted(
+    (page.relative_to(ROOT), name)
+    for page in (ROOT / "docs").rglob("*.md")
+    for name in MARKER.findall(page.read_text())
+)
+
+
+def test_the_docs_cite_result_tables():
+    assert len(CITED) >= 4, CITED
+
+
+@pytest.mark.parametrize(("page", "name"), CITED, ids=[f"{p}:{n}" for p, n in CITED])
+def test_cited_result_table_exists_and_reads(page, name):
+    path = ROOT / name
+    assert path.is_file(), f"{page} cites {name}, which does not exist"
+    table = ResultTable.from_json(path)
+    assert table.rows and table.columns, f"{name} holds no table"
