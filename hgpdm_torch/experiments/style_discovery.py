@@ -61,15 +61,22 @@ def run_style_discovery(
     seed: int = 0,
     progress: bool = False,
 ) -> tuple[ResultTable, dict[str, GPDM]]:
-    """Fit GPDM, supervised H-GPDM and discovered H-GPDM on synthetic styles.
+    """Fit GPDM, supervised H-GPDM and discovered H-GPDM on synthetic styles or Weird Walking.
 
     Args:
         data: ``"synthetic"`` (``num_styles`` x ``per_style`` sequences of ``length`` frames,
             ``obs_dim`` channels) or ``"weird-walking"`` (the protocol's training trials from
             ``folder``; four styles).
         folder: the CMU files (``data="weird-walking"``).
-        latent_dim, steps, iterations, seed, progress: Dx, MAP steps (Alg. 2.1 uses half per
-            alternation), alternations of Alg. 2.1, seed of its start and of k-means, bars.
+        num_styles: synthetic: the number of styles (Weird Walking has four).
+        per_style: synthetic: sequences per style.
+        length: synthetic: frames per sequence.
+        obs_dim: synthetic: observed channels.
+        latent_dim: Dx of every model.
+        steps: MAP steps (Alg. 2.1 uses half of them per alternation).
+        iterations: alternations of Alg. 2.1.
+        seed: seed of the synthetic data, of Alg. 2.1's start and of k-means.
+        progress: progress bars.
 
     Returns:
         The result table and the fitted models by name.
