@@ -527,7 +527,12 @@ def main(argv: list[str]) -> int:
         help="inference routes the measurement GP through M pseudo-inputs (DTC; default: exact)",
     )
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
-    parser.add_argument("--progress", action="store_true")
+    parser.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="progress bar over the folds (default on)",
+    )
     parser.add_argument(
         "--compare",
         nargs="+",
