@@ -451,7 +451,8 @@ def compare_runs(tables: list[ResultTable]) -> ResultTable:
     for table in tables:
         meta = table.meta
         opts = meta["model_options"]
-        parts = [f"Dx {meta['latent_dim']}", f"sharing {meta['sharing']}"]
+        parts = [f"Dx {meta['latent_dim']}", f"{meta['fit_steps']} MAP steps"]
+        parts.append(f"sharing {meta['sharing']}")
         if "back_constraint" in opts:
             parts.append(f"{opts['back_constraint']} back-constraint")
         learned = opts.get("learn_measurement_width", "True") == "True"

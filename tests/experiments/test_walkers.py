@@ -82,7 +82,7 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     assert set(summary["per label"]) == {"07", "35"}
     compared = compare_runs([table, table]).rows
     assert len(compared) == 2 and compared[0]["options"] == (
-        "Dx 3, sharing 0.0, fixed measurement width"
+        "Dx 3, 3 MAP steps, sharing 0.0, fixed measurement width"
     )
     assert compared[0]["VB H-GPDM / GPDM VB"] == summary["VB H-GPDM / GPDM VB"]
     assert compared[0]["ridge AR (CV) (35)"] == table.rows[1]["ridge AR (CV)"]
