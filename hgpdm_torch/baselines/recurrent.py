@@ -39,7 +39,7 @@ class _GRUNet(nn.Module):
         return z[:, -1] + self.out(h[:, -1])
 
 
-def _windows(
+def _training_windows(
     seqs: list[torch.Tensor], length: int
 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
     """Every window ``[n, T, Dz]`` of every sequence, its next frame ``[n, Dz]`` and sequence."""
@@ -136,7 +136,7 @@ class GRUForecaster(_Forecaster):
             raise ValueError(f"window must be a positive int, got {window!r}")
         self.window_ = self.order_ = int(window)
         self.obs_dim = seqs[0].shape[1]
-        z, nxt, groups = _windows(seqs, self.window_)
+        z, nxt, groups = _training_windows(seqs, self.window_)
         z, nxt = z.to(self.dtype), nxt.to(self.dtype)
         n_groups = len(np.unique(groups))
         if n_groups < 2:

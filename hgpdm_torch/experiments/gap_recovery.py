@@ -25,7 +25,6 @@ among the training data of ``../shared/data/cmu``, so the default finds one.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_predictions
 from ..models import GPDM, HGPDM
 from .arguments import output_file, positive_int
+from .intervals import mean_sem
 from .table import ResultTable
 from .walkers import DEFAULT_OPTIONS, MODEL_METHODS, report
 
@@ -197,10 +197,10 @@ def gap_recovery(
     cells: dict[str, Any] = {"trial": "average", "label": "all"}
     sem: dict[str, Any] = {"trial": "SEM", "label": "all"}
     for key, values in per.items():
-        v = np.asarray(values)
-        cells[key] = float(v.mean()) if v.size else None
-        if key in METHODS and v.size > 1:
-            sem[key] = float(v.std(ddof=1) / math.sqrt(v.size))
+        if values:
+            cells[key], spread = mean_sem(values)
+            if key in METHODS and spread is not None:
+                sem[key] = spread
     table.add(**cells)
     if len(sem) > 2:
         table.add(**sem)

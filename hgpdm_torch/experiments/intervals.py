@@ -1,10 +1,11 @@
 """Confidence intervals for proportions: a return rate and the paired difference of two players
-over the same rallies (used by ``hgpdm demo``).
+over the same rallies (used by ``hgpdm demo``), and the mean with its standard error.
 
 - :func:`return_rate_interval`: exact Clopper-Pearson interval of a binomial proportion.
 - :func:`wilson_interval`: Wilson score interval.
 - :func:`paired_difference_interval`: Newcombe's square-and-add interval (method 10 of
   Newcombe 1998) for the difference of two paired proportions.
+- :func:`mean_sem`: the mean of per-trial scores and its standard error.
 """
 
 from __future__ import annotations
@@ -14,7 +15,25 @@ from collections.abc import Sequence
 
 import torch
 
-__all__ = ["paired_difference_interval", "return_rate_interval", "wilson_interval"]
+__all__ = ["mean_sem", "paired_difference_interval", "return_rate_interval", "wilson_interval"]
+
+
+def mean_sem(values: Sequence[float]) -> tuple[float, float | None]:
+    """Mean of ``values`` and its standard error ``sd / sqrt(n)`` (sample sd, ``ddof = 1``;
+    ``None`` for one value).
+
+    Raises:
+        ValueError: no values, or a value that is not finite (a failed score must be fixed or
+            reported, not averaged away).
+    """
+    v = [float(x) for x in values]
+    if not v or not all(math.isfinite(x) for x in v):
+        raise ValueError(f"values must be a non-empty list of finite numbers, got {v!r}")
+    mean = sum(v) / len(v)
+    if len(v) == 1:
+        return mean, None
+    var = sum((x - mean) ** 2 for x in v) / (len(v) - 1)
+    return mean, math.sqrt(var / len(v))
 
 
 def _check_counts(successes: int, n: int) -> None:

@@ -48,6 +48,7 @@ from .table import ResultTable
 __all__ = [
     "StyleData",
     "chunked_forecast",
+    "chunked_windows",
     "forecast_windows",
     "gap_recovery_figure",
     "load_data",
@@ -141,8 +142,12 @@ def forecast_windows(
     return torch.stack(z), torch.stack(nxt), torch.tensor(y)
 
 
-def _chunked(fn: Callable[..., tuple], z: torch.Tensor, per_window: float, **kw: object) -> list:
-    """Run ``fn`` on chunks of windows (bounded memory); concatenate each output."""
+def chunked_windows(
+    fn: Callable[..., Any], z: torch.Tensor, per_window: float, **kw: object
+) -> list:
+    """Run ``fn`` on chunks of the windows ``z [W, ...]`` (and of every tensor in ``kw``) so
+    that a chunk holds at most ``2e7`` numbers when one window needs ``per_window``; returns
+    the outputs per chunk, in order."""
     size = max(1, int(_MAX_ENTRIES // max(per_window, 1.0)))
     outs = []
     for i in range(0, z.shape[0], size):
@@ -169,7 +174,9 @@ def chunked_forecast(
     K = 1 if values is not None or inf.kind != "discrete" else int(inf.values.numel())
     per_window = K * (z.shape[-2] + 1) * n * n
     kw = {} if values is None else {"values": values}
-    outs = _chunked(lambda w, **k: inf.forecast(w, residual=residual, **k), z, per_window, **kw)
+    outs = chunked_windows(
+        lambda w, **k: inf.forecast(w, residual=residual, **k), z, per_window, **kw
+    )
     mean = torch.cat([o[0] for o in outs])
     g_ml = torch.cat([o[2].g_ml for o in outs])
     return mean, g_ml, torch.cat([o[2].posterior for o in outs])

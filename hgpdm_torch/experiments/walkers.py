@@ -33,7 +33,6 @@ epochs by grouped CV). RMSE is over all standardised channels of a trial's windo
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import time
 from pathlib import Path
@@ -52,7 +51,8 @@ from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
 from .arguments import int_at_least, output_file, positive_int
-from .style_recognition import chunked_forecast, forecast_windows
+from .intervals import mean_sem
+from .style_recognition import chunked_forecast, chunked_windows, forecast_windows
 from .table import ResultTable
 
 __all__ = [
@@ -85,8 +85,6 @@ METHODS = (
 #: of the VB H-GPDM + AR(1) residual forecast at T = 5 and 10; docs page "Walking motion
 #: capture"): the measurement GP's RBF width stays at its initial value instead of collapsing
 DEFAULT_OPTIONS: dict[str, Any] = {"learn_measurement_width": False}
-# one VB window over K candidates holds about K (T + 1) N^2 numbers of psi2: chunk to this
-_MAX_ENTRIES = 2e7
 
 
 def loto_folds(labels: Any) -> tuple[list[tuple[list[int], list[int]]], list[int]]:
@@ -113,47 +111,35 @@ def _rmse(pred: torch.Tensor, truth: torch.Tensor) -> float:
     return float((pred - truth).pow(2).mean().sqrt())
 
 
-def _mean_sem(values: list[float]) -> tuple[float, float | None]:
-    v = np.asarray([x for x in values if not math.isnan(x)])
-    sem = float(v.std(ddof=1) / math.sqrt(len(v))) if len(v) > 1 else None
-    return float(v.mean()), sem
-
-
-def _chunks(n_windows: int, per_window: float) -> list[slice]:
-    size = max(1, int(_MAX_ENTRIES // max(per_window, 1.0)))
-    return [slice(i, i + size) for i in range(0, n_windows, size)]
-
-
 def _vb_forecasts(
     vb: VariationalInference, z: torch.Tensor, y: torch.Tensor
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
     """The VB rows of one model from one posterior per window (see the module docstring).
 
     Returns:
-        forecasts by method suffix, the ML g (index into ``vb.values``) ``[W]`` and the
-        posterior over g ``[W, K]``.
+        forecasts by method suffix, the ML g ``[W]`` (index into ``vb.values``, which is the
+        code) and the posterior over g ``[W, K]``.
     """
     n = vb.measurement.train_inputs.shape[0]  # pseudo-inputs of a sparse GP
     K = int(vb.values.numel()) if vb.kind == "discrete" else 1
-    out: dict[str, list[torch.Tensor]] = {}
-    g_ml, post = [], []
-    truth = (vb.values[None, :] == y[:, None]).long().argmax(-1) if K > 1 else None
-    for part in _chunks(z.shape[0], K * (z.shape[1] + 1) * n * n):
-        cf = candidate_forecasts(vb, z[part], prune=None)
+
+    def rows(w: torch.Tensor, truth: torch.Tensor) -> tuple[dict[str, torch.Tensor], Any]:
+        cf = candidate_forecasts(vb, w, prune=None)
         ml = cf.result.g_ml
-        rows = {"": cf.pick(ml), " + AR(1) residual": cf.pick(ml, ar1=True)}
-        if truth is not None:
-            rows |= {
+        out = {"": cf.pick(ml), " + AR(1) residual": cf.pick(ml, ar1=True)}
+        if K > 1:  # a candidate's index is its code (``values`` is ``arange(K)``)
+            out |= {
                 " (BMA)": cf.averaged(),
                 " (BMA) + AR(1) residual": cf.averaged(ar1=True),
-                " oracle": cf.pick(truth[part]),
-                " oracle + AR(1) residual": cf.pick(truth[part], ar1=True),
+                " oracle": cf.pick(truth),
+                " oracle + AR(1) residual": cf.pick(truth, ar1=True),
             }
-        for key, value in rows.items():
-            out.setdefault(key, []).append(value)
-        g_ml.append(ml)
-        post.append(cf.result.posterior)
-    return {k: torch.cat(v) for k, v in out.items()}, torch.cat(g_ml), torch.cat(post)
+        return out, cf.result
+
+    parts = chunked_windows(rows, z, K * (z.shape[1] + 1) * n * n, truth=y)
+    forecasts = {key: torch.cat([p[0][key] for p in parts]) for key in parts[0][0]}
+    g_ml = torch.cat([p[1].g_ml for p in parts])
+    return forecasts, g_ml, torch.cat([p[1].posterior for p in parts])
 
 
 def _score_split(
@@ -176,6 +162,12 @@ def _score_split(
         per window length, one row per test trial (``windows``, every method's RMSE,
         ``accuracy``, ``coverage``), and the fits' summaries.
     """
+    short = [j for j, s in enumerate(test) if s.shape[0] <= max(lengths)]
+    if short:
+        raise ValueError(
+            f"test trials {short} have at most max(lengths) = {max(lengths)} frames: no window "
+            f"to forecast from; shorten the windows or leave those trials out"
+        )
     std = Standardizer().fit(train)
     tr = [std.transform(s) for s in train]
     te = [std.transform(s) for s in test]
@@ -217,14 +209,13 @@ def _score_split(
             "ridge AR (CV)": ridge.predict(z),
             "GRU (CV)": gru.predict(z),
         }
-        truth = (vb_hg.values[None, :] == y[:, None]).long().argmax(-1)
         rows[T] = []
         for j in range(len(te)):
             keep = trial == j
             row: dict[str, Any] = {"windows": int(keep.sum())}
             row |= {name: _rmse(p[keep], nxt[keep]) for name, p in preds.items()}
-            row["accuracy"] = float((g_ml[keep] == truth[keep]).double().mean())
-            row["coverage"] = calibration(post[keep], truth[keep])["coverage"]
+            row["accuracy"] = float((g_ml[keep] == y[keep]).double().mean())
+            row["coverage"] = calibration(post[keep], y[keep])["coverage"]
             rows[T].append(row)
         fits[f"forecast seconds T={T}"] = time.perf_counter() - start
     return rows, fits
@@ -392,9 +383,9 @@ def _table(
         sem: dict[str, Any] = {"T": T, "trial": "SEM", "label": "all"}
         cells["windows"] = sum(r[T]["windows"] for _, _, r in scored)
         for m in METHODS:
-            cells[m], sem[m] = _mean_sem([r[T][m] for _, _, r in scored])
-        cells["accuracy"] = _mean_sem([r[T]["accuracy"] for _, _, r in scored])[0]
-        cells["90% set coverage"] = _mean_sem([r[T]["coverage"] for _, _, r in scored])[0]
+            cells[m], sem[m] = mean_sem([r[T][m] for _, _, r in scored])
+        cells["accuracy"] = mean_sem([r[T]["accuracy"] for _, _, r in scored])[0]
+        cells["90% set coverage"] = mean_sem([r[T]["coverage"] for _, _, r in scored])[0]
         table.add(**cells)
         table.add(**sem)
         labels = sorted({lab for _, lab, _ in scored})
@@ -402,7 +393,7 @@ def _table(
             "VB H-GPDM / GPDM VB": cells["VB H-GPDM"] / cells["GPDM VB"],
             "per label": {
                 lab: {
-                    m: _mean_sem([r[T][m] for _, lb, r in scored if lb == lab])[0]
+                    m: mean_sem([r[T][m] for _, lb, r in scored if lb == lab])[0]
                     for m in (*METHODS, "accuracy")
                 }
                 for lab in labels

@@ -6,7 +6,6 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
@@ -156,4 +155,3 @@ def test_real_walkers_advance_at_a_plausible_speed():
         assert abs(float(v[:, side].mean())) < 0.2 * float(v[:, fwd].mean())
     height = torch.cat(data.sequences)[:, data.features.index("root.ty")] * unit
     assert 0.8 < float(height.mean()) < 1.1
-    assert np.isclose(data.fps, 12.0)

@@ -12,6 +12,7 @@ import pytest
 from scipy.stats import beta, binom, binomtest, multinomial, norm
 
 from hgpdm_torch.experiments.intervals import (
+    mean_sem,
     paired_difference_interval,
     return_rate_interval,
     wilson_interval,
@@ -125,3 +126,14 @@ def test_paired_difference_interval_edge_cases_and_bad_inputs() -> None:
         wilson_interval(0, 0)
     with pytest.raises(TypeError, match="successes must be an int"):
         return_rate_interval(2.0, 4)  # type: ignore[arg-type]
+
+
+def test_mean_sem_against_numpy_and_refuses_failed_scores():
+    values = [0.31, 0.27, 0.45, 0.29]
+    mean, sem = mean_sem(values)
+    assert mean == pytest.approx(np.mean(values), rel=1e-15)
+    assert sem == pytest.approx(np.std(values, ddof=1) / np.sqrt(4), rel=1e-14)
+    assert mean_sem([0.5]) == (0.5, None)
+    for bad in ([], [0.1, float("nan")], [float("inf")]):
+        with pytest.raises(ValueError, match="finite"):
+            mean_sem(bad)

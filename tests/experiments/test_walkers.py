@@ -67,6 +67,8 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
         10,
         "none",
     )
+    with pytest.raises(ValueError, match="max\\(lengths\\) = 40"):  # 07_02 has 32 rows
+        walkers(mine, folder=CMU, test_folder=tmp_path, lengths=(40,), fit_steps=3)
     table = walkers(mine, folder=CMU, test_folder=tmp_path, lengths=(3,), fit_steps=3, stride=6)
     assert table.meta["evaluation"] == "test trials"
     assert table.meta["test trials"] == ["07_02", "35_03"]

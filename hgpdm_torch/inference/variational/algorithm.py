@@ -107,10 +107,11 @@ class VariationalInference:
             anywhere in a movement (the thesis's ``N(m_1, S_1)``).
         g_prior: for a discrete g, ``[K]`` prior probabilities (default uniform); for a continuous
             g, ``(mean [Dg], cov [Dg, Dg])`` (default: fitted to the training intentions).
-        measurement_points: condition the measurement GP on at most this many training frames,
-            evenly spaced (a subset-of-data sparse GP: each window's kernel expectations cost
-            ``M^2`` instead of ``N^2``; :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`).
-            Default: all frames, the thesis's model.
+        measurement_points: route the measurement GP through at most this many pseudo-inputs,
+            the latents of evenly spaced training frames (the DTC sparse GP on all the data:
+            each window's kernel expectations cost ``M^2`` instead of ``N^2``;
+            :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`). Default: the exact GP,
+            the thesis's model.
 
     Attributes:
         window: the :class:`~hgpdm_torch.inference.variational.window.WindowModel` (GPs, priors,

@@ -125,6 +125,13 @@ def predict_observations(
         return cm.reshape(*cm.shape[:-1], T, dz), var.reshape(*cm.shape[:-1], T, dz)
 
 
+def _with_missing_row(z: torch.Tensor) -> torch.Tensor:
+    """``[..., T, Dz]`` -> ``[..., T + 1, Dz]``: the windows with a missing (NaN) row appended,
+    the frame to forecast."""
+    nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype, device=z.device)
+    return torch.cat([z, nan], -2)
+
+
 class Forecaster(Protocol):
     """An inference engine :func:`forecast` can drive (VB or the MAP baseline)."""
 
@@ -159,8 +166,7 @@ def forecast(
     if residual is not None:
         check_choice(residual, "residual", ("ar1",))
     z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
-    nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype, device=z.device)
-    window = torch.cat([z, nan], -2)
+    window = _with_missing_row(z)
     res = engine.infer(window, **infer_kwargs)
     if residual is None:
         m, v = engine.predict_observations(window, res)
@@ -231,8 +237,7 @@ def candidate_forecasts(engine: Any, z: object, **infer_kwargs: Any) -> Candidat
         :class:`CandidateForecasts`.
     """
     z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
-    nan = torch.full((*z.shape[:-2], 1, z.shape[-1]), float("nan"), dtype=z.dtype, device=z.device)
-    window = torch.cat([z, nan], -2)
+    window = _with_missing_row(z)
     res = engine.infer(window, **infer_kwargs)
     mean, var = candidate_predictions(engine, window, res)
     with torch.no_grad():

@@ -103,8 +103,8 @@ class WindowModel:
             :class:`~hgpdm_torch.inference.variational.VariationalInference`).
         x1_prior: ``(mean, cov)`` of ``p(x_1)`` (default: fitted to the training latents).
         g_prior: the prior over g (default: uniform / fitted to the training intentions).
-        measurement_points: condition the measurement GP on at most this many training frames
-            (:meth:`~hgpdm_torch.models.GPDM.measurement_posterior`; default all).
+        measurement_points: route the measurement GP through at most this many pseudo-inputs
+            (DTC, :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`; default the exact GP).
 
     Attributes:
         kind: ``"none"`` (GPDM), ``"discrete"`` or ``"continuous"``.
