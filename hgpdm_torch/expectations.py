@@ -532,8 +532,10 @@ def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: to
     # N x N work is one matmul and one in-place exp (the hot path of moment matching)
     one = torch.ones_like(row)
     left = torch.cat([uC, row[..., None], one[..., None]], dim=-1)
-    right = torch.cat([v.expand_as(uC), one[..., None], col[..., None]], dim=-1)
-    return (left @ right.transpose(-1, -2)).exp_()
+    # the right factor built transposed: a contiguous [D+2, N] operand (a transposed view makes
+    # the small-inner-dimension matmul 2-3x slower)
+    right = torch.cat([v.expand_as(uC).transpose(-1, -2), one[..., None, :], col[..., None, :]], -2)
+    return (left @ right).exp_()
 
 
 def term_psi2_factors(

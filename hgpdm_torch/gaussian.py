@@ -280,7 +280,10 @@ def condition_gaussian(
 
     The observed set may differ across the batch: the observed block ``S_oo`` is solved with the
     unobserved rows and columns replaced by the identity, which leaves them uncoupled; then
-    :func:`conditional` with ``C = Cov[all, observed]``.
+    :func:`conditional` with ``C = Cov[all, observed]``. Where the whole batch shares one set
+    (a forecast: the last rows missing), the blocks are gathered instead and only the
+    ``n_u`` unobserved columns are solved for: ``O(n_o^3 / 3 + n_o^2 n_u)`` per member instead
+    of ``O(n^3)`` twice.
 
     Args:
         mean: ``[..., n]``.
@@ -302,6 +305,9 @@ def condition_gaussian(
     if not isinstance(observed, torch.Tensor) or observed.dtype != torch.bool:
         raise TypeError("observed must be a bool tensor")
     _check_vector(observed, "observed", n)
+    first = observed.reshape(-1, n)[0]
+    if bool((observed == first).all()) and 0 < int(first.sum()) < n:
+        return _condition_shared(mean, cov, first, values)
     o = observed.to(cov.dtype)
     eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
     masked = cov * o[..., :, None] * o[..., None, :] + eye * (1.0 - o)[..., None, :]
@@ -311,6 +317,24 @@ def condition_gaussian(
     cond_mean = torch.where(observed, values, mean + (r[..., None, :] @ gain_t)[..., 0, :])
     keep = (1.0 - o)[..., :, None] * (1.0 - o)[..., None, :]
     return cond_mean, cond_cov * keep
+
+
+def _condition_shared(
+    mean: torch.Tensor, cov: torch.Tensor, observed: torch.Tensor, values: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`condition_gaussian` when every batch member observes the same entries
+    ``observed [n]`` (some, not all): the blocks are gathered, not masked."""
+    o, u = torch.nonzero(observed).flatten(), torch.nonzero(~observed).flatten()
+    L = psd_cholesky(symmetrize(cov[..., o[:, None], o]), name="covariance of the observed entries")
+    cross = cov[..., u[:, None], o]  # [..., n_u, n_o]
+    gain_t, cond_uu = conditional(cov[..., u[:, None], u], cross, L)
+    r = (values - mean)[..., o]
+    cond_mean = mean.clone()
+    cond_mean[..., o] = values[..., o]
+    cond_mean[..., u] = mean[..., u] + (r[..., None, :] @ gain_t)[..., 0, :]
+    cond_cov = torch.zeros_like(cov)
+    cond_cov[..., u[:, None], u] = cond_uu
+    return cond_mean, cond_cov
 
 
 # ------------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ __all__ = [
     "jitter",
     "positive_definite",
     "psd_cholesky",
+    "shared_matmul",
     "symmetrize",
 ]
 
@@ -180,3 +181,29 @@ def gaussian_nll(cov: torch.Tensor, y: torch.Tensor, *, name: str = "covariance"
             f"{tuple(cov.shape)} and {tuple(y.shape)}"
         )
     return _GaussianNLL.apply(cov, y, name)
+
+
+def shared_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` with batch broadcasting, without expanding ``a`` over dims where it has size 1.
+
+    ``a [*A, n, m]``, ``b [*Bb, m, k]`` -> ``[*broadcast(A, Bb), n, k]``. Batch dims along which
+    only ``b`` varies are folded into its columns, so an ``N x N`` matrix shared by K intentions
+    is multiplied once with an ``N x (K k)`` matrix instead of being copied K times.
+    """
+    nb = max(a.dim(), b.dim()) - 2
+    a = a.reshape((1,) * (nb + 2 - a.dim()) + a.shape)
+    b = b.reshape((1,) * (nb + 2 - b.dim()) + b.shape)
+    share = [i for i in range(nb) if a.shape[i] == 1 and b.shape[i] > 1]
+    if not share:
+        return a @ b
+    keep = [i for i in range(nb) if i not in share]
+    m, k = b.shape[-2], b.shape[-1]
+    bp = b.permute(*keep, nb, *share, nb + 1).reshape(*(b.shape[i] for i in keep), m, -1)
+    ap = a.reshape(*(a.shape[i] for i in keep), a.shape[-2], m)
+    out = ap @ bp  # [*keep, n, prod(share) k]
+    out = out.reshape(*out.shape[:-1], *(b.shape[i] for i in share), k)
+    # current order: keep..., n, share..., k -> back to batch order, n, k
+    order = keep + share
+    nk = len(keep)
+    perm = [order.index(i) if order.index(i) < nk else order.index(i) + 1 for i in range(nb)]
+    return out.permute(*perm, nk, nb + 1)

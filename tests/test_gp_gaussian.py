@@ -7,7 +7,8 @@ import itertools
 import pytest
 import torch
 
-from hgpdm_torch.gp import GPPosterior, _shared_matmul
+from hgpdm_torch.gp import GPPosterior
+from hgpdm_torch.linalg import shared_matmul
 from hgpdm_torch.kernels import measurement_kernel, transition_kernel
 
 DX = 2
@@ -212,7 +213,7 @@ def test_shared_matmul_matches_broadcast_matmul(generator):
     for sa, sb in [((3, 1), (3, 6)), ((1,), (7, 3)), ((2, 1), (1, 3)), ((), (4,)), ((5,), (5,))]:
         a = torch.randn(*sa, 4, 5, generator=generator)
         b = torch.randn(*sb, 5, 2, generator=generator)
-        torch.testing.assert_close(_shared_matmul(a, b), a @ b)
+        torch.testing.assert_close(shared_matmul(a, b), a @ b)
 
 
 def test_bad_inputs_raise(generator):

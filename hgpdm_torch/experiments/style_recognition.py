@@ -75,7 +75,7 @@ COLUMNS = [
 ]
 #: BasicMotions recordings: 100 frames, of which every _BASIC_MOTIONS_STEP-th is kept.
 _BASIC_MOTIONS_FRAMES, _BASIC_MOTIONS_STEP = 100, 3
-# psi2 of the measurement GP holds windows x K x T x N^2 numbers: chunk the windows to this
+# numbers a chunk of windows may hold in its largest temporaries (160 MB in float64)
 _MAX_ENTRIES = 2e7
 
 
@@ -156,6 +156,13 @@ def chunked_windows(
     return outs
 
 
+def window_entries(inf: Any, candidates: int, length: int) -> int:
+    """Numbers in the largest temporaries of one window's inference and forecast: the joint
+    ``q(z_{1:T+1})`` of App. 2.B per candidate g, ``K ((T + 1) Dz)^2`` (the kernel
+    expectations are computed in cache-sized chunks of input Gaussians)."""
+    return candidates * ((length + 1) * inf.obs_dim) ** 2
+
+
 def chunked_forecast(
     inf: VariationalInference,
     z: torch.Tensor,
@@ -170,9 +177,8 @@ def chunked_forecast(
         ``mean [W, Dz]`` of the next frame, ``g_ml [W]`` (index into ``inf.values``) and the
         posterior over g ``[W, K]``.
     """
-    n = inf.measurement.train_inputs.shape[0]  # pseudo-inputs of a sparse GP
     K = 1 if values is not None or inf.kind != "discrete" else int(inf.values.numel())
-    per_window = K * (z.shape[-2] + 1) * n * n
+    per_window = window_entries(inf, K, z.shape[-2])
     kw = {} if values is None else {"values": values}
     outs = chunked_windows(
         lambda w, **k: inf.forecast(w, residual=residual, **k), z, per_window, **kw

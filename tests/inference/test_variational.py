@@ -489,11 +489,43 @@ def test_pruning_keeps_a_candidate_that_starts_far_off(planted):
     torch.testing.assert_close(out[k], ref[k], rtol=0, atol=1e-4)
 
 
-def test_lm_by_code_equals_per_row_blocks_and_broadcasts(planted, monkeypatch):
-    """Rows of one code on its shared GP block (the large-block path) give the per-row result;
-    windows broadcast against one set of initial states; a bad prune is refused."""
-    import hgpdm_torch.inference.variational.laplace as V
+def test_transition_gp_per_code_parts_equal_padded_blocks(planted):
+    """Codes along one batch axis (K candidates; one code per row, repeated) are computed per
+    code on unpadded views of their blocks: the same predictions, Jacobians and mean moments
+    as the padded per-entry blocks (codes varying along two axes)."""
+    from hgpdm_torch.inference.variational.gaussian_input import GaussianInputGP
 
+    train, _, _ = planted
+    # one code more than the styles present: a code without training points (as a subject
+    # missing from Four Walkers' folds), whose part keeps one padding row
+    model = HGPDM(train.sequences, train.labels, 3, num_values=4)
+    vb = VariationalInference(model)
+    post, K = vb.window.transition, model.num_values
+    gen = torch.Generator().manual_seed(3)
+    mu = torch.randn(2, K, 4, 3, generator=gen, dtype=torch.float64)
+    a = torch.randn(2, K, 4, 3, 3, generator=gen, dtype=torch.float64)
+    Sigma = 0.01 * a @ a.mT
+    codes = torch.arange(K)
+    padded = GaussianInputGP(post, codes.expand(2, K)[..., None])  # two varying axes
+    parts = GaussianInputGP(post, codes[:, None])
+    assert parts.parts and not padded.parts
+    # float64 sums over the same points in another order (padding adds exact zeros): 1e-10
+    for got, ref in zip(parts.predict_point(mu, jacobian=True), padded.predict_point(mu, jacobian=True), strict=True):  # fmt: skip
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    for got, ref in zip(parts.mean_moments(mu, Sigma), padded.mean_moments(mu, Sigma), strict=True):
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    rows = torch.tensor([2, 0, 2, 1, 0])[:, None, None] % K  # one code per row, repeated
+    per_row = GaussianInputGP(post, rows)
+    x = mu[0, 0, :2].expand(5, 1, 2, 3)  # [rows, K = 1, T, Dx]
+    padded_rows = GaussianInputGP(post, rows.expand(5, 2, 1))
+    ref = padded_rows.predict_point(x.expand(5, 2, 2, 3), jacobian=True)
+    for got, r in zip(per_row.predict_point(x, jacobian=True), ref, strict=True):
+        torch.testing.assert_close(got, r[:, :1], rtol=1e-10, atol=1e-12)
+
+
+def test_lm_broadcasts_windows_and_refuses_bad_prune(planted):
+    """Windows broadcast against one set of initial states and each equals its own solve; a
+    bad prune is refused."""
     _, test, model = planted
     vb = VariationalInference(model)
     z, observed = window_mask(
@@ -501,15 +533,12 @@ def test_lm_by_code_equals_per_row_blocks_and_broadcasts(planted, monkeypatch):
     )
     x0 = vb.initial_guess(z[0], vb.values)[0]  # [K, T, Dx], broadcast over the 3 windows
     rows, _ = vb.laplace(z, observed, x0, vb.values, prune=50.0)
-    monkeypatch.setattr(V, "_ROW_BLOCK_BYTES", 0)
-    grouped, _ = vb.laplace(z, observed, x0, vb.values, prune=50.0)
     assert rows.shape == (3, *x0.shape)
+    one, _ = vb.laplace(z[1], observed[1], x0, vb.values, prune=50.0)
     # equal up to LM's stopping tolerance (roundoff in other batch shapes can move a stop by a
     # step below 1e-3 nats)
-    lj = [vb.window.log_joint(z[:, None], observed[:, None], x[:, :, None], vb.values[:, None])
-          for x in (rows, grouped)]  # fmt: skip
+    lj = [vb.window.log_joint(z[1], observed[1], x, vb.values) for x in (rows[1], one)]
     torch.testing.assert_close(lj[1], lj[0], rtol=0, atol=1e-3)
-    torch.testing.assert_close(grouped, rows, rtol=0, atol=1e-3)
     with pytest.raises(ValueError, match="prune"):
         vb.laplace(z, observed, x0, vb.values, prune=-1.0)
 

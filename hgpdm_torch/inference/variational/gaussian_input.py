@@ -19,15 +19,9 @@ from dataclasses import replace
 
 import torch
 
-from ...expectations import (
-    kernel_leaves,
-    leaves_psi0,
-    split_terms,
-    term_k,
-    term_psi1,
-    term_psi2,
-)
-from ...gp import GPPosterior
+from ...expectations import kernel_leaves, leaves_psi0, split_terms, term_k, term_psi1
+from ...gp import GPPosterior, input_moments
+from ...linalg import shared_matmul
 
 __all__ = ["GaussianInputGP", "expected_sq_error"]
 
@@ -37,10 +31,18 @@ class GaussianInputGP:
 
     ``X [..., N, D]``, ``beta [..., N, Dout]``, ``kinv [..., N, N]`` and a 0/1 ``mask [..., N]``
     (padding of per-code blocks), where ``...`` broadcasts against the inputs' batch dims.
+
+    With the codes of a block-diagonal (discrete g) kernel, code c reads only its own block.
+    Codes that vary along a single batch axis (``[K, 1]``: the same K candidates for every
+    window; ``[n, 1, 1]``: one code per row) are computed one code at a time, each on a view
+    of its own unpadded block: padding every block to the largest one and copying it per entry
+    would cost ``K max_c N_c^2`` instead of ``sum_c N_c^2`` per input Gaussian (3x on Weird
+    Walking's unequal styles).
     """
 
     def __init__(self, post: GPPosterior, codes: torch.Tensor | None = None) -> None:
         self.post = post
+        self.parts: list[GaussianInputGP] = []
         with torch.no_grad():
             leaves = kernel_leaves(post.kernel, post.input_dim)
         if codes is None:
@@ -53,7 +55,27 @@ class GaussianInputGP:
             self.leaves = leaves
         elif post.blocks() is not None:
             # Block-diagonal K_x of a discrete g: code c reads only its own block (exact).
-            X, beta, kinv, mask = (b[codes] for b in post.blocks())
+            varying = [i for i, n in enumerate(codes.shape) if n > 1]
+            if len(varying) == 1:
+                axis = varying[0]
+                self.axis = axis - codes.dim()  # from the right of the batch shape
+                flat = codes.movedim(axis, -1).reshape(-1)
+                self.groups = [torch.nonzero(flat == c).flatten() for c in torch.unique(flat)]
+                self.order = torch.argsort(torch.cat(self.groups))
+                self.parts = [
+                    GaussianInputGP(post, codes.narrow(axis, int(i[0]), 1)) for i in self.groups
+                ]
+                return
+            if codes.numel() == 1:  # one code: a view of its own block, without the padding
+                c = int(codes.reshape(-1)[0])
+                X, beta, kinv, mask = (b[c] for b in post.blocks())
+                n = max(int(mask.sum()), 1)  # a code without training points keeps one pad row
+                batch = codes.shape
+                X, beta = X[:n].expand(*batch, n, -1), beta[:n].expand(*batch, n, -1)
+                kinv = kinv[:n, :n].expand(*batch, n, n)
+                mask = None if bool(mask[:n].all()) else mask[:n].expand(*batch, n)
+            else:
+                X, beta, kinv, mask = (b[codes] for b in post.blocks())
             d = X.shape[-1] - 1
             self.X, self.beta, self.kinv, self.mask = X[..., :d], beta, kinv, mask
             self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
@@ -79,6 +101,33 @@ class GaussianInputGP:
             for t in split_terms(self.leaves, self.X, None, self.dim)
         ]
 
+    def _by_code(
+        self,
+        method: str,
+        inputs: tuple[torch.Tensor, ...],
+        events: tuple[int, ...],
+        out_events: tuple[int, ...],
+        **kwargs: object,
+    ) -> tuple[torch.Tensor, ...]:
+        """``method`` of each code's part on its entries of the inputs along the codes' batch
+        axis, the outputs put back in order there. ``events`` / ``out_events``: the event dims
+        of each input / output (a mean ``[..., D]`` has 1, a covariance or a Jacobian 2, a
+        variance ``[...]`` 0)."""
+        outs = []
+        for idx, part in zip(self.groups, self.parts, strict=True):
+            sliced = [
+                x
+                if x.dim() < e - self.axis or x.shape[self.axis - e] == 1  # broadcast there
+                else x.index_select(self.axis - e, idx)
+                for x, e in zip(inputs, events, strict=True)
+            ]
+            out = getattr(part, method)(*sliced, **kwargs)
+            outs.append(out if isinstance(out, tuple) else (out,))
+        return tuple(
+            torch.cat(pieces, self.axis - e).index_select(self.axis - e, self.order)
+            for e, pieces in zip(out_events, zip(*outs, strict=True), strict=True)
+        )
+
     def expected_kernel(
         self, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
     ) -> torch.Tensor:
@@ -98,15 +147,19 @@ class GaussianInputGP:
         ``jacobian=True`` also returns ``d mean / d mu`` ``[..., Dout, D]``, from the kernel
         gradients of :func:`~hgpdm_torch.expectations.term_k`.
         """
+        if self.parts:
+            events = (1, 0, 2) if jacobian else (1, 0)
+            return self._by_code("predict_point", (mu,), (1,), events, jacobian=jacobian)
         k, dk = 0.0, 0.0
         for t in self.terms:
             p, gr = term_k(t, mu, self.X, grad=jacobian)
             if jacobian:
                 dk = dk + (gr if t.factor is None else t.factor[..., None, :] * gr)
             k = k + (p if t.factor is None else t.factor * p)
-        quad = ((k[..., None, :] @ self.kinv)[..., 0, :] * k).sum(-1)
+        # K^-1 k without copying a per-code K^-1 block for every input (it is symmetric)
+        quad = (shared_matmul(self.kinv, k[..., :, None])[..., 0] * k).sum(-1)
         kxx = leaves_psi0(self.leaves, mu, torch.zeros_like(mu).diag_embed(), None)
-        mean = (k[..., None, :] @ self.beta)[..., 0, :]
+        mean = shared_matmul(self.beta.transpose(-1, -2), k[..., :, None])[..., 0]
         var = (kxx - quad).clamp_min(0.0) + self.post.noise
         if not jacobian:
             return mean, var
@@ -122,19 +175,13 @@ class GaussianInputGP:
         """``E[m_d(x)]`` and ``E[m_d(x)^2]`` of the centred GP mean, each ``[..., Dout]``.
 
         ``E[m] = psi1 beta`` and ``E[m_d^2] = beta_d^T psi2 beta_d`` summed over kernel terms and
-        term pairs (App. 2.A terms (a)-(d)).
+        term pairs (App. 2.A terms (a)-(d)), by :func:`~hgpdm_torch.gp.input_moments`.
         """
-        fbeta = [
-            self.beta if t.factor is None else t.factor[..., None] * self.beta for t in self.terms
-        ]
-        mean, second = 0.0, 0.0
-        for i, (a, fa) in enumerate(zip(self.terms, fbeta, strict=True)):
-            p1 = term_psi1(a, mu, Sigma, self.X)
-            mean = mean + (p1[..., None, :] @ fa)[..., 0, :]
-            for j in range(i, len(self.terms)):
-                q = term_psi2(a, self.terms[j], mu, Sigma, self.X)
-                s = ((q @ fbeta[j]) * fa).sum(-2)
-                second = second + (2.0 * s if j > i else s)  # pair (j, i) is the transpose
+        if self.parts:
+            return self._by_code("mean_moments", (mu, Sigma), (1, 2), (1, 1))
+        mean, second, _, _ = input_moments(
+            self.terms, mu, Sigma, self.X, self.beta, None, diagonal=True, grad=False
+        )
         return mean, second
 
 

@@ -28,7 +28,6 @@ __all__ = ["check_prune", "laplace", "map_states"]
 
 _PRUNE_SAFETY = 3.0  # optimism factor of the LM pruning rule (see map_states)
 _PRUNE_MAX_DAMPING = 1.0  # LM damping up to which the pruning rule trusts the step's gain
-_ROW_BLOCK_BYTES = 2**26  # per-row GP blocks up to this size, else one code at a time
 
 
 def check_prune(prune: object) -> None:
@@ -85,29 +84,11 @@ def map_states(
         gf = g_loc.expand(*batch, g_loc.shape[-1])[..., None, :].expand(*lead, -1)
         gf = gf.reshape(n, -1)
 
-    # per-row codes copy each row's GP block (``M^2`` per row); beyond _ROW_BLOCK_BYTES the
-    # rows of one code are computed together on its shared block instead
-    if discrete:
-        blocks = window.transition.blocks()
-        # without blocks (shared dynamics) a row holds only its codes' factors
-        kinv_block = window.transition.kinv[None] if blocks is None else blocks[2]
-        row_bytes = kinv_block[0].numel() * kinv_block.element_size()
-
     def by_code(idx: torch.Tensor, fn) -> tuple[torch.Tensor, ...]:
-        """``fn(rows, z, observed, values, g)`` on the rows ``idx``, results in their order."""
+        """``fn(rows, z, observed, values, g)`` on the rows ``idx`` (one code per row of a
+        discrete g: the transition GP computes the rows of a code together on its own block)."""
         gi = None if gf is None else gf[idx]
-        if not discrete:
-            return fn(idx, zf[idx], of[idx], vf, gi)
-        if len(idx) * row_bytes <= _ROW_BLOCK_BYTES:
-            return fn(idx, zf[idx], of[idx], vf[idx, None], gi)
-        codes, parts, order = vf[idx], [], []
-        for c in torch.unique(codes):
-            sel = idx[codes == c]
-            g_sel = None if gf is None else gf[sel]
-            parts.append(fn(sel, zf[sel], of[sel], c.reshape(1), g_sel))
-            order.append(sel)
-        perm = torch.argsort(torch.cat(order))
-        return tuple(torch.cat(p, 0)[perm] for p in zip(*parts, strict=True))
+        return fn(idx, zf[idx], of[idx], vf[idx, None] if discrete else vf, gi)
 
     def value_grad(xs: torch.Tensor):
         def fn(sel, zi, oi, vi, gi):

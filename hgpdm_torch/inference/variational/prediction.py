@@ -54,7 +54,10 @@ def observation_marginals(
 
 
 def observation_joint(
-    window: WindowModel, mean: torch.Tensor, cov: torch.Tensor
+    window: WindowModel,
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    marginals: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     r"""Gaussian ``q(z_{1:T})`` with cross-time covariances (Sec. 2.3.2, App. 2.B).
 
@@ -67,22 +70,25 @@ def observation_joint(
     ``x ~ N(mu_s, Sigma_s + Sigma_t)`` (exact for stationary and linear kernels alike).
 
     Shapes: ``mean [..., T, Dx]``, ``cov [..., T, Dx, Dx]`` -> ``mean [..., T, Dz]`` and
-    ``cov [..., T * Dz, T * Dz]`` (time-major).
+    ``cov [..., T * Dz, T * Dz]`` (time-major). ``marginals``: :func:`observation_marginals` of
+    ``(mean, cov)`` if the caller has them already.
     """
-    m, S = observation_marginals(window, mean, cov)
+    m, S = observation_marginals(window, mean, cov) if marginals is None else marginals
     T, dz = m.shape[-2:]
     gp = window.h
     lt = gp.expected_kernel(mean, cov, gp.X)  # [..., T, N]
     ls_kinv_lt = (lt @ gp.kinv) @ lt.transpose(-1, -2)  # [..., T, T]
     pair = cov[..., :, None, :, :] + cov[..., None, :, :, :]
     c = gp.expected_kernel(mean[..., :, None, :], pair, mean[..., None, :, None, :])[..., 0]
-    cross = c - ls_kinv_lt  # [..., T, T]
+    cross = symmetrize(c - ls_kinv_lt)  # [..., T, T]
     scale2 = window.measurement.scale.pow(2)
-    full = cross[..., :, None, :, None] * torch.diag(scale2)[:, None, :]
-    eye_t = torch.eye(T, dtype=m.dtype, device=m.device)
-    full = full * (1.0 - eye_t)[:, None, :, None]
-    full = full + S[..., :, :, None, :].mul(eye_t[:, None, :, None])
-    return m, symmetrize(full.reshape(*full.shape[:-4], T * dz, T * dz))
+    batch = torch.broadcast_shapes(cross.shape[:-2], S.shape[:-3])
+    full = S.new_zeros(*batch, T, dz, T, dz)
+    # blocks (s, t): scale^2 cross_st on their diagonals, then the moment-matched Cov[z_t] on
+    # the time diagonal (written through views: no [.., T, Dz, T, Dz] temporaries)
+    full.diagonal(dim1=-3, dim2=-1).copy_(cross[..., None] * scale2)
+    full.diagonal(dim1=-4, dim2=-2).copy_(S.movedim(-3, -1))
+    return m, full.reshape(*batch, T * dz, T * dz)
 
 
 def predict_observations(
@@ -93,6 +99,7 @@ def predict_observations(
     cov: torch.Tensor,
     *,
     joint: bool = True,
+    marginals: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Predict every row of a window from ``q(x) = N(mean, cov)`` (Sec. 2.3.2).
 
@@ -104,15 +111,16 @@ def predict_observations(
         window: the model's :class:`~hgpdm_torch.inference.variational.window.WindowModel`.
         z: ``[..., T, Dz]`` window (NaN rows missing), observed: ``[..., T]`` its mask.
         mean: ``[..., T, Dx]``, cov: ``[..., T, Dx, Dx]`` q(x).
+        marginals: :func:`observation_marginals` of ``(mean, cov)``, if already computed.
 
     Returns:
         ``mean [..., T, Dz]`` and ``var [..., T, Dz]``.
     """
     with torch.no_grad():
         if not joint:
-            m, S = observation_marginals(window, mean, cov)
+            m, S = observation_marginals(window, mean, cov) if marginals is None else marginals
             return m, S.diagonal(dim1=-2, dim2=-1)
-        m, S = observation_joint(window, mean, cov)
+        m, S = observation_joint(window, mean, cov, marginals)
         T, dz = z.shape[-2:]
         obs = observed[..., :, None].expand(*observed.shape, dz).reshape(*observed.shape[:-1], -1)
         cm, cS = condition_gaussian(
@@ -176,14 +184,25 @@ def forecast(
     return mean, var, res
 
 
-def candidate_predictions(engine: Any, z: object, result: Any) -> tuple[torch.Tensor, torch.Tensor]:
+def candidate_predictions(
+    engine: Any,
+    z: object,
+    result: Any,
+    marginals: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`predict_observations` (joint, conditioned on the observed rows) under every
     candidate's ``q(x)`` of a VB ``result`` of the windows ``z [..., T, Dz]``: ``mean`` and
-    ``var`` ``[..., K, T, Dz]`` (missing rows forecast or recovered, App. 2.B)."""
+    ``var`` ``[..., K, T, Dz]`` (missing rows forecast or recovered, App. 2.B). ``marginals``:
+    :func:`observation_marginals` of the result's ``q(x)``, if already computed."""
     w = engine.window
     padded, observed = window_mask(z, engine.obs_dim, w.x1_mean)
     return predict_observations(
-        w, padded[..., None, :, :], observed[..., None, :], result.mean, result.cov
+        w,
+        padded[..., None, :, :],
+        observed[..., None, :],
+        result.mean,
+        result.cov,
+        marginals=marginals,
     )
 
 
@@ -239,9 +258,9 @@ def candidate_forecasts(engine: Any, z: object, **infer_kwargs: Any) -> Candidat
     z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
     window = _with_missing_row(z)
     res = engine.infer(window, **infer_kwargs)
-    mean, var = candidate_predictions(engine, window, res)
     with torch.no_grad():
         rec, rec_cov = observation_marginals(engine.window, res.mean, res.cov)
+    mean, var = candidate_predictions(engine, window, res, (rec, rec_cov))
     rec_var = rec_cov.diagonal(dim1=-2, dim2=-1)
     ar1_mean, ar1_var, _ = ar1_residual_forecast(
         z[..., None, :, :].expand(*rec[..., :-1, :].shape),
