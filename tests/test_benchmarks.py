@@ -25,14 +25,19 @@ def test_benchmarks_are_found():
 
 
 #: quick runs over ~20 s on 2 cores, behind ``slow``: the behaviour they time has fast tests of
-#: its own (stroke execution in tests/robots, the regressors in tests/test_baselines.py)
-SLOW = {"table_tennis", "target_information"}
+#: its own (stroke execution in tests/robots, the regressors in tests/test_baselines.py, the
+#: Weird Walking command on a real-data slice in tests/experiments/test_walkers.py)
+SLOW = {"table_tennis", "target_information", "weird_walking"}
+#: benchmarks of real recordings (``../shared/data``, seen from the project root)
+NEEDS_DATA = {"weird_walking": Path("../shared/data/cmu")}
 
 
 @pytest.mark.parametrize(
     "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in NAMES]
 )
 def test_quick_mode_runs_and_writes_results(name, capsys):
+    if name in NEEDS_DATA and not NEEDS_DATA[name].is_dir():
+        pytest.skip(f"{NEEDS_DATA[name]} is absent (real recordings, not in the repository)")
     module = importlib.import_module(f"benchmarks.{name}")
     assert module.main(["--quick"]) == 0
     out = Path(benchmarks.__file__).parent / "results" / f"{name}_quick.json"

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from hgpdm_torch.gp import GPPosterior
-from hgpdm_torch.linalg import shared_matmul
 from hgpdm_torch.kernels import measurement_kernel, transition_kernel
+from hgpdm_torch.linalg import shared_matmul
 
 DX = 2
 # "_shared": the discrete kernel with a share of common dynamics (not block-diagonal)

@@ -89,6 +89,15 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     assert compared[0]["VB H-GPDM / GPDM VB"] == summary["VB H-GPDM / GPDM VB"]
     assert compared[0]["ridge AR (CV) (35)"] == table.rows[1]["ridge AR (CV)"]
     assert compared[0]["GRU (CV)"] == f"{avg['GRU (CV)']:.3f} +- {sem['GRU (CV)']:.3f}"
+    # the default pseudo-input count (500) exceeds these 106 training frames: the exact GP,
+    # recorded as such; fewer pseudo-inputs than frames are recorded and named
+    assert table.meta["measurement_points"] is None
+    sparse = walkers(
+        mine, folder=CMU, test_folder=tmp_path, lengths=(3,), fit_steps=3, stride=6,
+        measurement_points=20,
+    )  # fmt: skip
+    assert sparse.meta["measurement_points"] == 20
+    assert compare_runs([sparse]).rows[0]["options"].endswith("measurement_points 20")
 
 
 def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):

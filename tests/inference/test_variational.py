@@ -510,7 +510,8 @@ def test_transition_gp_per_code_parts_equal_padded_blocks(planted):
     parts = GaussianInputGP(post, codes[:, None])
     assert parts.parts and not padded.parts
     # float64 sums over the same points in another order (padding adds exact zeros): 1e-10
-    for got, ref in zip(parts.predict_point(mu, jacobian=True), padded.predict_point(mu, jacobian=True), strict=True):  # fmt: skip
+    points = [gp.predict_point(mu, jacobian=True) for gp in (parts, padded)]
+    for got, ref in zip(*points, strict=True):
         torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
     for got, ref in zip(parts.mean_moments(mu, Sigma), padded.mean_moments(mu, Sigma), strict=True):
         torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
