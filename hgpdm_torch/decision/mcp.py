@@ -6,15 +6,21 @@ plain GPDM as one intention value): the particles replay the filter's own transi
 
 The value of waiting one step is estimated by particle projection (Algorithm 4.2)::
 
-    Q(theta_t, wait) ~= 1/I sum_i max_{a != 0} Q^(theta^i_{t+1}, a; w)
+    Q(theta_t, wait) ~= 1/I sum_i max_{a != 0} Q^(theta^i_{t+1}, a; w)      (wait_value="stop")
+    Q(theta_t, wait) ~= 1/I sum_i max_{a allowed} Q^(theta^i_{t+1}, a; w)    (wait_value="lspi")
 
 where each particle samples the intention ``g ~ p(g | z_{1:t})``, the next observation
 ``z^i_{t+1}`` given ``g`` from the IDDM, and runs the online belief update
 (:class:`~hgpdm_torch.inference.intention.OnlineIntentionFilter`, predictive evidence) on it.
 The stopping values ``Q^(theta, a != 0; w)`` are the linear ones learned by LSPI (stopping is
-absorbing, so they are the same for every policy). Algorithm 4.3 stops sampling as soon as a
-Student-t confidence interval of the mean sampled reward lies entirely above (wait) or below
-(stop) the best stopping value.
+absorbing, so they are the same for every policy). Algorithm 4.2 as printed values a particle by
+its best stopping value: after waiting once the robot must start, so the planner never sees that
+waiting twice can pay (information that arrives two steps ahead). With ``wait_value="lspi"`` (the
+default of :func:`~hgpdm_torch.decision.policies.planning_policy`) a particle whose next step may
+still wait is valued by the best of all LSPI values there, waiting included: one step of planning
+on top of LSPI's policy (a rollout with LSPI's values at the leaves). Algorithm 4.3 stops
+sampling as soon as a Student-t confidence interval of the mean sampled reward lies entirely
+above (wait) or below (stop) the best stopping value.
 
 Where the speed comes from (DESIGN.md sec. 8): every particle starts from the same belief, so the
 K per-intention predictions ``q(x_{t+1} | g)`` and their moment-matched joints with
@@ -63,13 +69,29 @@ from .lspi import LinearQ
 from .stopping import WAIT, _belief_vector, belief_vector
 
 __all__ = [
+    "WAIT_VALUES",
     "Belief",
     "EarlyStopping",
     "MCPDecision",
     "MonteCarloPlanner",
     "ParticleProjector",
     "ParticleUpdate",
+    "particle_value",
 ]
+
+#: how a particle of the next belief is valued (module docstring): ``"lspi"``, the best LSPI
+#: value of the actions allowed there (waiting included where the next step may wait), or
+#: ``"stop"``, its best stopping value (Algorithm 4.2 as printed)
+WAIT_VALUES = ("lspi", "stop")
+
+
+def particle_value(q_values: torch.Tensor, wait_value: str, can_wait_next: bool) -> torch.Tensor:
+    """The value ``[...]`` of particles of the next belief from their LSPI values
+    ``q_values [..., 1 + S]`` (waiting first): the best stopping value, or with
+    ``wait_value="lspi"`` and waiting allowed at the next step, the best of all actions."""
+    if wait_value == "lspi" and can_wait_next:
+        return q_values.max(-1).values
+    return q_values[..., WAIT + 1 :].max(-1).values
 
 
 def _check_filter(belief_filter: object) -> None:
@@ -450,6 +472,9 @@ class MonteCarloPlanner(ParticleProjector):
         sampling: as for :class:`ParticleProjector`.
         vectorize: ``(mean, cov, prob) -> [..., F]`` belief vectors that ``features`` takes
             (default :func:`~hgpdm_torch.decision.stopping.belief_vector`, the thesis's).
+        wait_value: how a particle is valued where the next step may wait too
+            (:data:`WAIT_VALUES`, module docstring): ``"lspi"`` (default) or ``"stop"`` (the
+            thesis's). :meth:`decide` learns whether it may from ``can_wait_next``.
     """
 
     def __init__(
@@ -465,8 +490,11 @@ class MonteCarloPlanner(ParticleProjector):
         chunk_size: int = 100,
         sampling: str = "moments",
         vectorize: Callable[..., torch.Tensor] | None = None,
+        wait_value: str = "lspi",
     ) -> None:
         super().__init__(model, belief_filter, sampling=sampling)
+        check_choice(wait_value, "wait_value", WAIT_VALUES)
+        self.wait_value = wait_value
         if not isinstance(q, LinearQ):
             raise TypeError(f"q must be a LinearQ, got {type(q).__name__}")
         if not callable(features):
@@ -482,19 +510,25 @@ class MonteCarloPlanner(ParticleProjector):
     def _stop_values(self, vectors: torch.Tensor) -> torch.Tensor:
         return self.q.values(self.features(vectors))[..., WAIT + 1 :]
 
-    def _project(self, shared: _Shared, num: int, generator: torch.Generator | None):
+    def _project(
+        self, shared: _Shared, num: int, generator: torch.Generator | None, can_wait_next: bool
+    ) -> torch.Tensor:
         mean, cov, log_prob = self._particles(shared, num, generator)
-        return self._stop_values(self.vectorize(mean, cov, log_prob.exp())).max(-1).values
+        values = self.q.values(self.features(self.vectorize(mean, cov, log_prob.exp())))
+        return particle_value(values, self.wait_value, can_wait_next)
 
     def project(
-        self, belief: Belief, num: int | None = None, *, generator: torch.Generator | None = None
-    ) -> torch.Tensor:
-        """Algorithm 4.2: the sampled rewards ``r^i = max_{a != 0} Q^(theta^i_{t+1}, a)``.
+        self, belief: Belief, num: int | None = None, *, generator: torch.Generator | None = None,
+        can_wait_next: bool = False,
+    ) -> torch.Tensor:  # fmt: skip
+        """Algorithm 4.2: the sampled rewards ``r^i = max_{a != 0} Q^(theta^i_{t+1}, a)``
+        (with ``wait_value="lspi"`` and ``can_wait_next``, the max over all actions).
 
         Args:
             belief: the current belief.
             num: particles (default ``num_particles``), advanced ``chunk_size`` at a time.
             generator: random generator.
+            can_wait_next: whether the next step may wait too.
 
         Returns:
             ``[I]``; their mean estimates ``Q(theta_t, wait)``.
@@ -504,7 +538,7 @@ class MonteCarloPlanner(ParticleProjector):
         if isinstance(num, bool) or not isinstance(num, int) or num < 1:
             raise ValueError(f"num must be a positive int, got {num!r}")
         sizes = [self.chunk_size] * (num // self.chunk_size) + [num % self.chunk_size]
-        return torch.cat([self._project(shared, n, generator) for n in sizes if n])
+        return torch.cat([self._project(shared, n, generator, can_wait_next) for n in sizes if n])
 
     # ----- Algorithm 4.3: decision with early termination -------------------------------------
 
@@ -513,6 +547,7 @@ class MonteCarloPlanner(ParticleProjector):
         belief: Belief,
         *,
         can_wait: bool = True,
+        can_wait_next: bool = False,
         early_stop: bool = True,
         generator: torch.Generator | None = None,
     ) -> MCPDecision:
@@ -521,6 +556,9 @@ class MonteCarloPlanner(ParticleProjector):
         Args:
             belief: the current belief.
             can_wait: whether waiting is allowed (not at the last decision step).
+            can_wait_next: whether waiting is allowed at the next step too (not at the last two
+                decision steps); with ``wait_value="lspi"`` the particles are then valued with
+                LSPI's value of waiting there.
             early_stop: stop sampling once the confidence interval of ``Q(theta_t, wait)``
                 excludes the best stopping value (else use all ``num_particles``).
             generator: random generator.
@@ -532,5 +570,7 @@ class MonteCarloPlanner(ParticleProjector):
             return self.rule.choose(q_stop, None, can_wait=False)
         shared = self._shared(belief)
         return self.rule.choose(
-            q_stop, lambda n: self._project(shared, n, generator), early_stop=early_stop
+            q_stop,
+            lambda n: self._project(shared, n, generator, can_wait_next),
+            early_stop=early_stop,
         )

@@ -16,7 +16,7 @@ from ..validation import as_tensor, check_choice
 from .basis import MomentBasis, RadialBasis
 from .beliefs import Beliefs
 from .lspi import LinearQ, lspi
-from .mcp import EarlyStopping, MonteCarloPlanner
+from .mcp import WAIT_VALUES, EarlyStopping, MonteCarloPlanner, particle_value
 from .sources import FEATURES, BeliefTrack
 from .stopping import WAIT, Policy, StoppingProblem
 
@@ -67,11 +67,17 @@ def mcp_policy(
     horizon: int,
     gen: torch.Generator | None = None,
 ) -> Policy:
-    """Monte-Carlo planning (Algorithm 4.3) on the beliefs of the trials ``test``."""
+    """Monte-Carlo planning (Algorithm 4.3) on the beliefs of the trials ``test`` (particles
+    valued by the planner's ``wait_value``)."""
 
     def policy(beliefs: torch.Tensor, t: int, idx: torch.Tensor) -> torch.Tensor:
         actions = [
-            planner.decide(fold.belief(int(test[i]), t), can_wait=t < horizon - 1, generator=gen)
+            planner.decide(
+                fold.belief(int(test[i]), t),
+                can_wait=t < horizon - 1,
+                can_wait_next=t + 1 < horizon - 1,
+                generator=gen,
+            )  # fmt: skip
             for i in idx.tolist()
         ]
         return torch.tensor([d.action for d in actions], dtype=torch.long)
@@ -88,10 +94,15 @@ def planning_policy(
     horizon: int,
     features: str = "moments",
     generator: torch.Generator | None = None,
+    wait_value: str = "lspi",
 ) -> Policy:
     """Monte-Carlo planning (Algorithms 4.2-4.3) on any belief source: at each step, the
     stopping values of the belief of stroke ``test[i]`` against the sampled values of waiting
-    one step (particles from :meth:`BeliefTrack.draw_next`)."""
+    one step (particles from :meth:`BeliefTrack.draw_next`), each particle valued by
+    :func:`~hgpdm_torch.decision.mcp.particle_value`: with ``wait_value="lspi"`` (default) by
+    the best of LSPI's values there, waiting included where the next step may wait; with
+    ``"stop"`` by its best stopping value (Algorithm 4.2 as printed)."""
+    check_choice(wait_value, "wait_value", WAIT_VALUES)
     vectors = track.vectors(features)
 
     def stop_values(v: torch.Tensor) -> torch.Tensor:
@@ -104,7 +115,7 @@ def planning_policy(
 
             def draw(m: int, trial: int = trial) -> torch.Tensor:
                 nxt = track.draw_next(trial, t, m, generator, features)
-                return stop_values(nxt).max(-1).values
+                return particle_value(q.values(basis(nxt)), wait_value, t + 1 < horizon - 1)
 
             decision = rule.choose(stop_values(vectors[trial, t]), draw, can_wait=t < horizon - 1)
             actions.append(decision.action)

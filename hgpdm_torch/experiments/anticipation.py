@@ -46,7 +46,7 @@ from tqdm.auto import tqdm
 
 from ..decision.beliefs import Beliefs, decision_indices, fit_beliefs
 from ..decision.lspi import lspi
-from ..decision.mcp import EarlyStopping
+from ..decision.mcp import WAIT_VALUES, EarlyStopping
 from ..decision.nac import nac
 from ..decision.policies import (
     blind_choice,
@@ -129,6 +129,10 @@ class AnticipationConfig:
             on the belief vector, Eq. 37).
         centres: RBF centres (100 in the thesis); ridge: LSPI's delta.
         particles: MCP budget per decision; confidence: its early-termination level.
+        wait_value: how MCP values a particle of the next belief
+            (:data:`~hgpdm_torch.decision.mcp.WAIT_VALUES`): ``"lspi"`` (default: the best
+            LSPI value there, waiting included where the next step may wait) or ``"stop"`` (its
+            best stopping value, Algorithm 4.2 as printed).
         nac_iterations, nac_episodes, nac_step: NAC updates, episodes per trial, step size.
         seed: seeds the trials and every random choice; workers: SAPIEN processes.
     """
@@ -151,6 +155,7 @@ class AnticipationConfig:
     ridge: float = 1e-3
     particles: int = 500
     confidence: float = 0.99
+    wait_value: str = "lspi"
     nac_iterations: int = 100
     nac_episodes: int = 4
     nac_step: float = 0.5
@@ -177,6 +182,7 @@ class AnticipationConfig:
             )
         check_choice(self.belief, "belief", BELIEFS)
         check_choice(self.features, "features", FEATURES)
+        check_choice(self.wait_value, "wait_value", WAIT_VALUES)
         if not self.episodes or any(
             isinstance(e, bool) or not isinstance(e, int) or e < 1 for e in self.episodes
         ):
@@ -333,7 +339,8 @@ def run_protocol(
             counts["MCP"][r] += successes(
                 test_p.run(
                     planning_policy(
-                        tracks[source], test, q, basis, rule, test_p.horizon, config.features, gen
+                        tracks[source], test, q, basis, rule, test_p.horizon, config.features, gen,
+                        config.wait_value,
                     )
                 )
             )
@@ -341,7 +348,8 @@ def run_protocol(
             counts["MCP (oracle belief)"][r] += successes(
                 tp.run(
                     planning_policy(
-                        tracks["oracle"], test, qs, b, rule, tp.horizon, config.features, gen
+                        tracks["oracle"], test, qs, b, rule, tp.horizon, config.features, gen,
+                        config.wait_value,
                     )
                 )
             )
@@ -361,7 +369,7 @@ def run_protocol(
                 )
                 sample_counts[("MCP", e)][r] += successes(test_p.run(planning_policy(
                     tracks[source], test, q_e, basis, rule, test_p.horizon, config.features,
-                    gen)))  # fmt: skip
+                    gen, config.wait_value)))  # fmt: skip
             bar.update()
     bar.close()
     meta = {**dataclasses.asdict(config), "valid trials": n,
@@ -500,7 +508,7 @@ def connect(
 
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm anticipation [--full] [--trials N] [--folds K] [--repetitions R]
-    [--belief SOURCE] [--features moments|rbf]
+    [--belief SOURCE] [--features moments|rbf] [--wait-value lspi|stop]
     [--workers W] [--ray-address ADDRESS] [--seed S] [--out DIR] [--cache-dir DIR]
     [--progress]``."""
     parser = argparse.ArgumentParser(prog="hgpdm anticipation", description=__doc__.split("\n")[0])
@@ -533,6 +541,11 @@ def main(argv: list[str]) -> int:
         "--features", choices=FEATURES, default="moments",
         help="decision features: moments (belief mean, sd and step) or rbf (the thesis's)",
     )  # fmt: skip
+    parser.add_argument(
+        "--wait-value", choices=WAIT_VALUES, default="lspi",
+        help="how MCP values a particle of the next belief: lspi (the best LSPI value there, "
+        "waiting included) or stop (its best stopping value, Algorithm 4.2 as printed)",
+    )  # fmt: skip
     parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--out", type=output_folder, default="hgpdm_anticipation_output")
     parser.add_argument("--cache-dir", type=output_folder, default=None)
@@ -540,7 +553,7 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     smoke = os.environ.get("HGPDM_SMOKE") == "1" or not args.full
     changes = {"seed": args.seed, "workers": args.workers or 1, "belief": args.belief,
-               "features": args.features}  # fmt: skip
+               "features": args.features, "wait_value": args.wait_value}  # fmt: skip
     for key, name in (("num_trials", "trials"), ("folds", "folds"), ("repetitions", "repetitions")):
         if getattr(args, name) is not None:
             changes[key] = getattr(args, name)

@@ -43,7 +43,7 @@ from pathlib import Path
 import torch
 
 from ..decision.beliefs import decision_indices
-from ..decision.mcp import EarlyStopping
+from ..decision.mcp import WAIT_VALUES, EarlyStopping
 from ..decision.policies import (
     blind_choice,
     choose_source,
@@ -186,6 +186,7 @@ def run_demo(
     folds: int = 3,
     belief: str = "auto",
     features: str = "moments",
+    wait_value: str = "lspi",
     config: ant.AnticipationConfig | None = None,
     workers: int | None = None,
     executor: Executor | None = None,
@@ -213,6 +214,10 @@ def run_demo(
             (``"linear-iddm"``, ``"gp-iddm"``, the thesis's).
         features: the decision features (:data:`~hgpdm_torch.decision.sources.FEATURES`):
             ``"moments"`` (default) or the thesis's ``"rbf"``.
+        wait_value: how MCP values a particle of the next belief
+            (:data:`~hgpdm_torch.decision.mcp.WAIT_VALUES`): ``"lspi"`` (default: the best LSPI
+            value there, waiting included where the next step may wait) or the thesis's
+            ``"stop"`` (its best stopping value).
         config: GP IDDM, basis, LSPI and MCP settings (default: the full experiment's with 20
             RBF centres and the GP IDDM on 150 of the watched strokes).
         workers: SAPIEN processes for the reward table and the live rallies (default: all
@@ -242,6 +247,7 @@ def run_demo(
     from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
 
     _check_sizes(num_trials, watched, folds, workers, executor, status, belief, features)
+    check_choice(wait_value, "wait_value", WAIT_VALUES)
     config = config or ant.AnticipationConfig(centres=20, iddm_trials=150, seed=seed)
     movements = tuple(strokes.MOVEMENTS)
     if movements != ant.MOVEMENTS:
@@ -303,8 +309,8 @@ def run_demo(
                 f"({t_fit:.0f} s)")  # fmt: skip
 
             play = _learn_and_decide(
-                tracks, rewards, valid, fold_of, candidates, features, config, gen,
-                progress=progress,
+                tracks, rewards, valid, fold_of, candidates, features, wait_value, config,
+                gen, progress=progress,
             )  # fmt: skip
             say(
                 f"learn: belief choice, baselines, LSPI and MCP decisions on {folds} folds "
@@ -343,7 +349,8 @@ def run_demo(
         f"over {n} of {num_trials} strokes)",
         ["player", "returns", "rate", "95% low", "95% high", "played in"],
         meta={"num_trials": num_trials, "watched": watched, "valid": n, "folds": folds,
-              "seed": seed, "belief": belief, "features": features},
+              "seed": seed, "belief": belief, "features": features,
+              "wait_value": wait_value},
     )  # fmt: skip
     for p in won:
         k = int(won[p].sum())
@@ -412,7 +419,7 @@ class _Play:
 
 def _learn_and_decide(
     tracks: dict[str, BeliefTrack], rewards: torch.Tensor, valid: torch.Tensor,
-    fold_of: torch.Tensor, candidates: tuple[str, ...], features: str,
+    fold_of: torch.Tensor, candidates: tuple[str, ...], features: str, wait_value: str,
     config: ant.AnticipationConfig, gen: torch.Generator, *, progress: bool = False,
 ) -> _Play:  # fmt: skip
     """Per fold: the belief source (by CV on the training folds when there are candidates), the
@@ -466,7 +473,7 @@ def _learn_and_decide(
             if src in (source, "oracle"):
                 c = time.perf_counter()
                 policy = planning_policy(tracks[src], valid[at], q, basis, rule, num_steps,
-                                         features, gen)  # fmt: skip
+                                         features, gen, wait_value)  # fmt: skip
                 decided = test.run(policy)
                 t_plan += time.perf_counter() - c
                 if src == "oracle":
@@ -574,7 +581,7 @@ def summary(result: DemoResult) -> str:
 
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm demo [--trials N] [--watched M] [--folds K] [--belief SOURCE]
-    [--features moments|rbf] [--workers W]
+    [--features moments|rbf] [--wait-value lspi|stop] [--workers W]
     [--ray-address ADDRESS] [--seed S] [--out DIR] [--cache-dir DIR] [--full]
     [--progress | --quiet]``.
 
@@ -601,6 +608,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--features", choices=FEATURES, default="moments",
         help="decision features: moments (belief mean, sd and step) or rbf (the thesis's)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--wait-value", choices=WAIT_VALUES, default="lspi",
+        help="how MCP values a particle of the next belief: lspi (the best LSPI value there, "
+        "waiting included) or stop (its best stopping value, Algorithm 4.2 as printed)",
     )  # fmt: skip
     parser.add_argument(
         "--folds", type=int_at_least(2), default=3,
@@ -646,6 +658,8 @@ def main(argv: list[str]) -> int:
             args.belief,
             "--features",
             args.features,
+            "--wait-value",
+            args.wait_value,
         ]
         if args.ray_address is None:
             extra += ["--workers", str(args.workers or max(1, os.cpu_count() or 1))]
@@ -667,6 +681,7 @@ def main(argv: list[str]) -> int:
             num_trials=DEFAULT_TRIALS if args.trials is None else args.trials,
             watched=DEFAULT_WATCHED if args.watched is None else args.watched,
             folds=args.folds, belief=args.belief, features=args.features,
+            wait_value=args.wait_value,
             workers=None if executor is not None else args.workers, executor=executor,
             seed=args.seed, cache_dir=args.cache_dir, progress=bars,
             status=None if args.quiet else status,

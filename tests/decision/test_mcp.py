@@ -237,18 +237,33 @@ def test_projection_values_each_particle_with_the_online_filter(model, pipeline)
 
     ref = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=1)
     ref.update(torch.zeros(model.obs_dim))  # start the stream, then set its state per particle
-    expected = []
+    expected, continued = [], []
     for zi in z:
         ref.mean[0], ref.cov[0], ref.log_belief[0] = belief.mean, belief.cov, belief.log_prob
         ref.update(zi)
         vector = belief_vector(ref.mean[0], ref.cov[0], ref.log_belief[0].exp())
         expected.append(float(_stop_value(basis, q, vector)))
-    expected = torch.tensor(expected)
+        continued.append(float((basis(vector) @ q.weights.T).max(-1).values))  # waiting too
+    expected, continued = torch.tensor(expected), torch.tensor(continued)
     assert expected.std() > 0.01  # the particles really differ
     # a filter of one stream has the planner's shapes, so the same transition moments; only the
     # conditioning algebra differs (a precomputed gain): a few eps of |z| |gain|, through the
     # features (measured: 1e-12)
     torch.testing.assert_close(r, expected, rtol=1e-9, atol=1e-9)
+    # where the next step may wait too, the default values a particle by all its LSPI values
+    # (wait_value="lspi"); the thesis's "stop" keeps the stopping values
+    gen = torch.Generator().manual_seed(5)
+    torch.testing.assert_close(
+        planner.project(belief, generator=gen, can_wait_next=True), continued, rtol=1e-9, atol=1e-9
+    )
+    assert float((continued - expected).max()) > 1e-2  # waiting is worth more somewhere (0.1)
+    thesis = MonteCarloPlanner(model, f, q, basis, num_particles=150, chunk_size=64,
+                               wait_value="stop")  # fmt: skip
+    gen = torch.Generator().manual_seed(5)
+    torch.testing.assert_close(
+        thesis.project(belief, generator=gen, can_wait_next=True), expected, rtol=1e-9, atol=1e-9
+    )
+    drawn.clear()
 
     # decide() averages the same particles (same generator stream) into Q(theta, wait)
     drawn.clear()
@@ -428,6 +443,8 @@ def test_bad_input(model, pipeline):
         MonteCarloPlanner(model, f, q, basis, confidence=1.5)
     with pytest.raises(ValueError, match="sampling"):
         MonteCarloPlanner(model, f, q, basis, sampling="exact")
+    with pytest.raises(ValueError, match="wait_value"):
+        MonteCarloPlanner(model, f, q, basis, wait_value="forever")
     with pytest.raises(TypeError, match="IDDM"):
         MonteCarloPlanner("model", f, q, basis)
     planner = MonteCarloPlanner(model, f, q, basis)

@@ -109,3 +109,5 @@ def test_decision_indices_and_bad_input():
         AnticipationConfig(belief="oracle")
     with pytest.raises(ValueError, match="unknown features"):
         AnticipationConfig(features="pixels")
+    with pytest.raises(ValueError, match="wait_value"):
+        AnticipationConfig(wait_value="forever")

@@ -177,6 +177,8 @@ def test_demo_rejects_bad_arguments(capsys):
         run_demo(belief="oracle")  # a reference row, never the players' belief
     with pytest.raises(ValueError, match="features"):
         run_demo(features="histogram")
+    with pytest.raises(ValueError, match="wait_value"):
+        run_demo(wait_value="forever")
     for argv, fragment in [
         (["--folds", "1"], "argument --folds: expected an integer >= 2"),
         (["--quiet", "--progress"], "argument --progress: not allowed with argument --quiet"),
@@ -184,6 +186,7 @@ def test_demo_rejects_bad_arguments(capsys):
         (["--belief", "psychic"], "argument --belief: invalid choice: 'psychic'"),
         (["--belief", "oracle"], "argument --belief: invalid choice: 'oracle'"),
         (["--features", "pixels"], "argument --features: invalid choice: 'pixels'"),
+        (["--wait-value", "forever"], "argument --wait-value: invalid choice: 'forever'"),
     ]:
         with pytest.raises(SystemExit) as exit_info:
             cli.main(["demo", *argv])
@@ -191,13 +194,16 @@ def test_demo_rejects_bad_arguments(capsys):
         assert fragment in capsys.readouterr().err
 
 
-def test_demo_full_forwards_the_belief_and_features(monkeypatch, tmp_path):
-    """``hgpdm demo --full`` runs the full protocol with the demo's --belief and --features."""
+def test_demo_full_forwards_the_belief_features_and_wait_value(monkeypatch, tmp_path):
+    """``hgpdm demo --full`` runs the full protocol with the demo's --belief, --features and
+    --wait-value."""
     seen = []
     monkeypatch.setattr(demo.ant, "main", lambda argv: seen.append(argv) or 0)
-    args = ["demo", "--full", "--belief", "gp-iddm", "--features", "rbf", "--out", str(tmp_path)]
+    args = ["demo", "--full", "--belief", "gp-iddm", "--features", "rbf", "--wait-value", "stop",
+            "--out", str(tmp_path)]  # fmt: skip
     assert cli.main(args) == 0
     (argv,) = seen
     assert argv[0] == "--full"
     assert argv[argv.index("--belief") + 1] == "gp-iddm"
     assert argv[argv.index("--features") + 1] == "rbf"
+    assert argv[argv.index("--wait-value") + 1] == "stop"
