@@ -130,15 +130,19 @@ plt.show()
 #
 # Instead of trusting the learned value of waiting, MCP projects the belief one step ahead: it
 # samples the next observation from the IDDM's predictive distribution, updates the belief of every
-# particle in one batched filter step, and values each with LSPI's stopping values. Sampling stops
-# early once a Student-t confidence interval separates waiting from the best stop.
+# particle in one batched filter step, and values each with LSPI's values there: the best
+# stopping value, or, where the robot may still wait at the next step, the best of all actions
+# (`wait_value="lspi"`, the default; the thesis's Algorithm 4.2 uses the stopping values only,
+# `wait_value="stop"`, and so cannot see that waiting twice may pay). Sampling stops early once a
+# Student-t confidence interval separates waiting from the best stop.
 
 # %%
 planner = MonteCarloPlanner(beliefs.model, beliefs.belief_filter, q, basis,
                             num_particles=config.particles, confidence=config.confidence)
 gen = torch.Generator().manual_seed(0)
 for t in range(test_p.horizon - 1):  # the robot's decisions during test stroke j
-    d = planner.decide(beliefs.belief(int(test[j]), t), generator=gen)
+    d = planner.decide(beliefs.belief(int(test[j]), t), can_wait_next=t + 1 < test_p.horizon - 1,
+                       generator=gen)
     print(f'{round(1000 * DEFAULT_START_TIMES[t]):5d} ms: stop values',
           [round(v, 2) for v in d.q_stop.tolist()],
           f'wait {d.q_wait:+.2f} from {d.particles} particles ->', ACTIONS[d.action])
