@@ -89,6 +89,7 @@ def particle_value(q_values: torch.Tensor, wait_value: str, can_wait_next: bool)
     """The value ``[...]`` of particles of the next belief from their LSPI values
     ``q_values [..., 1 + S]`` (waiting first): the best stopping value, or with
     ``wait_value="lspi"`` and waiting allowed at the next step, the best of all actions."""
+    check_choice(wait_value, "wait_value", WAIT_VALUES)
     if wait_value == "lspi" and can_wait_next:
         return q_values.max(-1).values
     return q_values[..., WAIT + 1 :].max(-1).values

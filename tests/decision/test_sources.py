@@ -169,6 +169,8 @@ def test_mcp_values_waiting_twice_with_lspi_continuation():
     assert values["lspi"] > 0.8 and values["lspi"] > values["stop"] + 0.25, values
     with pytest.raises(ValueError, match="wait_value"):
         planning_policy(track, torch.arange(3), q, basis, rule, T, "moments", None, "never")
+    with pytest.raises(ValueError, match="wait_value"):
+        particle_value(q.values(basis(nxt)), "Stop", True)
 
 
 def test_rbf_vectors_are_the_thesis_belief_vector_for_the_gp_iddm(problem):
