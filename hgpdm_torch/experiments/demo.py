@@ -186,7 +186,7 @@ def run_demo(
     folds: int = 3,
     belief: str = "auto",
     features: str = "moments",
-    wait_value: str = "lspi",
+    wait_value: str | None = None,
     config: ant.AnticipationConfig | None = None,
     workers: int | None = None,
     executor: Executor | None = None,
@@ -215,9 +215,9 @@ def run_demo(
         features: the decision features (:data:`~hgpdm_torch.decision.sources.FEATURES`):
             ``"moments"`` (default) or the thesis's ``"rbf"``.
         wait_value: how MCP values a particle of the next belief
-            (:data:`~hgpdm_torch.decision.mcp.WAIT_VALUES`): ``"lspi"`` (default: the best LSPI
-            value there, waiting included where the next step may wait) or the thesis's
-            ``"stop"`` (its best stopping value).
+            (:data:`~hgpdm_torch.decision.mcp.WAIT_VALUES`): ``"lspi"`` (the best LSPI value
+            there, waiting included where the next step may wait) or the thesis's ``"stop"``
+            (its best stopping value); ``None``: ``config.wait_value`` (``"lspi"`` by default).
         config: GP IDDM, basis, LSPI and MCP settings (default: the full experiment's with 20
             RBF centres and the GP IDDM on 150 of the watched strokes).
         workers: SAPIEN processes for the reward table and the live rallies (default: all
@@ -247,8 +247,10 @@ def run_demo(
     from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
 
     _check_sizes(num_trials, watched, folds, workers, executor, status, belief, features)
-    check_choice(wait_value, "wait_value", WAIT_VALUES)
     config = config or ant.AnticipationConfig(centres=20, iddm_trials=150, seed=seed)
+    wait_value = check_choice(
+        config.wait_value if wait_value is None else wait_value, "wait_value", WAIT_VALUES
+    )
     movements = tuple(strokes.MOVEMENTS)
     if movements != ant.MOVEMENTS:
         raise RuntimeError(f"robot movements {movements} differ from actions {ant.MOVEMENTS}")
