@@ -211,6 +211,8 @@ class SharedTransition:
         posterior = sparse_posterior(posterior, values.shape[1], inducing, inducing_values)
         X = posterior.train_inputs
         dx = X.shape[1] - values.shape[1]
+        if dx != posterior.output_dim:  # more known columns than g (a phase)
+            return False
         leaves = kernel_leaves(posterior.kernel, X.shape[1])
         weights, kinv = posterior.weights, posterior.kinv
         uniq, group, terms = _group_terms(leaves, X, values, dx)
@@ -277,21 +279,27 @@ class SharedTransition:
             return False
         X = posterior.train_inputs
         dx = X.shape[1] - values.shape[1]
+        if dx != posterior.output_dim:  # more known columns than g (a phase)
+            return False
         leaves = kernel_leaves(posterior.kernel, X.shape[1])
         return _tensor_product(_group_terms(leaves, X, values, dx)[2])
 
     def moments(
-        self, mu: torch.Tensor, Sigma: torch.Tensor
+        self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``
         (``noise``: alpha_4, or the ``alpha_4,k`` of value k with a per-value process noise).
 
         Args:
             mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
+            phase: must be ``None`` (a phase-aware GP runs on
+                :class:`~hgpdm_torch.inference.intention.transition.GenericTransition`).
 
         Returns:
             ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
         """
+        if phase is not None:
+            raise ValueError("the shared transition path has no phase: see GenericTransition")
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
         q = term_psi2(self.term, self.term, mu, Sigma, self.inputs)  # [B, UL, UL]

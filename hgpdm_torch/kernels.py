@@ -354,6 +354,7 @@ def transition_kernel(
     alpha: Sequence[float] = ALPHA_BAR,
     alpha_g: Sequence[float] = (1.0, 0.1),
     sharing: float = 0.0,
+    phase_width: float | None = None,
 ) -> Kernel:
     """Transition kernel ``k_x`` without its white-noise term ``alpha_4``.
 
@@ -385,9 +386,16 @@ def transition_kernel(
             correlation between different values of g is ``rho``; not in the thesis). ``0``, the
             default, is the thesis's block kernel. Each part has its own hyperparameters, so a
             fit with learned alpha can move them apart.
+        phase_width: for the IDDM kinds, the width ``w`` (in frames) of a phase factor: the
+            kernel is multiplied by ``exp(-(p - p')^2 / (2 w^2))`` over one more input column,
+            the phase ``p`` (the frame index of ``x_t`` from its sequence's start), so that the
+            dynamics may change along a stroke, as the per-frame transitions of
+            :class:`~hgpdm_torch.models.LinearIDDM` do (not in the thesis). ``None`` (default):
+            no phase column.
 
     Returns:
-        A gpytorch kernel over ``[..., N, Dx + Dg]`` inputs (``[..., N, Dx]`` for ``"gpdm"``).
+        A gpytorch kernel over ``[..., N, Dx + Dg]`` inputs (``[..., N, Dx]`` for ``"gpdm"``),
+        ``[..., N, Dx + Dg + 1]`` with a phase: ``[x, g, p]``.
     """
     check_choice(kind, "transition kernel", TRANSITION_KERNELS)
     if len(alpha) != 4:
@@ -405,6 +413,25 @@ def transition_kernel(
         raise ValueError(f"sharing must lie in [0, 1), got {sharing!r}")
     if sharing and kind not in ("discrete", "iddm_discrete"):
         raise ValueError(f"sharing applies to the discrete kinds only, got kind={kind!r}")
+    if phase_width is not None:
+        if kind not in ("iddm_continuous", "iddm_discrete"):
+            raise ValueError(f"phase_width applies to the IDDM kinds only, got kind={kind!r}")
+        if isinstance(phase_width, bool) or not (
+            isinstance(phase_width, int | float) and 0 < phase_width < float("inf")
+        ):
+            raise ValueError(
+                f"phase_width must be a positive number of frames, got {phase_width!r}"
+            )
+        base = transition_kernel(
+            kind, x_dim, g_dim=g_dim, num_values=num_values, alpha=alpha, alpha_g=alpha_g,
+            sharing=sharing,
+        )  # fmt: skip
+        g_cols = 1 if kind == "iddm_discrete" else g_dim
+        # the base sees [x, g] (a discrete code must be its last column), the factor p
+        base.active_dims = torch.arange(x_dim + g_cols)
+        phase = RBFKernel(active_dims=torch.tensor([x_dim + g_cols]))
+        phase.lengthscale = float(phase_width)
+        return ProductKernel(base, phase)
 
     def scaled(base: Kernel, share: float = 1.0, active: Sequence[int] | None = None) -> Kernel:
         k = ScaleKernel(base, active_dims=None if active is None else torch.as_tensor(list(active)))

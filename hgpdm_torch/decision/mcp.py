@@ -293,6 +293,11 @@ class ParticleProjector:
                 "MonteCarloPlanner replays the filter's predictive-evidence update; got a filter "
                 f"with evidence={belief_filter.evidence!r}"
             )
+        if getattr(belief_filter, "phase", False):
+            raise ValueError(
+                "MonteCarloPlanner's beliefs carry no phase: a phase-aware IDDM (phase_width "
+                "set) is not supported; plan with a model without phase_width"
+            )
         check_choice(sampling, "sampling", ("moments", "points"))
         self.filter, self.sampling = belief_filter, sampling
         self.measurement = model.measurement_posterior()

@@ -658,7 +658,8 @@ class GPDM(gpytorch.Module):
                 self.transition_noise.detach(),
             )
 
-    def _rollout_inputs(self, x: torch.Tensor, g: Any) -> torch.Tensor:
+    def _rollout_inputs(self, x: torch.Tensor, g: Any, step: int) -> torch.Tensor:
+        """The transition GP's input at ``x [..., Dx]``, the ``step``-th of a rollout."""
         if g is not None:
             raise ValueError("a GPDM has no exogenous variable; pass g=None")
         return x
@@ -683,8 +684,8 @@ class GPDM(gpytorch.Module):
             )
         post = self.transition_posterior()
         out = [x]
-        for _ in range(steps):
-            x, _ = post.predict(self._rollout_inputs(x, g))
+        for step in range(steps):
+            x, _ = post.predict(self._rollout_inputs(x, g, step))
             out.append(x)
         return torch.stack(out, dim=-2)
 

@@ -315,7 +315,7 @@ class HGPDM(GPDM):
             with torch.no_grad():
                 self.value_noise.fill_(float(self.transition_noise))
 
-    def _rollout_inputs(self, x: torch.Tensor, g: Any) -> torch.Tensor:
+    def _rollout_inputs(self, x: torch.Tensor, g: Any, step: int) -> torch.Tensor:
         if g is None:
             raise ValueError("rollout of an HGPDM needs the exogenous variable g")
         g = as_tensor(g, "g", dtype=x.dtype, device=x.device).reshape(-1)
@@ -443,6 +443,78 @@ class IDDM(HGPDM):
     3.2.2, ``alpha_3 = inf``). Here ``alpha_g[0]`` is the thesis's ``alpha_3`` (the g width);
     ``alpha[2]`` (the linear variance) is unused. The measurement kernel is typically
     ``"linear"`` (Eq. 20) for low-dimensional noisy observations.
+
+    With ``phase_width`` (not in the thesis) the transition kernel also has a factor
+    ``exp(-(p - p')^2 / (2 w^2))`` over the phase ``p`` of ``x_t``, its frame index from the start
+    of its sequence (``w = phase_width`` frames), so the dynamics may change along a stroke whose
+    recordings start at a common event (the linear IDDM's per-frame transitions are the limit of
+    a small ``w``; a large ``w`` gives back the thesis's kernel). The transition GP's inputs are
+    then ``[x_t, g, p_t]``; the online filter
+    (:class:`~hgpdm_torch.inference.OnlineIntentionFilter`) counts a stream's phase from its
+    (re)start, so streams must start at the frame the training sequences start at.
+
+    Args:
+        sequences: see :class:`HGPDM`.
+        intentions: see :class:`HGPDM`.
+        latent_dim: see :class:`HGPDM`.
+        phase_width: width of the phase factor in frames, or ``None`` (default, the thesis's
+            kernel).
+        **kwargs: see :class:`HGPDM`.
     """
 
     kinds = {"discrete": "iddm_discrete", "continuous": "iddm_continuous"}
+    #: width of the phase factor of the transition kernel in frames (class default for models
+    #: pickled before the option existed)
+    phase_width: float | None = None
+
+    def __init__(
+        self,
+        sequences: SequencesLike,
+        intentions: Any,
+        latent_dim: int = 3,
+        *,
+        phase_width: float | None = None,
+        **kwargs: Any,
+    ) -> None:
+        if phase_width is not None and (
+            isinstance(phase_width, bool)
+            or not isinstance(phase_width, int | float)
+            or not 0 < phase_width < math.inf
+        ):
+            raise ValueError(
+                f"phase_width must be a positive number of frames or None, got {phase_width!r}"
+            )
+        self.phase_width = None if phase_width is None else float(phase_width)
+        super().__init__(sequences, intentions, latent_dim, **kwargs)
+        if self.phase_width is not None:
+            self._config["phase_width"] = self.phase_width
+
+    def build_transition_kernel(self) -> Kernel:
+        return transition_kernel(
+            self.transition_kind,
+            self.latent_dim,
+            g_dim=self.intention_dim,
+            num_values=self.num_values,
+            alpha=self.alpha_init,
+            alpha_g=self.alpha_g,
+            sharing=self.sharing,
+            phase_width=self.phase_width,
+        )
+
+    def transition_phases(self) -> torch.Tensor:
+        """``[m]`` phase of each transition's source ``x_t``: its frame index in its sequence."""
+        return (self.src_index - self.first_index[self.seq_of_src]).to(self.latent.dtype)
+
+    def transition_inputs(self, latent: torch.Tensor) -> torch.Tensor:
+        """``[m, Dx + Dg]`` inputs ``[x_t, g]`` of the transition GP (``[x_t, g, p_t]`` with
+        ``phase_width``)."""
+        inputs = super().transition_inputs(latent)
+        if self.phase_width is None:
+            return inputs
+        return torch.cat([inputs, self.transition_phases()[:, None].to(inputs)], dim=-1)
+
+    def _rollout_inputs(self, x: torch.Tensor, g: Any, step: int) -> torch.Tensor:
+        inputs = super()._rollout_inputs(x, g, step)
+        if self.phase_width is None:
+            return inputs
+        return torch.cat([inputs, inputs.new_full((*inputs.shape[:-1], 1), float(step))], -1)

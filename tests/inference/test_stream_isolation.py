@@ -157,10 +157,10 @@ def test_numerical_failure_restarts_only_that_stream(model, streams, clean, fres
             if how == "CholeskyError" and t == 0:
                 moments = f.transition.moments
 
-                def failing(m, P):
+                def failing(m, P, phase=None):
                     if bool((m == 777.0).any()):
                         raise CholeskyError("injected failure")
-                    return moments(m, P)
+                    return moments(m, P, phase)
 
                 f.transition.moments = failing
             for stream in targets:
@@ -208,9 +208,9 @@ def test_the_normal_path_is_batched(model, streams):
     sizes = []
     step = f._step
 
-    def counting(m, P, log_belief, z):
+    def counting(m, P, log_belief, z, phase):
         sizes.append(m.shape[0])
-        return step(m, P, log_belief, z)
+        return step(m, P, log_belief, z, phase)
 
     f._step = counting
     z = streams[:, 1].clone()

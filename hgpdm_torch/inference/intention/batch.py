@@ -196,6 +196,11 @@ def infer_intention(
     """
     if not isinstance(model, HGPDM):
         raise TypeError(f"model must be an HGPDM/IDDM, got {type(model).__name__}")
+    if getattr(model, "phase_width", None) is not None:
+        raise ValueError(
+            "infer_intention's windows carry no phase: a phase-aware IDDM (phase_width set) is "
+            "filtered online (OnlineIntentionFilter), which counts each stream's frames"
+        )
     values = intention_grid(model, intentions)
     dtype = values.dtype
     z = _check_observations(z, model.obs_dim, min_ndim=2)

@@ -226,17 +226,27 @@ class OnlineIntentionFilter(IsolatedStreams):
         self.dtype = dtype or model.latent.dtype
         self.continuous = kind == "continuous"
         # the exact transition GP or its sparse DTC approximation, for every use below
+        # a phase-aware IDDM's transition GP takes each stream's phase (frame index) too
+        self.phase = getattr(model, "phase_width", None) is not None
+        phased = {"phase": True} if self.phase else {}
+        if self.phase and inducing is not None:
+            raise ValueError(
+                "inducing (a sparse transition GP) is not available for a phase-aware IDDM "
+                "(phase_width set): use the exact GP (inducing=None)"
+            )
         trans = sparse_posterior(
             model.transition_posterior(), values.shape[-1], inducing, inducing_values
         )
         self.posterior = trans
-        self.transition = transition_moments(trans, values, self.dtype, transition=transition)
+        self.transition = transition_moments(
+            trans, values, self.dtype, transition=transition, **phased
+        )
         meas = model.measurement_posterior()
         self.check = ObservationCheck.from_measurement(meas, outlier_sd)
         self.measure = _measurement_update(meas, self.dtype)
         own = trans.train_inputs.dtype
         if self.dtype != own:
-            reference = transition_moments(trans, values, own, transition=transition)
+            reference = transition_moments(trans, values, own, transition=transition, **phased)
             measure = _measurement_update(meas, own)
             _check_precision(model, reference, self.transition, measure, self.measure)
         self.gaussian_transition = trans.to_dtype(self.dtype) if mixing == "gaussian" else None
@@ -263,7 +273,12 @@ class OnlineIntentionFilter(IsolatedStreams):
 
     @settings.internal_step()  # the prior was checked when set
     def _initialise(
-        self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
+        self,
+        m: torch.Tensor,
+        P: torch.Tensor,
+        log_belief: torch.Tensor,
+        z: torch.Tensor,
+        phase: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Algorithm 3.2, lines 1-3: ``q(x_1)`` from the prior and ``z_1``; the belief stays
         (``state_prior="class"``: the belief takes ``log q(z_1 | g)``, ``q(x_1)`` the mixture)."""
@@ -281,44 +296,55 @@ class OnlineIntentionFilter(IsolatedStreams):
 
     @settings.internal_step()  # the state is the filter's own; finiteness is checked in update
     def _step(
-        self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
+        self,
+        m: torch.Tensor,
+        P: torch.Tensor,
+        log_belief: torch.Tensor,
+        z: torch.Tensor,
+        phase: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         observed = ~torch.isnan(z).all(-1)
+        p = phase if self.phase else None
         if self.evidence == "predictive":
-            mf, Pf, evidence = self._predictive_step(m, P, z)
+            mf, Pf, evidence = self._predictive_step(m, P, z, p)
         else:
-            mf, Pf, evidence = self._bound_step(m, P, log_belief, z)
+            mf, Pf, evidence = self._bound_step(m, P, log_belief, z, p)
         new = belief_step(log_belief, evidence, observed, self.forgetting, self.temperature)
         if self.evidence == "predictive":
             mf, Pf = mixture_moments(new.exp(), mf, Pf)
         return mf, Pf, new
 
     def _predictive_step(
-        self, m: torch.Tensor, P: torch.Tensor, z: torch.Tensor
+        self, m: torch.Tensor, P: torch.Tensor, z: torch.Tensor, phase: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per-intention GP-ADF update: filtered ``[B, K, Dx(, Dx)]`` and ``log q(z_t | g)``."""
-        mean, cov, _ = self.transition.moments(m, P)
+        mean, cov, _ = self.transition.moments(m, P, phase)
         K = mean.shape[1]
         zk = z[:, None, :].expand(-1, K, -1)
         return self.measure(mean, cov, zk)
 
     def _bound_step(
-        self, m: torch.Tensor, P: torch.Tensor, log_belief: torch.Tensor, z: torch.Tensor
+        self,
+        m: torch.Tensor,
+        P: torch.Tensor,
+        log_belief: torch.Tensor,
+        z: torch.Tensor,
+        phase: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Algorithm 3.2, lines 6-9: shared filtered ``q(x_t)`` and ``Q_{t-1}(g) [B, K]``."""
         prob = log_belief.exp()
         if self.gaussian_transition is None:
-            per_k = self.transition.moments(m, P)
+            per_k = self.transition.moments(m, P, phase)
             mp, Pp, C = mixture_moments(prob, *per_k)
         else:
-            mp, Pp, C = self._gaussian_prediction(prob, m, P)
+            mp, Pp, C = self._gaussian_prediction(prob, m, P, phase)
         mf, Pf, _ = self.measure(mp, Pp, z)
         # one-step GP-RTSS (Eq. 26-27); Cs = Cov[x_{t-1}, x_t | z_{1:t}]
         ms, Ps, Cs = rts_step(m, P, mp, Pp, C, mf, Pf, name="prediction")
         m_lin, P_lin = m, P
         if self.relinearize:
             m_lin, P_lin = ms, Ps
-            per_k = self.transition.moments(ms, Ps)
+            per_k = self.transition.moments(ms, Ps, phase)
         Q = expected_log_conditional(
             m_lin[:, None], P_lin[:, None], *per_k,
             ms[:, None], Ps[:, None], mf[:, None], Pf[:, None], Cs[:, None],
@@ -326,12 +352,14 @@ class OnlineIntentionFilter(IsolatedStreams):
         return mf, Pf, Q
 
     def _gaussian_prediction(
-        self, prob: torch.Tensor, m: torch.Tensor, P: torch.Tensor
+        self, prob: torch.Tensor, m: torch.Tensor, P: torch.Tensor, phase: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Transition moment matched at ``[x, g]`` with ``g ~ N(mean, var)`` of the belief."""
+        """Transition moment matched at ``[x, g]`` with ``g ~ N(mean, var)`` of the belief (and
+        the known phase ``[B]``, if any)."""
         mu, Sigma = independent_joint(m, P, *mixture_moments(prob, self.values))
         dx = m.shape[-1]
+        known = None if phase is None else phase.to(mu)[:, None]
         mean, cov, io = self.gaussian_transition.predict_gaussian(
-            mu, symmetrize(Sigma), include_noise=True
+            mu, symmetrize(Sigma), g=known, include_noise=True
         )
         return mean, cov, io[..., :dx, :]

@@ -157,8 +157,10 @@ class IsolatedStreams:
     ``check`` (an :class:`~hgpdm_torch.inference.filtering.ObservationCheck`), ``obs_dim``
     (Dz), ``chunk_size`` and ``strict``; and implements ``_initialise`` (a stream's first
     observation) and ``_step`` (every later one), both
-    ``(mean [S, Dx], cov [S, Dx, Dx], log_belief [S, K], z [S, Dz]) -> (mean, cov, log_belief)``
-    on a chunk of S streams, raising one of ``_NUMERICAL_ERRORS`` where they fail numerically.
+    ``(mean [S, Dx], cov [S, Dx, Dx], log_belief [S, K], z [S, Dz], phase [S]) -> (mean, cov,
+    log_belief)`` on a chunk of S streams, raising one of ``_NUMERICAL_ERRORS`` where they fail
+    numerically. ``phase`` is the frame index of the state updated from, counted in rows since
+    the stream's (re)start (``steps - 1``; the phase of a phase-aware IDDM's ``x_t``).
     """
 
     batch_size: int
@@ -286,6 +288,7 @@ class IsolatedStreams:
                 cov,
                 log_belief,
                 z if every else z.masked_fill(~active[:, None], math.nan),
+                (self.steps - 1).to(self.dtype),
             )
             for start in range(0, B, size):
                 rows = slice(start, start + size)
@@ -340,7 +343,8 @@ class IsolatedStreams:
         active: torch.Tensor,
         failed: torch.Tensor,
     ) -> tuple[torch.Tensor, ...]:
-        """``fn`` on the streams ``rows`` of ``inputs`` (``mean, cov, log_belief, z``, ``[B, ..]``).
+        """``fn`` on the streams ``rows`` of ``inputs`` (``mean, cov, log_belief, z, phase``,
+        ``[B, ..]``).
 
         Where it fails numerically (``_NUMERICAL_ERRORS``), bisection finds the streams that fail
         on their own; the active ones among them are marked in ``failed [B]`` (``strict``:
@@ -358,7 +362,8 @@ class IsolatedStreams:
             raise error
         failed[rows.start + bad[active[bad]]] = True
         args = tuple(a.clone() for a in args)
-        for a, prior in zip(args, (self.mu0, self.Sigma0, self.log_prior, math.nan), strict=True):
+        priors = (self.mu0, self.Sigma0, self.log_prior, math.nan)
+        for a, prior in zip(args[:4], priors, strict=True):  # the phase stays
             a[bad] = prior
         return fn(*args)
 

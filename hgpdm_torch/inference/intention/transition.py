@@ -68,7 +68,7 @@ class TransitionMoments(Protocol):
     def num_values(self) -> int: ...
 
     def moments(
-        self, mu: torch.Tensor, Sigma: torch.Tensor
+        self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
 
 
@@ -86,26 +86,38 @@ class GenericTransition:
     (:meth:`GPPosterior.sparse <hgpdm_torch.gp.GPPosterior.sparse>`) works the same way, on its
     M pseudo-inputs.
 
+    A phase-aware IDDM's GP (``IDDM(phase_width=...)``) maps ``[x, g, p]``: with ``phase=True``
+    each stream's phase ``p`` (its frame index) is one more known column, given to
+    :meth:`moments`.
+
     Args:
         posterior: the transition GP ``[x, g] -> x_{t+1}`` (``model.transition_posterior()``),
             exact or sparse.
         values: ``[K, Dg]`` intention grid or codes (``[1, 0]`` for a model without g).
         dtype: computation dtype (default the posterior's; another one refactorises the GP in it).
+        phase: whether the GP's last input column is the phase.
     """
 
     def __init__(
-        self, posterior: GPPosterior, values: torch.Tensor, dtype: torch.dtype | None = None
+        self,
+        posterior: GPPosterior,
+        values: torch.Tensor,
+        dtype: torch.dtype | None = None,
+        *,
+        phase: bool = False,
     ) -> None:
         dtype = dtype or posterior.train_inputs.dtype
         dg = values.shape[-1]
-        if posterior.input_dim - dg != posterior.output_dim:
+        if posterior.input_dim - dg - int(phase) != posterior.output_dim:
+            what = "[x, g, p]" if phase else "[x, g]"
             raise ValueError(
-                f"the transition GP maps [x, g] (Dx + Dg = {posterior.input_dim}) to x "
+                f"the transition GP maps {what} (Din = {posterior.input_dim}) to x "
                 f"(Dx = {posterior.output_dim}); the grid has Dg = {dg} columns"
             )
         self.posterior = posterior.to_dtype(dtype)
         self.values = values.to(dtype)
         self.inputs = self.posterior.train_inputs
+        self.phase = bool(phase)
         self._g = self.values[None] if dg else None  # [1, K, Dg]
 
     @property
@@ -114,17 +126,31 @@ class GenericTransition:
         return self.values.shape[0]
 
     def moments(
-        self, mu: torch.Tensor, Sigma: torch.Tensor
+        self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``.
 
         Args:
             mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
+            phase: ``[B]`` each stream's phase (the frame index of ``x``); required for, and
+                only for, a phase-aware GP.
 
         Returns:
             ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
         """
+        if (phase is None) == self.phase:
+            raise ValueError(
+                "this transition GP takes each stream's phase: pass phase [B]"
+                if self.phase
+                else "phase is for a phase-aware transition GP (IDDM(phase_width=...)) only"
+            )
         with settings.internal_step():  # the caller's own Gaussians
+            if phase is not None:
+                p = phase.to(mu)[:, None, None].expand(-1, self.num_values, 1)
+                g = p if self._g is None else torch.cat([self._g.expand(len(p), -1, -1), p], -1)
+                return self.posterior.predict_gaussian(
+                    mu[:, None], Sigma[:, None], g=g, include_noise=True
+                )
             if self._g is None:  # no g: one value
                 mean, cov, cross = self.posterior.predict_gaussian(mu, Sigma, include_noise=True)
                 return mean[:, None], cov[:, None], cross[:, None]
@@ -141,6 +167,7 @@ def transition_moments(
     transition: str = "auto",
     inducing: int | None = None,
     inducing_values: int | None = None,
+    phase: bool = False,
 ) -> TransitionMoments:
     """The transition moments object for this GP and grid.
 
@@ -156,8 +183,18 @@ def transition_moments(
         inducing: number of pseudo-inputs M of a sparse (DTC) transition GP on either path
             (:func:`~hgpdm_torch.gp_shared.sparse_posterior`), or ``None`` for the exact GP.
         inducing_values: its distinct intention values (continuous g; see there).
+        phase: the GP's last input column is the phase (``IDDM(phase_width=...)``): the generic
+            path on the exact GP (``"auto"`` picks it; ``"shared"`` and ``inducing`` are
+            refused: their pseudo-inputs and groups are built over ``[x, g]``).
     """
     check_choice(transition, "transition", TRANSITIONS)
+    if phase:
+        if transition == "shared" or inducing is not None:
+            raise ValueError(
+                "a phase-aware transition GP (IDDM(phase_width=...)) runs on the generic path "
+                "of the exact GP: use transition='auto' or 'generic' and inducing=None"
+            )
+        return GenericTransition(posterior, values, dtype, phase=True)
     if transition == "auto":
         shared = SharedTransition.supports(posterior, values)
         transition = "shared" if shared else "generic"
@@ -222,10 +259,15 @@ def _check_precision(
     _, spread = _state_prior(model, None, None, x.dtype)  # the training latents' covariance
     worst = 0.0
     probes = []
+    phase = None  # a phase-aware GP's probes at their training frames' phases
+    if getattr(reference, "phase", False):
+        seq = torch.searchsorted(model.first_index, idx, right=True) - 1
+        phase = (idx - model.first_index[seq]).to(ref_dtype)
     for scale in (1.0, 1e-2, 1e-4):
         mu, P = x[idx], (scale * spread).expand(len(idx), -1, -1)
-        m_ref, c_ref, _ = reference.moments(mu, P)
-        m_low, c_low, _ = low.moments(mu.to(low_dtype), P.to(low_dtype))
+        m_ref, c_ref, _ = reference.moments(mu, P, phase)
+        low_phase = None if phase is None else phase.to(low_dtype)
+        m_low, c_low, _ = low.moments(mu.to(low_dtype), P.to(low_dtype), low_phase)
         var = torch.linalg.eigvalsh(c_ref)[..., 0].clamp_min(torch.finfo(c_ref.dtype).tiny)
         err_c = (c_low.to(c_ref.dtype) - c_ref).abs().amax((-1, -2)) / var
         err_m = (m_low.to(m_ref.dtype) - m_ref).abs().amax(-1) / var.sqrt()

@@ -123,6 +123,11 @@ class WindowModel:
     ) -> None:
         if not isinstance(model, GPDM):
             raise TypeError(f"model must be a GPDM/HGPDM, got {type(model).__name__}")
+        if getattr(model, "phase_width", None) is not None:
+            raise ValueError(
+                "window inference carries no phase: a phase-aware IDDM (phase_width set) is "
+                "filtered online (OnlineIntentionFilter), which counts each stream's frames"
+            )
         self.model = model
         self.kind = model.intention if isinstance(model, HGPDM) else "none"
         self.measurement = model.measurement_posterior(measurement_points)
