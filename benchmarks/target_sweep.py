@@ -1,7 +1,9 @@
 """Why the online IDDM does not reach 0.9 x GPR on target prediction (issue #14, item 4).
 
-``OMP_NUM_THREADS=1 python -m benchmarks target_sweep [--quick]`` (10-40 min on a loaded 2-core
-machine). Writes ``benchmarks/results/target_sweep.json`` (``..._quick.json`` with ``--quick``).
+``OMP_NUM_THREADS=1 python -m benchmarks target_sweep [--quick] [--only=TEXT]`` (10-40 min on a
+loaded 2-core machine). Writes ``benchmarks/results/target_sweep.json`` (``..._quick.json`` with
+``--quick``; with ``--only=TEXT`` only the base row and the variants whose name holds TEXT, into
+``target_sweep_TEXT.json``).
 
 Only the 100 *training* strokes of ``hgpdm target-prediction`` are used (the test strokes stay
 untouched): 5-fold cross-validation, the online IDDM of the experiment (PLS-initialised latents,
@@ -49,7 +51,7 @@ STEPS = [1, 2, 3, 4]  # observation index of 320, 240, 160, 80 ms before the hit
 BASE: dict[str, Any] = {
     "dx": 6, "kernel": "linear", "steps": 40, "alpha": (0.9, 0.3, 0.1, 1e-2),
     "alpha_g": (4.0, 0.1), "eps": 0.2, "features": None, "back_constraint": None,
-    "learn_alpha": False, "model": IDDM,
+    "learn_alpha": False, "model": IDDM, "phase_width": None,
 }  # fmt: skip
 #: (row name, changes to BASE)
 VARIANTS: list[tuple[str, dict[str, Any]]] = [
@@ -73,6 +75,16 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
     ("process noise 1e-1, g width x2", {"alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (1.0, 0.1)}),
     # RBF + linear in x and g (the H-GPDM's continuous kernel; the filter's generic path)
     ("H-GPDM transition (RBF + linear x, g)", {"model": HGPDM, "alpha_g": (4.0, 1.0)}),
+    # the transition kernel times an RBF over the frame index (IDDM(phase_width=...))
+    *((f"phase width {w}", {"phase_width": w}) for w in (0.25, 0.5, 1.0, 2.0, 4.0)),
+    *(
+        (
+            f"phase width {w}, process noise {a4:g}, g width x2",
+            {"phase_width": w, "alpha": (0.9, 0.3, 0.1, a4), "alpha_g": (1.0, 0.1)},
+        )
+        for w, a4 in ((0.25, 0.1), (0.5, 0.1), (1.0, 0.1), (0.5, 0.3), (0.5, 0.03))
+    ),
+    ("phase width 0.5, process noise 0.1", {"phase_width": 0.5, "alpha": (0.9, 0.3, 0.1, 0.1)}),
     (
         "H-GPDM transition, process noise 1e-1",
         {"model": HGPDM, "alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (4.0, 1.0)},
@@ -82,10 +94,11 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
 
 def _fit(obs: torch.Tensor, y: torch.Tensor, cfg: dict[str, Any], seed: int) -> IDDM:
     torch.manual_seed(seed)
+    phase = {} if cfg["phase_width"] is None else {"phase_width": cfg["phase_width"]}
     model = cfg["model"](
         list(obs), y, cfg["dx"], intention="continuous", measurement=cfg["kernel"],
         alpha=cfg["alpha"], alpha_g=cfg["alpha_g"], learn_alpha=cfg["learn_alpha"],
-        back_constraint=cfg["back_constraint"], init=supervised_init(obs, y, cfg["dx"]),
+        back_constraint=cfg["back_constraint"], init=supervised_init(obs, y, cfg["dx"]), **phase,
     )  # fmt: skip
     with warnings.catch_warnings():  # short fits do not converge; FitResult says so
         warnings.simplefilter("ignore")
@@ -132,7 +145,7 @@ def _row(table: ResultTable, name: str, iddm: torch.Tensor, gpr: torch.Tensor, *
     )  # fmt: skip
 
 
-def run(quick: bool = False, seed: int = 0) -> ResultTable:
+def run(quick: bool = False, seed: int = 0, only: str | None = None) -> ResultTable:
     n_train, folds = (16, 2) if quick else (100, 5)
     gen = torch.Generator().manual_seed(seed)  # the experiment's strokes: train first, then test
     strokes = sample_strokes(n_train + (0 if quick else 126), generator=gen)
@@ -141,6 +154,8 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
     grid = torch.linspace(-lim, lim, 13 if quick else 25)
     split = torch.arange(n_train).tensor_split(folds)
     variants = VARIANTS[:1] if quick else VARIANTS
+    if only is not None:  # the variants whose name holds this text, and the first (the base)
+        variants = [VARIANTS[0], *(v for v in VARIANTS[1:] if only in v[0])]
     base = {**BASE, "steps": 5} if quick else BASE
     table = ResultTable(
         "Target prediction, 5-fold CV on the 100 training strokes: online IDDM variants vs GPR, "
@@ -178,6 +193,8 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
             errs.append(abs_errors(mean, y[held]))
         _row(table, name, torch.cat(errs), gpr_err, s=round(time.time() - start))
 
+    if only is not None:
+        return table
     # the evidence temperature by inner CV, and the evidence of single steps (base model, eps 0)
     start, tempered, temps, single = time.time(), [], [], {t: [] for t in STEPS}
     for held in split:
@@ -216,9 +233,13 @@ def run(quick: bool = False, seed: int = 0) -> ResultTable:
 
 def main(argv: list[str]) -> int:
     quick = "--quick" in argv
-    table = run(quick=quick)
+    only = next((a.split("=", 1)[1] for a in argv if a.startswith("--only=")), None)
+    table = run(quick=quick, only=only)
     print(table.to_markdown())
-    table.to_json(RESULTS / ("target_sweep_quick.json" if quick else "target_sweep.json"))
+    name = "target_sweep" + ("_quick" if quick else "")
+    if only is not None:  # a subset of the rows: its own file
+        name += "_" + "".join(c if c.isalnum() else "_" for c in only)
+    table.to_json(RESULTS / f"{name}.json")
     return 0
 
 
