@@ -21,7 +21,11 @@ experiment makes by cross-validation is not repeated):
   (``interaction_rank=1``) without and with that calibration, and calibrated with the noise kind
   and prior chosen by the same cross-validation instead of the evidence (``select="cv"``), with
   rank 0 and 1, and the equal mixture of the beliefs of those two
-  (:class:`~hgpdm_torch.inference.BeliefMixture`).
+  (:class:`~hgpdm_torch.inference.BeliefMixture`);
+- the phase-aware GP IDDM (``IDDM(phase_width=...)`` with
+  :data:`~hgpdm_torch.experiments.target_prediction.PHASE_IDDM`, chosen by the cross-validation
+  of ``target_sweep --only=phase``), online at ``eps = 0.2``, and the equal mixture of its
+  beliefs (:class:`~hgpdm_torch.inference.FilterBeliefs`) with the two linear ones.
 
 Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon, the ratio to
 GPR at 80 ms with a 95% interval from a two-stage bootstrap (replicates, then strokes within
@@ -45,12 +49,13 @@ from hgpdm_torch.baselines import WindowGPR
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
+    PHASE_IDDM,
     _fit_iddm,
     _online,
     grid_index,
     strokes_limit,
 )
-from hgpdm_torch.inference import BeliefMixture
+from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
 from hgpdm_torch.inference.calibration import credible_set
 from hgpdm_torch.models import LinearIDDM
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
@@ -67,6 +72,8 @@ METHODS = (
     "LinearIDDM, noise and prior by CV, T and eps by CV",
     "LinearIDDM, interaction rank 1, noise and prior by CV, T and eps by CV",
     "BeliefMixture of the last two (equal weights)",
+    "GP IDDM online, per phase (phase width 0.25, noise 0.1, g width x2: CV)",
+    "BeliefMixture of the per-phase GP IDDM and the two linear ones (equal weights)",
 )
 
 
@@ -98,7 +105,7 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
     variants = ({}, calibrate, {"noise": "full"}, {"interaction_rank": 1},
                 {"interaction_rank": 1, **calibrate}, {"select": "cv", **calibrate},
                 {"interaction_rank": 1, "select": "cv", **calibrate})  # fmt: skip
-    for name, options in zip(METHODS[2:-1], variants, strict=True):
+    for name, options in zip(METHODS[2:9], variants, strict=True):
         with warnings.catch_warnings(record=True) as caught:  # edge choices: recorded below
             warnings.simplefilter("always")
             model = LinearIDDM(**options).fit(obs, y)
@@ -109,7 +116,15 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
         belief = model.beliefs(test, grid)
         out[name] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
     belief = BeliefMixture(fitted[-2:]).beliefs(test, grid)
-    out[METHODS[-1]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
+    out[METHODS[9]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        phased = _fit_iddm(obs, y, "linear", 6, steps, seed, **PHASE_IDDM)
+    member = FilterBeliefs(phased, forgetting=0.2)
+    belief = member.beliefs(test, grid)
+    out[METHODS[10]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
+    belief = BeliefMixture([member, *fitted[-2:]]).beliefs(test, grid)
+    out[METHODS[11]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
     return out, choices
 
 

@@ -25,6 +25,10 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   intention-state interaction (``interaction_rank=1``), and both of those with the noise kind
   and prior chosen by that cross-validation instead of the evidence (``select="cv"``), and the
   equal mixture of the beliefs of those two (:class:`~hgpdm_torch.inference.BeliefMixture`);
+- the phase-aware IDDM (not in the thesis; :data:`PHASE_IDDM`: transitions that change along the
+  stroke, its process noise and g width chosen by the cross-validation of ``python -m
+  benchmarks target_sweep --only=phase``) with the selected kernel and Dx, online, and the equal
+  mixture of its beliefs with those of the two linear IDDMs;
 - how often the online belief's 90% credible set over the grid holds the grid value nearest to
   the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
   on the cross-validation folds' held-out beliefs (:func:`~hgpdm_torch.inference.fit_temperature`;
@@ -44,13 +48,26 @@ from tqdm.auto import tqdm
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
 from ..inference.calibration import calibration, fit_temperature
-from ..inference.intention import BeliefMixture, OnlineIntentionFilter, infer_intention
+from ..inference.intention import (
+    BeliefMixture,
+    FilterBeliefs,
+    OnlineIntentionFilter,
+    infer_intention,
+)
 from ..models import IDDM, LinearIDDM
 from ..validation import as_tensor, check_choice
 from .arguments import output_file, random_seed
 from .table import ResultTable
 
-__all__ = ["HORIZONS_MS", "grid_index", "main", "supervised_init", "target_prediction"]
+__all__ = [
+    "HORIZONS_MS",
+    "PHASE_IDDM",
+    "THESIS_IDDM",
+    "grid_index",
+    "main",
+    "supervised_init",
+    "target_prediction",
+]
 
 #: Prediction times before the opponent's hit [ms] and their observation indices (T = 6
 #: observations, the last at the hit).
@@ -99,12 +116,28 @@ def supervised_init(obs: torch.Tensor, targets: torch.Tensor, latent_dim: int) -
     return x / x.std(0).clamp_min(1e-8)
 
 
-def _fit_iddm(obs, targets, kernel: str, dx: int, steps: int, seed: int, init: str = "pls") -> IDDM:
+#: the IDDM's kernel settings in this experiment (the thesis's kernel)
+THESIS_IDDM: dict[str, Any] = {"alpha": (0.9, 0.3, 0.1, 1e-2), "alpha_g": (4.0, 0.1)}
+#: the phase-aware IDDM (``IDDM(phase_width=...)``, not in the thesis): transitions that change
+#: along the stroke (a width of 0.25 frames keeps the phases apart), a process noise of 0.1 and
+#: twice the g width; chosen among the phase widths 0.25-4 and these noises and widths by 5-fold
+#: cross-validation on the 100 training strokes of seed 0 (``python -m benchmarks target_sweep
+#: --only=phase``: 34.7 against 38.0 cm at 80 ms, GPR 34.9; docs page "Target prediction")
+PHASE_IDDM: dict[str, Any] = {
+    "phase_width": 0.25, "alpha": (0.9, 0.3, 0.1, 0.1), "alpha_g": (1.0, 0.1),
+}  # fmt: skip
+
+
+def _fit_iddm(
+    obs, targets, kernel: str, dx: int, steps: int, seed: int, init: str = "pls", **options
+) -> IDDM:
+    """The IDDM on the plays ``obs [n, T, Dz]`` with their ``targets``: :data:`THESIS_IDDM`'s
+    settings, overridden by ``options`` (e.g. :data:`PHASE_IDDM`)."""
     torch.manual_seed(seed)
     x0 = supervised_init(obs, targets, dx) if init == "pls" else "pca"
     model = IDDM(
-        list(obs), targets, dx, intention="continuous", measurement=kernel,
-        alpha=(0.9, 0.3, 0.1, 1e-2), alpha_g=(4.0, 0.1), init=x0,
+        list(obs), targets, dx, intention="continuous", measurement=kernel, init=x0,
+        **(THESIS_IDDM | options),
     )  # fmt: skip
     model.fit(steps)  # its FitResult stays on the model (model.fit_result)
     return model
@@ -336,6 +369,28 @@ def target_prediction(
         **_row("comparison", name, None, None, None, scores, ms),
         **{"90% set coverage [%]": round(100 * cal_mix["coverage"], 1)},
     )
+    # the phase-aware IDDM (PHASE_IDDM) with the selected kernel and Dx, and its beliefs in an
+    # equal mixture with the two linear IDDMs
+    phased = _fit_iddm(obs[train], y[train], *best, fit_steps, seed, init, **PHASE_IDDM)
+    table.meta["phase_iddm"] = {"options": {k: str(v) for k, v in PHASE_IDDM.items()},
+                                "fit": phased.fit_result.summary()}  # fmt: skip
+    member = FilterBeliefs(phased, forgetting=forgetting)
+    start = time.process_time()
+    belief = member.beliefs(obs_test, grid)
+    ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
+    for key, name, b in (
+        ("phase iddm", f"IDDM online eps={forgetting}, per phase (phase width, noise, g width "
+         "by CV)", belief),
+        ("phase iddm + linear mixture", "BeliefMixture of the per-phase IDDM and the two linear "
+         "IDDMs (equal weights)", BeliefMixture([member, *mixture.models]).beliefs(obs_test, grid)),
+    ):  # fmt: skip
+        cal_b = calibration(b.prob[:, list(_STEPS)], truth)
+        scores = [_mae_sem(b.mean[:, s, 0], y_test) for s in _STEPS]
+        table.meta["mae"][key] = scores
+        table.add(
+            **_row("comparison", name, *best, None, scores, ms if key == "phase iddm" else None),
+            **{"90% set coverage [%]": round(100 * cal_b["coverage"], 1)},
+        )
     start = time.process_time()
     batch = infer_intention(best_model, obs_test, grid, window=window).mean[..., 0]
     ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])

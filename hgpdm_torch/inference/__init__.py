@@ -16,6 +16,7 @@ from .filtering import (
 from .intention import (
     BeliefMixture,
     BeliefMixtureStream,
+    FilterBeliefs,
     IntentionBelief,
     LinearMeasurement,
     OnlineIntentionFilter,
@@ -42,6 +43,7 @@ __all__ = [
     "ObservationCheck",
     "BeliefMixture",
     "BeliefMixtureStream",
+    "FilterBeliefs",
     "IntentionBelief",
     "LinearMeasurement",
     "OnlineIntentionFilter",

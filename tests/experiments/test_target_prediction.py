@@ -43,13 +43,17 @@ def test_smoke_run_reports_every_method_and_horizon():
         "online", "online calibrated", "online sparse M=30", "batch", "gpr", "ridge", "median",
         "linear iddm", "linear iddm calibrated", "linear iddm interaction calibrated",
         "linear iddm selected", "linear iddm interaction selected", "linear iddm mixture",
+        "phase iddm", "phase iddm + linear mixture",
     ):  # fmt: skip
         assert len(table.meta["mae"][name]) == len(HORIZONS_MS)
     # the credible sets are scored at T = 1 and at the temperature fitted on the CV folds
     t = table.meta["temperature"]
     assert t > 0 and any(m.endswith(f"T={t:.3g} (CV)") for m in methods)
     covered = [r["90% set coverage [%]"] for r in table.rows if "90% set coverage [%]" in r]
-    assert len(covered) == 8 and all(0 <= c <= 100 for c in covered)
+    assert len(covered) == 10 and all(0 <= c <= 100 for c in covered)
+    # the phase-aware IDDM: the options chosen by target_sweep's CV, the selected kernel and Dx
+    assert table.meta["phase_iddm"]["options"]["phase_width"] == "0.25"
+    assert any("per phase (phase width" in m for m in methods)
     # the linear IDDM's prior is the evidence maximum of the training strokes
     linear = table.meta["linear_iddm"]
     strokes14 = sample_strokes(22, generator=torch.Generator().manual_seed(0))

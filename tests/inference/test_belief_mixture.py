@@ -211,3 +211,39 @@ def test_members_with_different_value_sets_raise_in_either_order(generator):
         flat = [LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(cont[0]._sequences, g2)] * 2
     grid = torch.tensor([[0.0, 0.0], [0.5, -0.5]])
     assert BeliefMixture(flat).beliefs(test, grid).prob.shape == (10, 5, 2)
+
+
+def test_filter_beliefs_mix_a_gp_iddm_with_linear_models(generator):
+    """FilterBeliefs gives the GP IDDM's online beliefs (the filter run frame by frame by hand)
+    as a mixture member: the GP + linear mixture is the weighted average of the two."""
+    from hgpdm_torch.inference import FilterBeliefs, OnlineIntentionFilter
+    from hgpdm_torch.models import IDDM
+
+    models, test = _members(generator)
+    obs = torch.randn(12, 5, 2, generator=generator, dtype=torch.float64)
+    grid = models[0].grid()  # the linear models' training range: the same default grid
+    g = torch.linspace(float(grid.min()), float(grid.max()), 12, dtype=torch.float64)
+    torch.manual_seed(0)
+    gp = IDDM(list(obs), g, 2, intention="continuous", measurement="linear")
+    member = FilterBeliefs(gp, forgetting=0.1)
+    got = member.beliefs(test, grid)
+    f = OnlineIntentionFilter(gp, grid, forgetting=0.1, batch_size=len(test))
+    want = torch.stack([f.update(test[:, t]).log_prob for t in range(test.shape[1])], 1)
+    # from_log renormalises an already normalised belief: a few ulp of log probs of order 10
+    torch.testing.assert_close(got.log_prob, want, rtol=0, atol=1e-12)
+    assert got.mean.shape == (len(test), test.shape[1], 1)
+    mix = BeliefMixture([member, models[0]]).beliefs(test, grid)
+    expected = 0.5 * got.prob + 0.5 * models[0].beliefs(test, grid).prob
+    torch.testing.assert_close(mix.prob, expected, rtol=1e-12, atol=1e-15)
+    # one stream, a log prior, and the options the member sets itself
+    lp = torch.linspace(0, 1, len(grid), dtype=torch.float64)
+    one = member.beliefs(test[0], grid, lp)
+    f = OnlineIntentionFilter(gp, grid, forgetting=0.1, prior=lp.softmax(0))
+    want = torch.stack([f.update(test[0, t]).log_prob for t in range(test.shape[1])])
+    torch.testing.assert_close(one.log_prob, want, rtol=0, atol=1e-12)
+    with pytest.raises(TypeError, match="sets \\['batch_size'\\] itself"):
+        FilterBeliefs(gp, batch_size=3)
+    with pytest.raises(TypeError, match="fitted HGPDM"):
+        FilterBeliefs(models[0])
+    with pytest.raises(ValueError, match="forgetting"):
+        FilterBeliefs(gp, forgetting=2.0)

@@ -42,11 +42,13 @@ One module per concept; this package re-exports their public names, so that
 - :mod:`~hgpdm_torch.inference.intention.online`: :class:`OnlineIntentionFilter`;
 - :mod:`~hgpdm_torch.inference.intention.batch`: :func:`infer_intention` and the bound's terms;
 - :mod:`~hgpdm_torch.inference.intention.mixture`: :class:`BeliefMixture`, the weighted mixture
-  of several models' beliefs (e.g. :class:`~hgpdm_torch.models.LinearIDDM` variants).
+  of several models' beliefs (e.g. :class:`~hgpdm_torch.models.LinearIDDM` variants);
+- :mod:`~hgpdm_torch.inference.intention.member`: :class:`FilterBeliefs`, a GP model's online
+  beliefs as a member of such a mixture.
 
 Imports flow one way: ``grid``, ``state_prior``, ``linearisation``, ``measurement``,
 ``transition`` (on :mod:`hgpdm_torch.gp` and :mod:`hgpdm_torch.gp_shared`), ``streams`` <-
-``online``; ``batch`` uses the first three; ``mixture`` uses ``grid`` only.
+``online`` <- ``member``; ``batch`` uses the first three; ``mixture`` uses ``grid`` only.
 
 Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
 ``Dg`` intention dims, ``N`` transition training points.
@@ -57,6 +59,7 @@ from .batch import batch_bound, batch_bound_terms, infer_intention
 from .grid import IntentionBelief, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import LinearMeasurement
+from .member import FilterBeliefs
 from .mixture import BeliefMixture, BeliefMixtureStream
 from .online import OnlineIntentionFilter
 from .state_prior import STATE_PRIORS, class_state_prior
@@ -76,6 +79,7 @@ __all__ = [
     "LinearMeasurement",
     "OnlineIntentionFilter",
     "EVIDENCE_LIMIT",
+    "FilterBeliefs",
     "PRECISION_LIMIT",
     "SharedTransition",
     "STATE_PRIORS",
