@@ -85,6 +85,19 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
         for w, a4 in ((0.25, 0.1), (0.5, 0.1), (1.0, 0.1), (0.5, 0.3), (0.5, 0.03))
     ),
     ("phase width 0.5, process noise 0.1", {"phase_width": 0.5, "alpha": (0.9, 0.3, 0.1, 0.1)}),
+    *(
+        (
+            f"phase width 0.25, process noise 0.1, g width x2, {name}",
+            {"phase_width": 0.25, "alpha": (0.9, 0.3, 0.1, 0.1), "alpha_g": (1.0, 0.1), **change},
+        )
+        for name, change in (
+            ("Dx 4", {"dx": 4}),
+            ("Dx 8", {"dx": 8}),
+            ("Dx 10", {"dx": 10}),
+            ("no forgetting", {"eps": 0.0}),
+            ("80 MAP steps", {"steps": 80}),
+        )
+    ),
     (
         "H-GPDM transition, process noise 1e-1",
         {"model": HGPDM, "alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (4.0, 1.0)},

@@ -174,6 +174,9 @@ class OnlineIntentionFilter(IsolatedStreams):
         started: ``[B]`` bool, whether the stream has seen its first observation.
         steps: ``[B]`` int64, observations (missing ones included) given to each stream since it
             was (re)started; a stream's current observation has step ``steps[b]`` in messages.
+            For a phase-aware IDDM (``IDDM(phase_width=...)``) the transition out of a stream's
+            state takes the phase ``steps - 1``: streams start at frame 0 of the model's
+            training sequences, one row per frame.
         rejected_count, reset_count: ``[B]`` int64, rejected observations and automatic restarts
             of each stream since :meth:`reset`.
         check: the :class:`~hgpdm_torch.inference.filtering.ObservationCheck` in use.
