@@ -339,7 +339,14 @@ def run_protocol(
             counts["MCP"][r] += successes(
                 test_p.run(
                     planning_policy(
-                        tracks[source], test, q, basis, rule, test_p.horizon, config.features, gen,
+                        tracks[source],
+                        test,
+                        q,
+                        basis,
+                        rule,
+                        test_p.horizon,
+                        config.features,
+                        gen,
                         config.wait_value,
                     )
                 )
@@ -348,7 +355,14 @@ def run_protocol(
             counts["MCP (oracle belief)"][r] += successes(
                 tp.run(
                     planning_policy(
-                        tracks["oracle"], test, qs, b, rule, tp.horizon, config.features, gen,
+                        tracks["oracle"],
+                        test,
+                        qs,
+                        b,
+                        rule,
+                        tp.horizon,
+                        config.features,
+                        gen,
                         config.wait_value,
                     )
                 )
