@@ -125,6 +125,8 @@ class HGPDM(GPDM):
     """
 
     kinds = {"discrete": "discrete", "continuous": "continuous"}
+    #: width of a phase factor of the transition kernel (:class:`IDDM` only; ``None``: none)
+    phase_width: float | None = None
     #: whether each value of a discrete g has its own process noise (class default: models
     #: pickled before the option existed have none)
     noise_per_value = False
@@ -193,6 +195,7 @@ class HGPDM(GPDM):
             alpha=self.alpha_init,
             alpha_g=self.alpha_g,
             sharing=self.sharing,
+            phase_width=self.phase_width,
         )
 
     def transition_inputs(self, latent: torch.Tensor) -> torch.Tensor:
@@ -463,9 +466,6 @@ class IDDM(HGPDM):
     """
 
     kinds = {"discrete": "iddm_discrete", "continuous": "iddm_continuous"}
-    #: width of the phase factor of the transition kernel in frames (class default for models
-    #: pickled before the option existed)
-    phase_width: float | None = None
 
     def __init__(
         self,
@@ -488,18 +488,6 @@ class IDDM(HGPDM):
         super().__init__(sequences, intentions, latent_dim, **kwargs)
         if self.phase_width is not None:
             self._config["phase_width"] = self.phase_width
-
-    def build_transition_kernel(self) -> Kernel:
-        return transition_kernel(
-            self.transition_kind,
-            self.latent_dim,
-            g_dim=self.intention_dim,
-            num_values=self.num_values,
-            alpha=self.alpha_init,
-            alpha_g=self.alpha_g,
-            sharing=self.sharing,
-            phase_width=self.phase_width,
-        )
 
     def transition_phases(self) -> torch.Tensor:
         """``[m]`` phase of each transition's source ``x_t``: its frame index in its sequence."""
