@@ -75,6 +75,10 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
     ("process noise 1e-1, g width x2", {"alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (1.0, 0.1)}),
     # RBF + linear in x and g (the H-GPDM's continuous kernel; the filter's generic path)
     ("H-GPDM transition (RBF + linear x, g)", {"model": HGPDM, "alpha_g": (4.0, 1.0)}),
+    (
+        "H-GPDM transition, process noise 1e-1",
+        {"model": HGPDM, "alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (4.0, 1.0)},
+    ),
     # the transition kernel times an RBF over the frame index (IDDM(phase_width=...))
     *((f"phase width {w}", {"phase_width": w}) for w in (0.25, 0.5, 1.0, 2.0, 4.0)),
     *(
@@ -97,10 +101,6 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
             ("no forgetting", {"eps": 0.0}),
             ("80 MAP steps", {"steps": 80}),
         )
-    ),
-    (
-        "H-GPDM transition, process noise 1e-1",
-        {"model": HGPDM, "alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (4.0, 1.0)},
     ),
 ]
 

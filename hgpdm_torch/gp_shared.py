@@ -211,8 +211,12 @@ class SharedTransition:
         posterior = sparse_posterior(posterior, values.shape[1], inducing, inducing_values)
         X = posterior.train_inputs
         dx = X.shape[1] - values.shape[1]
-        if dx != posterior.output_dim:  # more known columns than g (a phase)
-            return False
+        if dx != posterior.output_dim:
+            raise ValueError(
+                f"the transition GP has Din = {X.shape[1]} input columns, more than x (Dx = "
+                f"{posterior.output_dim}) and g (Dg = {values.shape[1]}): a phase-aware GP "
+                "(IDDM(phase_width=...)) runs on GenericTransition"
+            )
         leaves = kernel_leaves(posterior.kernel, X.shape[1])
         weights, kinv = posterior.weights, posterior.kinv
         uniq, group, terms = _group_terms(leaves, X, values, dx)

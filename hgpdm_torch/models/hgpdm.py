@@ -476,17 +476,10 @@ class IDDM(HGPDM):
         phase_width: float | None = None,
         **kwargs: Any,
     ) -> None:
-        if phase_width is not None and (
-            isinstance(phase_width, bool)
-            or not isinstance(phase_width, int | float)
-            or not 0 < phase_width < math.inf
-        ):
-            raise ValueError(
-                f"phase_width must be a positive number of frames or None, got {phase_width!r}"
-            )
-        self.phase_width = None if phase_width is None else float(phase_width)
+        self.phase_width = phase_width  # checked where the kernel is built
         super().__init__(sequences, intentions, latent_dim, **kwargs)
-        if self.phase_width is not None:
+        if phase_width is not None:
+            self.phase_width = float(phase_width)
             self._config["phase_width"] = self.phase_width
 
     def transition_phases(self) -> torch.Tensor:

@@ -20,6 +20,7 @@ from hgpdm_torch.inference import VariationalInference
 from hgpdm_torch.inference.intention import (
     GenericTransition,
     OnlineIntentionFilter,
+    SharedTransition,
     infer_intention,
     transition_moments,
 )
@@ -177,6 +178,10 @@ def test_phase_model_is_refused_where_no_phase_is_known(data):
         OnlineIntentionFilter(model, GRID, inducing=10)
     with pytest.raises(ValueError, match="generic path"):
         OnlineIntentionFilter(model, GRID, transition="shared")
+    post, values = model.transition_posterior(), GRID[:, None].double()
+    assert not SharedTransition.supports(post, values)
+    with pytest.raises(ValueError, match="runs on GenericTransition"):
+        SharedTransition(post, values)
     f = OnlineIntentionFilter(model, GRID)
     with pytest.raises(ValueError, match="pass phase"):
         f.transition.moments(model.latent[:1].detach(), torch.eye(2)[None].double())
