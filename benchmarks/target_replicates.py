@@ -22,9 +22,10 @@ experiment makes by cross-validation is not repeated):
   and prior chosen by the same cross-validation instead of the evidence (``select="cv"``), with
   rank 0 and 1, and the equal mixture of the beliefs of those two
   (:class:`~hgpdm_torch.inference.BeliefMixture`);
-- the phase-aware GP IDDM (``IDDM(phase_width=...)`` with
+- the phase-aware GP IDDM with a process noise per latent dim (``IDDM(phase_width=...,
+  scale_transitions=True)`` with
   :data:`~hgpdm_torch.experiments.target_prediction.PHASE_IDDM`, chosen by the cross-validation
-  of ``target_sweep --only=phase``), online at ``eps = 0.2``, and the equal mixture of its
+  of ``target_sweep --only=phase`` and ``--only="transition scales"``), online at ``eps = 0.2``, and the equal mixture of its
   beliefs (:class:`~hgpdm_torch.inference.FilterBeliefs`) with the two linear ones.
 
 Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon, the ratio to
@@ -72,7 +73,7 @@ METHODS = (
     "LinearIDDM, noise and prior by CV, T and eps by CV",
     "LinearIDDM, interaction rank 1, noise and prior by CV, T and eps by CV",
     "BeliefMixture of the last two (equal weights)",
-    "GP IDDM online, per phase (phase width 0.25, noise 0.1, g width x2: CV)",
+    "GP IDDM online, per phase, transition scales (phase width 0.25, noise 0.3, g width x2: CV)",
     "BeliefMixture of the per-phase GP IDDM and the two linear ones (equal weights)",
 )
 

@@ -51,7 +51,7 @@ STEPS = [1, 2, 3, 4]  # observation index of 320, 240, 160, 80 ms before the hit
 BASE: dict[str, Any] = {
     "dx": 6, "kernel": "linear", "steps": 40, "alpha": (0.9, 0.3, 0.1, 1e-2),
     "alpha_g": (4.0, 0.1), "eps": 0.2, "features": None, "back_constraint": None,
-    "learn_alpha": False, "model": IDDM, "phase_width": None,
+    "learn_alpha": False, "model": IDDM, "phase_width": None, "scale_transitions": False,
 }  # fmt: skip
 #: (row name, changes to BASE)
 VARIANTS: list[tuple[str, dict[str, Any]]] = [
@@ -102,16 +102,54 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
             ("80 MAP steps", {"steps": 80}),
         )
     ),
+    # an output scale per latent dim of the transition GP (IDDM(scale_transitions=True)): a
+    # process noise per latent dim
+    *(
+        (
+            f"phase width 0.25, process noise {a4:g}, g width x2, transition scales",
+            {
+                "phase_width": 0.25,
+                "alpha": (0.9, 0.3, 0.1, a4),
+                "alpha_g": (1.0, 0.1),
+                "scale_transitions": True,
+            },
+        )  # fmt: skip
+        for a4 in (0.1, 0.3, 0.03, 1.0)
+    ),
+    *(
+        (
+            f"phase width 0.25, process noise 0.3, g width x2, transition scales, {name}",
+            {
+                "phase_width": 0.25,
+                "alpha": (0.9, 0.3, 0.1, 0.3),
+                "alpha_g": (1.0, 0.1),
+                "scale_transitions": True,
+                **change,
+            },
+        )  # fmt: skip
+        for name, change in (
+            ("Dx 4", {"dx": 4}),
+            ("Dx 8", {"dx": 8}),
+            ("phase width 0.5", {"phase_width": 0.5}),
+            ("g width x4", {"alpha_g": (0.25, 0.1)}),
+        )
+    ),
+    (
+        "process noise 1e-1, g width x2, transition scales",
+        {"alpha": (0.9, 0.3, 0.1, 1e-1), "alpha_g": (1.0, 0.1), "scale_transitions": True},
+    ),
 ]
 
 
 def _fit(obs: torch.Tensor, y: torch.Tensor, cfg: dict[str, Any], seed: int) -> IDDM:
     torch.manual_seed(seed)
-    phase = {} if cfg["phase_width"] is None else {"phase_width": cfg["phase_width"]}
+    extra = {} if cfg["phase_width"] is None else {"phase_width": cfg["phase_width"]}
+    if cfg["scale_transitions"]:
+        extra["scale_transitions"] = True
     model = cfg["model"](
         list(obs), y, cfg["dx"], intention="continuous", measurement=cfg["kernel"],
         alpha=cfg["alpha"], alpha_g=cfg["alpha_g"], learn_alpha=cfg["learn_alpha"],
-        back_constraint=cfg["back_constraint"], init=supervised_init(obs, y, cfg["dx"]), **phase,
+        back_constraint=cfg["back_constraint"], init=supervised_init(obs, y, cfg["dx"]), **extra,
     )  # fmt: skip
     with warnings.catch_warnings():  # short fits do not converge; FitResult says so
         warnings.simplefilter("ignore")

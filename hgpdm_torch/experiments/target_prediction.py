@@ -26,8 +26,9 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
   and prior chosen by that cross-validation instead of the evidence (``select="cv"``), and the
   equal mixture of the beliefs of those two (:class:`~hgpdm_torch.inference.BeliefMixture`);
 - the phase-aware IDDM (not in the thesis; :data:`PHASE_IDDM`: transitions that change along the
-  stroke, its process noise and g width chosen by the cross-validation of ``python -m
-  benchmarks target_sweep --only=phase``) with the selected kernel and Dx, online, and the equal
+  stroke with a process noise per latent dim, its noise and g width chosen by the
+  cross-validation of ``python -m benchmarks target_sweep --only=phase`` and
+  ``--only="transition scales"``) with the selected kernel and Dx, online, and the equal
   mixture of its beliefs with those of the two linear IDDMs;
 - how often the online belief's 90% credible set over the grid holds the grid value nearest to
   the true target (at the four horizons), at ``T = 1`` and with the evidence temperature fitted
@@ -118,13 +119,16 @@ def supervised_init(obs: torch.Tensor, targets: torch.Tensor, latent_dim: int) -
 
 #: the IDDM's kernel settings in this experiment (the thesis's kernel)
 THESIS_IDDM: dict[str, Any] = {"alpha": (0.9, 0.3, 0.1, 1e-2), "alpha_g": (4.0, 0.1)}
-#: the phase-aware IDDM (``IDDM(phase_width=...)``, not in the thesis): transitions that change
-#: along the stroke (a width of 0.25 frames keeps the phases apart), a process noise of 0.1 and
-#: twice the g width; chosen among the phase widths 0.25-4 and these noises and widths by 5-fold
-#: cross-validation on the 100 training strokes of seed 0 (``python -m benchmarks target_sweep
-#: --only=phase``: 34.7 against 38.0 cm at 80 ms, GPR 34.9; docs page "Target prediction")
+#: the phase-aware IDDM (``IDDM(phase_width=..., scale_transitions=True)``, not in the thesis):
+#: transitions that change along the stroke (a width of 0.25 frames keeps the phases apart), a
+#: process noise per latent dim (``alpha_4 / v_d^2``, alpha_4 = 0.3) and twice the g width;
+#: chosen among the phase widths 0.25-4, these noises (0.03-1) and widths, Dx 4-10, with and
+#: without the scales, by 5-fold cross-validation on the 100 training strokes of seed 0
+#: (``python -m benchmarks target_sweep --only=phase`` and ``--only="transition scales"``: 32.5
+#: against 38.0 cm at 80 ms for the thesis's kernel, GPR 34.9; docs page "Target prediction")
 PHASE_IDDM: dict[str, Any] = {
-    "phase_width": 0.25, "alpha": (0.9, 0.3, 0.1, 0.1), "alpha_g": (1.0, 0.1),
+    "phase_width": 0.25, "alpha": (0.9, 0.3, 0.1, 0.3), "alpha_g": (1.0, 0.1),
+    "scale_transitions": True,
 }  # fmt: skip
 
 
@@ -379,8 +383,8 @@ def target_prediction(
     belief = member.beliefs(obs_test, grid)
     ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
     for key, name, b in (
-        ("phase iddm", f"IDDM online eps={forgetting}, per phase (phase width, noise, g width "
-         "by CV)", belief),
+        ("phase iddm", f"IDDM online eps={forgetting}, per phase, transition scales (phase "
+         "width, noise, g width by CV)", belief),
         ("phase iddm + linear mixture", "BeliefMixture of the per-phase IDDM and the two linear "
          "IDDMs (equal weights)", BeliefMixture([member, *mixture.models]).beliefs(obs_test, grid)),
     ):  # fmt: skip

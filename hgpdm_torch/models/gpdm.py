@@ -24,6 +24,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gpytorch
+import numpy as np
 import torch
 from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.kernels import Kernel
@@ -46,7 +47,7 @@ _FIT_OPTIONS = {"ftol", "gtol", "patience", "max_eval", "restarts", "restart_sca
 NOISE_FLOOR = 1e-6
 SequencesLike = Sequence[Any] | torch.Tensor
 #: Hyperparameters with a prior in Eq. 6, the keys of the ``priors`` argument of :class:`GPDM`.
-PRIOR_NAMES = ("beta1", "measurement_noise", "scales", "transition_noise")
+PRIOR_NAMES = ("beta1", "measurement_noise", "scales", "transition_noise", "transition_scales")
 
 
 # Prior closures are module-level functions, not lambdas, so that models pickle (torch.save of the
@@ -68,6 +69,11 @@ def _log_scales(model: GPDM) -> torch.Tensor:
 
 def _log_transition_noise(model: GPDM) -> torch.Tensor:
     return model.transition_noise.log()
+
+
+def _log_transition_scales(model: GPDM) -> torch.Tensor:
+    """``log v_d`` of the transition GP's output scales (``scale_transitions=True``)."""
+    return model.transition_scales.log()
 
 
 def _check_priors(priors: Mapping[str, Prior | None] | None) -> dict[str, Prior | None]:
@@ -136,8 +142,9 @@ class GPDM(gpytorch.Module):
             :mod:`hgpdm_torch.expectations`. ``model.measurement`` is the name, or ``"custom"``.
         priors: priors of the hyperparameters of Eq. 6, replacing the defaults key by key:
             ``"beta1"`` (width of the ``"rbf"`` measurement kernel), ``"measurement_noise"``,
-            ``"scales"`` (each w_d of a varying dim) and ``"transition_noise"`` (alpha_4, in the
-            loss only while it is learned). Each is a gpytorch ``Prior`` over the **natural log**
+            ``"scales"`` (each w_d of a varying dim), ``"transition_noise"`` (alpha_4, in the
+            loss only while it is learned) and ``"transition_scales"`` (each v_d, with
+            ``scale_transitions``). Each is a gpytorch ``Prior`` over the **natural log**
             of the hyperparameter, or ``None`` for none; the defaults
             (:meth:`default_priors`) are ``NormalPrior(0, 1)``, and
             ``NormalPrior(log alpha[3], NOISE_PRIOR_SD)`` for alpha_4.
@@ -148,6 +155,11 @@ class GPDM(gpytorch.Module):
         learn_noise: learn the process noise alpha_4 with a weak log-normal prior centred on
             ``alpha[3]`` (log-space standard deviation :attr:`NOISE_PRIOR_SD`); default
             ``False`` keeps it fixed (the thesis's setting, better on real data so far).
+        scale_transitions: learn an output scale ``v_d`` per latent dim for the transition GP
+            (not in the thesis; default ``False``): Eq. 5 then models ``X_out diag(v)`` like Eq. 4
+            models ``Z W``, so latent dim d has its own process noise ``alpha_4 / v_d^2`` (and
+            prior variance ``k_x / v_d^2``). Every inference path takes it through the
+            transition posterior's ``scale``.
         learn_measurement_width: learn the RBF measurement kernel's width beta_1 (default);
             ``False`` keeps it at its initial value. With free latents the MAP width shrinks as
             the fit proceeds until the measurement GP interpolates single training frames,
@@ -171,6 +183,9 @@ class GPDM(gpytorch.Module):
     transition_kind = "gpdm"
     #: Standard deviation of the log-normal prior of a learned process noise alpha_4.
     NOISE_PRIOR_SD = 2.0
+    #: whether the transition GP has an output scale per latent dim (class default: models
+    #: pickled before the option existed have none)
+    scale_transitions = False
 
     def __init__(
         self,
@@ -183,6 +198,7 @@ class GPDM(gpytorch.Module):
         learn_alpha: bool = False,
         learn_noise: bool = False,
         learn_measurement_width: bool = True,
+        scale_transitions: bool = False,
         back_constraint: str | torch.nn.Module | None = None,
         init: str | torch.Tensor = "pca",
         dtype: torch.dtype = torch.float64,
@@ -199,6 +215,8 @@ class GPDM(gpytorch.Module):
                 "measurement must be 'rbf', 'linear' or a gpytorch Kernel, got "
                 f"{type(measurement).__name__}"
             )
+        if not isinstance(scale_transitions, bool | np.bool_):
+            raise TypeError(f"scale_transitions must be a bool, got {scale_transitions!r}")
         alpha = tuple(float(a) for a in alpha)
         if len(alpha) != 4 or not all(a > 0 for a in alpha):
             raise ValueError(f"alpha must be 4 positive numbers [a1, a2, a3, a4], got {alpha}")
@@ -296,6 +314,17 @@ class GPDM(gpytorch.Module):
         self.register_constraint("raw_transition_noise", GreaterThan(NOISE_FLOOR))
         self.transition_noise = alpha[3]
         self._register_log_prior(self, "transition_noise", hyper_priors, _log_transition_noise)
+        self.scale_transitions = bool(scale_transitions)
+        if self.scale_transitions:
+            self._config["scale_transitions"] = True
+            self.register_parameter(
+                "raw_transition_scales", torch.nn.Parameter(z.new_zeros(latent_dim, dtype=dtype))
+            )
+            self.register_constraint("raw_transition_scales", Positive())
+            self.transition_scales = 1.0
+            self._register_log_prior(
+                self, "transition_scales", hyper_priors, _log_transition_scales
+            )
         self.learn_alpha = learn_alpha
         self.learn_noise = learn_noise or learn_alpha
         self.to(device=device, dtype=dtype)  # the kernels' parameters too
@@ -309,14 +338,15 @@ class GPDM(gpytorch.Module):
             alpha4: the initial process noise ``alpha[3]``, the centre of its prior.
 
         Returns:
-            ``{"beta1", "measurement_noise", "scales": NormalPrior(0, 1), "transition_noise":
-            NormalPrior(log alpha4, NOISE_PRIOR_SD)}``.
+            ``{"beta1", "measurement_noise", "scales", "transition_scales": NormalPrior(0, 1),
+            "transition_noise": NormalPrior(log alpha4, NOISE_PRIOR_SD)}``.
         """
         return {
             "beta1": NormalPrior(0.0, 1.0),
             "measurement_noise": NormalPrior(0.0, 1.0),
             "scales": NormalPrior(0.0, 1.0),
             "transition_noise": NormalPrior(math.log(alpha4), cls.NOISE_PRIOR_SD),
+            "transition_scales": NormalPrior(0.0, 1.0),
         }
 
     @staticmethod
@@ -437,6 +467,27 @@ class GPDM(gpytorch.Module):
         self._set_constrained("scales", value)
 
     @property
+    def transition_scales(self) -> torch.Tensor:
+        """``[Dx]`` output scales ``v_d`` of the transition GP (ones without
+        ``scale_transitions``): latent dim d has process noise ``alpha_4 / v_d^2``."""
+        if not self.scale_transitions:
+            return self.latent.new_ones(self.latent_dim)
+        return self._constrained("transition_scales")
+
+    @transition_scales.setter
+    def transition_scales(self, value: float | torch.Tensor) -> None:
+        if not self.scale_transitions:
+            raise ValueError("transition_scales needs a model built with scale_transitions=True")
+        self._set_constrained("transition_scales", value)
+
+    def transition_posterior_scale(self) -> torch.Tensor | None:
+        """``[Dx]`` predictive scale ``1 / v_d`` of the transition posterior, or ``None``
+        without ``scale_transitions`` (the posterior's default of ones)."""
+        if not self.scale_transitions:
+            return None
+        return 1.0 / self.transition_scales.detach()
+
+    @property
     def transition_noise(self) -> torch.Tensor:
         """alpha_4, the white noise of the transition kernel."""
         return self._constrained("transition_noise")
@@ -510,11 +561,17 @@ class GPDM(gpytorch.Module):
         self, inputs: torch.Tensor, targets: torch.Tensor, noise: torch.Tensor | None = None
     ) -> torch.Tensor:
         """``-log N(targets; 0, K_x(inputs) + alpha_4 I)`` per output column, summed (Eq. 5);
-        ``noise`` replaces alpha_4 (default :attr:`transition_noise`)."""
+        ``noise`` replaces alpha_4 (default :attr:`transition_noise`). With
+        ``scale_transitions`` column d is ``N(v_d targets_d; 0, K_x + alpha_4 I)``, whose
+        density in ``targets_d`` carries the Jacobian ``v_d^m`` (m rows), as Eq. 4's W."""
         noise = self.transition_noise if noise is None else noise
         k = self.transition_kernel(inputs).to_dense()
         k = k + noise * torch.eye(k.shape[0], dtype=k.dtype, device=k.device)
-        return gaussian_nll(k, targets, name="transition kernel matrix K_x")
+        if not self.scale_transitions:
+            return gaussian_nll(k, targets, name="transition kernel matrix K_x")
+        v = self.transition_scales
+        nll = gaussian_nll(k, targets * v, name="transition kernel matrix K_x")
+        return nll - targets.shape[0] * v.log().sum()
 
     def transition_block_noise(self, rows: torch.Tensor) -> torch.Tensor:
         """Process noise alpha_4 of the block of transition pairs ``rows`` (one of
@@ -656,6 +713,7 @@ class GPDM(gpytorch.Module):
                 self.transition_inputs(x),
                 self.transition_targets(x),
                 self.transition_noise.detach(),
+                scale=self.transition_posterior_scale(),
             )
 
     def _rollout_inputs(self, x: torch.Tensor, g: Any, step: int) -> torch.Tensor:

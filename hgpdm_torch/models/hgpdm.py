@@ -251,7 +251,8 @@ class HGPDM(GPDM):
             new = torch.full_like(self.value_noise, float(self.transition_noise))
             for rows in self.transition_blocks():
                 code = int(self.intentions[self.seq_of_src[rows[0]], 0])
-                k, y = self.transition_kernel(inputs[rows]).to_dense(), targets[rows]
+                k = self.transition_kernel(inputs[rows]).to_dense()
+                y = targets[rows] * self.transition_scales  # Eq. 5's columns, scaled
 
                 def neg_log_post(
                     log_noise: float, k: torch.Tensor = k, y: torch.Tensor = y
@@ -298,6 +299,7 @@ class HGPDM(GPDM):
                 self.transition_targets(x),
                 self.value_noise[codes],
                 code_noise=self.value_noise,
+                scale=self.transition_posterior_scale(),
             )
 
     def intention_codes(self) -> torch.Tensor:

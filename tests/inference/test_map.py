@@ -52,6 +52,12 @@ def test_log_joint_matches_reference(hgpdm, data, generator):
     inf = MAPInference(gpdm)
     lj = inf.log_joint(z, x[:1])
     torch.testing.assert_close(lj[0], _reference_log_joint(gpdm, z, x[0], None))
+    # a process noise per latent dim: the reference's predict scales the variances itself
+    scaled = GPDM(data.sequences, 2, alpha=(0.9, 1.0, 0.1, 0.01), scale_transitions=True)
+    scaled.transition_scales = torch.tensor([0.4, 3.0])
+    lj = MAPInference(scaled).log_joint(z, x[:1])
+    torch.testing.assert_close(lj[0], _reference_log_joint(scaled, z, x[0], None))
+    assert not torch.allclose(lj[0], MAPInference(gpdm).log_joint(z, x[:1])[0])
 
 
 def test_infer_maximises_and_forecasts(hgpdm, data):

@@ -51,6 +51,15 @@ def shared(styles):
 
 
 @pytest.fixture(scope="module")
+def scaled(styles):
+    """An H-GPDM with an output scale per latent dim of its transition GP, set far apart."""
+    model = HGPDM(styles.sequences, styles.labels, 2, alpha=ALPHA, scale_transitions=True)
+    model.fit(5, warn=False)
+    model.transition_scales = torch.tensor([0.5, 2.0])
+    return model
+
+
+@pytest.fixture(scope="module")
 def iddm():
     data = targeted_movements(4, 10, 4, seed=2)
     model = HGPDM(
@@ -106,7 +115,7 @@ def _check_mc(F, samples):
     assert torch.all((mean - F).abs() < 4.0 * se + 1e-8), (F, mean, se)
 
 
-@pytest.mark.parametrize("name", ["hgpdm", "shared"])
+@pytest.mark.parametrize("name", ["hgpdm", "shared", "scaled"])
 def test_free_energy_matches_pyro_monte_carlo_discrete(name, styles, request):
     model = request.getfixturevalue(name)
     torch.manual_seed(0)
@@ -371,13 +380,16 @@ def test_bad_input(hgpdm, styles):
         VariationalInference(hgpdm, g_prior=[1.0] + [0.0] * (k - 1))
 
 
-def test_precision_blocks_equal_jacobian_of_whitened_residuals(hgpdm, styles):
+@pytest.mark.parametrize("name", ["hgpdm", "scaled"])
+def test_precision_blocks_equal_jacobian_of_whitened_residuals(name, styles, request):
     """Gauss-Newton precision J^T J against autograd's Jacobian of the residuals built from
-    GPPosterior.predict (gpytorch kernels), variances frozen at the expansion point."""
-    vb = VariationalInference(hgpdm)
+    GPPosterior.predict (gpytorch kernels, which scale the transition variance per latent dim
+    for ``scaled``), variances frozen at the expansion point."""
+    model = request.getfixturevalue(name)
+    vb = VariationalInference(model)
     z = _window(styles.sequences[1], 3, 4, missing=(2,))
     observed = ~torch.isnan(z).all(-1)
-    x0 = hgpdm.latent.detach()[5:9] + 0.05
+    x0 = model.latent.detach()[5:9] + 0.05
     h, f = vb.measurement, vb.transition
     code = torch.ones(3, 1)
     vz = h.predict(x0, include_noise=True)[1]

@@ -100,10 +100,15 @@ def dense_negative_log_posterior(model: GPDM) -> float:
     seq = np.repeat(np.arange(len(lengths)), lengths - 1)
     gin = model.intentions.numpy()[seq] if hasattr(model, "intentions") else None
     kx = _transition_gram(model, x[src], gin) + float(model.transition_noise) * np.eye(len(src))
-    xout = x[src + 1]
+    # scale_transitions: column d of Eq. 5 is v_d x_out,d ~ N(0, K_x), Jacobian v_d^m
+    v = model.transition_scales.detach().numpy()
+    xout = x[src + 1] * v
     log_px = sum(
         multivariate_normal.logpdf(xout[:, d], np.zeros(len(src)), kx) for d in range(x.shape[1])
     )
+    log_px += len(src) * np.log(v).sum()
+    if model.scale_transitions:
+        log_prior += norm.logpdf(np.log(v)).sum()
     log_px += norm.logpdf(x[starts]).sum()
     log_prior += norm.logpdf(np.log(noise)) + norm.logpdf(np.log(w)).sum()
     if model.learn_noise:  # weak log-normal prior of a learned alpha_4, centred on alpha-bar
@@ -132,6 +137,11 @@ CASES = [
     ),
     ("hgpdm-discrete-shared", lambda s: HGPDM(s, [0, 1, 0, 2], 2, num_values=3, sharing=0.4)),
     ("iddm-discrete-shared", lambda s: IDDM(s, [0, 1, 1, 0], 2, sharing=0.7)),
+    ("gpdm-scaled", lambda s: GPDM(s, 2, scale_transitions=True)),
+    (
+        "iddm-discrete-scaled",
+        lambda s: IDDM(s, [0, 1, 1, 0], 2, measurement="linear", scale_transitions=True),
+    ),
 ]
 
 

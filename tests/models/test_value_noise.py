@@ -62,6 +62,17 @@ def fitted(styles) -> IDDM:
     return model
 
 
+@pytest.fixture(scope="module")
+def scaled(styles) -> IDDM:
+    """Per-value noises and an output scale per latent dim (``scale_transitions``)."""
+    model = make(styles, noise_per_value=True, scale_transitions=True)
+    model.fit(15, warn=False)
+    with torch.no_grad():
+        model.transition_scales = torch.tensor([0.6, 1.0, 2.5])
+    model.estimate_value_noise()
+    return model
+
+
 # ----- GPPosterior with a noise per training point and per code ---------------------------------
 
 
@@ -154,14 +165,16 @@ def test_equal_value_noises_give_the_shared_model(styles):
     torch.testing.assert_close(beliefs[1], beliefs[0], rtol=1e-10, atol=1e-12)
 
 
-def test_estimate_maximises_each_blocks_marginal_likelihood(fitted):
-    model = fitted
+@pytest.mark.parametrize("name", ["fitted", "scaled"])
+def test_estimate_maximises_each_blocks_marginal_likelihood(name, request):
+    model = request.getfixturevalue(name)
     assert model.config()["noise_per_value"] is True
     x = model.latent.detach().numpy()
     src = model.src_index.numpy()
     codes = model.intentions[model.seq_of_src, 0].numpy()
     inputs = np.concatenate([x[src], codes[:, None]], 1)
-    targets = x[src + 1]
+    v = model.transition_scales.detach().numpy()  # ones unless scale_transitions
+    targets = x[src + 1] * v  # Eq. 5's columns, scaled by v_d
     expected = []
     centre, sd = math.log(float(model.transition_noise)), model.NOISE_PRIOR_SD
 
@@ -200,10 +213,12 @@ def test_estimate_maximises_each_blocks_marginal_likelihood(fitted):
         )
         + 0.5 * float((first**2).sum())
         + 0.5 * first.size * math.log(2 * math.pi)
+        - len(src) * float(np.log(v).sum())  # the Jacobian of the scaling
     )
     assert float(model.transition_nll().detach()) == pytest.approx(nll, rel=1e-10)
     # the posterior: each pair's own alpha_4 on the diagonal, each code's for new outputs
     post = model.transition_posterior()
+    torch.testing.assert_close(post.scale, 1.0 / model.transition_scales.detach())
     torch.testing.assert_close(post.noise, model.value_noise[torch.as_tensor(codes).long()])
     torch.testing.assert_close(post.code_noise, model.value_noise)
 

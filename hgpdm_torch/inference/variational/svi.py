@@ -114,7 +114,7 @@ def pyro_model(
             gm = guide.g_loc[..., None, None, :].expand(*plug.shape[:-1], window.g_dim)
             plug = torch.cat([plug, gm], -1)
         m_x = f.predict_point(inputs)[0]
-        var_x = f.var_at_mean(plug)[..., None]
+        var_x = f.var_at_mean(plug)[..., None] * window.transition.scale.pow(2)
         log_p = dist.Normal(m_x, var_x.sqrt()).log_prob(x[..., 1:, :]).sum((-1, -2))
         x1 = dist.MultivariateNormal(window.x1_mean, scale_tril=window.x1_chol)
         pyro.factor("latent_dynamics", log_p + x1.log_prob(x[..., 0, :]))

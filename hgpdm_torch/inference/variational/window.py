@@ -8,10 +8,11 @@ first state, the prior over g and the candidate values of a discrete g. On it li
 - the FIC log joint (Eq. 8-9), the MAP objective and Laplace's expansion point::
 
       log p(x_{1:T}, z_obs | g) = log N(x_1 | m_1, S_1)
-          + sum_t log N(x_{t+1} | m_x(x_t, g), sigma_x^2(x_t, g) I)
+          + sum_t log N(x_{t+1} | m_x(x_t, g), sigma_x^2(x_t, g) diag(v^-2))
           + sum_{t obs} log N(z_t | m_z(x_t), sigma_z^2(x_t) diag(scale^2)),
 
-  with its Gauss-Newton precision (block-tridiagonal in time);
+  with its Gauss-Newton precision (block-tridiagonal in time), where ``v`` are the transition
+  GP's output scales (ones but for ``scale_transitions=True``: the thesis's ``I``);
 - the negative free energy of Eq. 13 under the mean-field q of Eq. 11, in closed form::
 
       F(q, g) = sum_t E_q[log p(z_t | x_t)] + sum_t E_q[log p(x_{t+1} | x_t, g)]
@@ -140,6 +141,10 @@ class WindowModel:
             )
         self.latent_dim = model.latent_dim
         self.obs_dim = model.obs_dim
+        # [Dx] variance factors 1 / v_d^2 of a model with scale_transitions, else None (the
+        # isotropic algebra of Eq. 15-17, unchanged to the bit)
+        t_scale2 = self.transition.scale.pow(2)
+        self.t_scale2 = None if bool((t_scale2 == 1).all()) else t_scale2
         like = self.measurement.train_inputs
         opts = {"dtype": like.dtype, "device": like.device}
         self.h = GaussianInputGP(self.measurement)
@@ -275,9 +280,8 @@ class WindowModel:
         s2 = f.var_at_mean(mu_in)  # [..., K, T-1]
         m, m2 = f.mean_moments(mu_in, cov_in)
         nxt_var = cov[..., 1:, :, :].diagonal(dim1=-2, dim2=-1)
-        err = expected_sq_error(loc[..., 1:, :], nxt_var, m, m2).sum(-1)
-        dx = self.latent_dim
-        ll_x = log_density_terms(err / s2, dx * torch.log(s2), dx).sum(-1)
+        err = expected_sq_error(loc[..., 1:, :], nxt_var, m, m2)
+        ll_x = self._transition_terms(err, s2)
         # the first state's expected log prior (minus a cross-entropy) and the entropy of q
         x1 = loc[..., 0, :], scale_tril[..., 0, :, :]
         l1 = expected_log_density(*x1, self.x1_mean, self.x1_chol)
@@ -310,10 +314,18 @@ class WindowModel:
         lz = (lz * observed[..., None, :].to(lz.dtype)).sum(-1)
         inp = self.transition_inputs(x[..., :-1, :], g_loc)
         mx, vx = self.transition_gp(values).predict_point(inp)
-        dx = self.latent_dim
-        err = (x[..., 1:, :] - mx).pow(2).sum(-1)
-        lx = log_density_terms(err / vx, dx * torch.log(vx), dx).sum(-1)
+        lx = self._transition_terms((x[..., 1:, :] - mx).pow(2), vx)
         return lz + lx + log_density(x[..., 0, :], self.x1_mean, self.x1_chol)
+
+    def _transition_terms(self, err: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
+        """``sum_t log N`` of the transitions from their (expected) squared errors ``err [...,
+        T-1, Dx]`` and the GP variance ``var [..., T-1]``, isotropic (Eq. 17) or scaled per latent
+        dim (``var / v_d^2``, ``scale_transitions``) -> ``[...]``."""
+        if self.t_scale2 is None:
+            dx = self.latent_dim
+            return log_density_terms(err.sum(-1) / var, dx * torch.log(var), dx).sum(-1)
+        var = var[..., None] * self.t_scale2
+        return log_density_terms(err / var, torch.log(var), 1).sum((-1, -2))
 
     def precision_blocks(
         self,
@@ -339,14 +351,22 @@ class WindowModel:
         inp = self.transition_inputs(x[..., :-1, :], g_loc)
         _, vf, Jf = self.transition_gp(values).predict_point(inp, jacobian=True)
         Jf = Jf[..., :dx]  # d m_x / d x_t  [..., K, T-1, Dx, Dx]
-        inv = (1.0 / vf)[..., None, None]
         eye = torch.eye(dx, dtype=x.dtype, device=x.device)
         pad = torch.zeros_like(diag[..., :1, :, :])
-        diag = diag + torch.cat([Jf.transpose(-1, -2) @ Jf * inv, pad], -3)
-        diag = diag + torch.cat([pad, eye * inv], -3)
+        if self.t_scale2 is None:
+            inv = (1.0 / vf)[..., None, None]
+            diag = diag + torch.cat([Jf.transpose(-1, -2) @ Jf * inv, pad], -3)
+            diag = diag + torch.cat([pad, eye * inv], -3)
+            off = -Jf.transpose(-1, -2) * inv
+        else:  # per-dim precisions P = diag(v_d^2 / vf): J^T P J, P and -J^T P
+            inv = (1.0 / vf)[..., None] / self.t_scale2  # [..., K, T-1, Dx]
+            PJ = inv[..., None] * Jf
+            diag = diag + torch.cat([Jf.transpose(-1, -2) @ PJ, pad], -3)
+            diag = diag + torch.cat([pad, torch.diag_embed(inv)], -3)
+            off = -PJ.transpose(-1, -2)
         prior = torch.cholesky_inverse(self.x1_chol)
         diag = diag + torch.cat([prior.expand_as(pad), torch.zeros_like(diag[..., 1:, :, :])], -3)
-        return diag, -Jf.transpose(-1, -2) * inv
+        return diag, off
 
     @staticmethod
     def dense(diag: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
