@@ -132,6 +132,8 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
             ("Dx 8", {"dx": 8}),
             ("phase width 0.5", {"phase_width": 0.5}),
             ("g width x4", {"alpha_g": (0.25, 0.1)}),
+            ("learned alpha_4", {"learn_noise": True}),
+            ("80 MAP steps", {"steps": 80}),
         )
     ),
     (
@@ -144,8 +146,9 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
 def _fit(obs: torch.Tensor, y: torch.Tensor, cfg: dict[str, Any], seed: int) -> IDDM:
     torch.manual_seed(seed)
     extra = {} if cfg["phase_width"] is None else {"phase_width": cfg["phase_width"]}
-    if cfg["scale_transitions"]:
-        extra["scale_transitions"] = True
+    for flag in ("scale_transitions", "learn_noise"):
+        if cfg.get(flag):
+            extra[flag] = True
     model = cfg["model"](
         list(obs), y, cfg["dx"], intention="continuous", measurement=cfg["kernel"],
         alpha=cfg["alpha"], alpha_g=cfg["alpha_g"], learn_alpha=cfg["learn_alpha"],

@@ -10,7 +10,7 @@ trial's latent state and target histogram after the observations available at ea
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 
@@ -21,6 +21,7 @@ from .mcp import Belief
 from .stopping import belief_vector
 
 __all__ = [
+    "PHASE_IDDM",
     "BeliefConfig",
     "Beliefs",
     "decision_indices",
@@ -28,6 +29,18 @@ __all__ = [
     "fit_beliefs",
     "fit_iddm",
 ]
+
+
+#: The phase-aware IDDM's options for the simulated opponent's strokes (not in the thesis):
+#: ``IDDM(phase_width=0.25, scale_transitions=True)``, transitions that change along the stroke
+#: with a process noise per latent dim (``alpha_4 / v_d^2``, alpha_4 = 0.3), and twice the
+#: thesis's g width. Chosen by 5-fold cross-validation on the target-prediction protocol's
+#: training strokes (``python -m benchmarks target_sweep --only=phase`` and ``--only="transition
+#: scales"``; docs page "Target prediction").
+PHASE_IDDM: dict[str, object] = {
+    "phase_width": 0.25, "alpha": (0.9, 0.3, 0.1, 0.3), "alpha_g": (1.0, 0.1),
+    "scale_transitions": True,
+}  # fmt: skip
 
 
 def decision_indices(obs_times: torch.Tensor, start_times: tuple[float, ...]) -> list[int]:
@@ -48,7 +61,8 @@ class Beliefs:
 
     ``mean [n, T, Dx]``, ``cov [n, T, Dx, Dx]`` and ``log_prob [n, T, K]`` are the online
     filter's latent state and target histogram after the observations available at each of the
-    ``T`` decision times; ``train``/``test`` index the trials.
+    ``T`` decision times; ``train``/``test`` index the trials. ``phases`` (a phase-aware IDDM
+    only) is the frame index of the state at each decision time.
     """
 
     model: IDDM
@@ -58,6 +72,7 @@ class Beliefs:
     log_prob: torch.Tensor
     train: torch.Tensor
     test: torch.Tensor
+    phases: list[int] | None = None
 
     def vectors(self) -> torch.Tensor:
         """``[n, T, F]`` belief vectors (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
@@ -65,7 +80,8 @@ class Beliefs:
 
     def belief(self, i: int, t: int) -> Belief:
         """The planner's :class:`~hgpdm_torch.decision.mcp.Belief` of trial ``i`` at step ``t``."""
-        return Belief(self.mean[i, t], self.cov[i, t], self.log_prob[i, t])
+        phase = None if self.phases is None else self.phases[t]
+        return Belief(self.mean[i, t], self.cov[i, t], self.log_prob[i, t], phase)
 
 
 class BeliefConfig(Protocol):
@@ -128,14 +144,17 @@ def fit_beliefs(
     return filter_beliefs(model, obs, steps_at, config, train, test)
 
 
-def fit_iddm(obs: torch.Tensor, targets: torch.Tensor, config: BeliefConfig) -> IDDM:
+def fit_iddm(
+    obs: torch.Tensor, targets: torch.Tensor, config: BeliefConfig, **options: Any
+) -> IDDM:
     """The IDDM of :func:`fit_beliefs` fitted on all the strokes ``obs [J, T_obs, Dz]`` with
     targets ``[J]`` (``config.fit_steps`` steps, no warning: ``model.fit_result`` says whether
-    it converged)."""
+    it converged); ``options`` override the config's ``alpha``/``alpha_g`` and add IDDM options
+    (e.g. :data:`PHASE_IDDM`)."""
+    kernel = {"alpha": config.alpha, "alpha_g": config.alpha_g} | options
     model = IDDM(
-        list(obs), targets, config.latent_dim,
-        intention="continuous", measurement="linear", alpha=config.alpha, alpha_g=config.alpha_g,
-        init=config.initial_latents(obs, targets),
+        list(obs), targets, config.latent_dim, intention="continuous", measurement="linear",
+        init=config.initial_latents(obs, targets), **kernel,
     )  # fmt: skip
     # a step budget, not a convergence promise: the experiments report model.fit_result (whether
     # the criteria were met, and why it stopped) in their results instead of a warning
@@ -167,4 +186,5 @@ def filter_beliefs(
     stack = [torch.stack(v, 1) for v in (means, covs, logs)]
     train = torch.zeros(0, dtype=torch.long) if train is None else train
     test = torch.arange(obs.shape[0]) if test is None else test
-    return Beliefs(model, f, *stack, train, test)
+    phases = list(steps_at) if f.phase else None  # x_t after observation t is frame t
+    return Beliefs(model, f, *stack, train, test, phases)

@@ -109,20 +109,27 @@ class Belief:
         mean: ``[Dx]`` mean of ``q(x_t)`` (shared by all intentions).
         cov: ``[Dx, Dx]`` its covariance.
         log_prob: ``[K]`` normalised ``log p(g_k | z_{1:t})`` over the filter's grid.
+        phase: the frame index of ``x_t`` from the stream's start (its filter's ``steps - 1``):
+            required for, and only for, a phase-aware IDDM (``IDDM(phase_width=...)``), whose
+            transition out of ``x_t`` depends on it.
     """
 
     mean: torch.Tensor
     cov: torch.Tensor
     log_prob: torch.Tensor
+    phase: int | None = None
 
     @classmethod
     def from_filter(cls, belief_filter: OnlineIntentionFilter, stream: int = 0) -> Belief:
-        """The current belief of stream ``stream`` of an online filter (copied)."""
+        """The current belief of stream ``stream`` of an online filter (copied; with its phase
+        for a phase-aware IDDM)."""
         _check_filter(belief_filter)
+        phase = int(belief_filter.steps[stream]) - 1 if belief_filter.phase else None
         return cls(
             belief_filter.mean[stream].clone(),
             belief_filter.cov[stream].clone(),
             belief_filter.log_belief[stream].clone(),
+            phase,
         )
 
     def vector(self) -> torch.Tensor:
@@ -184,6 +191,7 @@ class _Shared:
     post_cov: torch.Tensor  # [K, Dx, Dx]  P - C S^-1 C^T
     x_chol: torch.Tensor  # [Dx, Dx]  chol of Cov[x_t] (for sampling="points")
     mean: torch.Tensor  # [Dx]
+    phase: torch.Tensor | None  # [1] frame index of x_t for a phase-aware IDDM
 
 
 def _randn(
@@ -293,11 +301,6 @@ class ParticleProjector:
                 "MonteCarloPlanner replays the filter's predictive-evidence update; got a filter "
                 f"with evidence={belief_filter.evidence!r}"
             )
-        if getattr(belief_filter, "phase", False):
-            raise ValueError(
-                "MonteCarloPlanner's beliefs carry no phase: a phase-aware IDDM (phase_width "
-                "set) is not supported; plan with a model without phase_width"
-            )
         check_choice(sampling, "sampling", ("moments", "points"))
         self.filter, self.sampling = belief_filter, sampling
         self.measurement = model.measurement_posterior()
@@ -336,16 +339,30 @@ class ParticleProjector:
             )
         for name in ("mean", "cov", "log_prob"):
             as_tensor(getattr(belief, name), f"belief.{name}", allow_nan=False)
+        phase = belief.phase
+        if f.phase != (phase is not None):
+            raise ValueError(
+                "a phase-aware IDDM's belief needs its phase (Belief.from_filter sets it: the "
+                "frame index of x_t)"
+                if f.phase
+                else "belief.phase is for a phase-aware IDDM (phase_width set) only; got "
+                f"phase={phase!r}"
+            )
+        if phase is not None and (
+            isinstance(phase, bool) or not isinstance(phase, int) or phase < 0
+        ):
+            raise ValueError(f"belief.phase must be an int >= 0, got {phase!r}")
         # Stop values and projected values must read the same histogram: normalise once here.
         log_prob = belief.log_prob - torch.logsumexp(belief.log_prob, -1)
-        return Belief(belief.mean, belief.cov, log_prob)
+        return Belief(belief.mean, belief.cov, log_prob, phase)
 
     def _shared(self, belief: Belief) -> _Shared:
         """The K predictions and their joints with ``z_{t+1}``, computed once per decision."""
         f = self.filter
         m = belief.mean.to(f.dtype)[None]
         P = belief.cov.to(f.dtype)[None]
-        mean, cov, _ = f.transition.moments(m, P)  # [1, K, Dx(, Dx)]
+        phase = None if belief.phase is None else m.new_full((1,), float(belief.phase))
+        mean, cov, _ = f.transition.moments(m, P, phase)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
         gp_dtype = self.measurement.train_inputs.dtype
         with settings.internal_step():  # the filter's own predictions
@@ -375,6 +392,7 @@ class ParticleProjector:
             post_cov=post_cov,
             x_chol=psd_cholesky(P[0], name="belief covariance"),
             mean=m[0],
+            phase=phase,
         )
 
     def _sample_observations(
@@ -392,7 +410,10 @@ class ParticleProjector:
             return shared.z_mean[g] + (shared.z_chol[g] @ eps)[..., 0]
         dx = shared.mean.shape[0]
         x = shared.mean + _randn((num, dx), generator, shared.mean) @ shared.x_chol.T
-        gx = torch.cat([x, f.values[g]], -1).to(self.transition.train_inputs.dtype)
+        known = [x, f.values[g]]
+        if shared.phase is not None:  # a phase-aware IDDM's last input column
+            known.append(shared.phase.expand(num, 1))
+        gx = torch.cat(known, -1).to(self.transition.train_inputs.dtype)
         m, v = self.transition.predict(gx, include_noise=True)
         x1 = m + v.sqrt() * _randn(m.shape, generator, m)
         m, v = self.measurement.predict(x1, include_noise=True)

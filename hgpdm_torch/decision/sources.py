@@ -10,6 +10,9 @@ decision time for Monte-Carlo planning (Algorithm 4.2, :meth:`BeliefTrack.draw_n
 - ``"gp-iddm"``: the thesis's IDDM with a linear measurement kernel and its online filter
   (:func:`~hgpdm_torch.decision.beliefs.fit_beliefs`); particles replay the filter's update
   (:class:`~hgpdm_torch.decision.mcp.ParticleProjector`).
+- ``"phase-gp-iddm"``: the same with the phase-aware IDDM (not in the thesis;
+  :data:`~hgpdm_torch.decision.beliefs.PHASE_IDDM`: transitions that change along the stroke
+  and a process noise per latent dim); particles replay its filter at the belief's phase.
 - ``"linear-iddm"``: the equal :class:`~hgpdm_torch.inference.BeliefMixture` of two
   :class:`~hgpdm_torch.models.LinearIDDM` (without and with the rank-1 interaction, noise,
   prior, temperature and forgetting by cross-validation), the best target predictor of the
@@ -40,25 +43,29 @@ from typing import Any
 import torch
 
 from ..validation import as_tensor, check_choice
-from .beliefs import BeliefConfig, Beliefs, filter_beliefs, fit_iddm
+from .beliefs import PHASE_IDDM, BeliefConfig, Beliefs, filter_beliefs, fit_iddm
 from .mcp import ParticleProjector
 from .stopping import _belief_vector
 
 __all__ = [
     "BELIEF_SOURCES",
     "FEATURES",
+    "PLAYER_SOURCES",
     "SELECTABLE_SOURCES",
     "BeliefTrack",
     "moment_vector",
     "track_beliefs",
 ]
 
-BELIEF_SOURCES = ("gp-iddm", "linear-iddm", "oracle")
+BELIEF_SOURCES = ("gp-iddm", "phase-gp-iddm", "linear-iddm", "oracle")
 """Every belief source :func:`track_beliefs` builds."""
 
 SELECTABLE_SOURCES = ("linear-iddm", "gp-iddm")
-"""The sources a player may decide on (the oracle knows the answer: a reference row only); the
-order breaks ties of the cross-validated choice."""
+"""The candidates of a player's cross-validated choice of source (``belief="auto"``); the order
+breaks ties."""
+
+PLAYER_SOURCES = (*SELECTABLE_SOURCES, "phase-gp-iddm")
+"""Every source a player may be given (the oracle knows the answer: a reference row only)."""
 
 FEATURES = ("moments", "rbf")
 """Decision features of a belief (module docstring)."""
@@ -182,8 +189,9 @@ def track_beliefs(
             f"observation ahead), got {steps_at}"
         )
     grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size, dtype=obs.dtype)
-    if source == "gp-iddm":
-        return _gp_track(train_obs, train_targets, obs, steps_at, config, grid)
+    if source in ("gp-iddm", "phase-gp-iddm"):
+        options = PHASE_IDDM if source == "phase-gp-iddm" else {}
+        return _gp_track(source, train_obs, train_targets, obs, steps_at, config, grid, options)
     if source == "linear-iddm":
         return _linear_track(train_obs, train_targets, obs, steps_at, grid)
     nearest = (grid[None] - targets[:, None]).abs().argmin(-1)
@@ -197,13 +205,13 @@ def track_beliefs(
 
 
 def _gp_track(
-    train_obs: torch.Tensor, train_targets: torch.Tensor, obs: torch.Tensor, steps_at: list[int],
-    config: BeliefConfig, grid: torch.Tensor,
+    source: str, train_obs: torch.Tensor, train_targets: torch.Tensor, obs: torch.Tensor,
+    steps_at: list[int], config: BeliefConfig, grid: torch.Tensor, options: dict[str, Any],
 ) -> BeliefTrack:  # fmt: skip
     # at most config.iddm_trials of the training strokes (the GP's cost grows as their cube)
     gen = torch.Generator().manual_seed(config.seed)
     chosen = torch.randperm(len(train_obs), generator=gen)[: config.iddm_trials]
-    model = fit_iddm(train_obs[chosen], train_targets[chosen], config)
+    model = fit_iddm(train_obs[chosen], train_targets[chosen], config, **options)
     beliefs = filter_beliefs(model, obs, steps_at, config)
     projector = ParticleProjector(beliefs.model, beliefs.belief_filter)
 
@@ -213,7 +221,7 @@ def _gp_track(
 
     fits = [beliefs.model.fit_result.summary()]
     prob = beliefs.log_prob.exp()
-    return BeliefTrack("gp-iddm", prob, grid, steps_at, beliefs, fits, _sampler=sample)
+    return BeliefTrack(source, prob, grid, steps_at, beliefs, fits, _sampler=sample)
 
 
 def _linear_track(

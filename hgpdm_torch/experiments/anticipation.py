@@ -59,7 +59,7 @@ from ..decision.policies import (
     planning_policy,
     stop_only_q,
 )
-from ..decision.sources import FEATURES, SELECTABLE_SOURCES, track_beliefs
+from ..decision.sources import FEATURES, PLAYER_SOURCES, SELECTABLE_SOURCES, track_beliefs
 from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
 from ..parallel import Executor, get_executor, ray_address_type
 from ..validation import as_tensor, check_choice
@@ -96,8 +96,9 @@ folds."""
 FIXED_TIME = "best fixed time (training folds)"
 """The row of the best fixed-time strategy (the belief's movement at one start time) chosen on
 the training folds."""
-BELIEFS = ("auto", *SELECTABLE_SOURCES)
-"""``belief`` settings: ``"auto"`` (by cross-validated return rate) or one selectable source."""
+BELIEFS = ("auto", *PLAYER_SOURCES)
+"""``belief`` settings: ``"auto"`` (by cross-validated return rate among
+:data:`~hgpdm_torch.decision.sources.SELECTABLE_SOURCES`) or one source a player may use."""
 
 
 @dataclass(frozen=True)
@@ -123,7 +124,8 @@ class AnticipationConfig:
         forgetting: the online filter's forgetting factor.
         belief: the players' belief source (:mod:`~hgpdm_torch.decision.sources`): ``"auto"``
             (per fold, the selectable source whose LSPI player returns most training strokes in
-            a 3-fold cross-validation), ``"linear-iddm"`` or ``"gp-iddm"`` (the thesis's).
+            a 3-fold cross-validation), ``"linear-iddm"``, ``"gp-iddm"`` (the thesis's) or
+            ``"phase-gp-iddm"`` (the phase-aware GP IDDM, not among auto's candidates).
         features: decision features, ``"moments"`` (belief mean, sd and step;
             :class:`~hgpdm_torch.decision.basis.MomentBasis`) or ``"rbf"`` (the thesis's RBFs
             on the belief vector, Eq. 37).
@@ -549,7 +551,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--belief", choices=BELIEFS, default="auto",
         help="the players' belief source: auto (best cross-validated return rate on the "
-        "training folds), linear-iddm or gp-iddm (the thesis's)",
+        "training folds, among linear-iddm and gp-iddm), linear-iddm, gp-iddm (the thesis's) or "
+        "phase-gp-iddm (the phase-aware GP IDDM)",
     )  # fmt: skip
     parser.add_argument(
         "--features", choices=FEATURES, default="moments",

@@ -604,8 +604,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--belief", choices=BELIEFS, default="auto",
         help="the belief source the players decide on: auto (the source with the best "
-        "cross-validated return rate on the training folds), linear-iddm or gp-iddm (the "
-        "thesis's)",
+        "cross-validated return rate on the training folds, among linear-iddm and gp-iddm), "
+        "linear-iddm, gp-iddm (the thesis's) or phase-gp-iddm (the phase-aware GP IDDM)",
     )  # fmt: skip
     parser.add_argument(
         "--features", choices=FEATURES, default="moments",

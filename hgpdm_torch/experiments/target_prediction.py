@@ -48,6 +48,7 @@ from sklearn.cross_decomposition import PLSRegression
 from tqdm.auto import tqdm
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
+from ..decision.beliefs import PHASE_IDDM
 from ..inference.calibration import calibration, fit_temperature
 from ..inference.intention import (
     BeliefMixture,
@@ -119,17 +120,6 @@ def supervised_init(obs: torch.Tensor, targets: torch.Tensor, latent_dim: int) -
 
 #: the IDDM's kernel settings in this experiment (the thesis's kernel)
 THESIS_IDDM: dict[str, Any] = {"alpha": (0.9, 0.3, 0.1, 1e-2), "alpha_g": (4.0, 0.1)}
-#: the phase-aware IDDM (``IDDM(phase_width=..., scale_transitions=True)``, not in the thesis):
-#: transitions that change along the stroke (a width of 0.25 frames keeps the phases apart), a
-#: process noise per latent dim (``alpha_4 / v_d^2``, alpha_4 = 0.3) and twice the g width;
-#: chosen among the phase widths 0.25-4, these noises (0.03-1) and widths, Dx 4-10, with and
-#: without the scales, by 5-fold cross-validation on the 100 training strokes of seed 0
-#: (``python -m benchmarks target_sweep --only=phase`` and ``--only="transition scales"``: 32.5
-#: against 38.0 cm at 80 ms for the thesis's kernel, GPR 34.9; docs page "Target prediction")
-PHASE_IDDM: dict[str, Any] = {
-    "phase_width": 0.25, "alpha": (0.9, 0.3, 0.1, 0.3), "alpha_g": (1.0, 0.1),
-    "scale_transitions": True,
-}  # fmt: skip
 
 
 def _fit_iddm(

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from hgpdm_torch.datasets import targeted_movements
+from hgpdm_torch.decision.mcp import Belief, ParticleProjector
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.inference import VariationalInference
 from hgpdm_torch.inference.intention import (
@@ -185,7 +186,48 @@ def test_phase_model_is_refused_where_no_phase_is_known(data):
     f = OnlineIntentionFilter(model, GRID)
     with pytest.raises(ValueError, match="pass phase"):
         f.transition.moments(model.latent[:1].detach(), torch.eye(2)[None].double())
-    from hgpdm_torch.decision.mcp import ParticleProjector
 
-    with pytest.raises(ValueError, match="carry no phase"):
-        ParticleProjector(model, f)
+
+def test_particles_replay_the_filter_at_the_beliefs_phase(data, gp_rounding):
+    """Monte-Carlo planning's particle update (Algorithm 4.2) of a phase-aware IDDM's belief
+    after 3 observations equals the online filter's update of streams in that belief at that
+    phase; the moment and point samplers of the next observation agree in its moments (with a
+    linear measurement kernel both are exact), and a belief without its phase is refused."""
+    model = _model(data, 0.5, fit=True)
+    f = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=2)
+    for t in range(3):
+        f.update(torch.stack([data.sequences[1][t], data.sequences[6][t]]))
+    belief = Belief.from_filter(f, 1)
+    assert belief.phase == 2  # x_t is frame 2 of the stream
+    projector = ParticleProjector(model, f)
+    gen = torch.Generator().manual_seed(4)
+    z = data.sequences[6][3] + 0.05 * torch.randn(30, model.obs_dim, generator=gen,
+                                                  dtype=torch.float64)  # fmt: skip
+    mean, cov, log_prob, rejected = projector.step(belief, z)
+    ref = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=30)
+    ref.update(torch.zeros(30, model.obs_dim, dtype=torch.float64))  # start, then overwrite
+    ref.mean[:], ref.cov[:], ref.log_belief[:] = belief.mean, belief.cov, belief.log_prob
+    ref.steps[:] = 3
+    out = ref.update(z)
+    # batched gain against per-stream updates: rounding of solves with K + noise I (test_mcp)
+    rounding = gp_rounding(f.posterior)
+    for a, b in ((log_prob, out.log_prob), (mean, ref.mean), (cov, ref.cov)):
+        torch.testing.assert_close(a, b, rtol=rounding, atol=rounding * float(b.abs().max()))
+    # another phase gives other dynamics, so the comparison above can fail
+    other = projector.step(Belief(belief.mean, belief.cov, belief.log_prob, 0), z)
+    assert (other.log_prob - log_prob).abs().max() > 1e-3
+    points = ParticleProjector(model, f, sampling="points")
+    shared = projector._shared(projector._check_belief(belief))
+    n = 20000
+    za = projector._sample_observations(shared, n, torch.Generator().manual_seed(1))
+    zb = points._sample_observations(shared, n, torch.Generator().manual_seed(2))
+    se = torch.sqrt(za.var(0) / n + zb.var(0) / n)
+    assert ((za.mean(0) - zb.mean(0)).abs() < 4.5 * se).all()
+    with pytest.raises(ValueError, match="needs its phase"):
+        projector.step(Belief(belief.mean, belief.cov, belief.log_prob), z)
+    with pytest.raises(ValueError, match="int >= 0"):
+        projector.step(Belief(belief.mean, belief.cov, belief.log_prob, -1), z)
+    plain = _model(data, None)
+    g = OnlineIntentionFilter(plain, GRID)
+    with pytest.raises(ValueError, match="phase-aware IDDM"):
+        ParticleProjector(plain, g).step(Belief(belief.mean, belief.cov, belief.log_prob, 2), z)

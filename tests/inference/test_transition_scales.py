@@ -2,19 +2,22 @@
 noise ``alpha_4 / v_d^2`` per latent dim.
 
 Oracles: the moments at a Gaussian input against Monte Carlo of an unscaled GP whose variances
-are divided by ``v_d^2`` by hand; the IDDM's shared fast path against the generic path; save and
-load. The loss is checked against the dense SciPy reference in ``tests/models/test_loss.py``, the
-window objectives (MAP log joint, VB free energy, Gauss-Newton precision) in
-``test_map.py`` / ``test_variational.py``.
+are divided by ``v_d^2`` by hand, and (with a phase) against Gauss-Hermite quadrature; the
+online filter's first prediction against GP-ADF; the IDDM's shared fast path against the generic
+path; save and load. The loss is checked against the dense SciPy reference in
+``tests/models/test_loss.py``, the window objectives (MAP log joint, VB free energy,
+Gauss-Newton precision) in ``test_map.py`` / ``test_variational.py``.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.gp import GPPosterior
+from hgpdm_torch.inference.filtering import filter_sequence
 from hgpdm_torch.inference.intention import (
     GenericTransition,
     OnlineIntentionFilter,
@@ -123,3 +126,49 @@ def test_scales_are_learned_saved_and_checked(data, tmp_path):
         GPDM(data.sequences, 2, scale_transitions="yes")
     with pytest.raises(ValueError, match="transition_scales must be finite"):
         model.transition_scales = torch.tensor([1.0, -1.0])
+
+
+def test_phase_moments_match_gauss_hermite_quadrature(data):
+    """Moments of ``x_{t+1}`` at ``x ~ N(mu, Sigma)`` (known g and phase) for the phase-aware
+    IDDM with transition scales: the closed-form kernel expectations against tensor Gauss-Hermite
+    quadrature of the GP's predictive mean and variance (60 x 60 nodes; the integrands are smooth
+    with length scale 1.8, about 8 sd of the input: the rule converges far below 1e-6)."""
+    model = _model(data, phase_width=0.7)
+    post = model.transition_posterior()
+    mu = model.latent.detach()[5]
+    A = torch.tensor([[0.08, 0.02], [0.02, 0.05]], dtype=torch.float64)
+    g, phase = 0.4, 2.0
+    mean, cov, cross = GenericTransition(post, torch.tensor([[g]], dtype=torch.float64),
+                                         phase=True).moments(
+        mu[None], A[None], torch.tensor([phase], dtype=torch.float64))  # fmt: skip
+    nodes, weights = np.polynomial.hermite_e.hermegauss(60)  # for N(0, 1)
+    w = torch.as_tensor(np.outer(weights, weights).ravel() / (2 * np.pi))
+    u = torch.as_tensor(np.stack(np.meshgrid(nodes, nodes, indexing="ij"), -1).reshape(-1, 2))
+    x = mu + u @ torch.linalg.cholesky(A).T
+    known = x.new_tensor([g, phase]).expand(len(x), 2)
+    m, v = post.predict(torch.cat([x, known], -1), include_noise=True)
+    q_mean = w @ m
+    q_cov = (w[:, None] * m).T @ m - torch.outer(q_mean, q_mean) + torch.diag(w @ v)
+    q_cross = (w[:, None] * (x - mu)).T @ (m - q_mean)
+    # rtol 1e-6 of each quantity's scale: the quadrature's error and the closed form's rounding
+    # (N = 40 training points, sums of O(1) terms) are both far below it
+    for got, want in ((mean[0, 0], q_mean), (cov[0, 0], q_cov), (cross[0, 0], q_cross)):
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6 * float(want.abs().max()))
+
+
+def test_online_first_prediction_equals_gp_adf(data, gp_rounding):
+    """The online filter's belief after two observations of a phase-aware IDDM with transition
+    scales is the softmax of GP-ADF's log-likelihoods (``filter_sequence``) with g and the
+    first frame's phase (0) known: z_1's evidence is the same for every g."""
+    model = _model(data, phase_width=0.5)
+    trans, meas = model.transition_posterior(), model.measurement_posterior()
+    f = OnlineIntentionFilter(model, GRID, forgetting=0.0, batch_size=3)
+    z = torch.stack([s[:2] for s in data.sequences[:3]])
+    f.update(z[:, 0])
+    belief = f.update(z[:, 1])
+    known = torch.stack([GRID.double(), torch.zeros(len(GRID), dtype=torch.float64)], -1)
+    ll = filter_sequence(trans, meas, z, f.mu0, f.Sigma0, g=known[:, None, :]).log_likelihood
+    # two filter steps by other code: the log-likelihoods agree to 2 gp_rounding of their
+    # scale, as in test_value_noise.py
+    rel = 2 * gp_rounding(trans, meas) * max(1.0, float(ll.abs().max()))
+    torch.testing.assert_close(belief.prob, torch.softmax(ll.T, -1), rtol=rel, atol=rel)

@@ -27,28 +27,37 @@ def _perturb(model: GPDM, seed: int = 1) -> None:
 
 
 def _transition_gram(model: GPDM, xin: np.ndarray, gin: np.ndarray | None) -> np.ndarray:
-    """The transition kernel of Sec. 2.2.1 / 3.2.2 written out with NumPy."""
+    """The transition kernel of Sec. 2.2.1 / 3.2.2 written out with NumPy; a phase-aware IDDM's
+    is that times ``exp(-(p - p')^2 / (2 w^2))`` over the frame indices p (``phase_width`` w)."""
+    if getattr(model, "phase_width", None) is not None:
+        base, phase = model.transition_kernel.kernels
+        p = model.transition_phases().numpy()
+        w = float(phase.lengthscale)
+        factor = np.exp(-0.5 * (p[:, None] - p[None, :]) ** 2 / w**2)
+        return factor * _transition_gram_of(model, base, xin, gin)
+    return _transition_gram_of(model, model.transition_kernel, xin, gin)
+
+
+def _transition_gram_of(model: GPDM, kernel, xin: np.ndarray, gin: np.ndarray | None) -> np.ndarray:
     d2 = ((xin[:, None, :] - xin[None, :, :]) ** 2).sum(-1)
     lin = xin @ xin.T
     kind = model.transition_kind
     if kind in ("discrete", "iddm_discrete"):
         same = (gin[:, None, 0] == gin[None, :, 0]).astype(float)
         if not model.sharing:
-            return same * _base_gram(model.transition_kernel.base_kernel, d2, lin)
+            return same * _base_gram(kernel.base_kernel, d2, lin)
         # rho k_0(x, x') + (1 - rho) delta(g, g') k_0(x, x'), each part with its own values
-        shared, style = model.transition_kernel.kernels
+        shared, style = kernel.kernels
         return _base_gram(shared, d2, lin) + same * _base_gram(style.base_kernel, d2, lin)
-    a1, a2, a3 = _alphas(model)
+    a1, a2, a3 = _alphas(model, kernel)
     if kind == "gpdm":
         return a1 * np.exp(-0.5 * a2 * d2) + a3 * lin
-    rbf = (
-        model.transition_kernel if kind == "iddm_continuous" else model.transition_kernel.kernels[0]
-    )
+    rbf = kernel if kind == "iddm_continuous" else kernel.kernels[0]
     a2g = float(rbf.base_kernel.kernels[1].lengthscale) ** -2  # RBF(x) * RBF(g)
     dg2 = ((gin[:, None, :] - gin[None, :, :]) ** 2).sum(-1)
     k = a1 * np.exp(-0.5 * a2 * d2 - 0.5 * a2g * dg2)
     if kind == "continuous":
-        a3g = float(model.transition_kernel.kernels[2].variance)
+        a3g = float(kernel.kernels[2].variance)
         k = k + a3 * lin + a3g * gin @ gin.T
     return k
 
@@ -62,9 +71,8 @@ def _base_gram(base, d2: np.ndarray, lin: np.ndarray) -> np.ndarray:
     return k + float(parts[1].variance) * lin if len(parts) > 1 else k
 
 
-def _alphas(model: GPDM) -> tuple[float, float, float]:
-    """``alpha_1..3`` of the gpdm and continuous kinds."""
-    k = model.transition_kernel
+def _alphas(model: GPDM, k) -> tuple[float, float, float]:
+    """``alpha_1..3`` of the gpdm and continuous kinds (transition kernel ``k``)."""
     scale = k if model.transition_kind.startswith("iddm") else k.kernels[0]
     a1 = float(scale.outputscale)
     inner = scale.base_kernel  # RBF(x), or RBF(x) * RBF(g) for the continuous kinds
@@ -138,6 +146,18 @@ CASES = [
     ("hgpdm-discrete-shared", lambda s: HGPDM(s, [0, 1, 0, 2], 2, num_values=3, sharing=0.4)),
     ("iddm-discrete-shared", lambda s: IDDM(s, [0, 1, 1, 0], 2, sharing=0.7)),
     ("gpdm-scaled", lambda s: GPDM(s, 2, scale_transitions=True)),
+    (
+        "iddm-continuous-phase-scaled",
+        lambda s: IDDM(
+            s,
+            [0.3, -0.8, 0.5, 0.0],
+            2,
+            intention="continuous",
+            measurement="linear",
+            phase_width=1.5,
+            scale_transitions=True,
+        ),
+    ),  # fmt: skip
     (
         "iddm-discrete-scaled",
         lambda s: IDDM(s, [0, 1, 1, 0], 2, measurement="linear", scale_transitions=True),
