@@ -456,7 +456,9 @@ class IDDM(HGPDM):
     a small ``w``; a large ``w`` gives back the thesis's kernel). The transition GP's inputs are
     then ``[x_t, g, p_t]``; the online filter
     (:class:`~hgpdm_torch.inference.OnlineIntentionFilter`) counts a stream's phase from its
-    (re)start, so streams must start at the frame the training sequences start at.
+    (re)start, so streams must start at the frame the training sequences start at; Monte-Carlo
+    planning reads it from the belief (:class:`~hgpdm_torch.decision.mcp.Belief` ``phase``).
+    Window inference (VB, MAP, Algorithm 3.1) has no frame count and refuses such a model.
 
     Args:
         sequences: see :class:`HGPDM`.

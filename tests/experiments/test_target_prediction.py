@@ -53,7 +53,8 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert len(covered) == 10 and all(0 <= c <= 100 for c in covered)
     # the phase-aware IDDM: the options chosen by target_sweep's CV, the selected kernel and Dx
     assert table.meta["phase_iddm"]["options"]["phase_width"] == "0.25"
-    assert any("per phase (phase width" in m for m in methods)
+    assert any("per phase, transition scales (phase width" in m for m in methods)
+    assert table.meta["phase_iddm"]["options"]["scale_transitions"] == "True"
     # the linear IDDM's prior is the evidence maximum of the training strokes
     linear = table.meta["linear_iddm"]
     strokes14 = sample_strokes(22, generator=torch.Generator().manual_seed(0))
