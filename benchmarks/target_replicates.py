@@ -23,10 +23,10 @@ experiment makes by cross-validation is not repeated):
   rank 0 and 1, and the equal mixture of the beliefs of those two
   (:class:`~hgpdm_torch.inference.BeliefMixture`);
 - the phase-aware GP IDDM with a process noise per latent dim (``IDDM(phase_width=...,
-  scale_transitions=True)`` with
-  :data:`~hgpdm_torch.experiments.target_prediction.PHASE_IDDM`, chosen by the cross-validation
-  of ``target_sweep --only=phase`` and ``--only="transition scales"``), online at ``eps = 0.2``, and the equal mixture of its
-  beliefs (:class:`~hgpdm_torch.inference.FilterBeliefs`) with the two linear ones.
+  scale_transitions=True)`` with :data:`~hgpdm_torch.decision.beliefs.PHASE_IDDM`, chosen by the
+  cross-validation of ``target_sweep --only=phase`` and ``--only="transition scales"``), online
+  at ``eps = 0.2``, and the equal mixture of its beliefs
+  (:class:`~hgpdm_torch.inference.FilterBeliefs`) with the two linear ones.
 
 Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon, the ratio to
 GPR at 80 ms with a 95% interval from a two-stage bootstrap (replicates, then strokes within
