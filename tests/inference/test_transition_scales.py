@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from gpytorch.priors import NormalPrior
 
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.gp import GPPosterior
@@ -122,6 +123,18 @@ def test_scales_are_learned_saved_and_checked(data, tmp_path):
     assert plain.transition_posterior_scale() is None
     with pytest.raises(ValueError, match="scale_transitions=True"):
         plain.transition_scales = 2.0
+    with pytest.raises(ValueError, match="applies to a model with scale_transitions"):
+        GPDM(data.sequences, 2, priors={"transition_scales": NormalPrior(0.0, 0.5)})
+    # a prior of the user's own is the one in the loss
+    tight = GPDM(data.sequences, 2, scale_transitions=True,
+                 priors={"transition_scales": NormalPrior(0.0, 0.5)})  # fmt: skip
+    tight.transition_scales = torch.tensor([2.0, 0.5], dtype=torch.float64)
+    want = -NormalPrior(0.0, 0.5).log_prob(tight.transition_scales.log()).sum()
+    default = GPDM(data.sequences, 2, scale_transitions=True)
+    default.transition_scales = torch.tensor([2.0, 0.5], dtype=torch.float64)
+    got = tight.prior_nll() - default.prior_nll()
+    torch.testing.assert_close(got, want + NormalPrior(0.0, 1.0).log_prob(
+        default.transition_scales.log()).sum())  # fmt: skip
     with pytest.raises(TypeError, match="scale_transitions must be a bool"):
         GPDM(data.sequences, 2, scale_transitions="yes")
     with pytest.raises(ValueError, match="transition_scales must be finite"):
