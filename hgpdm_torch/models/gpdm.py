@@ -226,10 +226,6 @@ class GPDM(gpytorch.Module):
                 f"priors['beta1'] applies to measurement='rbf' only, got measurement={name!r}; "
                 "give a kernel of your own its priors when you build it"
             )
-        if given_priors.get("transition_scales") is not None and not scale_transitions:
-            raise ValueError(
-                "priors['transition_scales'] applies to a model with scale_transitions=True only"
-            )
         hyper_priors = {**self.default_priors(alpha[3]), **given_priors}
         seqs = _check_sequences(sequences, dtype)
         self.latent_dim = latent_dim

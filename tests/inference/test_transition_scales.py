@@ -123,8 +123,6 @@ def test_scales_are_learned_saved_and_checked(data, tmp_path):
     assert plain.transition_posterior_scale() is None
     with pytest.raises(ValueError, match="scale_transitions=True"):
         plain.transition_scales = 2.0
-    with pytest.raises(ValueError, match="applies to a model with scale_transitions"):
-        GPDM(data.sequences, 2, priors={"transition_scales": NormalPrior(0.0, 0.5)})
     # a prior of the user's own is the one in the loss
     tight = GPDM(data.sequences, 2, scale_transitions=True,
                  priors={"transition_scales": NormalPrior(0.0, 0.5)})  # fmt: skip
