@@ -67,7 +67,14 @@ def main(argv: list[str]) -> int:
         "hgpdm walkers --protocol weird-walking --test-data (stand-ins of the test trials): "
         f"wall time, {torch.get_num_threads()} threads",
         ["part", "windows", "seconds"],
-        meta={**environment(), "quick": quick, "target seconds": 900, **options},
+        meta={
+            **environment(),
+            "quick": quick,
+            "target seconds": 900,
+            **options,
+            "model_options": result.meta["model_options"],
+            "fit_steps": result.meta["fit_steps"],
+        },
     )
     table.add(part="two MAP fits", windows=None, seconds=fits["seconds"])
     for T in options["lengths"]:

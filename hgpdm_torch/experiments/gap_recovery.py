@@ -120,7 +120,7 @@ def gap_recovery(
     short = [t for t, s in zip(test.trials, test.sequences, strict=True) if s.shape[0] < FRAMES]
     if short:
         raise ValueError(f"test trials {short} have fewer than {FRAMES} frames")
-    options = DEFAULT_OPTIONS | dict(model_options or {})
+    options = DEFAULT_OPTIONS["walkers"] | dict(model_options or {})
     # the models know only the subjects with a training trial here
     present = sorted(set(data.labels.tolist()))
     std = Standardizer().fit(data.sequences)

@@ -49,6 +49,8 @@ def test_small_cv_run_has_every_method_and_an_exact_baseline():
     assert rows["07_01"]["repeat last frame"] == pytest.approx(want, rel=1e-12)
     fits = table.meta["fits"][0]
     assert fits["held out"] == "07_01" and fits["H-GPDM"]["steps"] == 3
+    # the protocol's own CV choice (DEFAULT_OPTIONS["walkers"]) is what ran
+    assert table.meta["model_options"]["learn_measurement_width"] == "False"
 
 
 @REAL
@@ -83,8 +85,10 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     assert summary["VB H-GPDM / GPDM VB"] == pytest.approx(avg["VB H-GPDM"] / avg["GPDM VB"])
     assert set(summary["per label"]) == {"07", "35"}
     compared = compare_runs([table, table]).rows
+    # a protocol of one's own has no CV choice of options: the models' defaults ran
+    assert "learn_measurement_width" not in table.meta["model_options"]
     assert len(compared) == 2 and compared[0]["options"] == (
-        "Dx 3, 3 MAP steps, sharing 0.0, fixed measurement width"
+        "Dx 3, 3 MAP steps, sharing 0.0, learned measurement width"
     )
     assert compared[0]["VB H-GPDM / GPDM VB"] == summary["VB H-GPDM / GPDM VB"]
     assert compared[0]["ridge AR (CV) (35)"] == table.rows[1]["ridge AR (CV)"]
