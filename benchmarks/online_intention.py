@@ -17,7 +17,11 @@ per movement), Dz = 15, Dx = 4, linear measurement kernel, K = 25 grid values, o
   batched sparse update against the loop of exact single-stream updates), and the mean shift of
   the posterior over g against the exact filter;
 - ``batch window 4``: :func:`infer_intention` (Algorithm 3.1) on the last 4 observations, the
-  per-observation cost of the sliding-window batch algorithm (thesis: 300 ms).
+  per-observation cost of the sliding-window batch algorithm (thesis: 300 ms);
+- ``online phase + scales``: the phase-aware IDDM with a process noise per latent dim
+  (:data:`~hgpdm_torch.decision.beliefs.PHASE_IDDM`'s ``phase_width`` and
+  ``scale_transitions``, fitted on the same movements), one stream and B = 256 streams;
+  ``x plain`` is its time over the plain model's in the same process (target <= 2).
 
 Times are CPU time of the (single-threaded) process, ``time.process_time``: on a shared machine
 wall-clock latency also counts the time other processes hold the core. On an accelerator
@@ -30,11 +34,14 @@ B = 1, 4, ..., 4096 streams (N = 500, K = 25), the Python loop only up to B = 16
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
 from benchmarks._common import FLOAT32_NOISE, Options, parse_options
 from hgpdm_torch.datasets import targeted_movements
+from hgpdm_torch.decision.beliefs import PHASE_IDDM
 from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
 from hgpdm_torch.models import IDDM
@@ -43,16 +50,20 @@ N_SEQ, FRAMES, DZ, DX, K = 100, 6, 15, 4, 25
 
 
 def build_model(
-    fit_steps: int, device: torch.device | str = "cpu", noise: float = 1e-2, movements: int = N_SEQ
+    fit_steps: int,
+    device: torch.device | str = "cpu",
+    noise: float = 1e-2,
+    movements: int = N_SEQ,
+    **options: Any,
 ) -> tuple[IDDM, torch.Tensor, torch.Tensor]:
     """The thesis-sized IDDM (``movements`` of FRAMES frames, N = 5 ``movements`` transitions;
-    process noise ``noise``; fitted on the CPU, then moved to ``device``), the intention grid
-    and test streams ``[S, T, Dz]``."""
+    process noise ``noise``; other :class:`IDDM` ``options``; fitted on the CPU, then moved to
+    ``device``), the intention grid and test streams ``[S, T, Dz]``."""
     data = targeted_movements(movements + 40, FRAMES + 6, DZ, noise=0.05, seed=0)
     seqs = [s[:FRAMES] for s in data.sequences[:movements]]
     model = IDDM(
         seqs, data.labels[:movements], DX, intention="continuous", measurement="linear",
-        alpha=(0.9, 0.3, 0.1, noise), alpha_g=(4.0, 0.1),
+        alpha=(0.9, 0.3, 0.1, noise), alpha_g=(4.0, 0.1), **options,
     )  # fmt: skip
     model.fit(fit_steps, warn=False)  # a step budget: the timings do not depend on the fit
     grid = torch.linspace(-1.2, 1.2, K, dtype=torch.float64)
@@ -148,6 +159,7 @@ def run(opts: Options) -> ResultTable:
             "loop [ms/stream]",
             "x loop",
             "x exact loop",
+            "x plain",
             "|d mean| vs exact [cm]",
         ],  # fmt: skip
         meta={
@@ -213,7 +225,35 @@ def run(opts: Options) -> ResultTable:
         "algorithm": "batch, window 4", "dtype": "float64", "B": 1,
         "p50 [ms/obs/stream]": batch_window(opts, model, grid, streams, 2 if quick else 5),
     })  # fmt: skip
+    phase_options(opts, table, model, grid, streams, steps, movements, repeats)
     return table
+
+
+def phase_options(
+    opts: Options, table: ResultTable, model, grid, streams, steps, movements, repeats
+) -> None:
+    """The phase-aware, per-dim-noise IDDM against the plain one, timed in turn in this process
+    (one stream: p50 of the same updates; B = 256: best of three batched updates)."""
+    noise = FLOAT32_NOISE if opts.dtype == torch.float32 else 1e-2
+    phase = build_model(
+        steps, opts.device, noise, movements, phase_width=PHASE_IDDM["phase_width"],
+        scale_transitions=True,
+    )[0]  # fmt: skip
+    name = str(opts.dtype).removeprefix("torch.")
+    plain1 = single_stream(opts, model, grid, streams, opts.dtype, "predictive", repeats)[0]
+    one = single_stream(opts, phase, grid, streams, opts.dtype, "predictive", repeats)
+    B = 256
+    plainB = batched(opts, model, grid, streams, B, 0)[0]
+    manyB = batched(opts, phase, grid, streams, B, 0)[0]
+    table.add(**{
+        "algorithm": "online phase + scales", "dtype": name, "B": 1,
+        "p50 [ms/obs/stream]": one[0], "p99 [ms]": one[1], "x plain": one[0] / plain1,
+    })  # fmt: skip
+    table.add(**{
+        "algorithm": "online phase + scales batched", "dtype": name, "B": B,
+        "p50 [ms/obs/stream]": manyB, "x plain": manyB / plainB,
+    })  # fmt: skip
+    print(table.rows[-2:], flush=True)
 
 
 def main(argv: list[str]) -> int:
