@@ -85,9 +85,9 @@ METHODS = (
 #: per protocol, the model options leave-one-trial-out CV chose on its own training trials (the
 #: mean RMSE of the VB H-GPDM + AR(1) residual forecast at T = 5 and 10; docs page "Walking
 #: motion capture"). Walkers: the measurement GP's RBF width stays at its initial value (learned,
-#: it collapses onto the training frames); Weird Walking: the width is learned (kept, every GP
-#: forecast errs about twice as much, on each held-out style). A protocol of one's own gets
-#: the models' own defaults.
+#: it collapses onto the training frames); Weird Walking: the width is learned (kept, the
+#: H-GPDM's forecast errs about twice as much, worse on each held-out style). A protocol of
+#: one's own gets the models' own defaults.
 DEFAULT_OPTIONS: dict[str, dict[str, Any]] = {
     "walkers": {"learn_measurement_width": False},
     "weird-walking": {"learn_measurement_width": True},
