@@ -189,7 +189,7 @@ for name, p in preds.items():
 # latent space, but a held-out trial of subject 132 is not an exact repeat of the training
 # trials (the arms-out trials are single passes, not repeated cycles). With the measurement
 # width learned (this protocol's cross-validated choice; kept at its initial value, the
-# H-GPDM's forecasts of these trials erred two to three times as much) the H-GPDM with the
+# H-GPDM's forecasts of these trials erred 1.5 to 3 times as much) the H-GPDM with the
 # AR(1) residual forecasts the arms-out trial better than ridge regression, and knowing the
 # style beats the GPDM on the arms-out and fast trials; on the hopping and slow trials ridge
 # regression on the last frames is still better, and so it is on average in the
