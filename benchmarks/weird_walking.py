@@ -13,7 +13,7 @@ folder, to a training trial of the same style (arms out 01-05, 01, 02; fast 17-1
 the RMSEs of this run are in-sample and mean nothing; only the times are reported: the two MAP
 fits, and per window length the number of windows and the seconds of all forecasts (VB and MAP
 of both models, ridge AR, the GRU's CV and fit), with the command's defaults (the sparse
-measurement GP on at most ``walkers.DEFAULT_MEASUREMENT_POINTS`` pseudo-inputs).
+measurement GP on the protocol's ``walkers.DEFAULT_MEASUREMENT_POINTS`` pseudo-inputs).
 """
 
 from __future__ import annotations
@@ -75,6 +75,7 @@ def main(argv: list[str]) -> int:
             **options,
             "model_options": result.meta["model_options"],
             "fit_steps": result.meta["fit_steps"],
+            "measurement_points": result.meta["measurement_points"],
         },
     )
     table.add(part="two MAP fits", windows=None, seconds=fits["seconds"])

@@ -36,7 +36,7 @@ import argparse
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -58,6 +58,7 @@ from .table import ResultTable
 __all__ = [
     "DEFAULT_MEASUREMENT_POINTS",
     "DEFAULT_OPTIONS",
+    "FALLBACK_MEASUREMENT_POINTS",
     "FORECAST_PROTOCOLS",
     "METHODS",
     "MODEL_METHODS",
@@ -92,12 +93,15 @@ DEFAULT_OPTIONS: dict[str, dict[str, Any]] = {
     "walkers": {"learn_measurement_width": False},
     "weird-walking": {"learn_measurement_width": True},
 }
-#: VB and MAP inference route the measurement GP through at most this many pseudo-inputs (the
-#: DTC sparse GP): below it (every Walkers fold, N <= 307) the GP is exact; on Weird Walking's
-#: ~1,300 training frames it makes the VB forecasts 3.7x faster (T = 5), which the 15-minute
-#: budget of the protocol needs; on 4 CV folds the forecasts moved by less than their SEM
-#: (docs page "Walking motion capture")
-DEFAULT_MEASUREMENT_POINTS = 500
+#: per protocol, VB and MAP inference route the measurement GP through at most this many
+#: pseudo-inputs (the DTC sparse GP). Walkers: 500, above every fold's frame count (N <= 307), so
+#: the GP is exact. Weird Walking (~1,300 training frames): 150, the choice of the same
+#: leave-one-trial-out CV with the learned width (against 500: the H-GPDM + AR(1) forecast and
+#: the ratio to the GPDM better, recognition 82% / 74% against 72% / 69%, forecasts about twice
+#: as fast; docs page "Walking motion capture"). A protocol of one's own: 500.
+DEFAULT_MEASUREMENT_POINTS: dict[str, int] = {"walkers": 500, "weird-walking": 150}
+#: the pseudo-input count of a protocol without its own CV choice
+FALLBACK_MEASUREMENT_POINTS = 500
 
 
 def loto_folds(labels: Any) -> tuple[list[tuple[list[int], list[int]]], list[int]]:
@@ -233,6 +237,19 @@ def _score_split(
     return rows, fits
 
 
+def _measurement_points(protocol: str, value: int | None | str) -> int | None:
+    """The pseudo-input count to run: ``value``, or for ``"protocol"`` the protocol's CV choice
+    (:data:`DEFAULT_MEASUREMENT_POINTS`, else :data:`FALLBACK_MEASUREMENT_POINTS`)."""
+    if value == "protocol":
+        return DEFAULT_MEASUREMENT_POINTS.get(protocol, FALLBACK_MEASUREMENT_POINTS)
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        raise ValueError(
+            f"measurement_points must be a positive int, None (the exact GP) or 'protocol', "
+            f"got {value!r}"
+        )
+    return value
+
+
 def walkers(
     protocol: str | Protocol = "walkers",
     *,
@@ -244,7 +261,7 @@ def walkers(
     stride: int = 2,
     model_options: dict[str, Any] | None = None,
     sharing: float = 0.0,
-    measurement_points: int | None = DEFAULT_MEASUREMENT_POINTS,
+    measurement_points: int | None | Literal["protocol"] = "protocol",
     max_folds: int | None = None,
     progress: bool = False,
 ) -> ResultTable:
@@ -266,8 +283,9 @@ def walkers(
         sharing: the H-GPDM's share of dynamics common to all g (0: the thesis's model).
         measurement_points: VB and MAP inference route the measurement GP through at most this
             many pseudo-inputs (DTC, :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`):
-            a window then costs ``M^2`` instead of ``N^2``; ``None``: the exact GP. The default
-            (:data:`DEFAULT_MEASUREMENT_POINTS`) is exact on Walkers, sparse on Weird Walking.
+            a window then costs ``M^2`` instead of ``N^2``; ``None``: the exact GP;
+            ``"protocol"`` (default): the protocol's CV choice, :data:`DEFAULT_MEASUREMENT_POINTS`
+            (exact on Walkers, 150 on Weird Walking; 500 for a protocol of one's own).
         max_folds: CV only: hold out at most this many trials (spread over the labels), for a
             quick look; ``None`` holds out every testable trial.
         progress: progress bar over folds.
@@ -284,6 +302,7 @@ def walkers(
         spec = PROTOCOLS[protocol]
     else:
         raise ValueError(f"protocol must be one of {FORECAST_PROTOCOLS}, got {protocol!r}")
+    measurement_points = _measurement_points(spec.name, measurement_points)
     data = load_protocol(spec, "train", folder)
     options = DEFAULT_OPTIONS.get(spec.name, {}) | dict(model_options or {})
     meta: dict[str, Any] = {
@@ -533,9 +552,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--measurement-points",
         type=int_at_least(0),
-        default=DEFAULT_MEASUREMENT_POINTS,
+        default=None,
         help="inference routes the measurement GP through at most M pseudo-inputs (DTC; exact "
-        f"when N <= M; 0: always exact; default {DEFAULT_MEASUREMENT_POINTS})",
+        "when N <= M; 0: always exact; default: the protocol's choice by leave-one-trial-out "
+        "CV, " + ", ".join(f"{k} {v}" for k, v in DEFAULT_MEASUREMENT_POINTS.items()) + ")",
     )
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
     parser.add_argument(
@@ -584,7 +604,9 @@ def main(argv: list[str]) -> int:
         stride=args.stride,
         model_options=options,
         sharing=args.sharing,
-        measurement_points=args.measurement_points or None,
+        measurement_points="protocol"
+        if args.measurement_points is None
+        else args.measurement_points or None,
         max_folds=args.max_folds,
         progress=args.progress,
     )

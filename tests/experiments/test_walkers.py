@@ -12,7 +12,16 @@ import pytest
 from hgpdm_torch.datasets.cmu import Protocol, load_protocol
 from hgpdm_torch.datasets.walkers import Standardizer
 from hgpdm_torch.experiments.style_recognition import forecast_windows
-from hgpdm_torch.experiments.walkers import METHODS, compare_runs, loto_folds, main, walkers
+from hgpdm_torch.experiments.walkers import (
+    DEFAULT_MEASUREMENT_POINTS,
+    FALLBACK_MEASUREMENT_POINTS,
+    METHODS,
+    _measurement_points,
+    compare_runs,
+    loto_folds,
+    main,
+    walkers,
+)
 
 #: the experiment at smoke sizes fits its models a few steps on purpose (each FitResult says it
 #: stopped at the step limit): their ConvergenceWarnings are expected here, and only here
@@ -51,6 +60,8 @@ def test_small_cv_run_has_every_method_and_an_exact_baseline():
     assert fits["held out"] == "07_01" and fits["H-GPDM"]["steps"] == 3
     # the protocol's own CV choice (DEFAULT_OPTIONS["walkers"]) is what ran
     assert table.meta["model_options"]["learn_measurement_width"] == "False"
+    # and its pseudo-input count (500) exceeds the fold's frames: the exact GP ran
+    assert table.meta["measurement_points"] is None
 
 
 @REAL
@@ -122,6 +133,19 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
     assert "--sharing" in capsys.readouterr().err
     with pytest.raises(ValueError, match="protocol"):
         walkers("dancers")
+    with pytest.raises(ValueError, match="measurement_points"):
+        walkers("walkers", measurement_points=0)  # before any file is read
     with pytest.raises(SystemExit):
         main(["--compare", str(tmp_path / "none.json")])
     assert "--compare" in capsys.readouterr().err
+
+
+def test_pseudo_input_count_is_the_protocols_unless_given():
+    assert _measurement_points("weird-walking", "protocol") == 150
+    assert _measurement_points("walkers", "protocol") == DEFAULT_MEASUREMENT_POINTS["walkers"]
+    assert _measurement_points("mine", "protocol") == FALLBACK_MEASUREMENT_POINTS
+    assert _measurement_points("weird-walking", None) is None  # the exact GP
+    assert _measurement_points("weird-walking", 40) == 40
+    for bad in (0, -3, 2.5, True, "all"):
+        with pytest.raises(ValueError, match="measurement_points"):
+            _measurement_points("walkers", bad)
