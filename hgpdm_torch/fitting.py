@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from .linalg import CholeskyError
+from .progress import tqdm
 from .validation import check_choice
 
 __all__ = ["ConvergenceWarning", "FitResult", "fit_map"]

@@ -31,11 +31,11 @@ from typing import Any
 import numpy as np
 import torch
 from sklearn.model_selection import LeaveOneGroupOut, ParameterGrid
-from tqdm.auto import tqdm
 
 from .experiments.table import ResultTable
 from .fitting import ConvergenceWarning
 from .inference.variational import VariationalInference
+from .progress import tqdm
 from .validation import as_tensor
 
 __all__ = ["CVResult", "cross_validate", "forecast_rmse"]

@@ -49,8 +49,8 @@ from typing import Any
 import numpy as np
 import torch
 from sklearn.decomposition import PCA
-from tqdm.auto import tqdm
 
+from ..progress import tqdm
 from ..validation import as_tensor, check_choice
 from .walkers import Standardizer
 

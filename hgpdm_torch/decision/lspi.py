@@ -25,8 +25,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from tqdm.auto import tqdm
 
+from ..progress import tqdm
 from ..validation import as_tensor
 from .stopping import Transitions
 

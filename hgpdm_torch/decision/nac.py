@@ -22,8 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tqdm.auto import tqdm
 
+from ..progress import tqdm
 from ..validation import as_tensor
 from .stopping import Episodes, StoppingProblem
 

@@ -42,7 +42,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 from sklearn.model_selection import GroupKFold, StratifiedKFold
-from tqdm.auto import tqdm
 
 from ..baselines import HMMClassifier, WindowGPC, WindowSVM
 from ..datasets.msrc12 import MSRC12, PosePCA, kinect_features, load_msrc12_folder, load_msrc12_npz
@@ -55,6 +54,7 @@ from ..inference.intention import (
     infer_intention,
 )
 from ..models import IDDM
+from ..progress import tqdm
 from .arguments import int_at_least, output_file, random_seed
 from .table import ResultTable
 

@@ -42,7 +42,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from ..decision.beliefs import Beliefs, decision_indices, fit_beliefs
 from ..decision.lspi import lspi
@@ -62,6 +61,7 @@ from ..decision.policies import (
 from ..decision.sources import FEATURES, PLAYER_SOURCES, SELECTABLE_SOURCES, track_beliefs
 from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
 from ..parallel import Executor, get_executor, ray_address_type
+from ..progress import tqdm
 from ..validation import as_tensor, check_choice
 from .arguments import int_at_least, output_folder, positive_int, random_seed
 from .dtype import float64_default

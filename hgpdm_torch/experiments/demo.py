@@ -241,8 +241,7 @@ def run_demo(
             ``belief`` or ``features``, ``workers`` with an ``executor``, or too few strokes
             inside the hitting region for the folds.
     """
-    from tqdm.auto import tqdm
-
+    from ..progress import tqdm
     from ..robots.table_tennis import strokes
     from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
 
@@ -427,8 +426,7 @@ def _learn_and_decide(
     """Per fold: the belief source (by CV on the training folds when there are candidates), the
     baselines chosen on the training folds, LSPI and the MCP decisions on the test rallies,
     and the oracle-belief MCP player; the reward table scores all but MCP's live play."""
-    from tqdm.auto import tqdm
-
+    from ..progress import tqdm
     from ..robots.table_tennis.trials import DEFAULT_START_TIMES
 
     n, folds = len(valid), int(fold_of.max()) + 1

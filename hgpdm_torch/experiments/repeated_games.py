@@ -22,7 +22,6 @@ import os
 from collections.abc import Sequence
 
 import numpy as np
-from tqdm import tqdm
 
 from hgpdm_torch.decision.games import (
     RPS_REWARD,
@@ -36,6 +35,8 @@ from hgpdm_torch.decision.games import (
 from hgpdm_torch.decision.opponent import AdaptiveLearner, DeltaSafeResponder, delta_safe_tree
 from hgpdm_torch.experiments.arguments import output_file, random_seed
 from hgpdm_torch.experiments.table import ResultTable
+
+from ..progress import tqdm
 
 __all__ = [
     "TABLE_5_2",

@@ -34,13 +34,13 @@ from typing import Any
 
 import torch
 from matplotlib.figure import Figure
-from tqdm.auto import tqdm
 
 from ..baselines import LastFrameForecaster, RidgeAR
 from ..datasets import styled_movements
 from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..models import GPDM, HGPDM
+from ..progress import tqdm
 from ..validation import check_choice
 from .arguments import output_file, positive_int, random_seed
 from .table import ResultTable

@@ -45,7 +45,6 @@ from typing import Any
 
 import torch
 from sklearn.cross_decomposition import PLSRegression
-from tqdm.auto import tqdm
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
 from ..decision.beliefs import PHASE_IDDM
@@ -57,6 +56,7 @@ from ..inference.intention import (
     infer_intention,
 )
 from ..models import IDDM, LinearIDDM
+from ..progress import tqdm
 from ..validation import as_tensor, check_choice
 from .arguments import output_file, random_seed
 from .table import ResultTable

@@ -40,7 +40,6 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
 from ..datasets.cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol
@@ -50,6 +49,7 @@ from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
+from ..progress import tqdm
 from .arguments import int_at_least, output_file, positive_int
 from .intervals import mean_sem
 from .style_recognition import chunked_forecast, chunked_windows, forecast_windows, window_entries

@@ -43,13 +43,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from .. import settings
 from ..expectations import check_gaussian
 from ..gaussian import conditional, independent_joint, log_density, rts_step
 from ..gp import GPPosterior
 from ..linalg import positive_definite, psd_cholesky, symmetrize
+from ..progress import tqdm
 from ..validation import as_tensor
 
 __all__ = [

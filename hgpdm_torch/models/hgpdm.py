@@ -17,12 +17,12 @@ import torch
 from gpytorch.kernels import Kernel
 from scipy.optimize import minimize_scalar
 from sklearn.cluster import KMeans
-from tqdm.auto import trange
 
 from ..fitting import FitResult
 from ..gp import GPPosterior
 from ..kernels import transition_kernel
 from ..linalg import gaussian_nll
+from ..progress import trange
 from ..validation import as_tensor, check_choice
 from .gpdm import GPDM, NOISE_FLOOR, SequencesLike, _check_sequences
 

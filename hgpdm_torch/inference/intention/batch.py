@@ -16,13 +16,13 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from ... import settings
 from ...gaussian import entropy, expected_log_density
 from ...gp import GPPosterior
 from ...linalg import psd_cholesky, symmetrize
 from ...models import HGPDM
+from ...progress import tqdm
 from ..calibration import check_temperature, intention_log_prior
 from ..filtering import (
     DEFAULT_OUTLIER_SD,

@@ -13,9 +13,9 @@ import math
 from collections.abc import Callable
 
 import torch
-from tqdm.auto import trange
 
 from ...linalg import CholeskyError
+from ...progress import trange
 
 __all__ = ["batched_lbfgs"]
 

@@ -35,8 +35,8 @@ import pyro.distributions as dist
 import torch
 from pyro.distributions import constraints
 from pyro.nn import pyro_method
-from tqdm.auto import trange
 
+from ...progress import trange
 from ...validation import check_choice
 from .guide import MeanFieldGuide, batch_plates
 from .window import WindowModel

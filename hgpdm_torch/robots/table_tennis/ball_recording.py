@@ -9,7 +9,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from tqdm.auto import tqdm
 
 from hgpdm_torch.robots.table_tennis import geometry as geo
 from hgpdm_torch.robots.table_tennis.ball_events import _advance
@@ -25,6 +24,8 @@ from hgpdm_torch.robots.table_tennis.ball_state import (
     _check_state,
     _check_steps,
 )
+
+from ...progress import tqdm
 
 __all__ = [
     "BallTrajectory",

@@ -26,11 +26,12 @@ from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import torch
-from tqdm.auto import tqdm
 
 from hgpdm_torch.robots.table_tennis import ball as B
 from hgpdm_torch.robots.table_tennis import geometry as geo
 from hgpdm_torch.validation import as_tensor, check_choice
+
+from ...progress import tqdm
 
 __all__ = ["FEATURE_NAMES", "OpponentConfig", "RacketTrajectory", "Strokes", "sample_strokes"]
 

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from ...parallel import Executor, get_executor
+from ...progress import tqdm
 from . import ball as B
 from . import geometry as geo
 from .opponent import OpponentConfig, sample_strokes

@@ -1,0 +1,19 @@
+"""Progress bars: tqdm's notebook widget where Jupyter can draw it, its text bar elsewhere.
+
+Inside a Jupyter kernel ``tqdm.auto`` picks the widget bar and, where ipywidgets is not
+installed, warns at import (``TqdmWarning: IProgress not found``), so every tutorial's output
+would open with a warning that names the machine's paths. Every module of the toolkit imports
+its bars from here instead: the widget bar only where ipywidgets can be imported, the text bar
+(on stderr) otherwise. The classes are tqdm's own.
+"""
+
+from __future__ import annotations
+
+from importlib.util import find_spec
+
+if find_spec("ipywidgets") is not None:
+    from tqdm.auto import tqdm, trange
+else:
+    from tqdm.std import tqdm, trange
+
+__all__ = ["tqdm", "trange"]
