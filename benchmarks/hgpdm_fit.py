@@ -18,9 +18,9 @@ import torch
 
 from benchmarks._common import FLOAT32_NOISE, Options, best_of, parse_options
 from hgpdm_torch.datasets import styled_movements
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.kernels import ALPHA_BAR
 from hgpdm_torch.models import GPDM, HGPDM
+from hgpdm_torch.results import ResultTable
 
 
 def run(opts: Options, sizes: list[int], fit_steps: int, fit_max_n: int) -> ResultTable:

@@ -43,10 +43,10 @@ from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import lspi
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
 from hgpdm_torch.decision.stopping import StoppingProblem, belief_vector
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.intention import OnlineIntentionFilter
 from hgpdm_torch.kernels import ALPHA_BAR
 from hgpdm_torch.models import IDDM
+from hgpdm_torch.results import ResultTable
 
 DX, DZ, LENGTH, PARTICLES = 3, 15, 6, 500
 

@@ -24,10 +24,10 @@ from __future__ import annotations
 import torch
 
 from benchmarks._common import Options, best_of, parse_options
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.inference.filtering import gp_adf_predict, gp_adf_update
 from hgpdm_torch.kernels import measurement_kernel, transition_kernel
+from hgpdm_torch.results import ResultTable
 
 DX, DZ = 3, 4
 

@@ -42,9 +42,9 @@ import torch
 from benchmarks._common import FLOAT32_NOISE, Options, parse_options
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.beliefs import PHASE_IDDM
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
 from hgpdm_torch.models import IDDM
+from hgpdm_torch.results import ResultTable
 
 N_SEQ, FRAMES, DZ, DX, K = 100, 6, 15, 4, 25
 

@@ -25,7 +25,7 @@ import numpy as np
 from benchmarks._common import RESULTS
 from hgpdm_torch.decision.games import RPS_REWARD, TABLE_TENNIS_REWARD
 from hgpdm_torch.decision.opponent import DeltaSafeResponder, solve_delta_safe
-from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.results import ResultTable
 
 SCENARIOS = {
     "RPS vs [0.6, 0.2, 0.2]": (RPS_REWARD, (0.6, 0.2, 0.2)),

@@ -27,7 +27,7 @@ import tempfile
 import time
 
 from benchmarks._common import RESULTS, environment
-from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.results import ResultTable
 
 N_FULL = 270
 

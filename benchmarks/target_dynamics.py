@@ -30,7 +30,6 @@ import torch
 from sklearn.cross_decomposition import PLSRegression
 
 from benchmarks.target_sweep import STEPS, abs_errors, gpr_errors, keep_mask
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     _fit_iddm,
@@ -38,6 +37,7 @@ from hgpdm_torch.experiments.target_prediction import (
     strokes_limit,
 )
 from hgpdm_torch.models import LinearIDDM
+from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
 RESULTS = Path(__file__).parent / "results"

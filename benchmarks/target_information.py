@@ -46,7 +46,6 @@ from sklearn.linear_model import RidgeCV
 from sklearn.preprocessing import StandardScaler
 
 from hgpdm_torch.baselines import MedianPredictor, WindowGPR
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     _fit_iddm,
@@ -54,6 +53,7 @@ from hgpdm_torch.experiments.target_prediction import (
     strokes_limit,
 )
 from hgpdm_torch.models import LinearIDDM
+from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
 RESULTS = Path(__file__).parent / "results"

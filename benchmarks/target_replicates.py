@@ -47,7 +47,6 @@ import torch
 
 from benchmarks.target_sweep import STEPS, abs_errors
 from hgpdm_torch.baselines import WindowGPR
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     PHASE_IDDM,
@@ -59,6 +58,7 @@ from hgpdm_torch.experiments.target_prediction import (
 from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
 from hgpdm_torch.inference.calibration import credible_set
 from hgpdm_torch.models import LinearIDDM
+from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
 RESULTS = Path(__file__).parent / "results"

@@ -33,7 +33,6 @@ from typing import Any
 import torch
 
 from hgpdm_torch.baselines import WindowGPR
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     _online,
@@ -44,6 +43,7 @@ from hgpdm_torch.experiments.target_prediction import (
 from hgpdm_torch.inference import OnlineIntentionFilter
 from hgpdm_torch.inference.calibration import fit_temperature
 from hgpdm_torch.models import HGPDM, IDDM
+from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
 RESULTS = Path(__file__).parent / "results"

@@ -25,10 +25,10 @@ import torch
 
 from benchmarks._common import Options, parse_options
 from hgpdm_torch.datasets import styled_movements
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.variational import VariationalInference, window_mask
 from hgpdm_torch.inference.variational.laplace import map_states
 from hgpdm_torch.models import HGPDM
+from hgpdm_torch.results import ResultTable
 
 
 def run(opts: Options, per_style: int, lengths: list[int], windows: int, old: bool) -> ResultTable:

@@ -28,8 +28,8 @@ import torch
 
 from benchmarks._common import RESULTS, environment
 from hgpdm_torch.datasets.cmu import PROTOCOLS
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.experiments.walkers import walkers
+from hgpdm_torch.results import ResultTable
 
 DATA = Path("../shared/data/cmu")
 #: training trial standing in for each test trial (same style, similar length)

@@ -32,10 +32,10 @@ import numpy as np
 import torch
 from sklearn.model_selection import LeaveOneGroupOut, ParameterGrid
 
-from .experiments.table import ResultTable
 from .fitting import ConvergenceWarning
 from .inference.variational import VariationalInference
 from .progress import tqdm
+from .results import ResultTable
 from .validation import as_tensor
 
 __all__ = ["CVResult", "cross_validate", "forecast_rmse"]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.results import ResultTable
 
 ROOT = Path(__file__).resolve().parents[1]
 MARKER = re.compile(r"^<!-- results: table ([\w./-]+) -->$", re.MULTILINE)

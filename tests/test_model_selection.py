@@ -14,10 +14,10 @@ from sklearn.model_selection import GroupKFold, KFold, LeaveOneGroupOut
 
 import hgpdm_torch as hg
 from hgpdm_torch.datasets import styled_movements
-from hgpdm_torch.experiments.table import ResultTable
 from hgpdm_torch.inference.variational import VariationalInference
 from hgpdm_torch.model_selection import forecast_rmse
 from hgpdm_torch.models import GPDM, HGPDM
+from hgpdm_torch.results import ResultTable
 
 # Two styles, three sequences each; person p performs sequences p and p + 3 (one of each style),
 # so grouping by person keeps both styles in every training part.

@@ -121,7 +121,7 @@ from functools import partial
 
 import torch
 from hgpdm_torch.parallel import ProcessExecutor
-from hgpdm_torch.experiments.table import ResultTable  # noqa: F401  (a package import, as the CLI)
+from hgpdm_torch.results import ResultTable  # noqa: F401  (a package import, as the CLI)
 
 torch.set_num_threads(2)
 x = torch.randn(800, 800, dtype=torch.float64)

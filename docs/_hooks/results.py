@@ -4,7 +4,7 @@ A page line ``<!-- results: gpu-check -->`` becomes the latest accelerator check
 (``benchmarks/results/gpu_check.json``, written by ``make gpu-check``) and the benchmark tables
 it names; ``<!-- results: table PATH -->`` becomes the table of the JSON file ``PATH`` (relative
 to the repository root) that a command wrote, with the settings in its meta. Each goes through
-:meth:`hgpdm_torch.experiments.table.ResultTable.to_markdown`, so the page shows what the files
+:meth:`hgpdm_torch.results.ResultTable.to_markdown`, so the page shows what the files
 hold and never a copy typed by hand. A missing file is a warning (the strict build fails).
 """
 
@@ -16,7 +16,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.results import ResultTable
 
 log = logging.getLogger("mkdocs.hooks.results")
 

@@ -55,8 +55,8 @@ from ..inference.intention import (
 )
 from ..models import IDDM
 from ..progress import tqdm
+from ..results import ResultTable
 from .arguments import int_at_least, output_file, random_seed
-from .table import ResultTable
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

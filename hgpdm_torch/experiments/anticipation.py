@@ -62,10 +62,10 @@ from ..decision.sources import FEATURES, PLAYER_SOURCES, SELECTABLE_SOURCES, tra
 from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
 from ..parallel import Executor, get_executor, ray_address_type
 from ..progress import tqdm
+from ..results import ResultTable
 from ..validation import as_tensor, check_choice
 from .arguments import int_at_least, output_folder, positive_int, random_seed
 from .dtype import float64_default
-from .table import ResultTable
 from .target_prediction import supervised_init
 
 __all__ = [

@@ -56,6 +56,7 @@ from ..decision.policies import (
 from ..decision.sources import FEATURES, SELECTABLE_SOURCES, BeliefTrack, track_beliefs
 from ..decision.stopping import StoppingProblem
 from ..parallel import Executor, available_cpus, get_executor, ray_address_type
+from ..results import ResultTable
 from ..validation import check_choice
 from . import anticipation as ant
 from .anticipation import BELIEFS, BLIND, FIXED_TIME
@@ -67,7 +68,6 @@ from .arguments import (
 )
 from .dtype import float64_default
 from .intervals import paired_difference_interval, return_rate_interval
-from .table import ResultTable
 
 __all__ = [
     "BELIEFS",

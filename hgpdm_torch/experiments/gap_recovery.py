@@ -39,9 +39,9 @@ from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_predictions
 from ..models import GPDM, HGPDM
+from ..results import ResultTable
 from .arguments import output_file, positive_int
 from .intervals import mean_sem
-from .table import ResultTable
 from .walkers import DEFAULT_OPTIONS, MODEL_METHODS, report
 
 __all__ = ["METHODS", "gap_recovery", "linear_interpolation", "main", "template_copy"]

@@ -34,7 +34,7 @@ from hgpdm_torch.decision.games import (
 )
 from hgpdm_torch.decision.opponent import AdaptiveLearner, DeltaSafeResponder, delta_safe_tree
 from hgpdm_torch.experiments.arguments import output_file, random_seed
-from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.results import ResultTable
 
 from ..progress import tqdm
 

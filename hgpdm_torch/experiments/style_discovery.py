@@ -26,8 +26,8 @@ from ..datasets.cmu import load_protocol
 from ..datasets.walkers import Standardizer
 from ..models import GPDM, HGPDM
 from ..models.hgpdm import trajectory_summaries
+from ..results import ResultTable
 from .arguments import output_folder, positive_int, random_seed
-from .table import ResultTable
 
 __all__ = ["main", "run_style_discovery", "style_purity"]
 

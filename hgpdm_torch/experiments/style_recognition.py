@@ -41,9 +41,9 @@ from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..models import GPDM, HGPDM
 from ..progress import tqdm
+from ..results import ResultTable
 from ..validation import check_choice
 from .arguments import output_file, positive_int, random_seed
-from .table import ResultTable
 
 __all__ = [
     "StyleData",

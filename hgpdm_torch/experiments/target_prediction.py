@@ -57,9 +57,9 @@ from ..inference.intention import (
 )
 from ..models import IDDM, LinearIDDM
 from ..progress import tqdm
+from ..results import ResultTable
 from ..validation import as_tensor, check_choice
 from .arguments import output_file, random_seed
-from .table import ResultTable
 
 __all__ = [
     "HORIZONS_MS",

@@ -50,10 +50,10 @@ from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
 from ..progress import tqdm
+from ..results import ResultTable
 from .arguments import int_at_least, output_file, positive_int
 from .intervals import mean_sem
 from .style_recognition import chunked_forecast, chunked_windows, forecast_windows, window_entries
-from .table import ResultTable
 
 __all__ = [
     "DEFAULT_MEASUREMENT_POINTS",

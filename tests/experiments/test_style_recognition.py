@@ -71,6 +71,6 @@ def test_gap_figure_and_main(tmp_path, monkeypatch):
 
 
 def _table():
-    from hgpdm_torch.experiments.table import ResultTable
+    from hgpdm_torch.results import ResultTable
 
     return ResultTable("t", ["data"], [{"data": "synthetic"}])

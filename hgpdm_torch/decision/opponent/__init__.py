@@ -25,22 +25,22 @@ The code is split by concept; this package re-exports the public names of its mo
 * :mod:`~hgpdm_torch.decision.opponent.cutting_planes`: the certified reference solver and the
   solution type :class:`SafeResponse`;
 * :mod:`~hgpdm_torch.decision.opponent.responder`: the online sub-gradient solver;
-* :mod:`~hgpdm_torch.decision.opponent.z_test`: the two-sample z-tests;
+* :mod:`~hgpdm_torch.decision.opponent.change_detection`: the two-sample z-tests;
 * :mod:`~hgpdm_torch.decision.opponent.adaptive`: the adaptive learner of Algorithm 5.1;
 * :mod:`~hgpdm_torch.decision.opponent.tree`: delta-safe backward induction on game trees.
 
 Imports flow one way: ``kl_ball`` <- ``cutting_planes`` <- ``responder`` <- ``adaptive``,
-``tree``; ``z_test`` <- ``adaptive``.
+``tree``; ``change_detection`` <- ``adaptive``.
 """
 
 from __future__ import annotations
 
 from hgpdm_torch.decision.opponent.adaptive import AdaptiveLearner
+from hgpdm_torch.decision.opponent.change_detection import two_sample_z_test
 from hgpdm_torch.decision.opponent.cutting_planes import SafeResponse, solve_delta_safe
 from hgpdm_torch.decision.opponent.kl_ball import KLBall, kl_bound, kl_divergence
 from hgpdm_torch.decision.opponent.responder import DeltaSafeResponder
 from hgpdm_torch.decision.opponent.tree import TreeResponse, delta_safe_tree
-from hgpdm_torch.decision.opponent.z_test import two_sample_z_test
 
 __all__ = [
     "AdaptiveLearner",

@@ -2,8 +2,8 @@
 
 :class:`AdaptiveLearner` re-solves Problem (38) with a
 :class:`~hgpdm_torch.decision.opponent.responder.DeltaSafeResponder` as observations come in and
-restarts when the two-sample tests of :mod:`~hgpdm_torch.decision.opponent.z_test` detect that
-the opponent changed.
+restarts when the two-sample tests of
+:mod:`~hgpdm_torch.decision.opponent.change_detection` detect that the opponent changed.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from hgpdm_torch.decision.opponent._checks import (
     _integer,
     _scalar,
 )
+from hgpdm_torch.decision.opponent.change_detection import two_sample_z_test
 from hgpdm_torch.decision.opponent.responder import DeltaSafeResponder
-from hgpdm_torch.decision.opponent.z_test import two_sample_z_test
 
 __all__ = [
     "AdaptiveLearner",

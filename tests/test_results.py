@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from hgpdm_torch.experiments.table import ResultTable
+from hgpdm_torch.results import ResultTable
 
 
 def test_a_pipe_in_a_column_name_or_cell_does_not_split_it():
