@@ -26,11 +26,9 @@ stream isolation relies on it).
 
 from __future__ import annotations
 
-import math
-
 import torch
 
-from .linalg import cholesky_logdet, psd_cholesky, symmetrize
+from .linalg import LOG_2PI, cholesky_logdet, psd_cholesky, symmetrize
 
 __all__ = [
     "LOG_2PI",
@@ -45,9 +43,6 @@ __all__ = [
     "mixture_moments",
     "rts_step",
 ]
-
-#: ``log(2 pi)``.
-LOG_2PI: float = math.log(2.0 * math.pi)
 
 
 def _check_factor(scale_tril: torch.Tensor, name: str) -> int:

@@ -9,12 +9,14 @@ use ``torch.cholesky_solve``; no explicit inverse is formed.
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 
 import torch
 from torch.autograd.function import once_differentiable
 
 __all__ = [
+    "LOG_2PI",
     "CholeskyError",
     "cholesky_logdet",
     "gaussian_nll",
@@ -24,6 +26,10 @@ __all__ = [
     "shared_matmul",
     "symmetrize",
 ]
+
+#: ``log(2 pi)``, the constant of every Gaussian log density (re-exported by
+#: :mod:`hgpdm_torch.gaussian`).
+LOG_2PI: float = math.log(2.0 * math.pi)
 
 # Jitter defaults depend on dtype, as in gpytorch's settings: the first try is free (no jitter),
 # then jitter grows by a factor of 10 from this value.
@@ -135,8 +141,6 @@ class _GaussianNLL(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, cov: torch.Tensor, y: torch.Tensor, name: str) -> torch.Tensor:  # type: ignore[override]
-        from .gaussian import LOG_2PI  # here: gaussian.py builds on this module
-
         chol = psd_cholesky(cov, name=name, escalate=False)
         alpha = torch.cholesky_solve(y, chol)
         n, d = y.shape
