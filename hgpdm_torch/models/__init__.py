@@ -11,6 +11,11 @@ from .hgpdm import HGPDM, IDDM
 from .linear_iddm import LinearIDDM
 from .persistence import ModelFileError, load_model, register_model, registered_models
 
+# the built-in classes; persistence imports no model, so that each model module can import it
+for _cls in (GPDM, HGPDM, IDDM, LinearIDDM):
+    register_model(_cls)
+del _cls
+
 __all__ = [
     "GPDM",
     "HGPDM",

@@ -37,6 +37,7 @@ from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transiti
 from ..linalg import gaussian_nll
 from ..validation import as_tensor, check_choice
 from .back_constraints import make_back_constraint
+from .persistence import SavedModel, save_model
 
 __all__ = ["GPDM"]
 
@@ -128,7 +129,7 @@ def _check_sequences(sequences: SequencesLike, dtype: torch.dtype) -> list[torch
     return out
 
 
-class GPDM(gpytorch.Module):
+class GPDM(gpytorch.Module, SavedModel):
     """Gaussian Process Dynamics Model with MAP learning (Eq. 3-6 without the exogenous g).
 
     Args:
@@ -784,24 +785,7 @@ class GPDM(gpytorch.Module):
                 "(load it with torch.load(path, weights_only=False), trusted files only) or "
                 "its state_dict instead"
             )
-        from .persistence import save_model  # persistence imports this module
-
         save_model(self, path)
 
-    @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> GPDM:
-        """Load a model written by :meth:`save`; it must be an instance of ``cls``.
-
-        Raises:
-            ModelFileError: see :func:`~hgpdm_torch.models.load_model`, or the file holds a
-                model of another class (e.g. ``HGPDM.load`` of a saved plain GPDM).
-        """
-        from .persistence import ModelFileError, load_model
-
-        model = load_model(path)
-        if not isinstance(model, cls):
-            raise ModelFileError(
-                f"{path}: holds a {type(model).__qualname__}, not a {cls.__qualname__}; "
-                "use hgpdm_torch.models.load_model to load any registered class"
-            )
-        return model
+    def _saved_dtype(self) -> torch.dtype:
+        return self.latent.dtype

@@ -81,6 +81,7 @@ from pyro.distributions import MultivariateStudentT
 from torch.distributions import StudentT
 
 from ..validation import as_tensor, check_choice
+from .persistence import SavedModel, save_model
 
 if TYPE_CHECKING:  # the inference package imports the models: no import at run time
     from ..inference.filtering import ObservationCheck
@@ -117,7 +118,7 @@ class _Design(NamedTuple):
     parts: list[tuple[torch.Tensor, torch.Tensor]]
 
 
-class LinearIDDM:
+class LinearIDDM(SavedModel):
     """Intention-driven linear-Gaussian dynamics with conjugate (matrix-normal inverse-Wishart)
     parameters and exact beliefs over a grid of intention values.
 
@@ -539,7 +540,7 @@ class LinearIDDM:
         self.precision_tril = torch.linalg.cholesky(self.precision)
 
     @classmethod
-    def _rebuild(
+    def _from_saved(
         cls, data: dict[str, Any], config: dict[str, Any], dtype: torch.dtype,
         state: dict[str, Any],
     ) -> LinearIDDM:  # fmt: skip
@@ -589,28 +590,11 @@ class LinearIDDM:
             RuntimeError: the model is not fitted.
             TypeError: its class is not registered (:func:`~hgpdm_torch.models.register_model`).
         """
-        from .persistence import save_model
-
         self._check_fitted()
         save_model(self, path)
 
-    @classmethod
-    def load(cls, path: Any) -> LinearIDDM:
-        """Load a model written by :meth:`save`; it must be an instance of ``cls``.
-
-        Raises:
-            ModelFileError: see :func:`~hgpdm_torch.models.load_model`, or the file holds a
-                model of another class.
-        """
-        from .persistence import ModelFileError, load_model
-
-        model = load_model(path)
-        if not isinstance(model, cls):
-            raise ModelFileError(
-                f"{path}: holds a {type(model).__qualname__}, not a {cls.__qualname__}; use "
-                "hgpdm_torch.models.load_model to load any registered class"
-            )
-        return model
+    def _saved_dtype(self) -> torch.dtype:
+        return self.dtype
 
     def log_marginal_likelihood(self) -> float:
         """``log p(Z_{1:} | Z_{:-1}, g)`` of the (standardised) training transitions under the

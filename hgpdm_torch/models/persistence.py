@@ -29,7 +29,7 @@ module named by the file. :class:`GPDM`, :class:`HGPDM`, :class:`IDDM` and :clas
 are registered; a subclass of your own is registered with :func:`register_model`.
 
 A :class:`LinearIDDM` keeps its training data outside its statistics, so it is rebuilt by
-fitting it again with the saved choices (``LinearIDDM._rebuild``; a file asking for an evidence
+fitting it again with the saved choices (``LinearIDDM._from_saved``; a file asking for an evidence
 or cross-validation search, or holding coefficients of a shape its data do not imply, is
 refused before any fitting), and the saved statistics must agree with that fit before they are
 taken (:meth:`LinearIDDM.load_state_dict`): for it, that is the data/state check of the last
@@ -50,14 +50,11 @@ from typing import Any, TypeVar, overload
 
 import torch
 
-from .gpdm import GPDM
-from .hgpdm import HGPDM, IDDM
-from .linear_iddm import LinearIDDM
-
 __all__ = [
     "FORMAT_VERSION",
     "MAGIC",
     "ModelFileError",
+    "SavedModel",
     "load_model",
     "register_model",
     "registered_models",
@@ -80,15 +77,62 @@ _DTYPES = {
     "float64": torch.float64,
 }
 
-Model = GPDM | LinearIDDM
-M = TypeVar("M", bound=type[GPDM] | type[LinearIDDM])
-
-_REGISTRY: dict[str, type[Model]] = {}
-
 
 class ModelFileError(ValueError):
     """A file is not a model file this release can load: foreign, empty, truncated, corrupted,
     of an unknown format version, naming an unregistered class, or inconsistent."""
+
+
+_S = TypeVar("_S", bound="SavedModel")
+
+
+class SavedModel:
+    """What :func:`save_model` and :func:`load_model` need of a model class: the base of
+    :class:`~hgpdm_torch.models.GPDM` and :class:`~hgpdm_torch.models.LinearIDDM` (this module
+    imports neither; they register themselves in :mod:`hgpdm_torch.models`).
+
+    A subclass provides ``config()`` (constructor options), ``_data_arguments()`` (training
+    data), ``state_dict()`` / ``load_state_dict()`` and ``_saved_dtype()``; it is rebuilt as
+    ``cls(**data, **config, dtype=dtype)`` unless it overrides :meth:`_from_saved`.
+    """
+
+    def config(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _data_arguments(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _saved_dtype(self) -> torch.dtype:
+        raise NotImplementedError
+
+    @classmethod
+    def _from_saved(
+        cls, data: dict[str, Any], config: dict[str, Any], dtype: torch.dtype,
+        state: dict[str, Any],
+    ) -> SavedModel:  # fmt: skip
+        """The model :func:`load_model` rebuilds before loading ``state`` into it."""
+        return cls(**data, **config, dtype=dtype)
+
+    @classmethod
+    def load(cls: type[_S], path: str | os.PathLike[str]) -> _S:
+        """Load a model written by ``save``; it must be an instance of ``cls``.
+
+        Raises:
+            ModelFileError: see :func:`~hgpdm_torch.models.load_model`, or the file holds a
+                model of another class (e.g. ``HGPDM.load`` of a saved plain GPDM).
+        """
+        model = load_model(path)
+        if not isinstance(model, cls):
+            raise ModelFileError(
+                f"{path}: holds a {type(model).__qualname__}, not a {cls.__qualname__}; "
+                "use hgpdm_torch.models.load_model to load any registered class"
+            )
+        return model
+
+
+M = TypeVar("M", bound=type[SavedModel])
+
+_REGISTRY: dict[str, type[SavedModel]] = {}
 
 
 # --------------------------------------------------------------------------------- registry
@@ -136,7 +180,7 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
     """
     if cls is None:
         return lambda c: register_model(c, name=name)
-    if not (isinstance(cls, type) and issubclass(cls, GPDM | LinearIDDM)):
+    if not (isinstance(cls, type) and issubclass(cls, SavedModel)):
         raise TypeError(f"register_model needs a subclass of GPDM or LinearIDDM, got {cls!r}")
     key = cls.__qualname__ if name is None else name
     if not isinstance(key, str) or not key:
@@ -154,7 +198,7 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
     return cls
 
 
-def registered_models() -> dict[str, type[Model]]:
+def registered_models() -> dict[str, type[SavedModel]]:
     """A copy of the registry: the names a file may store, with the class each one loads."""
     return dict(_REGISTRY)
 
@@ -163,7 +207,7 @@ def _describe(cls: type) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
-def _registered_name(cls: type[Model]) -> str:
+def _registered_name(cls: type[SavedModel]) -> str:
     for key, registered in _REGISTRY.items():
         if registered is cls:
             return key
@@ -174,12 +218,8 @@ def _registered_name(cls: type[Model]) -> str:
     )
 
 
-for _cls in (GPDM, HGPDM, IDDM, LinearIDDM):
-    register_model(_cls)
-
-
 # --------------------------------------------------------------------------------- writing
-def save_model(model: Model, path: str | os.PathLike[str]) -> None:
+def save_model(model: SavedModel, path: str | os.PathLike[str]) -> None:
     """Write ``model`` to ``path`` in the format above (what :meth:`GPDM.save` and
     :meth:`LinearIDDM.save` call).
 
@@ -195,9 +235,7 @@ def save_model(model: Model, path: str | os.PathLike[str]) -> None:
         "config": copy.deepcopy(model.config()),
         "data": model._data_arguments(),
         "state_dict": model.state_dict(),
-        "dtype": str(
-            model.dtype if isinstance(model, LinearIDDM) else model.latent.dtype
-        ).removeprefix("torch."),
+        "dtype": str(model._saved_dtype()).removeprefix("torch."),
     }
     buffer = io.BytesIO()
     torch.save(blob, buffer)
@@ -258,7 +296,7 @@ def _read_payload(path: Path) -> bytes:
     return payload
 
 
-def _check_blob(path: Path, blob: Any) -> tuple[type[Model], dict, dict, dict, torch.dtype]:
+def _check_blob(path: Path, blob: Any) -> tuple[type[SavedModel], dict, dict, dict, torch.dtype]:
     """Validate the structure of a verified payload; return class, config, data, state, dtype."""
     if not isinstance(blob, dict) or set(blob) != _PAYLOAD_KEYS:
         keys = sorted(map(str, blob)) if isinstance(blob, dict) else type(blob).__name__
@@ -311,7 +349,7 @@ def _same(a: Any, b: Any) -> bool:
     return type(a) is type(b) and a == b
 
 
-def load_model(path: str | os.PathLike[str]) -> Model:
+def load_model(path: str | os.PathLike[str]) -> Any:
     """Rebuild a model saved with :meth:`GPDM.save` or :meth:`LinearIDDM.save`: same class,
     data, parameters and buffers (statistics).
 
@@ -339,10 +377,7 @@ def load_model(path: str | os.PathLike[str]) -> Model:
         raise ModelFileError(f"{path}: the payload cannot be read: {err}") from err
     cls, config, data, state, dtype = _check_blob(path, blob)
     try:
-        if issubclass(cls, LinearIDDM):
-            model = cls._rebuild(data, config, dtype, state)
-        else:
-            model = cls(**data, **config, dtype=dtype)
+        model = cls._from_saved(data, config, dtype, state)
     except (TypeError, ValueError, RuntimeError) as err:
         raise ModelFileError(
             f"{path}: the saved configuration and data do not rebuild a {blob['class']}: {err}"
