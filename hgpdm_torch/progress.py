@@ -1,10 +1,12 @@
 """Progress bars: tqdm's notebook widget where Jupyter can draw it, its text bar elsewhere.
 
 Inside a Jupyter kernel ``tqdm.auto`` picks the widget bar and, where ipywidgets is not
-installed, warns at import (``TqdmWarning: IProgress not found``), so every tutorial's output
-would open with a warning that names the machine's paths. Every module of the toolkit imports
-its bars from here instead: the widget bar only where ipywidgets can be imported, the text bar
-(on stderr) otherwise. The classes are tqdm's own.
+installed, warns at import (``TqdmWarning: IProgress not found``, with the path of tqdm on the
+machine). Every module of the toolkit imports its bars from here instead: the widget bar only
+where ipywidgets can be imported, the text bar (on stderr) otherwise, so the toolkit itself
+never warns. (Pyro's MCMC logger imports ``tqdm.auto`` too, so a notebook without ipywidgets
+still shows the warning once ``pyro.infer`` is imported: the ``test`` extra, which executes the
+tutorials, installs ipywidgets.) The classes are tqdm's own.
 """
 
 from __future__ import annotations
