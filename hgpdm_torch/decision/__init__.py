@@ -1,94 +1,63 @@
 """Decision making: anticipatory action selection as optimal stopping (Ch. 4: LSPI, Monte-Carlo
-planning, NAC) and delta-safe opponent modeling in repeated games (Ch. 5)."""
+planning, NAC) and delta-safe opponent modeling in repeated games (Ch. 5).
 
-from .basis import MomentBasis, RadialBasis, action_features
-from .games import (
-    RPS_REWARD,
-    TABLE_TENNIS_REWARD,
-    FiniteStageGame,
-    best_response,
-    expected_reward,
-    fictitious_play,
-    minimax_equilibrium,
-    minimax_strategy,
-    sample_counts,
-    two_stage_rps,
-)
-from .lspi import LinearQ, LSPIResult, lspi, lstdq
-from .mcp import (
-    Belief,
-    EarlyStopping,
-    MCPDecision,
-    MonteCarloPlanner,
-    ParticleProjector,
-    ParticleUpdate,
-)
-from .nac import NACResult, SoftmaxPolicy, nac, natural_gradient
-from .opponent import (
-    AdaptiveLearner,
-    DeltaSafeResponder,
-    KLBall,
-    SafeResponse,
-    TreeResponse,
-    delta_safe_tree,
-    kl_bound,
-    kl_divergence,
-    solve_delta_safe,
-    two_sample_z_test,
-)
-from .stopping import (
-    ACTIONS,
-    EXPLORATION,
-    WAIT,
-    Episodes,
-    StoppingProblem,
-    Transitions,
-    belief_vector,
-)
+Every name is imported on first use, so importing one part (e.g. the opponent modeling of Ch. 5,
+which needs only numpy and scipy) does not load the GP inference behind the planners.
+"""
 
-__all__ = [
-    "ACTIONS",
-    "Belief",
-    "EXPLORATION",
-    "EarlyStopping",
-    "Episodes",
-    "LSPIResult",
-    "LinearQ",
-    "MCPDecision",
-    "MomentBasis",
-    "MonteCarloPlanner",
-    "ParticleProjector",
-    "ParticleUpdate",
-    "NACResult",
-    "RadialBasis",
-    "SoftmaxPolicy",
-    "StoppingProblem",
-    "Transitions",
-    "WAIT",
-    "action_features",
-    "belief_vector",
-    "lspi",
-    "lstdq",
-    "minimax_equilibrium",
-    "nac",
-    "natural_gradient",
-    "AdaptiveLearner",
-    "DeltaSafeResponder",
-    "FiniteStageGame",
-    "KLBall",
-    "RPS_REWARD",
-    "SafeResponse",
-    "TABLE_TENNIS_REWARD",
-    "TreeResponse",
-    "best_response",
-    "delta_safe_tree",
-    "expected_reward",
-    "fictitious_play",
-    "kl_bound",
-    "kl_divergence",
-    "minimax_strategy",
-    "sample_counts",
-    "solve_delta_safe",
-    "two_sample_z_test",
-    "two_stage_rps",
-]
+from __future__ import annotations
+
+from .._lazy import lazy_exports
+
+# A name that is also the name of its module is bound now: importing that submodule anywhere
+# would otherwise bind the module under the name before the lazy lookup could run.
+from .lspi import lspi as lspi
+from .nac import nac as nac
+
+_EXPORTS: dict[str, str] = {
+    "ACTIONS": ".stopping",
+    "AdaptiveLearner": ".opponent",
+    "Belief": ".mcp",
+    "DeltaSafeResponder": ".opponent",
+    "EXPLORATION": ".stopping",
+    "EarlyStopping": ".mcp",
+    "Episodes": ".stopping",
+    "FiniteStageGame": ".games",
+    "KLBall": ".opponent",
+    "LSPIResult": ".lspi",
+    "LinearQ": ".lspi",
+    "MCPDecision": ".mcp",
+    "MomentBasis": ".basis",
+    "MonteCarloPlanner": ".mcp",
+    "NACResult": ".nac",
+    "ParticleProjector": ".mcp",
+    "ParticleUpdate": ".mcp",
+    "RPS_REWARD": ".games",
+    "RadialBasis": ".basis",
+    "SafeResponse": ".opponent",
+    "SoftmaxPolicy": ".nac",
+    "StoppingProblem": ".stopping",
+    "TABLE_TENNIS_REWARD": ".games",
+    "Transitions": ".stopping",
+    "TreeResponse": ".opponent",
+    "WAIT": ".stopping",
+    "action_features": ".basis",
+    "belief_vector": ".stopping",
+    "best_response": ".games",
+    "delta_safe_tree": ".opponent",
+    "expected_reward": ".games",
+    "fictitious_play": ".games",
+    "kl_bound": ".opponent",
+    "kl_divergence": ".opponent",
+    "lstdq": ".lspi",
+    "minimax_equilibrium": ".games",
+    "minimax_strategy": ".games",
+    "natural_gradient": ".nac",
+    "sample_counts": ".games",
+    "solve_delta_safe": ".opponent",
+    "two_sample_z_test": ".opponent",
+    "two_stage_rps": ".games",
+}
+
+__all__ = sorted([*_EXPORTS, "lspi", "nac"])
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
