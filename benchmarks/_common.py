@@ -15,7 +15,7 @@ RESULTS = Path(__file__).parent / "results"
 
 #: process noise alpha_4 of the models timed in float32: the online filter refuses float32 for
 #: smaller noises (alpha-bar's 1e-4, and 1e-2), whose evidence float32 cannot resolve to 0.1 nats
-#: (README, float32); the cost per step does not depend on alpha_4
+#: (docs, user guide); the cost per step does not depend on alpha_4
 FLOAT32_NOISE = 0.1
 
 

@@ -61,7 +61,7 @@ RESULTS = Path(__file__).parent / "results"
 HORIZONS = (*HORIZONS_MS, 0)
 STEPS = (1, 2, 3, 4, 5)
 RACKET = slice(6, 15)  # racket x, y, z, vx, vy, vz, nx, ny, nz in FEATURE_NAMES
-SELECTED = ("linear", 6)  # the configuration the experiment's cross-validation chose (README)
+SELECTED = ("linear", 6)  # the configuration the experiment's cross-validation chose (docs)
 README_80MS = {"IDDM online": 39.0, "IDDM batch": 39.3, "GPR": 35.3, "thesis IDDM": 31.5,
                "thesis GPR": 35.6}  # fmt: skip
 

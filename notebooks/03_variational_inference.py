@@ -134,7 +134,7 @@ print(table.to_markdown())
 # A new trial of a person rarely lies exactly on the poses the model was trained on: it deviates by
 # a posture offset that persists from frame to frame, and the GPDM's white measurement noise forgets
 # it. Two options help (on real CMU walks they turn a forecast that loses to ridge regression into
-# one that beats it; README, Walkers):
+# one that beats it; docs, Walkers):
 #
 # - `forecast(window, residual="ar1")` carries the window's deviation from the model's
 #   reconstruction forward as an AR(1) process, with its coefficient estimated from the window

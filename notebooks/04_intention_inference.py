@@ -161,7 +161,7 @@ plt.show()
 # %% [markdown]
 # ## When the GP IDDM loses the target: a linear-Gaussian intention-driven dynamics
 #
-# On these strokes the thesis's IDDM stays above GPR at 80 ms (README, target prediction). The
+# On these strokes the thesis's IDDM stays above GPR at 80 ms (docs, target prediction). The
 # target is there: at 80 ms it shows in how the *last* transition departs from what the previous
 # frame predicts, along the precise features, while others (the racket velocity) are noisy. The
 # GP IDDM averages that away three times over: one transition for every phase of the stroke, one
@@ -173,7 +173,7 @@ plt.show()
 # their evidence. Its belief after frame t reads frames 0..t only, for all streams in one call. It
 # needs data: each phase has 17 coefficients per feature. With the 16 training plays of the smoke
 # run stored here it errs far more than the GP IDDM, so the cell also fits it on 100 further
-# plays; with 100 plays its error at 80 ms is about GPR's (README, target prediction: 0.97 x over
+# plays; with 100 plays its error at 80 ms is about GPR's (docs, target prediction: 0.97 x over
 # ten fresh draws of the experiment).
 #
 # Its exact belief is over-confident: the transitions of a real stroke are not independent
@@ -190,7 +190,7 @@ plt.show()
 # `select="cv"` picks them by the criterion of T and eps instead (the likelihood of the true
 # targets under cross-validated beliefs). Finally, the two models (without and with the
 # interaction) err on different strokes: `hg.inference.BeliefMixture` averages their beliefs.
-# This mixture is what the README recommends for target prediction: over ten fresh draws of the
+# This mixture is what the docs recommend for target prediction: over ten fresh draws of the
 # experiment it errs 0.88 x as much as GPR at 80 ms, and 0.85 x over ten more.
 
 # %%
@@ -345,8 +345,8 @@ else:
 # term alone picked the right gesture in 69% of the windows, the measurement term in 33% and the
 # entropy in 3.5%. With the shared prior the total reached only 61%. The class-conditional prior
 # lifted the total to 70% (Dx = 5) and 76% (Dx = 8). The recognition experiment (`hgpdm
-# action-recognition --dataset msrc12`) therefore uses `state_prior="class"` by default; the README
-# lists its cross-validated results beside SVM, GPC and HMM.
+# action-recognition --dataset msrc12`) therefore uses `state_prior="class"` by default; the docs
+# list its cross-validated results beside SVM, GPC and HMM.
 #
 
 # %% [markdown]

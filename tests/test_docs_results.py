@@ -1,4 +1,5 @@
-"""Every result table a docs page cites is a committed JSON file that reads as a ResultTable."""
+"""Every result table a docs page cites is a committed JSON file that reads as a ResultTable, and
+the README stays a front page (the results live on the docs site)."""
 
 from __future__ import annotations
 
@@ -28,3 +29,14 @@ def test_cited_result_table_exists_and_reads(page, name):
     assert path.is_file(), f"{page} cites {name}, which does not exist"
     table = ResultTable.from_json(path)
     assert table.rows and table.columns, f"{name} holds no table"
+
+
+README_MAX_LINES = 250
+
+
+def test_readme_is_a_front_page():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= README_MAX_LINES, (
+        f"README.md has {len(lines)} lines (at most {README_MAX_LINES}): move results and "
+        "reference prose to a page under docs/"
+    )

@@ -206,7 +206,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
     if args.data == "weird-walking" and not args.cmu.is_dir():
-        parser.error(f"--cmu {args.cmu} is not a folder (it needs the CMU files, see README)")
+        parser.error(f"--cmu {args.cmu} is not a folder (it needs the CMU files; docs, Walking)")
     quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
     sizes: dict[str, int] = {"steps": 20, "iterations": 3} if quick else {}
     if quick and args.data == "synthetic":

@@ -592,7 +592,7 @@ def main(argv: list[str]) -> int:
         parser.error(f"--sharing must lie in [0, 1), got {args.sharing}")
     for name, path in (("--data", args.data), ("--test-data", args.test_data)):
         if path is not None and not path.is_dir():
-            parser.error(f"{name} {path} is not a folder (it needs the CMU files, see README)")
+            parser.error(f"{name} {path} is not a folder (it needs the CMU files; docs, Walking)")
     torch.set_default_dtype(torch.float64)
     table = walkers(
         args.protocol,

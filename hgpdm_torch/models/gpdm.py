@@ -7,7 +7,7 @@ the output scales W are learned by minimising the negative log posterior of Eq. 
 optimizer. The transition kernel's hyperparameters alpha_1..3 are fixed to alpha-bar (Sec. 2.4.1)
 unless ``learn_alpha=True``; the process noise alpha_4 can be learned under a weak log-normal prior
 centred on alpha-bar (``learn_noise=True``). It is fixed by default, as in the thesis: on real
-walks the MAP estimate collapses towards the noise floor and forecasts get worse (README, Walkers);
+walks the MAP estimate collapses towards the noise floor and forecasts get worse (docs, Walkers);
 choose it by cross-validation (:func:`hgpdm_torch.model_selection.cross_validate`) instead.
 
 Subclasses change the transition inputs and kernel (:class:`~hgpdm_torch.models.HGPDM` appends
@@ -164,7 +164,7 @@ class GPDM(gpytorch.Module, SavedModel):
         learn_measurement_width: learn the RBF measurement kernel's width beta_1 (default);
             ``False`` keeps it at its initial value. With free latents the MAP width shrinks as
             the fit proceeds until the measurement GP interpolates single training frames,
-            which hurts predictions for new recordings (README, Walkers).
+            which hurts predictions for new recordings (docs, Walkers).
         back_constraint: ``None`` (free latent states, the default), ``"kernel"`` or ``"mlp"``:
             latent states ``X = f(Z)`` of the standardised observations, with the map's
             parameters learned instead of X (:mod:`~hgpdm_torch.models.back_constraints`); or a

@@ -11,7 +11,7 @@ integrated out under their conjugate prior, so the one-step predictive is a Stud
 thesis). For movements recorded from a common start (a stroke's first frame a fixed time before
 the hit), this is what the target-prediction experiment needs: there the target information at
 80 ms lies in the step-specific, anisotropic residual of the last transition, which a stationary
-transition with isotropic noise over a 6-D latent averages away (README, target prediction;
+transition with isotropic noise over a 6-D latent averages away (docs, target prediction;
 ``python -m benchmarks target_dynamics``).
 
 Model, for each phase ``s`` (the frame index of ``z_t``, or one shared phase)::
@@ -28,7 +28,7 @@ intention's effect on the next frame may then scale with how far the current fra
 ``z_{t+1}``; with ``phase=False`` it does), so the evidence is conditional on it and is no criterion
 for the rank: choose ``r`` by cross-validation. On ten fresh draws of the table-tennis experiment
 ``r = 1`` (calibrated) predicts the target 5-9 cm better 320-160 ms before the hit than ``r = 0``
-and 0.7 cm better at 80 ms (README, target prediction).
+and 0.7 cm better at 80 ms (docs, target prediction).
 
 ``noise="diagonal"`` replaces ``Sigma_s`` by independent per-dimension variances (inverse-gamma,
 the ``Dz = 1`` case of the prior per dimension), ``noise="isotropic"`` by ``sigma_s^2 I`` with
@@ -62,7 +62,7 @@ coefficients. ``select="cv"`` therefore chooses the noise kind and the prior sca
 criterion of ``T`` and ``eps``: the likelihood of the true intentions under cross-validated beliefs
 (jointly with ``T`` and ``eps`` where they are ``"cv"``). On the table-tennis strokes it picks a
 3-30 times stronger ridge ``lambda`` than the evidence does and predicts the target better
-(README, target prediction). It costs a posterior per fold and candidate and the held-out
+(docs, target prediction). It costs a posterior per fold and candidate and the held-out
 evidence of each (144 candidates with everything ``"auto"``: about 8 s for a hundred sequences
 of 5 frames; each fold's held-out sequences are scored in one batch, padded to the longest).
 """

@@ -54,7 +54,7 @@ def batch_bound_terms(
     ``"transition"``: ``sum_t Q_t(g)``; ``"entropy"``: ``H(q)``, with ``q = q_g(x_{1:T})`` the
     GP-RTSS smoother under ``g``. Their sum is :func:`batch_bound`. Comparing a term across the
     K values shows where the evidence for (or against) each value comes from: on real gestures
-    only ``"transition"`` and ``"state"`` favour the true class (README, action recognition).
+    only ``"transition"`` and ``"state"`` favour the true class (docs, action recognition).
     Arguments as :func:`batch_bound`.
     """
     gk = g[:, None, :]  # [K, 1, Dg] broadcasts against the W windows
@@ -178,7 +178,7 @@ def infer_intention(
             ``"class"``: ``p(x_1 | g)`` from the training latents of each value
             (:func:`class_state_prior`), so that where a window's movement is, not only how it
             moves, is evidence about g. On real gestures (MSRC-12) ``"class"`` recognises far
-            better (README, action recognition).
+            better (docs, action recognition).
         temperature: ``T > 0``: the posterior is ``p(g) exp(B'(g) / T)`` normalised, with
             ``B'`` the bound without ``log p(g)`` (:mod:`~hgpdm_torch.inference.calibration`);
             1 is Algorithm 3.1. A uniform prior keeps the ranking (and the decisions); ``T``

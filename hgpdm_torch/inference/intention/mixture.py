@@ -7,7 +7,7 @@ each stream's evidence (which, over many observed dimensions, would soon pick on
 stream and lose the averaging). Its mean is the weighted mean of the members' means; its spread
 adds how much they disagree. On the table-tennis strokes, the equal mixture of a
 :class:`~hgpdm_torch.models.LinearIDDM` without and with the rank-1 interaction predicts the
-target better at 80 ms than either alone (README, target prediction).
+target better at 80 ms than either alone (docs, target prediction).
 
 Shapes: ``B`` streams, ``T`` frames, ``K`` intention values, ``M`` members.
 """
