@@ -16,10 +16,10 @@ import torch
 
 from hgpdm_torch.decision.games import as_rng
 from hgpdm_torch.decision.opponent._checks import (
-    _check_delta,
-    _check_probability,
-    _integer,
-    _scalar,
+    as_integer,
+    as_scalar,
+    check_delta,
+    check_open_probability,
 )
 from hgpdm_torch.decision.opponent.change_detection import two_sample_z_test
 from hgpdm_torch.decision.opponent.responder import DeltaSafeResponder
@@ -70,9 +70,9 @@ class AdaptiveLearner:
         self.responder = DeltaSafeResponder(self.reward, tol=self.tol, max_iter=self.max_iter)
         self.reward = self.responder.reward
         if not callable(self.delta):
-            self.delta = _check_delta(self.delta)
-        self.n_min = _integer(self.n_min, "n_min", 1)
-        self.alpha = _check_probability(self.alpha, "alpha")
+            self.delta = check_delta(self.delta)
+        self.n_min = as_integer(self.n_min, "n_min", 1)
+        self.alpha = check_open_probability(self.alpha, "alpha")
         n_j = self.reward.shape[1]
         self._x = np.zeros(n_j, dtype=np.int64)
         self._y = np.zeros(n_j, dtype=np.int64)
@@ -91,7 +91,7 @@ class AdaptiveLearner:
         """Record the opponent's action ``a_j`` and update the strategy (Alg. 5.1 lines 6-17)."""
         n_j = self.reward.shape[1]
         try:
-            index = _scalar(action, "action", integer=True)
+            index = as_scalar(action, "action", integer=True)
         except TypeError:
             index = -1
         if not 0 <= index < n_j:
@@ -125,5 +125,5 @@ class AdaptiveLearner:
     def _solve(self) -> None:
         n = int(self._x.sum())
         delta = self.delta(n) if callable(self.delta) else self.delta
-        res = self.responder.respond(self._x, _check_delta(delta))
+        res = self.responder.respond(self._x, check_delta(delta))
         self.strategy, self.bound = res.strategy, res.value

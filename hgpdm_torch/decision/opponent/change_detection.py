@@ -6,7 +6,7 @@ import numpy as np
 from scipy.stats import norm
 
 from hgpdm_torch.decision.games import check_counts
-from hgpdm_torch.decision.opponent._checks import _check_probability
+from hgpdm_torch.decision.opponent._checks import check_open_probability
 
 __all__ = [
     "two_sample_z_test",
@@ -33,7 +33,7 @@ def two_sample_z_test(
     """
     x = check_counts(counts_x, None, "counts_x")
     y = check_counts(counts_y, x.shape[0], "counts_y")
-    alpha = _check_probability(alpha, "alpha")
+    alpha = check_open_probability(alpha, "alpha")
     nx, ny = x.sum(), y.sum()
     if nx == 0 or ny == 0:
         raise ValueError("counts_x and counts_y must each hold at least one observation")

@@ -21,7 +21,7 @@ from hgpdm_torch.decision.games import (
     minimax_equilibrium,
     minimax_strategy,
 )
-from hgpdm_torch.decision.opponent._checks import _check_tol, _integer
+from hgpdm_torch.decision.opponent._checks import as_integer, check_tol
 from hgpdm_torch.decision.opponent.kl_ball import KLBall, _WorstCase
 
 __all__ = [
@@ -84,8 +84,8 @@ def solve_delta_safe(
         max_iter: the most cutting planes.
     """
     r = check_reward_matrix(reward)
-    tol = _check_tol(tol)
-    max_iter = _integer(max_iter, "max_iter", 1)
+    tol = check_tol(tol)
+    max_iter = as_integer(max_iter, "max_iter", 1)
     if ball is None:
         if counts is None or delta is None:
             raise ValueError("give either counts and delta, or ball")

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hgpdm_torch.decision.games import as_array, check_counts, check_strategy
-from hgpdm_torch.decision.opponent._checks import _check_delta, _integer, _scalar
+from hgpdm_torch.decision.opponent._checks import as_integer, as_scalar, check_delta
 
 __all__ = [
     "KLBall",
@@ -63,10 +63,10 @@ def kl_bound(delta: float, n_samples: int, n_actions: int, n_states: int = 1) ->
         n_actions: ``|Aj| >= 1`` opponent actions.
         n_states: ``|S|`` models that must hold together (union bound); 1 for a normal-form game.
     """
-    delta = _check_delta(delta)
-    n_samples = _integer(n_samples, "n_samples", 0)
-    n_actions = _integer(n_actions, "n_actions", 1)
-    n_states = _integer(n_states, "n_states", 1)
+    delta = check_delta(delta)
+    n_samples = as_integer(n_samples, "n_samples", 0)
+    n_actions = as_integer(n_actions, "n_actions", 1)
+    n_states = as_integer(n_states, "n_states", 1)
     if n_samples == 0:
         return math.inf
     return ((n_actions - 1) * math.log1p(n_samples) - math.log(delta / n_states)) / n_samples
@@ -192,7 +192,7 @@ class KLBall:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "center", check_strategy(self.center, None, "center"))
-        radius = _scalar(self.radius, "radius")
+        radius = as_scalar(self.radius, "radius")
         if math.isnan(radius) or radius < 0:
             raise ValueError(f"radius must be a non-negative float (inf allowed), got {radius}")
         object.__setattr__(self, "radius", radius)

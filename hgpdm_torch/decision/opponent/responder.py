@@ -18,7 +18,7 @@ from hgpdm_torch.decision.games import (
     check_strategy,
     minimax_equilibrium,
 )
-from hgpdm_torch.decision.opponent._checks import _check_tol, _integer
+from hgpdm_torch.decision.opponent._checks import as_integer, check_tol
 from hgpdm_torch.decision.opponent.cutting_planes import SafeResponse, _cutting_planes
 from hgpdm_torch.decision.opponent.kl_ball import KLBall, _kl, _WorstCase, kl_bound
 
@@ -99,8 +99,8 @@ class DeltaSafeResponder:
 
     def __init__(self, reward: object, *, tol: float = 1e-4, max_iter: int = 200) -> None:
         self.reward = check_reward_matrix(reward)
-        self.tol = _check_tol(tol)
-        self.max_iter = _integer(max_iter, "max_iter", 0)
+        self.tol = check_tol(tol)
+        self.max_iter = as_integer(max_iter, "max_iter", 0)
         self._rows = self.reward.tolist()
         self._cols = self.reward.T.tolist()
         spread = float(self.reward.max() - self.reward.min())

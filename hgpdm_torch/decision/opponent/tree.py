@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hgpdm_torch.decision.games import FiniteStageGame, check_counts
-from hgpdm_torch.decision.opponent._checks import _check_delta
+from hgpdm_torch.decision.opponent._checks import check_delta
 from hgpdm_torch.decision.opponent.cutting_planes import solve_delta_safe
 from hgpdm_torch.decision.opponent.kl_ball import KLBall
 from hgpdm_torch.decision.opponent.responder import DeltaSafeResponder
@@ -72,7 +72,7 @@ def delta_safe_tree(
         raise ValueError(
             f"counts must hold one vector per state ({game.n_states}), got {len(counts)}"
         )
-    delta = _check_delta(delta)
+    delta = check_delta(delta)
     values = np.zeros(game.n_states)
     strategies: list[np.ndarray] = [np.zeros(0)] * game.n_states
     opponents: list[np.ndarray] = [np.zeros(0)] * game.n_states
