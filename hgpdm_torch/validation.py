@@ -6,12 +6,23 @@ Every public function that takes user data calls these helpers so that bad input
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 
-__all__ = ["as_tensor", "check_finite", "check_probability", "check_shape", "check_choice"]
+__all__ = [
+    "as_observations",
+    "as_tensor",
+    "bad_observation",
+    "check_choice",
+    "check_finite",
+    "check_outlier_sd",
+    "check_probability",
+    "check_shape",
+    "real_scalar",
+]
 
 
 def as_tensor(
@@ -110,3 +121,57 @@ def check_choice(value: str, name: str, choices: Sequence[str]) -> str:
             f"unknown {name} {value!r}; expected one of {', '.join(map(repr, choices))}"
         )
     return value
+
+
+def real_scalar(value: object, name: str) -> float:
+    """``value`` as a float: a Python or NumPy real number or a 0-dim real tensor (not a bool).
+
+    Raises:
+        TypeError: anything else, naming ``name``.
+    """
+    if isinstance(value, torch.Tensor):
+        if value.dim() != 0 or value.dtype == torch.bool or value.is_complex():
+            raise TypeError(
+                f"{name} must be a real number or a 0-dim real tensor, got a tensor of shape "
+                f"{tuple(value.shape)} and dtype {value.dtype}"
+            )
+        return float(value)
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
+    return float(value)
+
+
+def check_outlier_sd(outlier_sd: object) -> float | None:
+    """The outlier threshold of the observation checks, in training standard deviations: a
+    positive float, or ``None`` (no threshold)."""
+    if outlier_sd is None:
+        return None
+    value = real_scalar(outlier_sd, "outlier_sd")
+    if not value > 0:
+        raise ValueError(f"outlier_sd must be positive (or None to disable), got {outlier_sd!r}")
+    return value
+
+
+def as_observations(z: object, min_ndim: int) -> torch.Tensor:
+    """``z`` as a real floating tensor (integers become float64), NaN and inf kept so that
+    :class:`ObservationCheck` can say which row is bad."""
+    if not isinstance(z, torch.Tensor):
+        try:
+            z = torch.as_tensor(np.asarray(z, dtype=np.float64))
+        except (TypeError, ValueError) as err:
+            raise TypeError(
+                f"z must be a tensor or numeric array-like, got {type(z).__name__}"
+            ) from err
+    if z.dtype == torch.bool or z.is_complex():
+        raise TypeError(f"z must have a real numeric dtype, got {z.dtype}")
+    if not z.is_floating_point():
+        z = z.to(torch.float64)
+    if z.dim() < min_ndim:
+        raise ValueError(f"z must have at least {min_ndim} dimensions, got shape {tuple(z.shape)}")
+    return z
+
+
+def bad_observation(where: str, why: str) -> ValueError:
+    """The error for an observation row that cannot be used: ``where`` names it (batch index,
+    step, stream), ``why`` says what is wrong with it."""
+    return ValueError(f"{where} cannot be used: {why}")

@@ -60,11 +60,10 @@ from scipy import stats
 
 from .. import settings
 from ..gaussian import conditional, log_density_terms, mixture_moments
-from ..inference.filtering import _as_observations, _bad_observation
 from ..inference.intention import OnlineIntentionFilter
 from ..linalg import cholesky_logdet, psd_cholesky, symmetrize
 from ..models import GPDM
-from ..validation import as_tensor, check_choice
+from ..validation import as_observations, as_tensor, bad_observation, check_choice
 from .lspi import LinearQ
 from .stopping import WAIT, _belief_vector, belief_vector
 
@@ -438,7 +437,7 @@ class ParticleProjector:
                 and channel).
         """
         shared = self._shared(self._check_belief(belief))
-        z = _as_observations(z, min_ndim=2)
+        z = as_observations(z, min_ndim=2)
         if z.dim() != 2 or z.shape[1] != shared.z_mean.shape[-1]:
             raise ValueError(
                 f"z must have shape [I, Dz] with Dz = {shared.z_mean.shape[-1]} columns, got "
@@ -447,7 +446,7 @@ class ParticleProjector:
         missing, rejected = self.filter.check.classify(z)
         if self.filter.strict and bool(rejected.any()):
             i = int(torch.nonzero(rejected)[0])
-            raise _bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
+            raise bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
         update = self._update(shared, z.to(shared.z_mean.dtype), missing | rejected)
         return ParticleUpdate(*update, rejected)
 

@@ -27,8 +27,7 @@ from typing import Any
 import torch
 from scipy.optimize import minimize_scalar
 
-from ..validation import as_tensor, check_probability
-from .filtering import _real_scalar
+from ..validation import as_tensor, check_probability, real_scalar
 
 __all__ = ["calibration", "check_temperature", "credible_set", "fit_temperature", "temper"]
 
@@ -43,7 +42,7 @@ def check_temperature(temperature: Any) -> float:
         TypeError: not a real number (or 0-dim real tensor); ValueError: not positive and
             finite.
     """
-    value = _real_scalar(temperature, "temperature")
+    value = real_scalar(temperature, "temperature")
     if not (math.isfinite(value) and value > 0):
         raise ValueError(f"temperature must be positive and finite, got {temperature!r}")
     return value

@@ -38,10 +38,8 @@ Shapes: ``T`` time steps, ``D`` state dim, ``Dz`` observation dim; ``...`` batch
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 from .. import settings
@@ -50,7 +48,12 @@ from ..gaussian import conditional, independent_joint, log_density, rts_step
 from ..gp import GPPosterior
 from ..linalg import positive_definite, psd_cholesky, symmetrize
 from ..progress import tqdm
-from ..validation import as_tensor
+from ..validation import (
+    as_observations,
+    as_tensor,
+    bad_observation,
+    check_outlier_sd,
+)
 
 __all__ = [
     "DEFAULT_OUTLIER_SD",
@@ -106,33 +109,6 @@ class SmootherResult:
 DEFAULT_OUTLIER_SD = 100.0
 
 
-def _real_scalar(value: object, name: str) -> float:
-    """``value`` as a float: a Python or NumPy real number or a 0-dim real tensor (not a bool).
-
-    Raises:
-        TypeError: anything else, naming ``name``.
-    """
-    if isinstance(value, torch.Tensor):
-        if value.dim() != 0 or value.dtype == torch.bool or value.is_complex():
-            raise TypeError(
-                f"{name} must be a real number or a 0-dim real tensor, got a tensor of shape "
-                f"{tuple(value.shape)} and dtype {value.dtype}"
-            )
-        return float(value)
-    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
-    return float(value)
-
-
-def _check_outlier_sd(outlier_sd: object) -> float | None:
-    if outlier_sd is None:
-        return None
-    value = _real_scalar(outlier_sd, "outlier_sd")
-    if not value > 0:
-        raise ValueError(f"outlier_sd must be positive (or None to disable), got {outlier_sd!r}")
-    return value
-
-
 @dataclass(frozen=True)
 class ObservationCheck:
     r"""Classifies observation rows as usable, missing or bad, from the training data's scale.
@@ -182,7 +158,7 @@ class ObservationCheck:
             outlier_sd: positive threshold, or ``None`` to check finiteness only.
         """
         measurement = _check_posterior(measurement, "measurement")
-        outlier_sd = _check_outlier_sd(outlier_sd)
+        outlier_sd = check_outlier_sd(outlier_sd)
         y = measurement.train_targets.detach().double()
         scale = measurement.scale.detach().double().expand(y.shape[1])
         noise = measurement.noise.detach().double() * scale.pow(2)
@@ -233,29 +209,6 @@ class ObservationCheck:
             return None
         index = tuple(int(i) for i in torch.nonzero(bad)[0])
         return index, self.reason(z[index])
-
-
-def _as_observations(z: object, min_ndim: int) -> torch.Tensor:
-    """``z`` as a real floating tensor (integers become float64), NaN and inf kept so that
-    :class:`ObservationCheck` can say which row is bad."""
-    if not isinstance(z, torch.Tensor):
-        try:
-            z = torch.as_tensor(np.asarray(z, dtype=np.float64))
-        except (TypeError, ValueError) as err:
-            raise TypeError(
-                f"z must be a tensor or numeric array-like, got {type(z).__name__}"
-            ) from err
-    if z.dtype == torch.bool or z.is_complex():
-        raise TypeError(f"z must have a real numeric dtype, got {z.dtype}")
-    if not z.is_floating_point():
-        z = z.to(torch.float64)
-    if z.dim() < min_ndim:
-        raise ValueError(f"z must have at least {min_ndim} dimensions, got shape {tuple(z.shape)}")
-    return z
-
-
-def _bad_observation(where: str, why: str) -> ValueError:
-    return ValueError(f"{where} cannot be used: {why}")
 
 
 def _check_posterior(gp: object, name: str) -> GPPosterior:
@@ -395,7 +348,7 @@ def filter_sequence(
     _check_posterior(transition, "transition")
     _check_posterior(measurement, "measurement")
     mu, Sigma = check_gaussian(mu0, Sigma0, "initial state")
-    z = _as_observations(z, min_ndim=2)
+    z = as_observations(z, min_ndim=2)
     if z.shape[-1] != measurement.output_dim:
         raise ValueError(
             f"z must have {measurement.output_dim} columns (measurement output dim), got "
@@ -406,7 +359,7 @@ def filter_sequence(
         index, why = found
         lead = ", ".join(map(str, index[:-1]))
         lead = f"batch index {lead}, " if lead else ""
-        raise _bad_observation(f"z{list(index)} ({lead}step {index[-1]})", why)
+        raise bad_observation(f"z{list(index)} ({lead}step {index[-1]})", why)
     z = z.to(dtype=mu.dtype, device=mu.device)
     known = g
     if g_cov is not None:

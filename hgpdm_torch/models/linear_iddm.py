@@ -80,7 +80,13 @@ import torch
 from pyro.distributions import MultivariateStudentT
 from torch.distributions import StudentT
 
-from ..validation import as_tensor, check_choice
+from ..validation import (
+    as_tensor,
+    bad_observation,
+    check_choice,
+    check_outlier_sd,
+    real_scalar,
+)
 from .persistence import SavedModel, save_model
 
 if TYPE_CHECKING:  # the inference package imports the models: no import at run time
@@ -224,19 +230,15 @@ class LinearIDDM(SavedModel):
 
             temperature = check_temperature(temperature)
         if forgetting != "cv":
-            from ..inference.filtering import _real_scalar
-
             try:
-                forgetting = _real_scalar(forgetting, "forgetting")
+                forgetting = real_scalar(forgetting, "forgetting")
             except TypeError as err:
                 raise ValueError(f"forgetting must be a number in [0, 1) or 'cv': {err}") from None
             if not 0.0 <= forgetting < 1.0:
                 raise ValueError(f"forgetting must be in [0, 1) or 'cv', got {forgetting!r}")
         if isinstance(cv_folds, bool) or not isinstance(cv_folds, int) or cv_folds < 2:
             raise ValueError(f"cv_folds must be an int >= 2, got {cv_folds!r}")
-        from ..inference.filtering import _check_outlier_sd
-
-        self.outlier_sd = _check_outlier_sd(outlier_sd)
+        self.outlier_sd = check_outlier_sd(outlier_sd)
         if (
             isinstance(interaction_rank, bool) or not isinstance(interaction_rank, int)
             or interaction_rank < 0
@@ -873,15 +875,13 @@ class LinearIDDM(SavedModel):
     def _check_obs(self, value: Any, name: str, min_ndim: int) -> torch.Tensor:
         """``value [..., Dz]`` as a finite tensor of the model's dtype and device; a bad row
         (:meth:`_observation_check`) raises a ``ValueError`` naming its index."""
-        from ..inference.filtering import _bad_observation
-
         z = as_tensor(value, name, dtype=self.dtype, device=self.coef.device, min_ndim=min_ndim)
         if z.shape[-1] != self.obs_dim:
             raise ValueError(f"{name} must have Dz = {self.obs_dim} columns, got {z.shape[-1]}")
         found = self._observation_check().first_bad(z)
         if found is not None:
             index, why = found
-            raise _bad_observation(f"{name}{list(index)}", why)
+            raise bad_observation(f"{name}{list(index)}", why)
         return z
 
     def _check_sequences(self, sequences: Any) -> list[torch.Tensor]:

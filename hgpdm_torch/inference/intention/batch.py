@@ -23,11 +23,11 @@ from ...gp import GPPosterior
 from ...linalg import psd_cholesky, symmetrize
 from ...models import HGPDM
 from ...progress import tqdm
+from ...validation import bad_observation
 from ..calibration import check_temperature, intention_log_prior
 from ..filtering import (
     DEFAULT_OUTLIER_SD,
     ObservationCheck,
-    _bad_observation,
     filter_sequence,
     smooth,
 )
@@ -216,7 +216,7 @@ def infer_intention(
         index, why = found
         windows = ", ".join(map(str, index[:-1]))
         where = f"window {windows}, step {index[-1]}" if windows else f"step {index[-1]}"
-        raise _bad_observation(f"z{list(index)} ({where})", why)
+        raise bad_observation(f"z{list(index)} ({where})", why)
     z = z.to(dtype)
     log_prior = intention_log_prior(prior, len(values), dtype, values.device)
     m0, S0 = _first_state_prior(model, values, mu0, Sigma0, state_prior, dtype)

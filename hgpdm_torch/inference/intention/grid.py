@@ -17,9 +17,8 @@ import torch
 
 from ...gaussian import mixture_moments
 from ...models import GPDM, HGPDM
-from ...validation import as_tensor
+from ...validation import as_observations, as_tensor
 from ..calibration import credible_set
-from ..filtering import _as_observations
 
 __all__ = ["IntentionBelief", "intention_grid"]
 
@@ -120,7 +119,7 @@ def intention_grid(model: GPDM, intentions: Any = None, num: int = 25) -> torch.
 def _check_observations(z: Any, dz: int, min_ndim: int) -> torch.Tensor:
     """``z [..., Dz]`` as a floating tensor in its own precision (bad rows are kept: the caller
     classifies them with an :class:`~hgpdm_torch.inference.filtering.ObservationCheck`)."""
-    z = _as_observations(z, min_ndim=min_ndim)
+    z = as_observations(z, min_ndim=min_ndim)
     if z.shape[-1] != dz:
         raise ValueError(f"z must have Dz = {dz} columns (the model's), got {z.shape[-1]}")
     return z

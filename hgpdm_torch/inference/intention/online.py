@@ -32,9 +32,9 @@ from ...gaussian import independent_joint, mixture_moments, rts_step
 from ...gp_shared import sparse_posterior
 from ...linalg import symmetrize
 from ...models import GPDM
-from ...validation import check_choice
+from ...validation import check_choice, real_scalar
 from ..calibration import check_temperature, intention_log_prior
-from ..filtering import DEFAULT_OUTLIER_SD, ObservationCheck, _real_scalar
+from ..filtering import DEFAULT_OUTLIER_SD, ObservationCheck
 from .grid import _check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import _measurement_update
@@ -211,7 +211,7 @@ class OnlineIntentionFilter(IsolatedStreams):
         strict: bool = False,
     ) -> None:
         values = intention_grid(model, intentions)
-        eps = _real_scalar(forgetting, "forgetting (epsilon)")
+        eps = real_scalar(forgetting, "forgetting (epsilon)")
         if not 0.0 <= eps < 1.0:
             raise ValueError(f"forgetting (epsilon) must be in [0, 1), got {forgetting!r}")
         if (

@@ -27,7 +27,8 @@ from typing import Any
 import torch
 
 from ...linalg import CholeskyError, positive_definite
-from ..filtering import ObservationCheck, _bad_observation
+from ...validation import bad_observation
+from ..filtering import ObservationCheck
 from .grid import IntentionBelief, _check_observations
 
 __all__ = ["IsolatedStreams", "belief_step", "flagged_belief", "screen_observations"]
@@ -84,7 +85,7 @@ def screen_observations(
     if bool(rejected.any()):
         b = int(torch.nonzero(rejected)[0])
         if strict:
-            raise _bad_observation(where(b), check.reason(z[b]))
+            raise bad_observation(where(b), check.reason(z[b]))
         z = z.masked_fill(rejected[:, None], math.nan)
     return z, rejected, single
 
