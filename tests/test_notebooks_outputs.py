@@ -23,8 +23,6 @@ NOT_YET_CLEAN = {
     "03_variational_inference": "ConvergenceWarnings of fits that stop at their step limit",
     "04_intention_inference": "ConvergenceWarnings (smoke sizes) and LinearIDDM's sparse-phase "
     "UserWarning; TqdmWarning",
-    "07_anticipatory_action_selection": "TqdmWarning (executed before the test extra had "
-    "ipywidgets)",
 }
 
 
