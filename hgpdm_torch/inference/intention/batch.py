@@ -31,9 +31,9 @@ from ..filtering import (
     filter_sequence,
     smooth,
 )
-from .grid import IntentionBelief, _check_chunk_size, _check_observations, intention_grid
-from .linearisation import _entropy, expected_log_conditional
-from .state_prior import _first_state_prior
+from .grid import IntentionBelief, check_chunk_size, check_observations, intention_grid
+from .linearisation import expected_log_conditional, gaussian_entropy
+from .state_prior import first_state_prior
 
 __all__ = ["batch_bound", "batch_bound_terms", "infer_intention"]
 
@@ -91,7 +91,7 @@ def batch_bound_terms(
             ],
             -2,
         )
-        H = _entropy(symmetrize(pair)) - _entropy(P_in)
+        H = gaussian_entropy(symmetrize(pair)) - gaussian_entropy(P_in)
         transition = Q.sum(-1)
         h = h + H.sum(-1)
     return {
@@ -203,12 +203,12 @@ def infer_intention(
         )
     values = intention_grid(model, intentions)
     dtype = values.dtype
-    z = _check_observations(z, model.obs_dim, min_ndim=2)
+    z = check_observations(z, model.obs_dim, min_ndim=2)
     if z.shape[-2] == 0:
         raise ValueError("z must hold at least one time step")
     if window is not None and (not isinstance(window, int) or window < 1):
         raise ValueError(f"window must be a positive int or None, got {window!r}")
-    chunk_size = _check_chunk_size(chunk_size)
+    chunk_size = check_chunk_size(chunk_size)
     temperature = check_temperature(temperature)
     trans, meas = model.transition_posterior(), model.measurement_posterior()
     found = ObservationCheck.from_measurement(meas, outlier_sd).first_bad(z)
@@ -219,7 +219,7 @@ def infer_intention(
         raise bad_observation(f"z{list(index)} ({where})", why)
     z = z.to(dtype)
     log_prior = intention_log_prior(prior, len(values), dtype, values.device)
-    m0, S0 = _first_state_prior(model, values, mu0, Sigma0, state_prior, dtype)
+    m0, S0 = first_state_prior(model, values, mu0, Sigma0, state_prior, dtype)
     if state_prior == "class":  # [K, 1, ...] broadcasts against the windows in batch_bound
         m0, S0 = m0[:, None], S0[:, None]
     n = trans.train_inputs.shape[0]

@@ -116,7 +116,7 @@ def intention_grid(model: GPDM, intentions: Any = None, num: int = 25) -> torch.
     return values
 
 
-def _check_observations(z: Any, dz: int, min_ndim: int) -> torch.Tensor:
+def check_observations(z: Any, dz: int, min_ndim: int) -> torch.Tensor:
     """``z [..., Dz]`` as a floating tensor in its own precision (bad rows are kept: the caller
     classifies them with an :class:`~hgpdm_torch.inference.filtering.ObservationCheck`)."""
     z = as_observations(z, min_ndim=min_ndim)
@@ -125,7 +125,7 @@ def _check_observations(z: Any, dz: int, min_ndim: int) -> torch.Tensor:
     return z
 
 
-def _check_chunk_size(chunk_size: Any) -> int | None:
+def check_chunk_size(chunk_size: Any) -> int | None:
     if chunk_size is None:
         return None
     if (

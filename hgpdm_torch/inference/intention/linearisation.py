@@ -58,6 +58,6 @@ def expected_log_conditional(
     return log_density_terms(trace, cholesky_logdet(LV), V.shape[-1])
 
 
-def _entropy(cov: torch.Tensor) -> torch.Tensor:
+def gaussian_entropy(cov: torch.Tensor) -> torch.Tensor:
     """Entropy ``[...]`` of ``N(., cov [..., D, D])``."""
     return entropy(psd_cholesky(cov, name="smoothed covariance"))

@@ -105,7 +105,7 @@ class LinearMeasurement:
         return mean, cov, torch.where(missing, torch.zeros_like(ll), ll)
 
 
-def _measurement_update(posterior: GPPosterior, dtype: torch.dtype):
+def measurement_update(posterior: GPPosterior, dtype: torch.dtype):
     """The fastest exact GP-ADF measurement update for this GP: ``(mu, P, z) -> (m, P, ll)``."""
     try:
         return LinearMeasurement(posterior, dtype).update

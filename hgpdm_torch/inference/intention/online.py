@@ -35,12 +35,12 @@ from ...models import GPDM
 from ...validation import check_choice, real_scalar
 from ..calibration import check_temperature, intention_log_prior
 from ..filtering import DEFAULT_OUTLIER_SD, ObservationCheck
-from .grid import _check_chunk_size, intention_grid
+from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
-from .measurement import _measurement_update
-from .state_prior import STATE_PRIORS, _first_state_prior, _state_prior
+from .measurement import measurement_update
+from .state_prior import STATE_PRIORS, first_state_prior, marginal_state_prior
 from .streams import IsolatedStreams, belief_step
-from .transition import _check_precision, transition_moments
+from .transition import check_precision, transition_moments
 
 __all__ = ["OnlineIntentionFilter"]
 
@@ -220,7 +220,7 @@ class OnlineIntentionFilter(IsolatedStreams):
             or int(batch_size) < 1
         ):
             raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
-        chunk_size = _check_chunk_size(chunk_size)
+        chunk_size = check_chunk_size(chunk_size)
         check_choice(evidence, "evidence", ("predictive", "bound"))
         check_choice(mixing, "mixing", ("grid", "gaussian"))
         kind = getattr(model, "intention", None)  # None: a GPDM without g
@@ -246,23 +246,23 @@ class OnlineIntentionFilter(IsolatedStreams):
         )
         meas = model.measurement_posterior()
         self.check = ObservationCheck.from_measurement(meas, outlier_sd)
-        self.measure = _measurement_update(meas, self.dtype)
+        self.measure = measurement_update(meas, self.dtype)
         own = trans.train_inputs.dtype
         if self.dtype != own:
             reference = transition_moments(trans, values, own, transition=transition, **phased)
-            measure = _measurement_update(meas, own)
-            _check_precision(model, reference, self.transition, measure, self.measure)
+            measure = measurement_update(meas, own)
+            check_precision(model, reference, self.transition, measure, self.measure)
         self.gaussian_transition = trans.to_dtype(self.dtype) if mixing == "gaussian" else None
         self.values = self.transition.values
         self.log_prior = intention_log_prior(prior, len(values), self.dtype, values.device)
         check_choice(state_prior, "state_prior", STATE_PRIORS)
         self.state_prior = state_prior
         if state_prior == "class":
-            self.class_mu0, self.class_Sigma0 = _first_state_prior(
+            self.class_mu0, self.class_Sigma0 = first_state_prior(
                 model, values, mu0, Sigma0, state_prior, self.dtype
             )
             mu0 = Sigma0 = None  # an unstarted stream stores the marginal prior
-        self.mu0, self.Sigma0 = _state_prior(model, mu0, Sigma0, self.dtype)
+        self.mu0, self.Sigma0 = marginal_state_prior(model, mu0, Sigma0, self.dtype)
         self.forgetting = eps
         self.temperature = check_temperature(temperature)
         self.batch_size = int(batch_size)

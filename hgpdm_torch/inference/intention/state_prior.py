@@ -20,7 +20,7 @@ from ...validation import as_tensor, check_choice
 __all__ = ["STATE_PRIORS", "class_state_prior"]
 
 
-def _state_prior(
+def marginal_state_prior(
     model: GPDM, mu0: Any, Sigma0: Any, dtype: torch.dtype
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Prior of the first latent state: default the empirical marginal of the training latents
@@ -69,7 +69,7 @@ def class_state_prior(
         raise ValueError("state_prior='class' needs a discrete intention; use 'marginal'")
     x = model.latent.detach()
     frames = torch.repeat_interleave(model.intention_codes(), model.lengths)
-    mu, Sigma = _state_prior(model, None, None, x.dtype)
+    mu, Sigma = marginal_state_prior(model, None, None, x.dtype)
     dx = model.latent_dim
     means, covs = [], []
     for code in values[:, 0].long().tolist():
@@ -82,14 +82,14 @@ def class_state_prior(
     return torch.stack(means).to(dtype), torch.stack(covs).to(dtype)
 
 
-def _first_state_prior(
+def first_state_prior(
     model: GPDM, values: torch.Tensor, mu0: Any, Sigma0: Any, state_prior: str, dtype: torch.dtype
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(mu0 [Dx], Sigma0 [Dx, Dx])`` for ``"marginal"``, ``([K, Dx], [K, Dx, Dx])`` for
     ``"class"``."""
     check_choice(state_prior, "state_prior", STATE_PRIORS)
     if state_prior == "marginal":
-        return _state_prior(model, mu0, Sigma0, dtype)
+        return marginal_state_prior(model, mu0, Sigma0, dtype)
     if mu0 is not None or Sigma0 is not None:
         raise ValueError("give either mu0/Sigma0 or state_prior='class', not both")
     return class_state_prior(model, values, dtype)

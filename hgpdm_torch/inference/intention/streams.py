@@ -29,7 +29,7 @@ import torch
 from ...linalg import CholeskyError, positive_definite
 from ...validation import bad_observation
 from ..filtering import ObservationCheck
-from .grid import IntentionBelief, _check_observations
+from .grid import IntentionBelief, check_observations
 
 __all__ = ["IsolatedStreams", "belief_step", "flagged_belief", "screen_observations"]
 
@@ -72,7 +72,7 @@ def screen_observations(
         ValueError: a wrong shape; with ``strict``, the first bad row, naming it (``where``) and
             its first bad channel. Nothing is changed: the caller's state is not touched here.
     """
-    z = _check_observations(z, obs_dim, min_ndim=1)
+    z = check_observations(z, obs_dim, min_ndim=1)
     single = z.dim() == 1
     if single:
         z = z[None]

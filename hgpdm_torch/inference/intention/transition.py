@@ -36,7 +36,7 @@ from ...gp import GPPosterior
 from ...gp_shared import SharedTransition, sparse_posterior
 from ...models import GPDM
 from ...validation import check_choice
-from .state_prior import _state_prior
+from .state_prior import marginal_state_prior
 
 __all__ = [
     "EVIDENCE_LIMIT",
@@ -231,7 +231,7 @@ def _evidence_spread(ll: torch.Tensor, ref: torch.Tensor) -> float:
     return err if err == err else float("inf")
 
 
-def _check_precision(
+def check_precision(
     model: GPDM,
     reference: TransitionMoments,
     low: TransitionMoments,
@@ -256,7 +256,7 @@ def _check_precision(
     x = model.latent.detach().to(ref_dtype)
     n = x.shape[0]
     idx = torch.linspace(0, n - 1, min(8, n), device=x.device).round().long()
-    _, spread = _state_prior(model, None, None, x.dtype)  # the training latents' covariance
+    _, spread = marginal_state_prior(model, None, None, x.dtype)  # the training latents' covariance
     worst = 0.0
     probes = []
     phase = None  # a phase-aware GP's probes at their training frames' phases
