@@ -18,8 +18,8 @@ from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVC
 
 from ..validation import as_tensor
-from .exact_gp import _ExactGP, _fit_marginal_likelihood
-from .windows import _labelled_windows, _sequences, _test_windows
+from .exact_gp import ExactGPModel, fit_marginal_likelihood
+from .windows import as_sequences, labelled_windows, prediction_windows
 
 __all__ = ["HMMClassifier", "WindowGPC", "WindowSVM"]
 
@@ -46,17 +46,17 @@ class WindowSVM:
         self.window, self.C, self.gamma = int(window), C, gamma
 
     def fit(self, sequences: Any, labels: Any) -> WindowSVM:
-        seqs = _sequences(sequences)
+        seqs = as_sequences(sequences)
         y = _class_labels(labels, len(seqs))
         self.obs_dim, self.num_classes = seqs[0].shape[1], int(y.max()) + 1
-        x, yy = _labelled_windows(seqs, y, self.window)
+        x, yy = labelled_windows(seqs, y, self.window)
         self.scaler = StandardScaler().fit(x.numpy())
         self.svc = SVC(C=self.C, gamma=self.gamma).fit(self.scaler.transform(x.numpy()), yy)
         return self
 
     def predict(self, z: Any) -> torch.Tensor:
         """Class at every step: ``[..., T, Dz]`` -> ``[..., T]`` (long)."""
-        x = _test_windows(z, self.window, self.obs_dim)
+        x = prediction_windows(z, self.window, self.obs_dim)
         flat = self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy())
         return torch.as_tensor(self.svc.predict(flat)).reshape(x.shape[:-1]).long()
 
@@ -84,10 +84,10 @@ class WindowGPC:
         self.samples, self.seed = int(samples), int(seed)
 
     def fit(self, sequences: Any, labels: Any) -> WindowGPC:
-        seqs = _sequences(sequences)
+        seqs = as_sequences(sequences)
         y = _class_labels(labels, len(seqs))
         self.obs_dim = seqs[0].shape[1]
-        x, yy = _labelled_windows(seqs, y, self.window)
+        x, yy = labelled_windows(seqs, y, self.window)
         self.scaler = StandardScaler().fit(x.numpy())
         x = torch.as_tensor(self.scaler.transform(x.numpy()))
         lik = gpytorch.likelihoods.DirichletClassificationLikelihood(
@@ -95,15 +95,15 @@ class WindowGPC:
         )
         self.num_classes = lik.num_classes
         batch = torch.Size((lik.num_classes,))
-        model = _ExactGP(x, lik.transformed_targets, lik, batch_shape=batch).double()
-        _fit_marginal_likelihood(model, lik, x, lik.transformed_targets, self.steps, self.lr)
+        model = ExactGPModel(x, lik.transformed_targets, lik, batch_shape=batch).double()
+        fit_marginal_likelihood(model, lik, x, lik.transformed_targets, self.steps, self.lr)
         self.model, self.likelihood = model, lik
         return self
 
     @torch.no_grad()
     def predict_proba(self, z: Any) -> torch.Tensor:
         """Class probabilities at every step: ``[..., T, Dz]`` -> ``[..., T, C]``."""
-        x = _test_windows(z, self.window, self.obs_dim)
+        x = prediction_windows(z, self.window, self.obs_dim)
         flat = torch.as_tensor(self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy()))
         f = self.model(flat)  # batch of C GPs over the M points
         gen = torch.Generator().manual_seed(self.seed)
@@ -141,7 +141,7 @@ class HMMClassifier:
         self.iterations, self.seed = int(iterations), int(seed)
 
     def fit(self, sequences: Any, labels: Any) -> HMMClassifier:
-        seqs = _sequences(sequences)
+        seqs = as_sequences(sequences)
         y = _class_labels(labels, len(seqs))
         self.obs_dim, self.num_classes = seqs[0].shape[1], int(y.max()) + 1
         self.hmms = []

@@ -13,7 +13,7 @@ import torch
 __all__: list[str] = []
 
 
-class _ExactGP(gpytorch.models.ExactGP):
+class ExactGPModel(gpytorch.models.ExactGP):
     def __init__(
         self, x: torch.Tensor, y: torch.Tensor, likelihood, batch_shape: torch.Size | None = None
     ):
@@ -29,7 +29,7 @@ class _ExactGP(gpytorch.models.ExactGP):
         return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
 
 
-def _fit_marginal_likelihood(model, likelihood, x, y, steps: int, lr: float) -> None:
+def fit_marginal_likelihood(model, likelihood, x, y, steps: int, lr: float) -> None:
     """Maximise the exact marginal likelihood with Adam (the standard gpytorch routine)."""
     model.train()
     likelihood.train()

@@ -20,12 +20,12 @@ from sklearn.linear_model import Ridge
 from sklearn.model_selection import GridSearchCV, GroupKFold
 
 from ..validation import as_tensor
-from .windows import _sequences, window_features
+from .windows import as_sequences, window_features
 
 __all__ = ["LastFrameForecaster", "RidgeAR"]
 
 
-class _Forecaster:
+class BaseForecaster:
     """Predicts ``z_{t+1}`` from a window ending at ``z_t``, using its last ``order_`` frames."""
 
     order_: int = 1
@@ -45,12 +45,12 @@ class _Forecaster:
         return z
 
 
-class LastFrameForecaster(_Forecaster):
+class LastFrameForecaster(BaseForecaster):
     """The persistence forecast ``z_{t+1} = z_t``: what any dynamics model must beat."""
 
     def fit(self, sequences: Any) -> LastFrameForecaster:
         """Record ``Dz`` of the ``[T_j, Dz]`` training sequences (nothing is learned)."""
-        self.obs_dim = _sequences(sequences)[0].shape[1]
+        self.obs_dim = as_sequences(sequences)[0].shape[1]
         return self
 
     def predict(self, windows: Any) -> torch.Tensor:
@@ -76,7 +76,7 @@ def _lagged(
 _AR_ALPHAS = tuple(10.0 ** (k / 2) for k in range(-6, 7))  # np.logspace(-3, 3, 13)
 
 
-class RidgeAR(_Forecaster):
+class RidgeAR(BaseForecaster):
     """Linear autoregression ``z_{t+1} = A [z_{t-k+1}, ..., z_t] + b``, fitted by ridge regression
     (scikit-learn ``Ridge``: the intercept ``b`` is not penalised).
 
@@ -130,7 +130,7 @@ class RidgeAR(_Forecaster):
                 than 2 sequences longer than ``max(orders)`` frames when there is a choice to
                 make, or no sequence longer than the chosen order.
         """
-        seqs = _sequences(sequences)
+        seqs = as_sequences(sequences)
         orders = tuple(orders)
         if len(orders) == 0 or any(
             not isinstance(k, numbers.Integral) or isinstance(k, bool) or k < 1 for k in orders

@@ -20,8 +20,8 @@ import torch
 from sklearn.model_selection import GroupKFold
 from torch import nn
 
-from .forecasting import _Forecaster
-from .windows import _sequences
+from .forecasting import BaseForecaster
+from .windows import as_sequences
 
 __all__ = ["GRUForecaster"]
 
@@ -56,7 +56,7 @@ def _training_windows(
     return torch.cat(z), torch.cat(nxt), np.concatenate(groups)
 
 
-class GRUForecaster(_Forecaster):
+class GRUForecaster(BaseForecaster):
     """Next-frame forecaster: a GRU over the window, hidden size and epochs by grouped CV.
 
     Args:
@@ -131,7 +131,7 @@ class GRUForecaster(_Forecaster):
             ValueError: bad ``window``, fewer than 2 sequences longer than the window (no
                 grouped selection possible), or sequences of different ``Dz``.
         """
-        seqs = _sequences(sequences)
+        seqs = as_sequences(sequences)
         if not isinstance(window, numbers.Integral) or isinstance(window, bool) or window < 1:
             raise ValueError(f"window must be a positive int, got {window!r}")
         self.window_ = self.order_ = int(window)

@@ -20,8 +20,8 @@ from sklearn.linear_model import RidgeCV
 from sklearn.preprocessing import StandardScaler
 
 from ..validation import as_tensor
-from .exact_gp import _ExactGP, _fit_marginal_likelihood
-from .windows import _labelled_windows, _sequences, _test_windows
+from .exact_gp import ExactGPModel, fit_marginal_likelihood
+from .windows import as_sequences, labelled_windows, prediction_windows
 
 __all__ = ["MedianPredictor", "WindowGPR", "WindowRidge"]
 
@@ -48,7 +48,7 @@ class _WindowRegressor:
 
     def fit(self, sequences: Any, targets: Any):
         """Fit on ``J`` sequences ``[T_j, Dz]`` with one target each ``[J]``."""
-        seqs = _sequences(sequences)
+        seqs = as_sequences(sequences)
         y = as_tensor(targets, "targets", ndim=1)
         if y.shape[0] != len(seqs):
             raise ValueError(f"need one target per sequence: {y.shape[0]} for {len(seqs)}")
@@ -72,7 +72,7 @@ class _WindowRegressor:
         return self
 
     def _predict(self, z: Any) -> tuple[torch.Tensor, torch.Tensor | None]:
-        x = _test_windows(z, self.window, self.obs_dim)
+        x = prediction_windows(z, self.window, self.obs_dim)
         flat = torch.as_tensor(self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy()))
         mean, std = self._predict_flat(flat)
         shape = x.shape[:-1]
@@ -102,13 +102,13 @@ class WindowGPR(_WindowRegressor):
         self.steps, self.lr = int(steps), float(lr)
 
     def _train(self, sequences, targets, window) -> None:
-        x, y = _labelled_windows(sequences, targets, window)
+        x, y = labelled_windows(sequences, targets, window)
         self.scaler = StandardScaler().fit(x.numpy())
         x = torch.as_tensor(self.scaler.transform(x.numpy()))
         lik = gpytorch.likelihoods.GaussianLikelihood()
-        model = _ExactGP(x, y, lik).double()
+        model = ExactGPModel(x, y, lik).double()
         lik.double()
-        _fit_marginal_likelihood(model, lik, x, y, self.steps, self.lr)
+        fit_marginal_likelihood(model, lik, x, y, self.steps, self.lr)
         self.model, self.likelihood = model, lik
 
     @torch.no_grad()
@@ -148,7 +148,7 @@ class WindowRidge(_WindowRegressor):
         self.alphas = tuple(float(a) for a in alphas)
 
     def _train(self, sequences, targets, window) -> None:
-        x, y = _labelled_windows(sequences, targets, window)
+        x, y = labelled_windows(sequences, targets, window)
         self.scaler = StandardScaler().fit(x.numpy())
         self.model = RidgeCV(alphas=self.alphas).fit(self.scaler.transform(x.numpy()), y.numpy())
 

@@ -38,7 +38,7 @@ def window_features(z: torch.Tensor, window: int) -> torch.Tensor:
     return torch.cat(frames, dim=-1)
 
 
-def _sequences(sequences: Any, name: str = "sequences") -> list[torch.Tensor]:
+def as_sequences(sequences: Any, name: str = "sequences") -> list[torch.Tensor]:
     if isinstance(sequences, torch.Tensor | np.ndarray):
         sequences = list(as_tensor(sequences, name, ndim=3))
     if not isinstance(sequences, Sequence) or len(sequences) == 0:
@@ -49,7 +49,7 @@ def _sequences(sequences: Any, name: str = "sequences") -> list[torch.Tensor]:
     return out
 
 
-def _labelled_windows(
+def labelled_windows(
     sequences: list[torch.Tensor], labels: torch.Tensor, window: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """All windows of all sequences ``[sum T_j, w Dz]`` with their sequence's label."""
@@ -60,7 +60,7 @@ def _labelled_windows(
     return x, y
 
 
-def _test_windows(z: Any, window: int, dz: int) -> torch.Tensor:
+def prediction_windows(z: Any, window: int, dz: int) -> torch.Tensor:
     z = as_tensor(z, "z", min_ndim=2)
     if z.shape[-1] != dz:
         raise ValueError(f"z must have Dz = {dz} columns like the training data, got {z.shape}")

@@ -97,7 +97,7 @@ def _check_priors(priors: Mapping[str, Prior | None] | None) -> dict[str, Prior 
     return dict(priors)
 
 
-def _check_sequences(sequences: SequencesLike, dtype: torch.dtype) -> list[torch.Tensor]:
+def check_sequences(sequences: SequencesLike, dtype: torch.dtype) -> list[torch.Tensor]:
     """Validate ``sequences`` (a list of ``[T_j, Dz]`` arrays or a ``[J, T, Dz]`` tensor)."""
     if isinstance(sequences, torch.Tensor):
         if sequences.dim() != 3:
@@ -228,7 +228,7 @@ class GPDM(gpytorch.Module, SavedModel):
                 "give a kernel of your own its priors when you build it"
             )
         hyper_priors = {**self.default_priors(alpha[3]), **given_priors}
-        seqs = _check_sequences(sequences, dtype)
+        seqs = check_sequences(sequences, dtype)
         self.latent_dim = latent_dim
         self.measurement = name
         self.alpha_init = alpha

@@ -24,7 +24,7 @@ from ..kernels import transition_kernel
 from ..linalg import gaussian_nll
 from ..progress import trange
 from ..validation import as_tensor, check_choice
-from .gpdm import GPDM, NOISE_FLOOR, SequencesLike, _check_sequences
+from .gpdm import GPDM, NOISE_FLOOR, SequencesLike, check_sequences
 
 __all__ = ["HGPDM", "IDDM", "trajectory_summaries"]
 
@@ -166,7 +166,7 @@ class HGPDM(GPDM):
             raise ValueError("sharing applies to a discrete intention only")
         self.sharing = float(sharing)
         dtype = kwargs.get("dtype", torch.float64)
-        num_seq = len(_check_sequences(sequences, dtype))
+        num_seq = len(check_sequences(sequences, dtype))
         values, k = _check_intentions(intentions, num_seq, intention, num_values, dtype)
         self.intention = intention
         self.num_values = k
