@@ -65,7 +65,7 @@ from ..linalg import cholesky_logdet, psd_cholesky, symmetrize
 from ..models import GPDM
 from ..validation import as_observations, as_tensor, bad_observation, check_choice
 from .lspi import LinearQ
-from .stopping import WAIT, _belief_vector, belief_vector
+from .stopping import WAIT, belief_vector, belief_vector_unchecked
 
 __all__ = [
     "WAIT_VALUES",
@@ -529,7 +529,7 @@ class MonteCarloPlanner(ParticleProjector):
             raise TypeError("vectorize must be callable ((mean, cov, prob) -> vectors) or None")
         self.rule = EarlyStopping(num_particles, confidence, min_particles, chunk_size)
         self.q, self.features = q, features
-        self.vectorize = vectorize or _belief_vector
+        self.vectorize = vectorize or belief_vector_unchecked
         self.num_particles, self.min_particles = num_particles, min_particles
         self.chunk_size, self.confidence = chunk_size, confidence
 

@@ -45,7 +45,7 @@ import torch
 from ..validation import as_tensor, check_choice
 from .beliefs import PHASE_IDDM, BeliefConfig, Beliefs, filter_beliefs, fit_iddm
 from .mcp import ParticleProjector
-from .stopping import _belief_vector
+from .stopping import belief_vector_unchecked
 
 __all__ = [
     "BELIEF_SOURCES",
@@ -113,7 +113,7 @@ class BeliefTrack:
         check_choice(features, "features", FEATURES)
         if features == "rbf":
             if self.latent is not None:
-                return _belief_vector(self.latent.mean, self.latent.cov, self.prob)
+                return belief_vector_unchecked(self.latent.mean, self.latent.cov, self.prob)
             return self.prob
         return torch.stack(
             [moment_vector(self.prob[:, t], self.grid, t, self.num_steps)
@@ -138,7 +138,7 @@ class BeliefTrack:
             raise RuntimeError(f"the {self.source!r} track draws no particles")
         prob, mean, cov = self._sampler(trial, step, num, generator)
         if features == "rbf":
-            return _belief_vector(mean, cov, prob) if mean is not None else prob
+            return belief_vector_unchecked(mean, cov, prob) if mean is not None else prob
         return moment_vector(prob, self.grid, step + 1, self.num_steps)
 
 

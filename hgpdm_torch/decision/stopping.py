@@ -70,10 +70,12 @@ def belief_vector(mean: torch.Tensor, cov: torch.Tensor, prob: torch.Tensor) -> 
     if cov.shape[-2:] != (dx, dx):
         raise ValueError(f"cov must have trailing shape [{dx}, {dx}], got {tuple(cov.shape)}")
     batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], prob.shape[:-1])
-    return _belief_vector(mean.expand(*batch, dx), cov.expand(*batch, dx, dx), prob)
+    return belief_vector_unchecked(mean.expand(*batch, dx), cov.expand(*batch, dx, dx), prob)
 
 
-def _belief_vector(mean: torch.Tensor, cov: torch.Tensor, prob: torch.Tensor) -> torch.Tensor:
+def belief_vector_unchecked(
+    mean: torch.Tensor, cov: torch.Tensor, prob: torch.Tensor
+) -> torch.Tensor:
     """:func:`belief_vector` without validation, for hot loops (batch shapes already equal)."""
     rows, cols = torch.triu_indices(mean.shape[-1], mean.shape[-1], device=mean.device)
     prob = prob.expand(*mean.shape[:-1], prob.shape[-1])

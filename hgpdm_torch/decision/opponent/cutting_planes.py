@@ -22,7 +22,7 @@ from hgpdm_torch.decision.games import (
     minimax_strategy,
 )
 from hgpdm_torch.decision.opponent._checks import as_integer, check_tol
-from hgpdm_torch.decision.opponent.kl_ball import KLBall, _WorstCase
+from hgpdm_torch.decision.opponent.kl_ball import KLBall, WorstCase
 
 __all__ = [
     "SafeResponse",
@@ -92,13 +92,13 @@ def solve_delta_safe(
         ball = KLBall.from_counts(check_counts(counts, r.shape[1]), delta, n_states)
     elif ball.center.shape[0] != r.shape[1]:
         raise ValueError(f"ball has {ball.center.shape[0]} actions, reward has {r.shape[1]}")
-    worst = _WorstCase(ball.center.tolist(), ball.radius)
-    return _cutting_planes(r, worst, minimax_strategy(r)[0], tol, max_iter)
+    worst = WorstCase(ball.center.tolist(), ball.radius)
+    return run_cutting_planes(r, worst, minimax_strategy(r)[0], tol, max_iter)
 
 
-def _cutting_planes(
+def run_cutting_planes(
     reward: np.ndarray,
-    worst: _WorstCase,
+    worst: WorstCase,
     pi: np.ndarray,
     tol: float,
     max_iter: int,

@@ -2,7 +2,7 @@
 
 ``Omega(delta) = {pi_j : KL(pi~_j || pi_j) <= eps(delta)}`` holds the opponent's true stationary
 strategy with probability at least ``1 - delta``: :func:`kl_bound` is the radius, :class:`KLBall`
-the ball, and its exact worst case (the private ``_WorstCase``) the inner step that both solvers
+the ball, and its exact worst case (``WorstCase``, not re-exported) the inner step that both solvers
 of Problem (38) share.
 
 Inner problem and its dual. For a payoff vector ``c = R^T pi_i`` ``[Aj]``, empirical ``p`` and
@@ -80,7 +80,7 @@ def _log_expm1(x: float) -> float:
     return x + math.log1p(-math.exp(-x)) if x > 1.0 else math.log(math.expm1(x))
 
 
-class _WorstCase:
+class WorstCase:
     """The inner minimisation ``min_{q in Omega} c^T q`` for one ball, solved through its dual.
 
     Works on Python floats: for the handful of actions of these games, NumPy's per-call overhead
@@ -225,11 +225,11 @@ class KLBall:
                 f"payoff must have {self.center.shape[0]} entries (one per opponent action), "
                 f"got {c.shape[0]}"
             )
-        value, q = _WorstCase(self.center.tolist(), self.radius).solve(c.tolist())
+        value, q = WorstCase(self.center.tolist(), self.radius).solve(c.tolist())
         return value, np.asarray(q)
 
 
-def _kl(p: list[float], q: list[float]) -> float:
+def kl_of_lists(p: list[float], q: list[float]) -> float:
     """``KL(p || q)`` on lists, ``inf`` where ``q`` misses mass of ``p``."""
     total = 0.0
     for pk, qk in zip(p, q, strict=True):

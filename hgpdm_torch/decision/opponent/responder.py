@@ -19,8 +19,8 @@ from hgpdm_torch.decision.games import (
     minimax_equilibrium,
 )
 from hgpdm_torch.decision.opponent._checks import as_integer, check_tol
-from hgpdm_torch.decision.opponent.cutting_planes import SafeResponse, _cutting_planes
-from hgpdm_torch.decision.opponent.kl_ball import KLBall, _kl, _WorstCase, kl_bound
+from hgpdm_torch.decision.opponent.cutting_planes import SafeResponse, run_cutting_planes
+from hgpdm_torch.decision.opponent.kl_ball import KLBall, WorstCase, kl_bound, kl_of_lists
 
 __all__ = [
     "DeltaSafeResponder",
@@ -138,7 +138,7 @@ class DeltaSafeResponder:
         return self._solve(ball.center.tolist(), ball.radius)
 
     def _solve(self, center: list[float], radius: float) -> SafeResponse:
-        worst = _WorstCase(center, radius)
+        worst = WorstCase(center, radius)
         if math.isinf(radius):  # no data: (38) is the minimax problem, solved exactly by the LP
             self._pi = self.minimax.tolist()
             v, q = worst.solve(self._payoff(self._pi))
@@ -146,7 +146,9 @@ class DeltaSafeResponder:
         pi = self._pi
         v, q = worst.solve(self._payoff(pi))
         upper = max(self._gain(q))
-        if _kl(center, self._opponent_minimax) <= radius:  # certifies minimax at a kink of phi
+        if (
+            kl_of_lists(center, self._opponent_minimax) <= radius
+        ):  # certifies minimax at a kink of phi
             upper = min(upper, max(self._gain(self._opponent_minimax)))
         q_avg, it = q, 0
         # Warm start: when the support is unchanged since the last game, Newton steps alone
@@ -163,7 +165,7 @@ class DeltaSafeResponder:
         if upper - v > self._abs_tol:
             # Still no certificate (a kink of phi, or max_iter): finish with the cutting
             # planes, seeded with the best strategy and the averaged opponent.
-            exact = _cutting_planes(
+            exact = run_cutting_planes(
                 self.reward,
                 worst,
                 np.asarray(pi),
@@ -183,7 +185,7 @@ class DeltaSafeResponder:
         return self._result(pi, v, upper, q, it, planes)
 
     def _ascend(
-        self, worst: _WorstCase, pi: list[float], v: float, q: list[float], upper: float
+        self, worst: WorstCase, pi: list[float], v: float, q: list[float], upper: float
     ) -> tuple[list[float], float, list[float], float, list[float], int]:
         """Projected sub-gradient ascent with the variable-target Polyak step (class docstring).
 
@@ -228,7 +230,7 @@ class DeltaSafeResponder:
         return best_pi, best_v, best_q, upper, q_avg, it
 
     def _polish(
-        self, worst: _WorstCase, pi: list[float], v: float, q: list[float], upper: float
+        self, worst: WorstCase, pi: list[float], v: float, q: list[float], upper: float
     ) -> tuple[list[float], float, list[float], float, int]:
         """Newton steps on the face of the simplex that holds ``pi``.
 
