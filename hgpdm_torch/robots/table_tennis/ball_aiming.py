@@ -13,15 +13,15 @@ from typing import NamedTuple
 import torch
 
 from hgpdm_torch.robots.table_tennis import geometry as geo
-from hgpdm_torch.robots.table_tennis.ball_crossing import _plane_crossing
-from hgpdm_torch.robots.table_tennis.ball_dynamics import _fly_for
-from hgpdm_torch.robots.table_tennis.ball_scalar import _scalar, _single
+from hgpdm_torch.robots.table_tennis.ball_crossing import find_plane_crossing
+from hgpdm_torch.robots.table_tennis.ball_dynamics import fly_batch_for
+from hgpdm_torch.robots.table_tennis.ball_scalar import is_single_ball, scalar_ball
 from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     MAX_DURATION,
     BallParams,
     BallState,
-    _check_params,
+    check_params,
 )
 from hgpdm_torch.validation import as_tensor, check_shape
 
@@ -99,7 +99,7 @@ def _aim(
     Elements whose Newton iteration diverged (residual NaN/inf or large) keep their drag-free
     ballistic guess, so that the velocity is always finite; callers judge them by the residual.
     """
-    params = _check_params(params)
+    params = check_params(params)
     p0 = as_tensor(pos, "pos", min_ndim=1)
     kw = {"dtype": p0.dtype, "device": p0.device}
     tgt = as_tensor(target_pos, "target_pos", min_ndim=1, **kw)
@@ -115,8 +115,8 @@ def _aim(
     shape = torch.broadcast_shapes(p0.shape, tgt.shape, w.shape, t.shape + (3,))
     p0, tgt, w = (x.expand(shape) for x in (p0, tgt, w))
     t = t.expand(shape[:-1])
-    if shape == (3,) and _single(BallState(p0, tgt, w)):
-        v1, err1 = _scalar(params).aim(
+    if shape == (3,) and is_single_ball(BallState(p0, tgt, w)):
+        v1, err1 = scalar_ball(params).aim(
             tuple(p0.tolist()), tuple(tgt.tolist()), float(t), tuple(w.tolist()), tol, max_iter
         )
         return torch.tensor(v1, dtype=torch.float64), torch.tensor(err1, dtype=torch.float64)
@@ -129,7 +129,7 @@ def _aim(
     pert = torch.cat([torch.zeros(1, 3, **kw), eps * eye, -eps * eye])  # [7, 3]
     for _ in range(max_iter):
         vs = v.unsqueeze(-2) + pert  # [..., 7, 3]
-        end = _fly_for(
+        end = fly_batch_for(
             p0.unsqueeze(-2), vs, w.unsqueeze(-2), t[..., None].expand(vs.shape[:-1]), params
         )
         resid = end[..., 0, :] - tgt
@@ -143,7 +143,7 @@ def _aim(
         # a singular or diverged element restarts from the guess and is judged by its residual
         v = torch.where(active, torch.where(bad, guess, v - step.squeeze(-1)), v)
     else:
-        end = _fly_for(p0, v, w, t, params)
+        end = fly_batch_for(p0, v, w, t, params)
         resid = end - tgt
     err = resid.abs().amax(-1)
     ok = torch.isfinite(v).all(-1) & torch.isfinite(err)
@@ -203,7 +203,7 @@ def aim_through_bounce(
     Returns:
         :class:`BounceAim` ``(vel, bounce_x, flight_time, converged)``.
     """
-    params = _check_params(params)
+    params = check_params(params)
     p0 = as_tensor(pos, "pos", min_ndim=1)
     check_shape(p0, "pos", (3,))
     kw = {"dtype": p0.dtype, "device": p0.device}
@@ -220,7 +220,7 @@ def aim_through_bounce(
         pk, wk = p0.expand(*xb.shape, 3), w.expand(*xb.shape, 3)
         v0, resid = _aim(pk, torch.stack([xb, by.expand_as(xb)], -1), ft, params, spin=wk,
                          tol=1e-9, max_iter=20)  # fmt: skip
-        _, at, valid = _plane_crossing(BallState(pk, v0, wk), y_plane, params, 2.0, 0.01)
+        _, at, valid = find_plane_crossing(BallState(pk, v0, wk), y_plane, params, 2.0, 0.01)
         return at.pos[..., 0], v0, valid & (resid < 1e-6)
 
     # straight-line guess from the start over the bounce to the plane

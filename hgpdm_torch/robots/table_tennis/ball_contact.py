@@ -19,7 +19,7 @@ from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     BallParams,
     BallState,
-    _check_params,
+    check_params,
 )
 from hgpdm_torch.validation import as_tensor, check_shape
 
@@ -29,7 +29,7 @@ __all__ = [
 ]
 
 
-def _table_bounce(s: BallState, params: BallParams) -> BallState:
+def table_bounce(s: BallState, params: BallParams) -> BallState:
     """Post-bounce state of balls touching the table (SL law on the contact point's slip)."""
     r = params.radius
     v, w = s.vel, s.spin
@@ -49,7 +49,7 @@ def _table_bounce(s: BallState, params: BallParams) -> BallState:
     return BallState(pos, new_v, new_w)
 
 
-def _net_hit(s: BallState, sign: torch.Tensor, params: BallParams) -> BallState:
+def net_hit(s: BallState, sign: torch.Tensor, params: BallParams) -> BallState:
     """Post-contact state of balls touching the net face (``sign`` = direction of travel in y)."""
     scale = torch.tensor(
         [params.net_damping, -params.net_restitution, params.net_damping],
@@ -89,7 +89,7 @@ def racket_contact(
     Returns:
         ``(vel_out, spin_out)``, each ``[..., 3]``.
     """
-    params = _check_params(params)
+    params = check_params(params)
     v = as_tensor(ball_vel, "ball_vel", min_ndim=1)
     kw = {"dtype": v.dtype, "device": v.device, "min_ndim": 1}
     w = as_tensor(ball_spin, "ball_spin", **kw)
@@ -139,7 +139,7 @@ def racket_velocity_for_return(
         ``(racket_normal, racket_vel)``, each ``[..., 3]``; the normal is a unit vector pointing
         along ``dv`` (towards where the ball is sent).
     """
-    params = _check_params(params)
+    params = check_params(params)
     v_in = as_tensor(ball_vel_in, "ball_vel_in", min_ndim=1)
     kw = {"dtype": v_in.dtype, "device": v_in.device}
     v_out = as_tensor(desired_vel_out, "desired_vel_out", **kw)

@@ -11,23 +11,28 @@ import math
 import torch
 
 from hgpdm_torch.robots.table_tennis.ball_events import (
-    _advance,
-    _find_root,
-    _PlaneEvent,
-    _scatter,
-    _subset,
+    PlaneEvent,
+    advance_events,
+    find_event_root,
+    scatter_masked,
+    subset_state,
 )
-from hgpdm_torch.robots.table_tennis.ball_scalar import _floats, _scalar, _single, _tensors
+from hgpdm_torch.robots.table_tennis.ball_scalar import (
+    floats_to_state,
+    is_single_ball,
+    scalar_ball,
+    state_floats,
+)
 from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     BallParams,
     BallState,
-    _check_dt,
-    _check_duration,
-    _check_params,
-    _check_result,
-    _check_state,
-    _check_steps,
+    check_dt,
+    check_duration,
+    check_params,
+    check_result,
+    check_state,
+    check_steps,
 )
 from hgpdm_torch.validation import as_tensor
 
@@ -60,31 +65,31 @@ def predict_plane_crossing(
         [...]: whether the ball crossed within ``max_time`` before falling to the floor. Where
         ``valid`` is false ``t`` is ``max_time`` and the state is the last one simulated.
     """
-    state = _check_state(state)
-    params = _check_params(params)
-    dt = _check_dt(dt)
-    max_time = _check_duration(max_time, "max_time")
-    _check_steps(math.ceil(max_time / dt - 1e-9), "max_time", dt)
-    t_cross, out, valid = _plane_crossing(state, y_plane, params, max_time, dt)
-    _check_result("predict_plane_crossing", t_cross, *out)
+    state = check_state(state)
+    params = check_params(params)
+    dt = check_dt(dt)
+    max_time = check_duration(max_time, "max_time")
+    check_steps(math.ceil(max_time / dt - 1e-9), "max_time", dt)
+    t_cross, out, valid = find_plane_crossing(state, y_plane, params, max_time, dt)
+    check_result("predict_plane_crossing", t_cross, *out)
     return t_cross, out, valid
 
 
-def _plane_crossing(
+def find_plane_crossing(
     state: BallState, y_plane: float | torch.Tensor, params: BallParams, max_time: float, dt: float
 ) -> tuple[torch.Tensor, BallState, torch.Tensor]:
     """:func:`predict_plane_crossing` without input checks (also for trial states of solvers,
     which may leave the documented ranges)."""
     yp = as_tensor(y_plane, "y_plane", dtype=state.pos.dtype, device=state.pos.device)
-    if _single(state) and yp.dim() == 0:
-        t, at, ok = _scalar(params).plane_crossing(_floats(state), float(yp), max_time, dt)
-        return torch.tensor(t, dtype=torch.float64), _tensors(at), torch.tensor(ok)
+    if is_single_ball(state) and yp.dim() == 0:
+        t, at, ok = scalar_ball(params).plane_crossing(state_floats(state), float(yp), max_time, dt)
+        return torch.tensor(t, dtype=torch.float64), floats_to_state(at), torch.tensor(ok)
     yp = torch.broadcast_to(yp, state.batch_shape).clone()
     g0 = state.pos[..., 1] - yp
-    event = _PlaneEvent(yp, torch.where(g0 >= 0, 1.0, -1.0).to(yp.dtype))
+    event = PlaneEvent(yp, torch.where(g0 >= 0, 1.0, -1.0).to(yp.dtype))
 
     def fly(s: BallState, tau: torch.Tensor) -> BallState:
-        return _advance(s, tau, params)[0]
+        return advance_events(s, tau, params)[0]
 
     shape = state.batch_shape
     done = torch.zeros(shape, dtype=torch.bool, device=yp.device)
@@ -96,19 +101,19 @@ def _plane_crossing(
     for k in range(n):
         h_val = min(dt, max_time - k * dt)
         h = torch.full(shape, h_val, dtype=yp.dtype, device=yp.device)
-        new, _ = _advance(state, h, params)
+        new, _ = advance_events(state, h, params)
         g_start, _ = event(state)
         g_end, _ = event(new)
         crossed = ~done & (g_start > 0) & (g_end <= 0)
         if bool(crossed.any()):
             m = crossed
-            sub_event = _PlaneEvent(event.y_plane[m], event.sign[m])
-            sub = _subset(state, m)
-            tau = _find_root(sub, h[m], g_start[m], g_end[m], sub_event, fly)
+            sub_event = PlaneEvent(event.y_plane[m], event.sign[m])
+            sub = subset_state(state, m)
+            tau = find_event_root(sub, h[m], g_start[m], g_end[m], sub_event, fly)
             at = fly(sub, tau)
-            out = BallState(*(_scatter(o, m, a) for o, a in zip(out, at, strict=True)))
-            t_cross = _scatter(t_cross, m, t + tau)
-            valid = _scatter(valid, m, at.pos[:, 2] > params.radius)
+            out = BallState(*(scatter_masked(o, m, a) for o, a in zip(out, at, strict=True)))
+            t_cross = scatter_masked(t_cross, m, t + tau)
+            valid = scatter_masked(valid, m, at.pos[:, 2] > params.radius)
             done = done | crossed
         fell = ~done & (new.pos[..., 2] <= params.radius)
         out = new.where(fell, out)

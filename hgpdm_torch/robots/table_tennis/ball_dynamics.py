@@ -1,9 +1,9 @@
 """Free-flight dynamics of the ball and its RK4 integration (no contacts).
 
 ``dv/dt = -g e_z - k_d |v| v + k_m (w x v)`` (gravity, quadratic drag, Magnus force) with the
-spin ``w`` constant in flight. :func:`flight` is the acceleration; the private ``_rk4`` is one
+spin ``w`` constant in flight. :func:`flight` is the acceleration; the private ``rk4_step`` is one
 classical RK4 step of it with a per-ball step (its stages written out: the hot path of every
-simulation), ``_fly_for`` a contact-free flight of given length.
+simulation), ``fly_batch_for`` a contact-free flight of given length.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def _gravity(g: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor
     return torch.tensor([0.0, 0.0, -g], dtype=dtype, device=device)
 
 
-def _rk4(state: BallState, h: torch.Tensor, params: BallParams) -> BallState:
+def rk4_step(state: BallState, h: torch.Tensor, params: BallParams) -> BallState:
     """One classical RK4 step of the flight ODE with a per-ball step ``h`` [...] (may be 0).
 
     :func:`flight` in few tensor operations (fused multiply-adds, the Magnus factor applied to
@@ -67,7 +67,7 @@ def _rk4(state: BallState, h: torch.Tensor, params: BallParams) -> BallState:
     return BallState(new_p, new_v, w)
 
 
-def _fly_for(
+def fly_batch_for(
     pos: torch.Tensor, vel: torch.Tensor, spin: torch.Tensor, t: torch.Tensor, params: BallParams
 ) -> torch.Tensor:
     """Free-flight position after ``t`` [...] seconds (RK4, steps <= 5 ms, no contacts)."""
@@ -75,5 +75,5 @@ def _fly_for(
     h = t / n
     s = BallState(pos, vel, spin)
     for _ in range(n):
-        s = _rk4(s, h, params)
+        s = rk4_step(s, h, params)
     return s.pos

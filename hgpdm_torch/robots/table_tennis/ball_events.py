@@ -16,19 +16,24 @@ from typing import NamedTuple
 import torch
 
 from hgpdm_torch.robots.table_tennis import geometry as geo
-from hgpdm_torch.robots.table_tennis.ball_contact import _net_hit, _table_bounce
-from hgpdm_torch.robots.table_tennis.ball_dynamics import _rk4
-from hgpdm_torch.robots.table_tennis.ball_scalar import _floats, _scalar, _single, _tensors
+from hgpdm_torch.robots.table_tennis.ball_contact import net_hit, table_bounce
+from hgpdm_torch.robots.table_tennis.ball_dynamics import rk4_step
+from hgpdm_torch.robots.table_tennis.ball_scalar import (
+    floats_to_state,
+    is_single_ball,
+    scalar_ball,
+    state_floats,
+)
 from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     MAX_DURATION,
     BallParams,
     BallState,
-    _check_dt,
-    _check_params,
-    _check_result,
-    _check_state,
-    _check_steps,
+    check_dt,
+    check_params,
+    check_result,
+    check_state,
+    check_steps,
 )
 from hgpdm_torch.validation import as_tensor
 
@@ -62,7 +67,7 @@ _Event = Callable[[BallState], tuple[torch.Tensor, torch.Tensor]]
 _Propagator = Callable[[BallState, torch.Tensor], BallState]
 
 
-def _find_root(
+def find_event_root(
     start: BallState,
     hi: torch.Tensor,
     g_start: torch.Tensor,
@@ -106,7 +111,7 @@ class _TableEvent:
         return s.pos[..., 2] - self.level, s.vel[..., 2]
 
 
-class _PlaneEvent:
+class PlaneEvent:
     """``g = sign * (y - y_plane) - offset``; ``sign`` [...] orients g to be positive at start."""
 
     def __init__(self, y_plane: torch.Tensor, sign: torch.Tensor, offset: float = 0.0) -> None:
@@ -119,12 +124,12 @@ class _PlaneEvent:
         )
 
 
-def _subset(state: BallState, mask: torch.Tensor) -> BallState:
+def subset_state(state: BallState, mask: torch.Tensor) -> BallState:
     """The balls where ``mask`` [...] is true, flattened to ``[k]``."""
     return BallState(state.pos[mask], state.vel[mask], state.spin[mask])
 
 
-def _scatter(full: torch.Tensor, mask: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+def scatter_masked(full: torch.Tensor, mask: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """A copy of ``full`` [...] with the entries where ``mask`` is true set to ``values`` [k]."""
     out = full.clone()
     out[mask] = values
@@ -147,11 +152,11 @@ def _at_net(pos: torch.Tensor, params: BallParams) -> torch.Tensor:
     )
 
 
-def _advance(
+def advance_events(
     state: BallState, h: torch.Tensor, params: BallParams, max_events: int = 4
 ) -> tuple[BallState, StepEvents]:
     """Propagate each ball by its own time ``h`` [...] through table and net contacts."""
-    trial = _rk4(state, h, params)
+    trial = rk4_step(state, h, params)
     # most steps of most balls touch nothing: tell in a few operations (the same tests as the
     # table and net events below) before any event bookkeeping
     level = geo.TABLE_HEIGHT + params.radius
@@ -173,18 +178,18 @@ def _advance(
     table_event = _TableEvent(params)
 
     def fly(s: BallState, tau: torch.Tensor) -> BallState:
-        return _rk4(s, tau, params)
+        return rk4_step(s, tau, params)
 
     for _ in range(max_events + 1):
         active = remaining > 0
         if not bool(active.any()):
             break
-        trial = _rk4(state, remaining, params)
+        trial = rk4_step(state, remaining, params)
         g0_t, _ = table_event(state)
         g1_t, _ = table_event(trial)
         table_cand = active & (g0_t > 0) & (g1_t <= 0)
         sign = torch.sign(state.vel[..., 1])
-        net_event = _PlaneEvent(torch.full_like(h, geo.NET_Y), -sign, params.radius)
+        net_event = PlaneEvent(torch.full_like(h, geo.NET_Y), -sign, params.radius)
         g0_n, _ = net_event(state)
         g1_n, _ = net_event(trial)
         net_cand = active & (sign != 0) & (g0_n > 0) & (g1_n <= 0)
@@ -195,15 +200,23 @@ def _advance(
         tau_n = torch.full_like(h, math.inf)
         if bool(table_cand.any()):
             m = table_cand
-            tau = _find_root(_subset(state, m), remaining[m], g0_t[m], g1_t[m], table_event, fly)
-            table_cand = _scatter(table_cand, m, _on_table(fly(_subset(state, m), tau).pos))
-            tau_t = _scatter(tau_t, table_cand, tau[table_cand[m]])
+            tau = find_event_root(
+                subset_state(state, m), remaining[m], g0_t[m], g1_t[m], table_event, fly
+            )
+            table_cand = scatter_masked(
+                table_cand, m, _on_table(fly(subset_state(state, m), tau).pos)
+            )
+            tau_t = scatter_masked(tau_t, table_cand, tau[table_cand[m]])
         if bool(net_cand.any()):
             m = net_cand
-            sub_event = _PlaneEvent(net_event.y_plane[m], net_event.sign[m], params.radius)
-            tau = _find_root(_subset(state, m), remaining[m], g0_n[m], g1_n[m], sub_event, fly)
-            net_cand = _scatter(net_cand, m, _at_net(fly(_subset(state, m), tau).pos, params))
-            tau_n = _scatter(tau_n, net_cand, tau[net_cand[m]])
+            sub_event = PlaneEvent(net_event.y_plane[m], net_event.sign[m], params.radius)
+            tau = find_event_root(
+                subset_state(state, m), remaining[m], g0_n[m], g1_n[m], sub_event, fly
+            )
+            net_cand = scatter_masked(
+                net_cand, m, _at_net(fly(subset_state(state, m), tau).pos, params)
+            )
+            tau_n = scatter_masked(tau_n, net_cand, tau[net_cand[m]])
         use_t = table_cand & (tau_t <= tau_n)
         use_n = net_cand & ~use_t
         hit = use_t | use_n
@@ -216,13 +229,13 @@ def _advance(
         bounce_time = torch.where(first, elapsed + tau, bounce_time)
         bounce = bounce | use_t
         net = net | use_n
-        after = _table_bounce(at, params).where(use_t, _net_hit(at, sign, params).where(use_n, at))
+        after = table_bounce(at, params).where(use_t, net_hit(at, sign, params).where(use_n, at))
         state = after.where(active, state)
         elapsed = elapsed + torch.where(active, tau, zeros)
         remaining = torch.where(hit, remaining - tau, zeros)
     else:
         # more contacts in one step than max_events (a ball trapped at the net): finish in flight
-        state = _rk4(state, remaining, params)
+        state = rk4_step(state, remaining, params)
     return state, StepEvents(bounce, bounce_pos, bounce_time, net)
 
 
@@ -239,12 +252,12 @@ def step_events(
     Returns:
         The new state and the :class:`StepEvents` of the step.
     """
-    state = _check_state(state)
-    params = _check_params(params)
-    dt = _check_dt(dt)
-    if _single(state):
-        s, bounce, pos, time, net = _scalar(params).advance(_floats(state), dt)
-        new = _tensors(s)
+    state = check_state(state)
+    params = check_params(params)
+    dt = check_dt(dt)
+    if is_single_ball(state):
+        s, bounce, pos, time, net = scalar_ball(params).advance(state_floats(state), dt)
+        new = floats_to_state(s)
         events = StepEvents(
             torch.tensor(bounce),
             torch.tensor(pos, dtype=torch.float64),
@@ -253,8 +266,8 @@ def step_events(
         )
     else:
         h = torch.full(state.batch_shape, dt, dtype=state.pos.dtype, device=state.pos.device)
-        new, events = _advance(state, h, params)
-    _check_result("step", *new, events.bounce_pos, events.bounce_time)
+        new, events = advance_events(state, h, params)
+    check_result("step", *new, events.bounce_pos, events.bounce_time)
     return new, events
 
 
@@ -288,9 +301,9 @@ def propagate(
     Returns:
         The :class:`BallState` ``[..., 3]`` after ``duration``.
     """
-    state = _check_state(state)
-    params = _check_params(params)
-    dt = _check_dt(dt)
+    state = check_state(state)
+    params = check_params(params)
+    dt = check_dt(dt)
     d = as_tensor(duration, "duration", dtype=state.pos.dtype, device=state.pos.device)
     if bool((d < 0).any()):
         raise ValueError("duration must be >= 0")
@@ -300,11 +313,11 @@ def propagate(
             f"duration must be at most MAX_DURATION = {MAX_DURATION:g} s, got {longest:g}"
         )
     d = torch.broadcast_to(d, state.batch_shape)
-    n = _check_steps(math.ceil(longest / dt - 1e-9) if d.numel() else 0, "duration", dt)
-    if _single(state):
-        state = _tensors(_scalar(params).propagate(_floats(state), float(d), dt))
+    n = check_steps(math.ceil(longest / dt - 1e-9) if d.numel() else 0, "duration", dt)
+    if is_single_ball(state):
+        state = floats_to_state(scalar_ball(params).propagate(state_floats(state), float(d), dt))
     else:
         for k in range(n):
-            state = _advance(state, (d - k * dt).clamp(0.0, dt), params)[0]
-    _check_result("propagate", *state)
+            state = advance_events(state, (d - k * dt).clamp(0.0, dt), params)[0]
+    check_result("propagate", *state)
     return state

@@ -11,18 +11,18 @@ from typing import NamedTuple
 import torch
 
 from hgpdm_torch.robots.table_tennis import geometry as geo
-from hgpdm_torch.robots.table_tennis.ball_events import _advance
-from hgpdm_torch.robots.table_tennis.ball_scalar import _floats, _scalar, _single
+from hgpdm_torch.robots.table_tennis.ball_events import advance_events
+from hgpdm_torch.robots.table_tennis.ball_scalar import is_single_ball, scalar_ball, state_floats
 from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     BallParams,
     BallState,
-    _check_dt,
-    _check_duration,
-    _check_params,
-    _check_result,
-    _check_state,
-    _check_steps,
+    check_dt,
+    check_duration,
+    check_params,
+    check_result,
+    check_state,
+    check_steps,
 )
 
 from ...progress import tqdm
@@ -101,14 +101,14 @@ def simulate(
     Returns:
         :class:`BallTrajectory` with ``S = round(duration / dt) + 1`` samples.
     """
-    state = _check_state(state)
-    params = _check_params(params)
-    dt = _check_dt(dt)
-    duration = _check_duration(duration, "duration")
-    n = _check_steps(max(1, round(duration / dt)), "duration", dt)
-    if _single(state):
-        traj = _trajectory(*_scalar(params).simulate(_floats(state), duration, dt))
-        _check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)
+    state = check_state(state)
+    params = check_params(params)
+    dt = check_dt(dt)
+    duration = check_duration(duration, "duration")
+    n = check_steps(max(1, round(duration / dt)), "duration", dt)
+    if is_single_ball(state):
+        traj = _trajectory(*scalar_ball(params).simulate(state_floats(state), duration, dt))
+        check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)
         return traj
     h_val = duration / n
     h = torch.full(state.batch_shape, h_val, dtype=state.pos.dtype, device=state.pos.device)
@@ -116,7 +116,7 @@ def simulate(
     no = torch.zeros(state.batch_shape, dtype=torch.bool, device=state.pos.device)
     bounce, bpos, btime, net = [no], [torch.zeros_like(state.pos)], [h * 0], [no]
     for k in tqdm(range(n), disable=not progress, desc="ball", leave=False):
-        state, ev = _advance(state, h, params)
+        state, ev = advance_events(state, h, params)
         pos.append(state.pos)
         vel.append(state.vel)
         spin.append(state.spin)
@@ -135,7 +135,7 @@ def simulate(
         torch.stack(btime, -1),
         torch.stack(net, -1),
     )
-    _check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)
+    check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)
     return traj
 
 

@@ -19,7 +19,7 @@ from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     BallParams,
     BallState,
-    _check_params,
+    check_params,
 )
 
 __all__ = [
@@ -36,17 +36,18 @@ class ScalarBall:
 
     One ball is what the robot's stroke predicts, aims and judges, and on a batch of one every
     step of the tensor code is a few dozen tensor operations of a few microseconds each; the
-    same arithmetic on floats is ~30 times faster. The methods mirror :func:`_rk4`,
-    :func:`_find_root`, :func:`_advance`, :func:`_plane_crossing` and :func:`_fly_for`
-    operation for operation (the same equations, events, root finder and tolerances), so that
-    the two agree to rounding; ``tests/robots/test_ball.py`` checks it. The public functions of
-    the ball model use it for an unbatched float64 CPU state; batches stay tensors.
+    same arithmetic on floats is ~30 times faster. The methods mirror :func:`rk4_step`,
+    :func:`find_event_root`, :func:`advance_events`, :func:`find_plane_crossing` and
+    :func:`fly_batch_for` operation for operation (the same equations, events, root finder and
+    tolerances), so that the two agree to rounding; ``tests/robots/test_ball.py`` checks it. The
+    public functions of the ball model use it for an unbatched float64 CPU state; batches stay
+    tensors.
 
     States are :data:`Floats` tuples ``(px, py, pz, vx, vy, vz, wx, wy, wz)``.
     """
 
     def __init__(self, params: BallParams = DEFAULT_PARAMS) -> None:
-        self.params = _check_params(params)
+        self.params = check_params(params)
         self._drag = -params.drag
         self._magnus = params.magnus
         self._g = params.gravity
@@ -60,11 +61,11 @@ class ScalarBall:
 
     # -- flight --------------------------------------------------------------------------------
     def rk4(self, s: Floats, h: float) -> Floats:
-        """One classical RK4 step of length ``h`` (may be 0) in free flight (:func:`_rk4`; the
+        """One classical RK4 step of length ``h`` (may be 0) in free flight (:func:`rk4_step`; the
         drag, Magnus and gravity of the four stages written out)."""
         vx, vy, vz = s[3], s[4], s[5]
         km, kd, g = self._magnus, self._drag, self._g
-        wx, wy, wz = km * s[6], km * s[7], km * s[8]  # the Magnus factor on the spin, as _rk4
+        wx, wy, wz = km * s[6], km * s[7], km * s[8]  # the Magnus factor on the spin, as rk4_step
         hh = 0.5 * h
         c = kd * math.sqrt(vx * vx + vy * vy + vz * vz)
         a1x = c * vx + (wy * vz - wz * vy)
@@ -117,7 +118,7 @@ class ScalarBall:
         fly: Callable[[Floats, float], Floats],
         iters: int = 12,
     ) -> float:
-        """:func:`_find_root` for one ball."""
+        """:func:`find_event_root` for one ball."""
         lo = 0.0
         denom = g_start - g_end
         tau = hi * g_start / denom if denom > 0 else hi
@@ -138,7 +139,7 @@ class ScalarBall:
         return s[2] - self._level, s[5]
 
     def _bounce(self, s: Floats) -> Floats:
-        """:func:`_table_bounce` for one ball."""
+        """:func:`table_bounce` for one ball."""
         r = self.radius
         vx, vy, vz, wx, wy, wz = s[3:]
         dvx = self._fx * (vx - r * wy)
@@ -148,7 +149,7 @@ class ScalarBall:
                 wx + dvy / kr, wy - dvx / kr, wz)  # fmt: skip
 
     def _net_hit(self, s: Floats, sign: float) -> Floats:
-        """:func:`_net_hit` for one ball travelling along ``sign`` in ``y``."""
+        """:func:`net_hit` for one ball travelling along ``sign`` in ``y``."""
         d, e, _ = self._net
         return (s[0], geo.NET_Y - sign * self.radius, s[2], s[3] * d, s[4] * e, s[5] * d,
                 s[6] * d, s[7] * d, s[8] * d)  # fmt: skip
@@ -156,7 +157,7 @@ class ScalarBall:
     def advance(
         self, s: Floats, h: float, max_events: int = 4
     ) -> tuple[Floats, bool, tuple[float, float, float], float, bool]:
-        """:func:`_advance` for one ball: the state after ``h`` seconds through contacts.
+        """:func:`advance_events` for one ball: the state after ``h`` seconds through contacts.
 
         Returns:
             ``(state, bounce, bounce_pos, bounce_time, net)`` as in :class:`StepEvents`.
@@ -304,7 +305,7 @@ class ScalarBall:
 # bridges between a BallState and floats
 
 
-def _single(state: BallState) -> bool:
+def is_single_ball(state: BallState) -> bool:
     """Whether ``state`` is one float64 ball on the CPU (integrated by :class:`ScalarBall`)."""
     p = state.pos
     return (
@@ -312,14 +313,14 @@ def _single(state: BallState) -> bool:
     )
 
 
-def _floats(state: BallState) -> Floats:
+def state_floats(state: BallState) -> Floats:
     return tuple(torch.cat(tuple(state)).tolist())  # type: ignore[return-value]
 
 
-def _tensors(s: Floats) -> BallState:
+def floats_to_state(s: Floats) -> BallState:
     return BallState(*(torch.tensor(s[i : i + 3], dtype=torch.float64) for i in (0, 3, 6)))
 
 
 @lru_cache(maxsize=16)
-def _scalar(params: BallParams) -> ScalarBall:
+def scalar_ball(params: BallParams) -> ScalarBall:
     return ScalarBall(params)

@@ -182,19 +182,19 @@ def make_state(
     return BallState(p.contiguous(), v.contiguous(), w.contiguous())
 
 
-def _check_state(state: BallState, name: str = "state") -> BallState:
+def check_state(state: BallState, name: str = "state") -> BallState:
     if not isinstance(state, BallState):
         raise TypeError(f"{name} must be a BallState, got {type(state).__name__}")
     return make_state(state.pos, state.vel, state.spin)
 
 
-def _check_params(params: BallParams) -> BallParams:
+def check_params(params: BallParams) -> BallParams:
     if not isinstance(params, BallParams):
         raise TypeError(f"params must be a BallParams, got {type(params).__name__}")
     return params
 
 
-def _check_result(what: str, *tensors: torch.Tensor) -> None:
+def check_result(what: str, *tensors: torch.Tensor) -> None:
     """Raise if the integration left the floating-point range (states within the documented
     ranges never do; extreme :class:`BallParams` can)."""
     if not all(bool(torch.isfinite(t).all()) for t in tensors):
@@ -204,13 +204,13 @@ def _check_result(what: str, *tensors: torch.Tensor) -> None:
         )
 
 
-def _check_dt(dt: float, name: str = "dt") -> float:
+def check_dt(dt: float, name: str = "dt") -> float:
     if not isinstance(dt, int | float) or not math.isfinite(dt) or not 0 < dt <= _MAX_DT:
         raise ValueError(f"{name} must be a number in (0, {_MAX_DT}] s, got {dt!r}")
     return float(dt)
 
 
-def _check_duration(value: object, name: str) -> float:
+def check_duration(value: object, name: str) -> float:
     """A positive number of seconds up to :data:`MAX_DURATION`."""
     if (
         isinstance(value, bool)
@@ -225,7 +225,7 @@ def _check_duration(value: object, name: str) -> float:
     return float(value)
 
 
-def _check_steps(n: int, name: str, dt: float) -> int:
+def check_steps(n: int, name: str, dt: float) -> int:
     if n > MAX_STEPS:
         raise ValueError(
             f"{name} / dt = {n} steps exceeds MAX_STEPS = {MAX_STEPS}; take a larger dt "

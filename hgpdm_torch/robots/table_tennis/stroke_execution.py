@@ -66,7 +66,7 @@ comes 0.6-0.9 s before the opponent's (:class:`.opponent.OpponentConfig` default
 cannot begin before it, and an earlier start would only hold the awaiting pose longer."""
 
 
-def _check_start_time(start_time: float, t_cross: float) -> float:
+def check_start_time(start_time: float, t_cross: float) -> float:
     if (
         isinstance(start_time, bool)
         or not isinstance(start_time, int | float)
@@ -131,7 +131,7 @@ def execute_stroke(
     t_cross, _, valid = planner.crossing(floats)
     if not valid:
         raise ValueError("ball_after_hit never reaches the robot's hitting plane")
-    start_time = _check_start_time(start_time, t_cross)
+    start_time = check_start_time(start_time, t_cross)
     return _Stroke(scene, planner, floats, movement, start_time, t_cross).run()
 
 

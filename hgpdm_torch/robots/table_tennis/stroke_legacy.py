@@ -20,7 +20,7 @@ from ..wam import DOF
 from . import ball as B
 from . import geometry as geo
 from .scene import TableTennisScene
-from .stroke_execution import StrokeOutcome, _check_start_time
+from .stroke_execution import StrokeOutcome, check_start_time
 from .stroke_planner import HitPlan, StrokePlanner
 from .stroke_quintic import Quintic
 from .stroke_tracker import LimitedTracker
@@ -96,7 +96,7 @@ def execute_stroke_legacy(
     )
     if not bool(valid):
         raise ValueError("ball_after_hit never reaches the robot's hitting plane")
-    start_time = _check_start_time(start_time, float(t_cross))
+    start_time = check_start_time(start_time, float(t_cross))
     dt = scene.dt
     tracker = LimitedTracker(planner.awaiting, planner.velocity_limit, planner.acceleration_limit)
     scene.set_robot(planner.awaiting)
