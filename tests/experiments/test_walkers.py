@@ -13,9 +13,12 @@ from hgpdm_torch.datasets.cmu import Protocol, load_protocol
 from hgpdm_torch.datasets.walkers import Standardizer
 from hgpdm_torch.experiments.style_recognition import forecast_windows
 from hgpdm_torch.experiments.walkers import (
+    DEFAULT_FIT_STEPS,
     DEFAULT_MEASUREMENT_POINTS,
+    FALLBACK_FIT_STEPS,
     FALLBACK_MEASUREMENT_POINTS,
     METHODS,
+    _fit_steps,
     _measurement_points,
     compare_runs,
     loto_folds,
@@ -135,9 +138,21 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
         walkers("dancers")
     with pytest.raises(ValueError, match="measurement_points"):
         walkers("walkers", measurement_points=0)  # before any file is read
+    with pytest.raises(ValueError, match="fit_steps"):
+        walkers("walkers", fit_steps=0)
     with pytest.raises(SystemExit):
         main(["--compare", str(tmp_path / "none.json")])
     assert "--compare" in capsys.readouterr().err
+
+
+def test_step_count_is_the_protocols_unless_given():
+    assert _fit_steps("weird-walking", "protocol") == 150  # its CV choice (docs page)
+    assert _fit_steps("walkers", "protocol") == DEFAULT_FIT_STEPS["walkers"] == 300
+    assert _fit_steps("mine", "protocol") == FALLBACK_FIT_STEPS
+    assert _fit_steps("weird-walking", 7) == 7
+    for bad in (0, -1, 2.0, True, "all"):
+        with pytest.raises(ValueError, match="fit_steps"):
+            _fit_steps("walkers", bad)
 
 
 def test_pseudo_input_count_is_the_protocols_unless_given():
