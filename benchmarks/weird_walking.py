@@ -1,8 +1,8 @@
 """Wall time of ``hgpdm walkers --protocol weird-walking --test-data FOLDER`` (issue 30: within
 15 minutes on 2 cores, both window lengths, stride 2).
 
-``python -m benchmarks weird_walking [--quick]`` (about 36 minutes on 2 cores with the
-protocol's default, the learned measurement width). Writes
+``python -m benchmarks weird_walking [--quick]`` (about 24 minutes on 2 cores with the
+protocol's defaults: the learned measurement width, 150 pseudo-inputs, 150 MAP steps). Writes
 ``benchmarks/results/weird_walking.json``. Needs the Weird Walking training trials in
 ``../shared/data/cmu`` (seen from the project root).
 
