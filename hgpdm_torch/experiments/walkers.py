@@ -245,26 +245,21 @@ def _score_split(
     return rows, fits
 
 
-def _measurement_points(protocol: str, value: int | None | str) -> int | None:
-    """The pseudo-input count to run: ``value``, or for ``"protocol"`` the protocol's CV choice
-    (:data:`DEFAULT_MEASUREMENT_POINTS`, else :data:`FALLBACK_MEASUREMENT_POINTS`)."""
+def _protocol_choice(name: str, protocol: str, value: int | None | str) -> int | None:
+    """The value of the setting ``name`` (``"measurement_points"`` or ``"fit_steps"``) to run:
+    ``value``, or for ``"protocol"`` the protocol's CV choice (:data:`DEFAULT_MEASUREMENT_POINTS`
+    / :data:`DEFAULT_FIT_STEPS`, else the fallback). ``None`` (the exact GP) only for
+    ``measurement_points``."""
+    defaults, fallback = {
+        "measurement_points": (DEFAULT_MEASUREMENT_POINTS, FALLBACK_MEASUREMENT_POINTS),
+        "fit_steps": (DEFAULT_FIT_STEPS, FALLBACK_FIT_STEPS),
+    }[name]
     if value == "protocol":
-        return DEFAULT_MEASUREMENT_POINTS.get(protocol, FALLBACK_MEASUREMENT_POINTS)
-    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-        raise ValueError(
-            f"measurement_points must be a positive int, None (the exact GP) or 'protocol', "
-            f"got {value!r}"
-        )
-    return value
-
-
-def _fit_steps(protocol: str, value: int | str) -> int:
-    """The MAP steps to run: ``value``, or for ``"protocol"`` the protocol's CV choice
-    (:data:`DEFAULT_FIT_STEPS`, else :data:`FALLBACK_FIT_STEPS`)."""
-    if value == "protocol":
-        return DEFAULT_FIT_STEPS.get(protocol, FALLBACK_FIT_STEPS)
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"fit_steps must be a positive int or 'protocol', got {value!r}")
+        return defaults.get(protocol, fallback)
+    exact = name == "measurement_points" and value is None
+    if not exact and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        also = ", None (the exact GP)" if name == "measurement_points" else ""
+        raise ValueError(f"{name} must be a positive int{also} or 'protocol', got {value!r}")
     return value
 
 
@@ -322,8 +317,8 @@ def walkers(
         spec = PROTOCOLS[protocol]
     else:
         raise ValueError(f"protocol must be one of {FORECAST_PROTOCOLS}, got {protocol!r}")
-    measurement_points = _measurement_points(spec.name, measurement_points)
-    fit_steps = _fit_steps(spec.name, fit_steps)
+    measurement_points = _protocol_choice("measurement_points", spec.name, measurement_points)
+    fit_steps = _protocol_choice("fit_steps", spec.name, fit_steps)
     data = load_protocol(spec, "train", folder)
     options = DEFAULT_OPTIONS.get(spec.name, {}) | dict(model_options or {})
     meta: dict[str, Any] = {

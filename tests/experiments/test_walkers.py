@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import shutil
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -18,8 +19,7 @@ from hgpdm_torch.experiments.walkers import (
     FALLBACK_FIT_STEPS,
     FALLBACK_MEASUREMENT_POINTS,
     METHODS,
-    _fit_steps,
-    _measurement_points,
+    _protocol_choice,
     compare_runs,
     loto_folds,
     main,
@@ -146,21 +146,23 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
 
 
 def test_step_count_is_the_protocols_unless_given():
-    assert _fit_steps("weird-walking", "protocol") == 150  # its CV choice (docs page)
-    assert _fit_steps("walkers", "protocol") == DEFAULT_FIT_STEPS["walkers"] == 300
-    assert _fit_steps("mine", "protocol") == FALLBACK_FIT_STEPS
-    assert _fit_steps("weird-walking", 7) == 7
-    for bad in (0, -1, 2.0, True, "all"):
+    steps = partial(_protocol_choice, "fit_steps")
+    assert steps("weird-walking", "protocol") == 150  # its CV choice (docs page)
+    assert steps("walkers", "protocol") == DEFAULT_FIT_STEPS["walkers"] == 300
+    assert steps("mine", "protocol") == FALLBACK_FIT_STEPS
+    assert steps("weird-walking", 7) == 7
+    for bad in (0, -1, 2.0, True, "all", None):
         with pytest.raises(ValueError, match="fit_steps"):
-            _fit_steps("walkers", bad)
+            steps("walkers", bad)
 
 
 def test_pseudo_input_count_is_the_protocols_unless_given():
-    assert _measurement_points("weird-walking", "protocol") == 150
-    assert _measurement_points("walkers", "protocol") == DEFAULT_MEASUREMENT_POINTS["walkers"]
-    assert _measurement_points("mine", "protocol") == FALLBACK_MEASUREMENT_POINTS
-    assert _measurement_points("weird-walking", None) is None  # the exact GP
-    assert _measurement_points("weird-walking", 40) == 40
+    points = partial(_protocol_choice, "measurement_points")
+    assert points("weird-walking", "protocol") == 150
+    assert points("walkers", "protocol") == DEFAULT_MEASUREMENT_POINTS["walkers"]
+    assert points("mine", "protocol") == FALLBACK_MEASUREMENT_POINTS
+    assert points("weird-walking", None) is None  # the exact GP
+    assert points("weird-walking", 40) == 40
     for bad in (0, -3, 2.5, True, "all"):
         with pytest.raises(ValueError, match="measurement_points"):
-            _measurement_points("walkers", bad)
+            points("walkers", bad)
