@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 __all__ = [
+    "check_sequences",
     "as_observations",
     "as_tensor",
     "bad_observation",
@@ -175,3 +176,45 @@ def bad_observation(where: str, why: str) -> ValueError:
     """The error for an observation row that cannot be used: ``where`` names it (batch index,
     step, stream), ``why`` says what is wrong with it."""
     return ValueError(f"{where} cannot be used: {why}")
+
+
+def check_sequences(sequences: object, dtype: torch.dtype) -> list[torch.Tensor]:
+    """Training sequences as a list of finite ``[T_j, Dz]`` tensors of ``dtype``, on the first
+    one's device: a list of J >= 1 arrays (lengths may differ, each with ``T_j >= 2`` frames, a
+    transition) or a ``[J, T, Dz]`` tensor or array.
+
+    Raises:
+        TypeError: not a list, tensor or array.
+        ValueError: no sequence, a wrong shape, fewer than 2 frames, no or differing observed
+            dims, or a value that is not finite; the message names the sequence.
+    """
+    if isinstance(sequences, np.ndarray) and sequences.dtype != object:
+        sequences = torch.as_tensor(sequences)
+    if isinstance(sequences, torch.Tensor):
+        if sequences.dim() != 3:
+            raise ValueError(
+                f"sequences as a tensor must have shape [J, T, Dz], got {tuple(sequences.shape)}"
+            )
+        sequences = list(sequences)
+    if not isinstance(sequences, Sequence) or isinstance(sequences, str):
+        raise TypeError(
+            f"sequences must be a list of [T, Dz] arrays, got {type(sequences).__name__}"
+        )
+    if len(sequences) == 0:
+        raise ValueError("sequences must contain at least one sequence, got an empty list")
+    out: list[torch.Tensor] = []
+    for j, s in enumerate(sequences):
+        t = as_tensor(s, f"sequences[{j}]", ndim=2, dtype=dtype)
+        if t.shape[0] < 2:
+            raise ValueError(
+                f"sequences[{j}] must have at least 2 frames (a transition), got {t.shape[0]}"
+            )
+        if t.shape[1] < 1:
+            raise ValueError(f"sequences[{j}] must have at least one observed dim")
+        if out and t.shape[1] != out[0].shape[1]:
+            raise ValueError(
+                f"sequences[{j}] has {t.shape[1]} observed dims, expected {out[0].shape[1]} "
+                "like sequences[0]"
+            )
+        out.append(t.to(out[0].device) if out else t)
+    return out

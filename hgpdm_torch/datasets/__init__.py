@@ -1,5 +1,6 @@
 """Datasets: seeded synthetic generators and loaders for real movement data."""
 
+from .basic_motions import load_basic_motions
 from .cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol, load_trials
 from .mocap import load_mocap, read_amc, read_asf
 from .msrc12 import (
@@ -26,6 +27,7 @@ __all__ = [
     "Protocol",
     "Standardizer",
     "kinect_features",
+    "load_basic_motions",
     "load_mocap",
     "load_msrc12_folder",
     "load_msrc12_npz",

@@ -35,7 +35,7 @@ from ..gaussian import LOG_2PI
 from ..gp import GPPosterior
 from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
 from ..linalg import gaussian_nll
-from ..validation import as_tensor, check_choice
+from ..validation import as_tensor, check_choice, check_sequences
 from .back_constraints import make_back_constraint
 from .persistence import SavedModel, save_model
 
@@ -95,38 +95,6 @@ def _check_priors(priors: Mapping[str, Prior | None] | None) -> dict[str, Prior 
                 f"priors[{key!r}] must be a gpytorch Prior or None, got {type(prior).__name__}"
             )
     return dict(priors)
-
-
-def check_sequences(sequences: SequencesLike, dtype: torch.dtype) -> list[torch.Tensor]:
-    """Validate ``sequences`` (a list of ``[T_j, Dz]`` arrays or a ``[J, T, Dz]`` tensor)."""
-    if isinstance(sequences, torch.Tensor):
-        if sequences.dim() != 3:
-            raise ValueError(
-                f"sequences as a tensor must have shape [J, T, Dz], got {tuple(sequences.shape)}"
-            )
-        sequences = list(sequences)
-    if not isinstance(sequences, Sequence) or isinstance(sequences, str):
-        raise TypeError(
-            f"sequences must be a list of [T, Dz] arrays, got {type(sequences).__name__}"
-        )
-    if len(sequences) == 0:
-        raise ValueError("sequences must contain at least one sequence, got an empty list")
-    out = []
-    for j, s in enumerate(sequences):
-        t = as_tensor(s, f"sequences[{j}]", ndim=2, dtype=dtype)
-        if t.shape[0] < 2:
-            raise ValueError(
-                f"sequences[{j}] must have at least 2 frames (a transition), got {t.shape[0]}"
-            )
-        if t.shape[1] < 1:
-            raise ValueError(f"sequences[{j}] must have at least one observed dim")
-        if out and t.shape[1] != out[0].shape[1]:
-            raise ValueError(
-                f"sequences[{j}] has {t.shape[1]} observed dims, expected {out[0].shape[1]} "
-                "like sequences[0]"
-            )
-        out.append(t)
-    return out
 
 
 class GPDM(gpytorch.Module, SavedModel):

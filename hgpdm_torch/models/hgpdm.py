@@ -23,8 +23,8 @@ from ..gp import GPPosterior
 from ..kernels import transition_kernel
 from ..linalg import gaussian_nll
 from ..progress import trange
-from ..validation import as_tensor, check_choice
-from .gpdm import GPDM, NOISE_FLOOR, SequencesLike, check_sequences
+from ..validation import as_tensor, check_choice, check_sequences
+from .gpdm import GPDM, NOISE_FLOOR, SequencesLike
 
 __all__ = ["HGPDM", "IDDM", "trajectory_summaries"]
 

@@ -8,7 +8,7 @@ import torch
 
 from hgpdm_torch.datasets import styled_movements, targeted_movements
 from hgpdm_torch.experiments.style_discovery import style_purity
-from hgpdm_torch.models import GPDM, HGPDM, IDDM, load_model
+from hgpdm_torch.models import GPDM, HGPDM, IDDM, LinearIDDM, load_model
 
 
 @pytest.fixture(scope="module")
@@ -132,6 +132,13 @@ SEQS = [torch.randn(5, 3), torch.randn(6, 3)]
         (lambda: GPDM(SEQS, 0), ValueError, "latent_dim"),
         (lambda: GPDM(SEQS, 2, measurement="poly"), ValueError, "unknown measurement"),
         (lambda: GPDM("abc", 2), TypeError, "sequences"),
+        (lambda: LinearIDDM().fit([], []), ValueError, "at least one sequence"),
+        (lambda: LinearIDDM().fit(np.zeros((2, 5)), [0, 1]), ValueError, r"\[J, T, Dz\]"),
+        (
+            lambda: LinearIDDM().fit([torch.randn(5, 3), torch.randn(5, 4)], [0, 1]),
+            ValueError,
+            "observed dims",
+        ),
         (lambda: GPDM(SEQS, 2, alpha=(1, 2, 3)), ValueError, "alpha"),
         (lambda: HGPDM(SEQS, [0], 2), ValueError, "one per sequence"),
         (lambda: HGPDM(SEQS, [0, 3], 2, num_values=2), ValueError, r"\[0, 1\]"),
@@ -167,3 +174,16 @@ SEQS = [torch.randn(5, 3), torch.randn(6, 3)]
 def test_bad_input_raises(build, error, match):
     with pytest.raises(error, match=match):
         build()
+
+
+def test_every_model_takes_sequences_as_a_list_a_tensor_or_an_array():
+    """One checker (``validation.check_sequences``) for all models: a [J, T, Dz] NumPy array is
+    the same training data as the list of its rows."""
+    seqs = torch.randn(2, 6, 3, dtype=torch.float64)
+    from_list = GPDM(list(seqs), 2, init=torch.zeros(12, 2, dtype=torch.float64))
+    from_array = GPDM(seqs.numpy(), 2, init=torch.zeros(12, 2, dtype=torch.float64))
+    torch.testing.assert_close(from_array.observations, from_list.observations, rtol=0, atol=0)
+    linear = LinearIDDM(coef_precision=1.0, noise_prior=0.1, noise="diagonal")
+    a = linear.fit(seqs.numpy(), [0.0, 1.0]).coef.clone()
+    b = linear.fit(list(seqs), [0.0, 1.0]).coef
+    torch.testing.assert_close(a, b, rtol=0, atol=0)

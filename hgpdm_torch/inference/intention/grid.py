@@ -16,7 +16,8 @@ from typing import Any
 import torch
 
 from ...gaussian import mixture_moments
-from ...models import GPDM, HGPDM
+from ...models.gpdm import GPDM
+from ...models.hgpdm import HGPDM
 from ...validation import as_observations, as_tensor
 from ..calibration import credible_set
 
