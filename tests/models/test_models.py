@@ -183,7 +183,7 @@ def test_every_model_takes_sequences_as_a_list_a_tensor_or_an_array():
     from_list = GPDM(list(seqs), 2, init=torch.zeros(12, 2, dtype=torch.float64))
     from_array = GPDM(seqs.numpy(), 2, init=torch.zeros(12, 2, dtype=torch.float64))
     torch.testing.assert_close(from_array.observations, from_list.observations, rtol=0, atol=0)
-    linear = LinearIDDM(coef_precision=1.0, noise_prior=0.1, noise="diagonal")
+    linear = LinearIDDM(phase=False, coef_precision=1.0, noise_prior=0.1, noise="diagonal")
     a = linear.fit(seqs.numpy(), [0.0, 1.0]).coef.clone()
     b = linear.fit(list(seqs), [0.0, 1.0]).coef
     torch.testing.assert_close(a, b, rtol=0, atol=0)
