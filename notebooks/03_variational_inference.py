@@ -24,16 +24,21 @@
 # 3. recovers missing frames inside a window (H-GPDM vs GPDM, Fig. 2.3),
 # 4. prints the table of the experiment `hgpdm_torch.experiments.style_recognition`.
 #
-# Under `HGPDM_SMOKE=1` everything runs at small sizes.
+# Under `HGPDM_SMOKE=1` everything runs at small sizes. Every MAP fit here runs a budget of 60
+# L-BFGS steps, as the experiment's tables do: the objective keeps falling slowly far beyond it
+# (notebook 01), so no fit meets the convergence criterion; each `FitResult` says so (printed below,
+# and in `table.meta["fits"]` for the experiment's own fits), and its warning is switched off.
 
 # %%
 import os
 import time
+import warnings
 
 import matplotlib.pyplot as plt
 import torch
 
 from hgpdm_torch.datasets import styled_movements
+from hgpdm_torch.fitting import ConvergenceWarning
 from hgpdm_torch.experiments import style_recognition as sr
 from hgpdm_torch.inference.map import MAPInference
 from hgpdm_torch.inference.variational import VariationalInference
@@ -52,7 +57,7 @@ length = 30 if SMOKE else 40
 # %%
 train, test = styled_movements(3, 4, length, 12, seed=0).split(0.25, seed=0)
 model = HGPDM(train.sequences, train.labels, 3)
-model.fit(60)
+print(model.fit(60, warn=False))
 vb = VariationalInference(model)
 print("training frames N =", model.observations.shape[0], "| test sequences:", len(test))
 
@@ -117,7 +122,9 @@ from pathlib import Path
 from IPython.display import Image
 
 path = Path(tempfile.mkdtemp()) / "gap_recovery.png"
-rmse = sr.gap_recovery_figure(path, fit_steps=60)
+with warnings.catch_warnings():  # 60-step budgets (above)
+    warnings.simplefilter("ignore", ConvergenceWarning)
+    rmse = sr.gap_recovery_figure(path, fit_steps=60)
 print("recovery RMSE over all test windows:", rmse)
 Image(str(path))
 
@@ -125,7 +132,10 @@ Image(str(path))
 # ## 5. The experiment table (Tables 2.1-2.4 layout), synthetic data
 
 # %%
-table = sr.style_recognition(("synthetic",), lengths=(5,) if SMOKE else (5, 10), fit_steps=60)
+with warnings.catch_warnings():  # 60-step budgets (above); each FitResult in table.meta["fits"]
+    warnings.simplefilter("ignore", ConvergenceWarning)
+    table = sr.style_recognition(("synthetic",), lengths=(5,) if SMOKE else (5, 10),
+                                 fit_steps=60)
 print(table.to_markdown())
 
 # %% [markdown]

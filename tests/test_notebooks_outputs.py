@@ -19,8 +19,6 @@ WARNING = re.compile(r"\b\w*Warning\b")
 MACHINE_PATH = re.compile(r"(/home/|/work/|/Users/|/tmp/|[A-Z]:\\\\|site-packages|\.venv)")
 #: notebook -> what its committed outputs still show (re-execute it after fixing the cause)
 NOT_YET_CLEAN = {
-    "01_hgpdm_basics": "ConvergenceWarning of a fit that stops at its step limit; TqdmWarning",
-    "03_variational_inference": "ConvergenceWarnings of fits that stop at their step limit",
     "04_intention_inference": "ConvergenceWarnings (smoke sizes) and LinearIDDM's sparse-phase "
     "UserWarning; TqdmWarning",
 }
