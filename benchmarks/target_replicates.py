@@ -52,11 +52,10 @@ from hgpdm_torch.experiments.target_prediction import (
     PHASE_IDDM,
     _fit_iddm,
     _online,
-    grid_index,
     strokes_limit,
 )
 from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
-from hgpdm_torch.inference.calibration import credible_set
+from hgpdm_torch.inference.calibration import credible_set, grid_index
 from hgpdm_torch.models import LinearIDDM
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes

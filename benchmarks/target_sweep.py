@@ -36,13 +36,11 @@ from hgpdm_torch.baselines import WindowGPR
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     _online,
-    grid_index,
     strokes_limit,
-    supervised_init,
 )
 from hgpdm_torch.inference import OnlineIntentionFilter
-from hgpdm_torch.inference.calibration import fit_temperature
-from hgpdm_torch.models import HGPDM, IDDM
+from hgpdm_torch.inference.calibration import fit_temperature, grid_index
+from hgpdm_torch.models import HGPDM, IDDM, supervised_init
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 

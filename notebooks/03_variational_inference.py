@@ -38,8 +38,8 @@ import matplotlib.pyplot as plt
 import torch
 
 from hgpdm_torch.datasets import styled_movements
-from hgpdm_torch.fitting import ConvergenceWarning
 from hgpdm_torch.experiments import style_recognition as sr
+from hgpdm_torch.fitting import ConvergenceWarning
 from hgpdm_torch.inference.map import MAPInference
 from hgpdm_torch.inference.variational import VariationalInference
 from hgpdm_torch.models import HGPDM

@@ -59,8 +59,8 @@ print('observations', tuple(obs.shape), 'at times [s]', strokes.obs_times.tolist
 
 # %%
 # Start the latent states from PLS against the target: PCA would keep the target-free ball
-# flight (see hgpdm_torch.experiments.target_prediction.supervised_init).
-from hgpdm_torch.experiments.target_prediction import supervised_init
+# flight (see hg.models.supervised_init).
+from hgpdm_torch.models import supervised_init
 
 init = supervised_init(obs[:n_train], targets[:n_train], 4)
 model = hg.IDDM(list(obs[:n_train]), targets[:n_train], 4, intention='continuous',
@@ -109,8 +109,7 @@ plt.show()
 # expected calibration error and log loss before and after.
 
 # %%
-from hgpdm_torch.experiments.target_prediction import grid_index
-from hgpdm_torch.inference import calibration, fit_temperature
+from hgpdm_torch.inference import calibration, fit_temperature, grid_index
 
 half = n_train // 2
 init_half = supervised_init(obs[:half], targets[:half], 4)

@@ -60,13 +60,13 @@ from ..decision.policies import (
 )
 from ..decision.sources import FEATURES, PLAYER_SOURCES, SELECTABLE_SOURCES, track_beliefs
 from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
+from ..models import supervised_init
 from ..parallel import Executor, get_executor, ray_address_type
 from ..progress import tqdm
 from ..results import ResultTable
 from ..validation import as_tensor, check_choice
 from .arguments import int_at_least, output_folder, positive_int, random_seed
 from .dtype import float64_default
-from .target_prediction import supervised_init
 
 __all__ = [
     "AnticipationConfig",
@@ -118,7 +118,7 @@ class AnticipationConfig:
             cm at 150 steps (4x the time) and -0.8, -2.8, -2.6, -1.9, -0.2 cm at 400; each
             result reports its fits (``FitResult.summary``). The latents
             start from partial least squares on the training targets
-            (:func:`~.target_prediction.supervised_init`), as in the target-prediction
+            (:func:`~hgpdm_torch.models.supervised_init`), as in the target-prediction
             experiment (with PCA the latent keeps the ball's flight and loses the target).
         grid_size: K, targets in the belief histogram, evenly over +-grid_max.
         forgetting: the online filter's forgetting factor.
@@ -192,7 +192,7 @@ class AnticipationConfig:
 
     def initial_latents(self, obs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Initial IDDM latents ``[n T, latent_dim]`` of training strokes ``obs [n, T, Dz]`` with
-        targets ``[n]``: partial least squares (:func:`~.target_prediction.supervised_init`); the
+        targets ``[n]``: partial least squares (:func:`~hgpdm_torch.models.supervised_init`); the
         initialisation :func:`~hgpdm_torch.decision.beliefs.fit_beliefs` asks its config for."""
         return supervised_init(obs, targets, self.latent_dim)
 

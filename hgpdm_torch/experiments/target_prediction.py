@@ -5,9 +5,10 @@ the ball to a target ``g`` (the ``x`` where the return crosses the robot's hitti
 ball and racket are observed every 80 ms (Dz = 15). IDDMs are trained on 100 plays and predict
 the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits the ball:
 
-- the latent states are initialised by partial least squares (:func:`supervised_init`) rather
-  than PCA: the target is carried by low-variance racket features (the racket normal and
-  velocity), while PCA keeps the high-variance ball flight, which does not depend on the target;
+- the latent states are initialised by partial least squares
+  (:func:`~hgpdm_torch.models.supervised_init`) rather than PCA: the target is carried by
+  low-variance racket features (the racket normal and velocity), while PCA keeps the
+  high-variance ball flight, which does not depend on the target;
   a PCA-initialised latent loses the target and the IDDM's error stays flat over the stroke;
 - model selection over the measurement kernel (linear / RBF) and ``Dx = 3..6`` by k-fold
   cross-validation on the training plays (online IDDM, all horizons), with each
@@ -44,30 +45,27 @@ import time
 from typing import Any
 
 import torch
-from sklearn.cross_decomposition import PLSRegression
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
 from ..decision.beliefs import PHASE_IDDM
-from ..inference.calibration import calibration, fit_temperature
+from ..inference.calibration import calibration, fit_temperature, grid_index
 from ..inference.intention import (
     BeliefMixture,
     FilterBeliefs,
     OnlineIntentionFilter,
     infer_intention,
 )
-from ..models import IDDM, LinearIDDM
+from ..models import IDDM, LinearIDDM, supervised_init
 from ..progress import tqdm
 from ..results import ResultTable
-from ..validation import as_tensor, check_choice
+from ..validation import check_choice
 from .arguments import output_file, random_seed
 
 __all__ = [
     "HORIZONS_MS",
     "PHASE_IDDM",
     "THESIS_IDDM",
-    "grid_index",
     "main",
-    "supervised_init",
     "target_prediction",
 ]
 
@@ -81,41 +79,6 @@ def _mae_sem(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
     """MAE and its standard error, in cm. ``pred [n]``, ``truth [n]``."""
     err = 100.0 * (pred - truth).abs()
     return float(err.mean()), float(err.std() / len(err) ** 0.5)
-
-
-def supervised_init(obs: torch.Tensor, targets: torch.Tensor, latent_dim: int) -> torch.Tensor:
-    """Initial latent states from partial least squares of the frames on their play's target.
-
-    The MAP fit of the IDDM (Eq. 6) is local, so the initial latent decides which observation
-    directions the latent keeps. PCA keeps the directions of largest variance; here those are
-    the ball's flight, which does not depend on the opponent's target, so the target, carried by
-    low-variance racket features, is lost and cannot be recovered from test observations. PLS
-    (sklearn, on standardised features) picks the ``Dx`` projections of ``z`` of largest
-    covariance with ``g``; like the PCA init, they are linear in ``z`` and scaled to unit
-    variance, and only the training targets are used.
-
-    Args:
-        obs: ``[n, T, Dz]`` training plays.
-        targets: ``[n]`` or ``[n, Dg]`` their targets.
-        latent_dim: ``Dx`` (at most ``Dz``).
-
-    Returns:
-        ``[n T, Dx]`` initial latent states, the plays' frames in order.
-    """
-    obs = as_tensor(obs, "obs", ndim=3)
-    targets = as_tensor(targets, "targets", dtype=obs.dtype)
-    n, T, dz = obs.shape
-    if targets.dim() not in (1, 2) or targets.shape[0] != n:
-        raise ValueError(
-            f"targets must be [n] or [n, Dg] with n = {n} plays, got {tuple(targets.shape)}"
-        )
-    g = targets.reshape(n, -1)
-    if not isinstance(latent_dim, int) or not 1 <= latent_dim <= dz:
-        raise ValueError(f"latent_dim must be an int in [1, Dz = {dz}], got {latent_dim!r}")
-    frames = obs.reshape(n * T, dz).numpy()
-    pls = PLSRegression(latent_dim, scale=True).fit(frames, g.repeat_interleave(T, 0).numpy())
-    x = torch.as_tensor(pls.transform(frames), dtype=obs.dtype)
-    return x / x.std(0).clamp_min(1e-8)
 
 
 #: the IDDM's kernel settings in this experiment (the thesis's kernel)
@@ -163,27 +126,6 @@ def _online(
         logs.append(belief.log_prob)
     ms = 1e3 * (time.process_time() - start) / obs.numel() * obs.shape[-1]
     return torch.stack(means, 1), ms, torch.stack(logs, 1)
-
-
-def grid_index(targets: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Index of the grid value nearest to each target: the value a credible set over the grid
-    must hold to cover the target.
-
-    Args:
-        targets: ``[...]`` finite targets.
-        grid: ``[K]`` finite grid values.
-
-    Returns:
-        ``[...]`` int64 indices into ``grid``.
-
-    Raises:
-        ValueError: a grid that is not 1-D and non-empty, or non-finite values.
-    """
-    targets = as_tensor(targets, "targets")
-    grid = as_tensor(grid, "grid", ndim=1)
-    if grid.numel() == 0:
-        raise ValueError("grid must hold at least one value")
-    return (targets[..., None] - grid.to(targets.dtype)).abs().argmin(-1)
 
 
 def _cv_mae(
@@ -251,7 +193,8 @@ def target_prediction(
     selected model's batch and online IDDM (also with a sparse transition GP on each number of
     pseudo-inputs in ``inducing``, Sec. 3.3.3), GPR, ridge and the median (Fig. 3.7). MAE +- SEM
     in cm; ``meta`` holds the raw numbers, the targets' spread and the selected configuration.
-    ``init`` is the latent initialisation: ``"pls"`` (:func:`supervised_init`) or ``"pca"``.
+    ``init`` is the latent initialisation: ``"pls"``
+    (:func:`~hgpdm_torch.models.supervised_init`) or ``"pca"``.
     """
     check_choice(init, "init", ("pls", "pca"))
     if not isinstance(cv_folds, int) or not 2 <= cv_folds <= n_train // 2:

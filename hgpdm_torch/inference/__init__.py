@@ -2,7 +2,7 @@
 Bayes (Ch. 2.3), the MAP baseline (conditional GPDM), and batch and online intention inference
 (Algorithms 3.1-3.2)."""
 
-from .calibration import calibration, fit_temperature, temper
+from .calibration import calibration, fit_temperature, grid_index, temper
 from .filtering import (
     DEFAULT_OUTLIER_SD,
     FilterResult,
@@ -52,6 +52,7 @@ __all__ = [
     "batch_bound_terms",
     "calibration",
     "fit_temperature",
+    "grid_index",
     "temper",
     "class_state_prior",
     "expected_log_conditional",

@@ -29,7 +29,14 @@ from scipy.optimize import minimize_scalar
 
 from ..validation import as_tensor, check_probability, real_scalar
 
-__all__ = ["calibration", "check_temperature", "credible_set", "fit_temperature", "temper"]
+__all__ = [
+    "calibration",
+    "check_temperature",
+    "credible_set",
+    "fit_temperature",
+    "grid_index",
+    "temper",
+]
 
 #: Search interval of :func:`fit_temperature` (inverse temperatures 1e-3 ... 1e3).
 TEMPERATURE_BOUNDS = (1e-3, 1e3)
@@ -223,3 +230,24 @@ def calibration(prob: Any, truth: Any, level: float = 0.9) -> dict[str, float]:
         "ece": ece,
         "nll": float(-lp.gather(-1, t[:, None]).mean()),
     }
+
+
+def grid_index(targets: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Index of the grid value nearest to each target: the value a credible set over the grid
+    must hold to cover the target.
+
+    Args:
+        targets: ``[...]`` finite targets.
+        grid: ``[K]`` finite grid values.
+
+    Returns:
+        ``[...]`` int64 indices into ``grid``.
+
+    Raises:
+        ValueError: a grid that is not 1-D and non-empty, or non-finite values.
+    """
+    targets = as_tensor(targets, "targets")
+    grid = as_tensor(grid, "grid", ndim=1)
+    if grid.numel() == 0:
+        raise ValueError("grid must hold at least one value")
+    return (targets[..., None] - grid.to(targets.dtype)).abs().argmin(-1)

@@ -3,11 +3,13 @@ linear-Gaussian, phase-indexed counterpart :class:`LinearIDDM`.
 
 Saving and loading: :meth:`GPDM.save`, :func:`load_model`, :func:`register_model` for your own
 subclasses, and :class:`ModelFileError` for files that cannot be loaded
-(:mod:`~hgpdm_torch.models.persistence`).
+(:mod:`~hgpdm_torch.models.persistence`). :func:`supervised_init`: initial latent states that
+covary with the intention (partial least squares), for ``init``.
 """
 
 from .gpdm import GPDM
 from .hgpdm import HGPDM, IDDM
+from .latent_init import supervised_init
 from .linear_iddm import LinearIDDM
 from .persistence import ModelFileError, load_model, register_model, registered_models
 
@@ -25,4 +27,5 @@ __all__ = [
     "load_model",
     "register_model",
     "registered_models",
+    "supervised_init",
 ]

@@ -59,7 +59,7 @@ class _Config:
     forgetting: float = 0.1
 
     def initial_latents(self, obs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-        from hgpdm_torch.experiments.target_prediction import supervised_init
+        from hgpdm_torch.models import supervised_init
 
         return supervised_init(obs, targets, self.latent_dim)
 

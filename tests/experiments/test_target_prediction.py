@@ -7,8 +7,6 @@ import torch
 
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
-    grid_index,
-    supervised_init,
     target_prediction,
 )
 from hgpdm_torch.models import LinearIDDM
@@ -89,41 +87,7 @@ def test_smoke_run_reports_every_method_and_horizon():
         assert abs(value - mae) < 1e-9
 
 
-def test_supervised_init_keeps_a_low_variance_target_direction(generator):
-    # the target sits in a low-variance feature next to a high-variance nuisance one: the leading
-    # PCA direction misses it, the PLS init's first latent recovers it
-    n, T = 30, 5
-    g = torch.rand(n, generator=generator) * 2 - 1
-    nuisance = 10.0 * torch.randn(n, T, 1, generator=generator)
-    signal = 0.1 * g[:, None, None] + 0.01 * torch.randn(n, T, 1, generator=generator)
-    obs = torch.cat([nuisance, signal, torch.randn(n, T, 1, generator=generator)], -1)
-    x = supervised_init(obs, g, 2)
-    assert x.shape == (n * T, 2)
-    assert torch.allclose(x.std(0), torch.ones(2))
-    frames_g = g.repeat_interleave(T)
-    corr = torch.corrcoef(torch.stack([x[:, 0], frames_g]))[0, 1]
-    assert corr.abs() > 0.9
-    centred = obs.reshape(n * T, 3) - obs.reshape(n * T, 3).mean(0)
-    pc1 = centred @ torch.linalg.svd(centred, full_matrices=False)[2][0]
-    assert torch.corrcoef(torch.stack([pc1, frames_g]))[0, 1].abs() < 0.5
-
-
-def test_grid_index_is_the_nearest_value():
-    grid = torch.linspace(-1.0, 1.0, 5)  # -1, -0.5, 0, 0.5, 1
-    y = torch.tensor([-2.0, -0.7, -0.2, 0.1, 0.74, 3.0])
-    assert grid_index(y, grid).tolist() == [0, 1, 2, 2, 3, 4]
-    with pytest.raises(ValueError, match="targets"):
-        grid_index(torch.tensor([0.1, float("nan")]), grid)
-    with pytest.raises(ValueError, match="grid"):
-        grid_index(y, grid[None])
-
-
-def test_supervised_init_rejects_bad_input():
-    obs = torch.zeros(4, 3, 2)
-    with pytest.raises(ValueError, match="latent_dim"):
-        supervised_init(obs, torch.zeros(4), 3)
-    with pytest.raises(ValueError, match="targets"):
-        supervised_init(obs, torch.zeros(5), 1)
+def test_bad_options():
     with pytest.raises(ValueError, match="init"):
         target_prediction(n_train=4, n_test=2, init="ica")
     with pytest.raises(ValueError, match="cv_folds"):

@@ -14,6 +14,7 @@ from hgpdm_torch.inference import (
     OnlineIntentionFilter,
     calibration,
     fit_temperature,
+    grid_index,
     infer_intention,
     temper,
 )
@@ -192,3 +193,13 @@ def test_calibration_refuses_what_is_not_a_probability():
             calibration(torch.tensor(bad), truth)
     with pytest.raises(ValueError, match="level"):
         calibration(torch.tensor([[0.5, 0.5]]), truth, level=1.0)
+
+
+def test_grid_index_is_the_nearest_value():
+    grid = torch.linspace(-1.0, 1.0, 5)  # -1, -0.5, 0, 0.5, 1
+    y = torch.tensor([-2.0, -0.7, -0.2, 0.1, 0.74, 3.0])
+    assert grid_index(y, grid).tolist() == [0, 1, 2, 2, 3, 4]
+    with pytest.raises(ValueError, match="targets"):
+        grid_index(torch.tensor([0.1, float("nan")]), grid)
+    with pytest.raises(ValueError, match="grid"):
+        grid_index(y, grid[None])
