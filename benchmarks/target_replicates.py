@@ -26,7 +26,10 @@ experiment makes by cross-validation is not repeated):
   scale_transitions=True)`` with :data:`~hgpdm_torch.decision.beliefs.PHASE_IDDM`, chosen by the
   cross-validation of ``target_sweep --only=phase`` and ``--only="transition scales"``), online
   at ``eps = 0.2``, and the equal mixture of its beliefs
-  (:class:`~hgpdm_torch.inference.FilterBeliefs`) with the two linear ones.
+  (:class:`~hgpdm_torch.inference.FilterBeliefs`) with the two linear ones, and its beliefs at
+  the evidence temperature fitted on the held-out beliefs of 3-fold cross-validation on the
+  training strokes (the experiment's calibration of its selected IDDM; ``meta.replicates``
+  holds each replicate's ``T``).
 
 Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon, the ratio to
 GPR at 80 ms with a 95% interval from a two-stage bootstrap (replicates, then strokes within
@@ -50,12 +53,13 @@ from hgpdm_torch.baselines import WindowGPR
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     PHASE_IDDM,
+    _cv_mae,
     _fit_iddm,
     _online,
     strokes_limit,
 )
 from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
-from hgpdm_torch.inference.calibration import credible_set, grid_index
+from hgpdm_torch.inference.calibration import credible_set, fit_temperature, grid_index
 from hgpdm_torch.models import LinearIDDM
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
@@ -74,6 +78,7 @@ METHODS = (
     "BeliefMixture of the last two (equal weights)",
     "GP IDDM online, per phase, transition scales (phase width 0.25, noise 0.3, g width x2: CV)",
     "BeliefMixture of the per-phase GP IDDM and the two linear ones (equal weights)",
+    "GP IDDM online, per phase, transition scales, T by 3-fold CV",
 )
 
 
@@ -125,6 +130,17 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
     out[METHODS[10]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
     belief = BeliefMixture([member, *fitted[-2:]]).beliefs(test, grid)
     out[METHODS[11]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
+    # its evidence temperature from the held-out beliefs of 3-fold CV on the training strokes
+    # (the experiment's calibration of its selected IDDM)
+    folds = torch.arange(n_train).tensor_split(3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, logs, held_truth = _cv_mae(obs, y, folds, "linear", 6, steps, seed, "pls", grid, 0.2,
+                                      **PHASE_IDDM)  # fmt: skip
+    temperature = fit_temperature(logs, held_truth)
+    choices[METHODS[12]] = {"temperature": temperature}
+    belief = FilterBeliefs(phased, forgetting=0.2, temperature=temperature).beliefs(test, grid)
+    out[METHODS[12]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
     return out, choices
 
 
@@ -175,6 +191,7 @@ def run(quick: bool = False, replicates: int = 10, first_seed: int = 1) -> Resul
         ref = out[METHODS[0]][0][:, -1].sum()
         table.meta["replicates"][seed] = {
             "seconds": round(time.time() - start, 1),
+            "phase_iddm_temperature": choices.pop(METHODS[12])["temperature"],
             "linear_iddm_choices": choices,
             "mae_80ms": {m: float(e[:, -1].mean()) for m, (e, _) in out.items()},
             "ratio_80ms": {m: float(e[:, -1].sum() / ref) for m, (e, _) in out.items()},

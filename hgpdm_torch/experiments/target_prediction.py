@@ -129,18 +129,19 @@ def _online(
 
 
 def _cv_mae(
-    obs, y, folds, kernel, dx, steps, seed, init, grid, forgetting
+    obs, y, folds, kernel, dx, steps, seed, init, grid, forgetting, **options
 ) -> tuple[float, torch.Tensor, torch.Tensor]:
     """Cross-validated online-IDDM MAE [cm] over the four horizons, pooled over the held-out plays
     of all folds: every training play is validated once, at every horizon (the 80 ms error of
     a single 25% split of 100 plays left the selection to noise, SEM ~ 6 cm). Also returns the
     held-out log beliefs ``[n, 4, K]`` at the horizons and the grid index of each play's target
-    ``[n, 4]`` (to calibrate the selected model's evidence temperature)."""
+    ``[n, 4]`` (to calibrate the selected model's evidence temperature). ``options``: the
+    IDDM's, as :func:`_fit_iddm` takes them (e.g. :data:`PHASE_IDDM`)."""
     errors, logs, truths = [], [], []
     for held in folds:
         keep = torch.ones(len(y), dtype=torch.bool)
         keep[held] = False
-        model = _fit_iddm(obs[keep], y[keep], kernel, dx, steps, seed, init)
+        model = _fit_iddm(obs[keep], y[keep], kernel, dx, steps, seed, init, **options)
         mean, _, log_prob = _online(model, obs[held][:, : _STEPS[-1] + 1], grid, forgetting)
         errors.append(100.0 * (mean[:, list(_STEPS)] - y[held, None]).abs())
         logs.append(log_prob[:, list(_STEPS)])
