@@ -18,10 +18,7 @@ NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.i
 WARNING = re.compile(r"\b\w*Warning\b")
 MACHINE_PATH = re.compile(r"(/home/|/work/|/Users/|/tmp/|[A-Z]:\\\\|site-packages|\.venv)")
 #: notebook -> what its committed outputs still show (re-execute it after fixing the cause)
-NOT_YET_CLEAN = {
-    "04_intention_inference": "ConvergenceWarnings (smoke sizes) and LinearIDDM's sparse-phase "
-    "UserWarning; TqdmWarning",
-}
+NOT_YET_CLEAN: dict[str, str] = {}
 
 
 def output_text(path: Path) -> str:
