@@ -5,7 +5,7 @@ The thesis's reward table enumerates 270 trials x 3 movements x 5 start times (S
 samples ``--trials`` trials (default 30) in one process and
 
 1. plays the first ``--legacy-trials`` of them (default 4, 60 strokes) with the previous
-   implementation (``execute_stroke(..., legacy=True)``: 1 ms PhysX steps throughout, per-step
+   implementation (``stroke_legacy.execute_stroke_legacy``: 1 ms PhysX steps throughout, per-step
    Python control, uncached planning on tensors) and with the current one, each with a fresh
    planner (nothing cached), and reports both strokes/s, their ratio and whether the rewards
    agree;
@@ -91,6 +91,7 @@ def main(argv: list[str]) -> int:
     import torch
 
     from hgpdm_torch.robots.table_tennis.scene import TableTennisScene
+    from hgpdm_torch.robots.table_tennis.stroke_legacy import execute_stroke_legacy
     from hgpdm_torch.robots.table_tennis.strokes import MOVEMENTS, StrokePlanner, execute_stroke
     from hgpdm_torch.robots.table_tennis.trials import (
         DEFAULT_START_TIMES,
@@ -114,7 +115,9 @@ def main(argv: list[str]) -> int:
         scene = TableTennisScene(wam=planner.wam)
         t0 = time.process_time()
         won = [
-            execute_stroke(scene, planner, trials[i].ball_after_hit, m, st, legacy=legacy).success
+            (execute_stroke_legacy if legacy else execute_stroke)(
+                scene, planner, trials[i].ball_after_hit, m, st
+            ).success
             for i in range(n_legacy)
             for m in MOVEMENTS
             for st in DEFAULT_START_TIMES
@@ -148,7 +151,7 @@ def main(argv: list[str]) -> int:
 
     row("opponent trials (sample_strokes)", n, sample_s, "measured", per_table=False)
     row(
-        "robot strokes, previous (legacy=True, 1 ms)",
+        "robot strokes, previous (execute_stroke_legacy, 1 ms)",
         strokes,
         old_s,
         f"{n_legacy} trials, extrapolated",

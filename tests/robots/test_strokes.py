@@ -11,6 +11,7 @@ import torch
 from hgpdm_torch.robots.table_tennis import ball as B
 from hgpdm_torch.robots.table_tennis import geometry as geo
 from hgpdm_torch.robots.table_tennis.scene import TableTennisScene
+from hgpdm_torch.robots.table_tennis.stroke_legacy import execute_stroke_legacy
 from hgpdm_torch.robots.table_tennis.strokes import (
     EARLIEST_START,
     MOVEMENTS,
@@ -152,7 +153,7 @@ def _agreement(scene, planner, balls, start_times) -> tuple[int, int]:
     for ball in balls:
         for m in MOVEMENTS:
             for t0 in start_times:
-                old = execute_stroke(scene, planner, ball, m, t0, legacy=True)
+                old = execute_stroke_legacy(scene, planner, ball, m, t0)
                 new = execute_stroke(scene, planner, ball, m, t0)
                 same += old.success == new.success
                 cells += 1
@@ -198,10 +199,10 @@ def test_start_times_outside_the_stroke_window_are_refused(sim, opponent_balls) 
     ball = opponent_balls["centre"]
     t_cross = float(B.predict_plane_crossing(ball, geo.HITTING_PLANE_Y, dt=0.01)[0])
     window = rf"start_time must lie in \[EARLIEST_START = {EARLIEST_START:g}, {t_cross:.3f}\) s"
-    for legacy in (False, True):
+    for execute in (execute_stroke, execute_stroke_legacy):
         for bad in (-100.0, EARLIEST_START - 1e-3, t_cross, 1e9, math.inf):
             with pytest.raises(ValueError, match=window):
-                execute_stroke(scene, planner, ball, "middle", bad, legacy=legacy)
+                execute(scene, planner, ball, "middle", bad)
     with pytest.raises(ValueError, match="start_time"):
         execute_stroke(scene, planner, ball, "middle", "soon")  # type: ignore[arg-type]
     # the earliest start is allowed: the arm holds, prepares and swings for two seconds

@@ -12,9 +12,9 @@ planned hit to 20 ms after it, and whenever PhysX simulates the ball: from befor
 arm until it cannot, and through its bounce on the table. Elsewhere the ball is parked and the ball
 model flies it in floats (:class:`.ball.ScalarBall`). A ball's prediction, return aim and hitting
 IK are cached by the planner, so the 15 strokes of a reward-table row plan once per movement.
-``execute_stroke(..., legacy=True)`` keeps the previous implementation
-(:mod:`~hgpdm_torch.robots.table_tennis.stroke_legacy`) as the reference of the benchmark and of
-the agreement tests.
+The previous implementation (:func:`~hgpdm_torch.robots.table_tennis.stroke_legacy.
+execute_stroke_legacy`, which builds on this module and is imported by nothing here) stays as the
+reference of the benchmark and of the agreement tests.
 """
 
 from __future__ import annotations
@@ -86,8 +86,6 @@ def execute_stroke(
     ball_after_hit: B.BallState,
     movement: str,
     start_time: float,
-    *,
-    legacy: bool = False,
 ) -> StrokeOutcome:
     """Simulate one hitting movement in the SAPIEN scene.
 
@@ -106,12 +104,6 @@ def execute_stroke(
     steps throughout. Predictions, aims and IK of a ball are cached by the planner.
     ``tests/robots/test_strokes.py`` checks that the rewards are those of 1 ms steps.
 
-    ``legacy=True`` runs the previous implementation instead: 1 ms PhysX steps throughout, the
-    ball in PhysX from the opponent's hit, the tracker and the drive targets updated per step in
-    Python, and uncached planning on batched tensors (:mod:`.stroke_legacy`). It stays only as
-    the reference of the speed benchmark (``benchmarks/table_tennis.py``) and of the
-    reward-agreement tests.
-
     Raises:
         ValueError: unknown movement, or ``start_time`` outside ``[EARLIEST_START, t_cross)``
             (``t_cross``: when the ball reaches the hitting plane).
@@ -119,11 +111,6 @@ def execute_stroke(
     movement = planner.movement(movement)
     if not isinstance(ball_after_hit, B.BallState):
         raise TypeError(f"ball_after_hit must be a BallState, got {type(ball_after_hit).__name__}")
-    if legacy:
-        # imported here: the reference implementation builds on this module
-        from .stroke_legacy import execute_stroke_legacy
-
-        return execute_stroke_legacy(scene, planner, ball_after_hit, movement, start_time)
     ball = B.make_state(*ball_after_hit, dtype=torch.float64)
     if ball.pos.shape != (3,):
         raise ValueError("ball_after_hit must be a single ball (fields of shape [3])")

@@ -1,11 +1,11 @@
 """The previous stroke executor, kept as the reference of the current one.
 
-``execute_stroke(..., legacy=True)`` and ``StrokePlanner.plan_hit(..., legacy=True)`` run this
-implementation: 1 ms PhysX steps throughout, the ball in PhysX from the opponent's hit, the tracker
-and the drive targets updated per step in Python, and uncached planning on batched tensors (its
-single-ball tensor calls run on a batch of one). It is not used to compute rewards; it exists only
-as the baseline of the speed benchmark (``benchmarks/table_tennis.py``) and of the
-reward-agreement tests (``tests/robots/test_strokes.py``), which check that the fast executor of
+:func:`execute_stroke_legacy` and :func:`plan_hit_legacy` are this implementation: 1 ms PhysX steps
+throughout, the ball in PhysX from the opponent's hit, the tracker and the drive targets updated per
+step in Python, and uncached planning on batched tensors (its single-ball tensor calls run on a
+batch of one). It is not used to compute rewards; it exists only as the baseline of the speed
+benchmark (``benchmarks/table_tennis.py``) and of the reward-agreement tests
+(``tests/robots/test_strokes.py``), which check that the fast executor of
 :mod:`~hgpdm_torch.robots.table_tennis.stroke_execution` returns the same rewards.
 """
 
@@ -35,8 +35,8 @@ _PARKED_BALL = B.BallState(
 def plan_hit_legacy(
     planner: StrokePlanner, name: str, ball_now: B.BallState, t_now: float
 ) -> HitPlan | None:
-    """The previous :meth:`~.stroke_planner.StrokePlanner.plan_hit` (its ``legacy`` option):
-    batched tensor code on a batch of one, no cache."""
+    """The previous :meth:`~.stroke_planner.StrokePlanner.plan_hit`: batched tensor code on a
+    batch of one, no cache."""
     cfg = planner.config
     one = B.BallState(*(x.unsqueeze(0) for x in ball_now))
     t_c, at, valid = B.predict_plane_crossing(
@@ -84,9 +84,12 @@ def execute_stroke_legacy(
     movement: str,
     start_time: float,
 ) -> StrokeOutcome:
-    """The previous :func:`.stroke_execution.execute_stroke` (see its ``legacy`` option),
+    """The previous :func:`.stroke_execution.execute_stroke`, with its arguments and checks,
     unchanged but for the start-time check; its single-ball tensor calls run on a batch of one,
     as they did before unbatched states took the float path of :mod:`.ball`."""
+    movement = planner.movement(movement)
+    if not isinstance(ball_after_hit, B.BallState):
+        raise TypeError(f"ball_after_hit must be a BallState, got {type(ball_after_hit).__name__}")
     cfg = planner.config
     t_cross, _, valid = B.predict_plane_crossing(
         B.BallState(*(x.unsqueeze(0) for x in ball_after_hit)),
@@ -119,7 +122,7 @@ def execute_stroke_legacy(
         if prep is None and t >= start_time:
             prep = planner.preparation(movement, t, tracker.q)
         if plan is None and prep is not None and ball_in_play and t >= cfg.predict_delay:
-            plan = planner.plan_hit(movement, scene.ball_state(), t, legacy=True)
+            plan = plan_hit_legacy(planner, movement, scene.ball_state(), t)
             if plan is None:
                 break
         # The hitting stage replans from the arm's current state; unless configured to wait for

@@ -148,9 +148,7 @@ class StrokePlanner:
         z = np.zeros(DOF)
         return Quintic(t_start, T, q_from, z, z, q1, z, z)
 
-    def plan_hit(
-        self, name: str, ball_now: B.BallState, t_now: float, *, legacy: bool = False
-    ) -> HitPlan | None:
+    def plan_hit(self, name: str, ball_now: B.BallState, t_now: float) -> HitPlan | None:
         """Where, when and how to hit the ball observed at time ``t_now`` (unbatched state).
 
         The ball's crossing of the hitting plane is predicted, the return is aimed at
@@ -159,17 +157,11 @@ class StrokePlanner:
         racket's normal and velocity, and IK from the preparation pose gives the joint state.
         The ball part depends on the observed ball only and is shared by the three movements;
         both parts are cached (small LRU), so the 15 strokes of a reward-table row predict and
-        aim once. ``legacy=True`` runs the previous, uncached implementation on batched tensors
-        (kept for :func:`execute_stroke`'s ``legacy`` option).
+        aim once.
 
         Returns ``None`` when the ball never reaches the hitting plane.
         """
         name = self.movement(name)
-        if legacy:
-            # imported here: the reference implementation builds on this module
-            from .stroke_legacy import plan_hit_legacy
-
-            return plan_hit_legacy(self, name, ball_now, t_now)
         ball = B.make_state(*ball_now)
         if ball.pos.shape != (3,):
             raise ValueError("ball_now must be a single ball (fields of shape [3])")

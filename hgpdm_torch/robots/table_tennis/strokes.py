@@ -39,12 +39,12 @@ and ``strokes.MOVEMENTS`` work as before:
 * :mod:`~hgpdm_torch.robots.table_tennis.stroke_execution`: one stroke simulated in SAPIEN, and
   its outcome (with how the simulation is made fast);
 * :mod:`~hgpdm_torch.robots.table_tennis.stroke_legacy`: the previous executor
-  (``execute_stroke(..., legacy=True)``), kept only as the reference of the speed benchmark and of
-  the reward-agreement tests.
+  (``execute_stroke_legacy``), kept only as the reference of the speed benchmark and of the
+  reward-agreement tests.
 
 Imports flow one way: ``stroke_config``, ``stroke_quintic`` <- ``stroke_planner``; those and
 ``stroke_tracker`` <- ``stroke_execution`` <- ``strokes``. ``stroke_legacy`` builds on all of them
-and is imported only inside the ``legacy`` options, when one is used.
+and nothing in the package imports it (only the benchmark and the tests).
 """
 
 from __future__ import annotations
