@@ -33,6 +33,8 @@ import torch
 from pyro.distributions import MultivariateStudentT
 from torch.distributions import StudentT
 
+from ..linalg import cholesky_logdet
+
 __all__ = [
     "default_grid",
     "intention_features",
@@ -126,8 +128,7 @@ def log_marginal(
     the inverse-gamma ``IG(2, psi)`` and ``(2 pi)^(-n D/2)`` for isotropic noise."""
     p, d = coef.shape
     n = float(dof) - d - 2
-    coef_term = 0.5 * (p * math.log(lam) - torch.linalg.cholesky(precision).diagonal().log().sum()
-                       * 2)  # fmt: skip
+    coef_term = 0.5 * (p * math.log(lam) - cholesky_logdet(torch.linalg.cholesky(precision)))
     if noise == "isotropic":
         a_n = 2.0 + n * d / 2
         b_n = psi + 0.5 * (scatter.trace() - d * psi)
@@ -140,7 +141,7 @@ def log_marginal(
                    - math.lgamma(nu0 / 2))  # fmt: skip
         return per_dim.sum()
     nu0, nun = d + 2.0, float(dof)
-    logdet = 2 * torch.linalg.cholesky(scatter).diagonal().log().sum()
+    logdet = cholesky_logdet(torch.linalg.cholesky(scatter))
     return (-0.5 * n * d * math.log(math.pi) + d * coef_term + 0.5 * nu0 * d * math.log(psi)
             - 0.5 * nun * logdet + torch.special.multigammaln(scatter.new_tensor(nun / 2), d)
             - torch.special.multigammaln(scatter.new_tensor(nu0 / 2), d))  # fmt: skip
