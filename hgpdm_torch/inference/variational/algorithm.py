@@ -9,7 +9,7 @@ in one batched optimisation:
 1. initial states (:func:`~hgpdm_torch.inference.variational.initial.initial_guess`);
 2. the mean-field Laplace start
    (:func:`~hgpdm_torch.inference.variational.laplace.laplace`): Levenberg-Marquardt to the MAP
-   states, then ``Sigma_t`` the inverse diagonal blocks of the Gauss-Newton precision;
+   states, then ``Sigma_t`` the inverse diagonal blocks of the Fisher precision;
 3. the exact F, maximised either in closed form by L-BFGS
    (:func:`~hgpdm_torch.inference.variational.polish.polish`, ``method="closed_form"``, the
    default) or through Pyro, ``pyro.infer.SVI`` on the

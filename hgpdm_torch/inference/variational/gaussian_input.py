@@ -144,11 +144,12 @@ class GaussianInputGP:
 
         The variance ``k(mu, mu) - k(mu, X) K^-1 k(X, mu) + noise`` is the plug-in of Eq. 15 / 17
         (unscaled; multiply by ``scale^2`` per output). Differentiable in ``mu``. With
-        ``jacobian=True`` also returns ``d mean / d mu`` ``[..., Dout, D]``, from the kernel
-        gradients of :func:`~hgpdm_torch.expectations.term_k`.
+        ``jacobian=True`` also returns ``d mean / d mu`` ``[..., Dout, D]`` and ``d var / d mu``
+        ``[..., D]`` (``d k(mu, mu) - 2 (d k(mu, X)) K^-1 k(X, mu)``), from the kernel gradients of
+        :func:`~hgpdm_torch.expectations.term_k`; these two are not differentiable.
         """
         if self.parts:
-            events = (1, 0, 2) if jacobian else (1, 0)
+            events = (1, 0, 2, 1) if jacobian else (1, 0)
             return self._by_code("predict_point", (mu,), (1,), events, jacobian=jacobian)
         k, dk = 0.0, 0.0
         for t in self.terms:
@@ -157,13 +158,24 @@ class GaussianInputGP:
                 dk = dk + (gr if t.factor is None else t.factor[..., None, :] * gr)
             k = k + (p if t.factor is None else t.factor * p)
         # K^-1 k without copying a per-code K^-1 block for every input (it is symmetric)
-        quad = (shared_matmul(self.kinv, k[..., :, None])[..., 0] * k).sum(-1)
+        kinv_k = shared_matmul(self.kinv, k[..., :, None])[..., 0]
+        quad = (kinv_k * k).sum(-1)
         kxx = leaves_psi0(self.leaves, mu, torch.zeros_like(mu).diag_embed(), None)
         mean = shared_matmul(self.beta.transpose(-1, -2), k[..., :, None])[..., 0]
         var = (kxx - quad).clamp_min(0.0) + self.post.noise
         if not jacobian:
             return mean, var
-        return mean, var, (dk @ self.beta).transpose(-1, -2)
+        # k(mu, mu) is constant for stationary parts; its linear parts' gradient by autograd on
+        # the one formula of leaves_psi0
+        with torch.enable_grad():
+            at = mu.detach().requires_grad_(True)
+            zero = torch.zeros_like(at).diag_embed()
+            diag_k = leaves_psi0(self.leaves, at, zero, None).sum()
+            dkxx = torch.autograd.grad(diag_k, at)[0] if diag_k.requires_grad else None
+        dquad = 2.0 * (dk @ kinv_k[..., :, None])[..., 0]
+        dvar = -dquad if dkxx is None else dkxx - dquad
+        dvar = torch.where((kxx - quad)[..., None] > 0, dvar, torch.zeros_like(dvar))
+        return mean, var, (dk @ self.beta).transpose(-1, -2), dvar.detach()
 
     def var_at_mean(self, mu: torch.Tensor) -> torch.Tensor:
         """Plug-in predictive variance at ``mu`` (Eq. 15 / 17), ``[...]``."""

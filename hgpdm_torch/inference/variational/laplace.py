@@ -8,8 +8,10 @@ approximation follows: for a narrow q, the negative free energy of Eq. 13 is, to
 
     F ~= log p(mu, z) - 1/2 sum_t tr(Lambda_tt Sigma_t) + 1/2 sum_t log|2 pi e Sigma_t|,
 
-(``Lambda`` the Gauss-Newton precision of the log joint), which the mean-field family (Eq. 11)
-maximises at ``mu`` = MAP and ``Sigma_t = Lambda_tt^-1``, the inverse *diagonal block*.
+(``Lambda`` the Fisher precision, the expected Hessian, of the log joint:
+:meth:`~hgpdm_torch.inference.variational.window.WindowModel.precision_blocks`), which the
+mean-field family (Eq. 11) maximises at ``mu`` = MAP and ``Sigma_t = Lambda_tt^-1``, the inverse
+*diagonal block*.
 
 Shapes: ``T`` window length, ``K`` candidate values of g, ``Dx`` latent dim; ``...`` leading
 batch dims (windows).
@@ -50,15 +52,16 @@ def map_states(
 ) -> tuple[torch.Tensor, list[float]]:
     """Maximise the log joint over ``x [..., K, T, Dx]`` by Levenberg-Marquardt.
 
-    Each window and candidate g is its own problem: the step solves ``(J^T J + lambda
-    diag(J^T J)) s = -grad`` with the exact gradient (autograd, so the ``log sigma^2(x)``
-    terms are included) and its own damping ``lambda``, which shrinks after an accepted step
+    Each window and candidate g is its own problem: the step solves ``(F + lambda diag(F)) s =
+    -grad`` with ``F`` the Fisher precision (Gauss-Newton's ``J^T J`` plus the curvature of the
+    GP variances, :meth:`~hgpdm_torch.inference.variational.window.WindowModel.precision_blocks`),
+    the exact gradient (autograd) and its own damping ``lambda``, which shrinks after an accepted step
     and grows after a rejected one. A problem stops when an accepted step gains less than
     ``tol`` nats (far below the differences between candidates of g that matter), or, with
     ``prune`` (a heuristic), when even an optimistic value, its negative log joint minus
     three times the next step's first-order gain ``-grad^T s``, trails the best candidate of
     its window by more than ``prune`` nats while the damping is moderate (``lambda <= 1``:
-    the damped step's gain is then within about ``1 + lambda`` of the Gauss-Newton step's,
+    the damped step's gain is then within about ``1 + lambda`` of the undamped step's,
     which the factor 3 covers): a candidate far from its optimum has a large predicted gain
     and is kept. Only the problems still running are computed at each iteration.
 
@@ -121,7 +124,7 @@ def map_states(
         grad = g[idx].reshape(-1, T * dx, 1)
         with torch.no_grad():
             damped = A + lam[idx, None, None] * torch.diag_embed(A.diagonal(dim1=-2, dim2=-1))
-            L = psd_cholesky(damped, name="Gauss-Newton matrix of the log joint")
+            L = psd_cholesky(damped, name="Fisher precision of the log joint")
             step = -torch.cholesky_solve(grad, L)
             if prune is not None:
                 # the step's first-order gain, trusted only while the damping is moderate
@@ -163,8 +166,8 @@ def laplace(
     r"""Mean-field Laplace start of q(x): MAP means and ``Sigma_t = (Lambda_tt)^-1``.
 
     For a narrow q, ``F`` is ``log p(mu, z) - 1/2 sum_t tr(Lambda_tt Sigma_t) + 1/2 sum_t
-    log|2 pi e Sigma_t|`` to second order (``Lambda`` the Gauss-Newton precision of the log
-    joint), which the mean-field family maximises at ``mu`` = MAP and ``Sigma_t =
+    log|2 pi e Sigma_t|`` to second order (``Lambda`` the Fisher precision of the log joint),
+    which the mean-field family maximises at ``mu`` = MAP and ``Sigma_t =
     Lambda_tt^-1`` (the inverse *diagonal block*, not the marginal covariance). L-BFGS on the
     exact ``F`` then only polishes this start.
 
