@@ -31,7 +31,9 @@ from .variational.laplace import map_states
 from .variational.prediction import forecast
 from .variational.window import WindowModel, window_mask
 
-__all__ = ["MAPInference", "MAPResult"]
+__all__ = ["MAP_STEPS", "MAPInference", "MAPResult"]
+
+MAP_STEPS = 50  # default Levenberg-Marquardt iterations of the MAP baseline
 
 
 @dataclass
@@ -115,7 +117,7 @@ class MAPInference:
         z: object,
         *,
         values: object = None,
-        steps: int = 50,
+        steps: int = MAP_STEPS,
         init: str = "nearest",
         progress: bool = False,
     ) -> MAPResult:

@@ -14,7 +14,7 @@ from scipy.optimize import minimize
 
 from hgpdm_torch.datasets import styled_movements, targeted_movements
 from hgpdm_torch.experiments.style_recognition import forecast_windows
-from hgpdm_torch.inference.map import MAPInference
+from hgpdm_torch.inference.map import MAP_STEPS, MAPInference
 from hgpdm_torch.inference.variational import (
     MeanFieldGuide,
     VariationalInference,
@@ -299,10 +299,10 @@ def test_forecast_and_gap_shapes_batched(hgpdm, styles):
 
 def test_candidate_forecasts_match_separate_inferences(hgpdm, styles):
     """One posterior over all g gives the ML g's forecast (plain and AR(1)) of
-    ``VariationalInference.forecast``, the oracle's (a separate inference with the true g) and
-    their Bayesian average. Tolerances: the same algebra batched over K candidates (1e-9 on O(1)
-    forecasts: reductions in another order); the oracle's own inference stops at the optimiser's
-    tolerance (1e-6)."""
+    ``VariationalInference.forecast``, the oracle's (a separate inference with the true g),
+    their Bayesian average, and the MAP baseline's at the Laplace start's states. Tolerances:
+    the same algebra batched over K candidates (1e-9 on O(1) forecasts: reductions in another
+    order); a separate inference stops at the optimiser's tolerance (1e-6)."""
     vb = VariationalInference(hgpdm)
     z = torch.stack([styles.sequences[j][3:8] for j in range(4)])
     cf = candidate_forecasts(vb, z, prune=None)
@@ -315,14 +315,23 @@ def test_candidate_forecasts_match_separate_inferences(hgpdm, styles):
     oracle, _, _ = vb.forecast(z, values=truth[:, None], prune=None)
     index = (vb.values[None] == truth[:, None]).long().argmax(-1)
     torch.testing.assert_close(cf.pick(index), oracle, rtol=0, atol=1e-6)
+    # the MAP baseline's forecast at the Laplace start's states (30 iterations, no pruning)
+    map_oracle, _, _ = MAPInference(hgpdm).forecast(z, values=truth[:, None], steps=30)
+    torch.testing.assert_close(cf.pick(index, map_states=True), map_oracle, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="AR"):
+        cf.pick(index, ar1=True, map_states=True)
     post = cf.result.posterior
     want = post[:, 0, None] * cf.mean[:, 0] + post[:, 1, None] * cf.mean[:, 1]
     torch.testing.assert_close(cf.averaged(), want, rtol=0, atol=1e-12)
     # a GPDM has one candidate: the average is its forecast
     gp = GPDM(styles.sequences, 2)
     gp.fit(5, warn=False)
-    one = candidate_forecasts(VariationalInference(gp), z)
+    one = candidate_forecasts(VariationalInference(gp), z, newton_steps=MAP_STEPS)
     torch.testing.assert_close(one.averaged(), one.pick(one.result.g_ml), rtol=0, atol=1e-12)
+    map_gp, _, _ = MAPInference(gp).forecast(z)
+    torch.testing.assert_close(
+        one.pick(one.result.g_ml, map_states=True), map_gp, rtol=0, atol=1e-6
+    )
 
 
 def test_sparse_measurement_gp(hgpdm, styles):

@@ -69,6 +69,10 @@ class VBResult:
         guide: the fitted :class:`MeanFieldGuide`.
         history: ``-sum F`` over all windows and candidates after each optimiser iteration
             (with ``method="svi"``: the SVI loss after each step).
+        map_states: ``[..., K, T, Dx]`` the Laplace start's means, the Levenberg-Marquardt
+            maximisers of the log joint per candidate: the MAP baseline's states
+            (:class:`~hgpdm_torch.inference.map.MAPInference` with ``steps=newton_steps``, the
+            same start and no pruning), at no extra cost; ``None`` with ``newton_steps=0``.
     """
 
     values: torch.Tensor
@@ -81,6 +85,7 @@ class VBResult:
     g_cov: torch.Tensor | None
     guide: MeanFieldGuide
     history: list[float]
+    map_states: torch.Tensor | None = None
 
     def ml_state(self) -> tuple[torch.Tensor, torch.Tensor]:
         """q(x) of the ML value of g: ``mean [..., T, Dx]`` and ``cov [..., T, Dx, Dx]``."""
@@ -270,10 +275,12 @@ class VariationalInference:
             raise ValueError("svi options apply to method='svi' only")
         values = w.candidates(values)
         loc, cov, g_loc, g_cov = initial_guess(w, z, values, init)
+        map_states = None
         if newton_steps:
             loc, cov = laplace(
                 w, z, observed, loc, values, g_loc, max_iter=newton_steps, prune=prune
             )
+            map_states = loc.detach()
         history: list[float] = []
         if steps and method == "closed_form":
             (loc, cov, g_loc, g_cov), history = polish(
@@ -304,6 +311,7 @@ class VariationalInference:
                 g_cov=guide.g_cov.detach() if guide.has_g else None,
                 guide=guide,
                 history=history,
+                map_states=map_states,
             )
 
     # ------------------------------------------------------------------ prediction (Sec. 2.3.2)

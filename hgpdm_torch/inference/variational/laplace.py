@@ -55,10 +55,10 @@ def map_states(
     Each window and candidate g is its own problem: the step solves ``(F + lambda diag(F)) s =
     -grad`` with ``F`` the Fisher precision (Gauss-Newton's ``J^T J`` plus the curvature of the
     GP variances, :meth:`~hgpdm_torch.inference.variational.window.WindowModel.precision_blocks`),
-    the exact gradient (autograd) and its own damping ``lambda``, which shrinks after an accepted step
-    and grows after a rejected one. A problem stops when an accepted step gains less than
-    ``tol`` nats (far below the differences between candidates of g that matter), or, with
-    ``prune`` (a heuristic), when even an optimistic value, its negative log joint minus
+    the exact gradient (autograd) and its own damping ``lambda``, which shrinks after an
+    accepted step and grows after a rejected one. A problem stops when an accepted step gains
+    less than ``tol`` nats (far below the differences between candidates of g that matter), or,
+    with ``prune`` (a heuristic), when even an optimistic value, its negative log joint minus
     three times the next step's first-order gain ``-grad^T s``, trails the best candidate of
     its window by more than ``prune`` nats while the damping is moderate (``lambda <= 1``:
     the damped step's gain is then within about ``1 + lambda`` of the undamped step's,
@@ -116,11 +116,19 @@ def map_states(
     lam = torch.full_like(f, 1e-3)
     active = torch.isfinite(f)
     history = [float(f.sum())]
+    # the precision at each problem's current states; recomputed only where a step moved them
+    # (a rejected step leaves the states, and so the matrix, as they were)
+    A_all = x.new_zeros(n, T * dx, T * dx)
+    stale = active.clone()
     for _ in range(max_iter):
         idx = torch.nonzero(active).flatten()
         if idx.numel() == 0:
             break
-        (A,) = by_code(idx, precision(x))
+        redo = idx[stale[idx]]
+        if redo.numel():
+            (A_all[redo],) = by_code(redo, precision(x))
+            stale[redo] = False
+        A = A_all[idx]
         grad = g[idx].reshape(-1, T * dx, 1)
         with torch.no_grad():
             damped = A + lam[idx, None, None] * torch.diag_embed(A.diagonal(dim1=-2, dim2=-1))
@@ -146,6 +154,7 @@ def map_states(
         f[idx] = torch.where(ok, f_t, f[idx])
         g[idx] = torch.where(ok[:, None, None, None], g_t, g[idx])
         lam[idx] = torch.where(ok, 0.2 * lam[idx], 10.0 * lam[idx])
+        stale[idx] = ok
         done = (ok & (gain < tol)) | (lam[idx] > 1e10)
         active[idx[done]] = False
         history.append(float(f.sum()))

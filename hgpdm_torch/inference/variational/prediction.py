@@ -217,6 +217,10 @@ class CandidateForecasts:
         ar1_mean, ar1_var: ``[..., K, Dz]`` the same with the AR(1) residual
             (:func:`~hgpdm_torch.inference.residual.ar1_residual_forecast`).
         result: the :class:`~hgpdm_torch.inference.variational.VBResult` of the windows.
+        map_mean: ``[..., K, Dz]`` the MAP baseline's forecast under each candidate: the
+            measurement GP's mean at the appended row's MAP state (``result.map_states``, the
+            Laplace start), as :meth:`~hgpdm_torch.inference.map.MAPInference.forecast` gives
+            with ``steps`` = the VB run's ``newton_steps``; ``None`` without a Laplace start.
     """
 
     mean: torch.Tensor
@@ -224,10 +228,19 @@ class CandidateForecasts:
     ar1_mean: torch.Tensor
     ar1_var: torch.Tensor
     result: Any
+    map_mean: torch.Tensor | None = None
 
-    def pick(self, index: torch.Tensor, *, ar1: bool = False) -> torch.Tensor:
-        """The forecast mean ``[..., Dz]`` under candidate ``index [...]`` (e.g. ``g_ml``)."""
-        mean = self.ar1_mean if ar1 else self.mean
+    def pick(
+        self, index: torch.Tensor, *, ar1: bool = False, map_states: bool = False
+    ) -> torch.Tensor:
+        """The forecast mean ``[..., Dz]`` under candidate ``index [...]`` (e.g. ``g_ml``);
+        ``map_states=True``: the MAP baseline's (:attr:`map_mean`)."""
+        if map_states and (ar1 or self.map_mean is None):
+            raise ValueError(
+                "the MAP forecast has no AR(1) variant here and needs a Laplace start "
+                "(newton_steps > 0)"
+            )
+        mean = self.map_mean if map_states else self.ar1_mean if ar1 else self.mean
         i = index.to(mean.device)[..., None, None].expand(*index.shape, 1, mean.shape[-1])
         return mean.gather(-2, i)[..., 0, :]
 
@@ -244,8 +257,9 @@ def candidate_forecasts(engine: Any, z: object, **infer_kwargs: Any) -> Candidat
     One ``engine.infer`` (a :class:`~hgpdm_torch.inference.variational.VariationalInference`) on
     the windows with a missing row appended gives ``q(x)`` for every candidate; the forecasts of
     :func:`forecast` (ML g), of the oracle (true g) and their Bayesian average all follow from it
-    without another inference. Pass ``prune=None`` so that every candidate's ``q(x)`` is refined
-    (an oracle forecast under a pruned candidate is from a looser posterior).
+    without another inference, and so do the MAP baseline's (its states are the Laplace
+    start's). Pass ``prune=None`` so that every candidate's ``q(x)`` is refined (an oracle
+    forecast under a pruned candidate is from a looser posterior).
 
     Args:
         engine: the VB engine.
@@ -268,4 +282,9 @@ def candidate_forecasts(engine: Any, z: object, **infer_kwargs: Any) -> Candidat
         rec[..., -1, :],
         rec_var[..., -1, :],
     )
-    return CandidateForecasts(mean[..., -1, :], var[..., -1, :], ar1_mean, ar1_var, res)
+    map_mean = None
+    if res.map_states is not None:
+        with torch.no_grad():
+            map_mean = engine.window.h.predict_point(res.map_states[..., -1, :])[0]
+            map_mean = map_mean + engine.window.measurement.offset
+    return CandidateForecasts(mean[..., -1, :], var[..., -1, :], ar1_mean, ar1_var, res, map_mean)
