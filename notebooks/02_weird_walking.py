@@ -195,7 +195,7 @@ for name, p in preds.items():
 # width learned (this protocol's cross-validated choice; kept at its initial value, the
 # H-GPDM's forecasts of these trials erred 1.5 to 3 times as much) the H-GPDM with the
 # AR(1) residual forecasts the arms-out trial better than ridge regression, and knowing the
-# style beats the GPDM on the arms-out, fast and slow trials (not on hopping). On the fast,
+# style beats the GPDM on the fast and slow trials (not on arms out or hopping). On the fast,
 # hopping and slow trials ridge regression on the last frames is still better, and so it is on
 # average in the leave-one-trial-out cross-validation of the docs page.
 

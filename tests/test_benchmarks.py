@@ -29,7 +29,7 @@ def test_benchmarks_are_found():
 #: Weird Walking command on a real-data slice in tests/experiments/test_walkers.py)
 SLOW = {"table_tennis", "target_information", "weird_walking"}
 #: benchmarks of real recordings (``../shared/data``, seen from the project root)
-NEEDS_DATA = {"weird_walking": Path("../shared/data/cmu")}
+NEEDS_DATA = {name: Path("../shared/data/cmu") for name in ("map_solver", "weird_walking")}
 
 
 @pytest.mark.parametrize(
