@@ -50,6 +50,7 @@ import torch
 
 from benchmarks.target_sweep import STEPS, abs_errors
 from hgpdm_torch.baselines import WindowGPR
+from hgpdm_torch.calibration import credible_set, fit_temperature, grid_index
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     PHASE_IDDM,
@@ -59,7 +60,6 @@ from hgpdm_torch.experiments.target_prediction import (
     strokes_limit,
 )
 from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
-from hgpdm_torch.inference.calibration import credible_set, fit_temperature, grid_index
 from hgpdm_torch.models import LinearIDDM
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes

@@ -14,7 +14,7 @@ cross-validated MAE [cm] at 320/240/160/80 ms before the hit, the ratio to GPR a
 paired difference IDDM - GPR at 80 ms (mean +- SEM over the 100 strokes). Further rows:
 
 - ``T by inner CV``: the evidence temperature fitted (maximum likelihood of the true grid value,
-  :func:`~hgpdm_torch.inference.calibration.fit_temperature`) on inner 4-fold CV beliefs of
+  :func:`~hgpdm_torch.calibration.fit_temperature`) on inner 4-fold CV beliefs of
   each outer training part, with ``eps = 0``;
 - ``evidence of step t only``: the base model's posterior mean at 80 ms when the belief keeps the
   evidence of one step only (``eps = 0``): how much each observation says about the target.
@@ -33,13 +33,13 @@ from typing import Any
 import torch
 
 from hgpdm_torch.baselines import WindowGPR
+from hgpdm_torch.calibration import fit_temperature, grid_index
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     _online,
     strokes_limit,
 )
 from hgpdm_torch.inference import OnlineIntentionFilter
-from hgpdm_torch.inference.calibration import fit_temperature, grid_index
 from hgpdm_torch.models import HGPDM, IDDM, supervised_init
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes

@@ -34,7 +34,7 @@ the fast default, consistent with the filter's own approximation) or literally a
 prints, ``x_t ~ q``, ``x_{t+1} ~ GP(x_t, g)``, ``z ~ GP(x_{t+1})`` at points
 (``sampling="points"``, one ``[I, N]`` kernel per GP).
 
-Observation health is the filter's (its :class:`~hgpdm_torch.inference.filtering.ObservationCheck`):
+Observation health is the filter's (its :class:`~hgpdm_torch.observations.ObservationCheck`):
 an observation row that is +-inf, partly NaN or implausible (more than the filter's
 ``outlier_sd`` training standard deviations from the training mean in a channel) is, for that
 particle only, treated as missing, exactly as the filter treats it: a prediction-only step in

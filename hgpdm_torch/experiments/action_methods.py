@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from ..baselines import HMMClassifier, WindowGPC, WindowSVM
+from ..calibration import fit_temperature
 from ..fitting import FitResult
-from ..inference.calibration import fit_temperature
 from ..inference.intention import IntentionBelief, OnlineIntentionFilter, infer_intention
 from ..models import IDDM
 from ..progress import tqdm

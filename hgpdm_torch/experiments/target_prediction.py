@@ -47,8 +47,8 @@ from typing import Any
 import torch
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
+from ..calibration import calibration, fit_temperature, grid_index
 from ..decision.beliefs import PHASE_IDDM
-from ..inference.calibration import calibration, fit_temperature, grid_index
 from ..inference.intention import (
     BeliefMixture,
     FilterBeliefs,

@@ -44,9 +44,9 @@ import numpy as np
 import torch
 
 from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
+from ..calibration import calibration
 from ..datasets.cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol
 from ..datasets.walkers import Standardizer
-from ..inference.calibration import calibration
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM

@@ -2,11 +2,11 @@
 Bayes (Ch. 2.3), the MAP baseline (conditional GPDM), and batch and online intention inference
 (Algorithms 3.1-3.2)."""
 
-from .calibration import calibration, fit_temperature, grid_index, temper
+from ..calibration import calibration, fit_temperature, grid_index, temper
+from ..intention_belief import IntentionBelief
+from ..observations import DEFAULT_OUTLIER_SD, ObservationCheck
 from .filtering import (
-    DEFAULT_OUTLIER_SD,
     FilterResult,
-    ObservationCheck,
     SmootherResult,
     filter_sequence,
     gp_adf_predict,
@@ -17,7 +17,6 @@ from .intention import (
     BeliefMixture,
     BeliefMixtureStream,
     FilterBeliefs,
-    IntentionBelief,
     LinearMeasurement,
     OnlineIntentionFilter,
     SharedTransition,

@@ -37,8 +37,7 @@ Shapes: ``T`` time steps, ``D`` state dim, ``Dz`` observation dim; ``...`` batch
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
@@ -47,18 +46,16 @@ from ..expectations import check_gaussian
 from ..gaussian import conditional, independent_joint, log_density, rts_step
 from ..gp import GPPosterior
 from ..linalg import positive_definite, psd_cholesky, symmetrize
+from ..observations import DEFAULT_OUTLIER_SD, ObservationCheck
 from ..progress import tqdm
 from ..validation import (
     as_observations,
     as_tensor,
     bad_observation,
-    check_outlier_sd,
 )
 
 __all__ = [
-    "DEFAULT_OUTLIER_SD",
     "FilterResult",
-    "ObservationCheck",
     "SmootherResult",
     "filter_sequence",
     "gp_adf_predict",
@@ -103,112 +100,6 @@ class SmootherResult:
     mean: torch.Tensor
     cov: torch.Tensor
     cross_cov: torch.Tensor
-
-
-#: Default plausibility threshold of :class:`ObservationCheck`, in training standard deviations.
-DEFAULT_OUTLIER_SD = 100.0
-
-
-@dataclass(frozen=True)
-class ObservationCheck:
-    r"""Classifies observation rows as usable, missing or bad, from the training data's scale.
-
-    A row ``z [Dz]`` (one stream at one step) is
-
-    - **missing** when every entry is NaN: a prediction-only step, as everywhere in the toolkit;
-    - **bad** when it is not missing and some channel ``c`` is NaN (a partly missing row), +-inf,
-      or implausible: ``|z_c - center_c| > outlier_sd * spread_c``;
-    - **usable** otherwise.
-
-    ``center_c`` is the mean of the measurement GP's training observations in channel ``c`` and
-    ``spread_c = sqrt(Var_c + noise * scale_c^2)`` their (population) standard deviation with the
-    GP's observation noise in that channel added, so that a channel that is constant in the
-    training data does not reject every other value. Both are in the channel's own units, so the
-    threshold is relative: rescaling or shifting a channel in training and test data alike
-    changes nothing. The default ``outlier_sd = 100`` accepts values far beyond anything the
-    model explains (``-5000`` nats under a Gaussian of the training spread) and refuses sensor
-    glitches and unit errors long before they can overflow the moment matching (squares of
-    ``1e154``).
-
-    Attributes:
-        center: ``[Dz]`` training mean per channel (float64).
-        spread: ``[Dz]`` ``spread_c`` above (float64).
-        outlier_sd: the threshold in units of ``spread``; ``None`` refuses non-finite entries
-            and partly missing rows only.
-        limit: ``[Dz]`` ``outlier_sd * spread`` (inf for ``None``).
-    """
-
-    center: torch.Tensor
-    spread: torch.Tensor
-    outlier_sd: float | None = DEFAULT_OUTLIER_SD
-    limit: torch.Tensor = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        sd = math.inf if self.outlier_sd is None else self.outlier_sd
-        object.__setattr__(self, "limit", sd * self.spread)
-
-    @classmethod
-    def from_measurement(
-        cls, measurement: GPPosterior, outlier_sd: float | None = DEFAULT_OUTLIER_SD
-    ) -> ObservationCheck:
-        """Limits from a measurement GP's training targets (plus its ``offset``), noise, scale.
-
-        Args:
-            measurement: GP from ``x`` to ``z`` (e.g. ``model.measurement_posterior()``).
-            outlier_sd: positive threshold, or ``None`` to check finiteness only.
-        """
-        measurement = _check_posterior(measurement, "measurement")
-        outlier_sd = check_outlier_sd(outlier_sd)
-        y = measurement.train_targets.detach().double()
-        scale = measurement.scale.detach().double().expand(y.shape[1])
-        noise = measurement.noise.detach().double() * scale.pow(2)
-        center = y.mean(0) + measurement.offset.detach().double()
-        return cls(center, (y.var(0, correction=0) + noise).sqrt(), outlier_sd)
-
-    def usable(self, z: torch.Tensor) -> torch.Tensor:
-        """``[...]`` mask of the usable rows of ``z [..., Dz]``: neither missing nor bad."""
-        if self.outlier_sd is None:
-            return torch.isfinite(z).all(-1)
-        center, limit = self.center, self.limit
-        if center.dtype != z.dtype or center.device != z.device:
-            center, limit = (x.to(dtype=z.dtype, device=z.device) for x in (center, limit))
-        return ((z - center).abs() <= limit).all(-1)  # False for NaN and +-inf
-
-    def classify(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``missing`` and ``bad`` masks ``[...]`` of the rows of ``z [..., Dz]`` (vectorised)."""
-        missing = torch.isnan(z).all(-1)
-        return missing, ~(missing | self.usable(z))
-
-    def reason(self, row: torch.Tensor) -> str:
-        """Why the bad row ``row [Dz]`` is bad (:meth:`classify`), naming its first offending
-        channel: NaN first, then inf, then implausible."""
-        row = row.detach().double().cpu()
-        nan = torch.isnan(row)
-        if bool(nan.any()):
-            c = int(torch.nonzero(nan)[0])
-            return (
-                f"channel {c} is NaN but the row is not all NaN (a missing observation is a row "
-                "of NaN; a partly missing row is not supported)"
-            )
-        inf = torch.isinf(row)
-        if bool(inf.any()):
-            c = int(torch.nonzero(inf)[0])
-            return f"channel {c} is {float(row[c])} (a missing observation is a row of NaN)"
-        dev = (row - self.center.cpu()).abs() / self.spread.cpu()
-        c = int(torch.nonzero(~(dev <= float(self.outlier_sd or math.inf)))[0])
-        return (
-            f"channel {c} = {float(row[c]):.6g} is implausible: {float(dev[c]):.3g} training "
-            f"standard deviations from the training mean {float(self.center[c]):.6g} "
-            f"(outlier_sd = {self.outlier_sd:g}; None disables this check)"
-        )
-
-    def first_bad(self, z: torch.Tensor) -> tuple[tuple[int, ...], str] | None:
-        """The index of the first bad row of ``z [..., Dz]`` and its :meth:`reason`, or ``None``."""
-        _, bad = self.classify(z)
-        if not bool(bad.any()):
-            return None
-        index = tuple(int(i) for i in torch.nonzero(bad)[0])
-        return index, self.reason(z[index])
 
 
 def _check_posterior(gp: object, name: str) -> GPPosterior:

@@ -47,7 +47,7 @@ Gaussian), so each step's evidence counts too strongly and the credible sets are
 evidence temperature ``T`` and the forgetting ``eps`` of Algorithm 3.2 (which lets the latest
 transitions outweigh the earlier ones) correct for it; ``"cv"`` chooses them by the likelihood
 of the true intention values of held-out beliefs of the training sequences (k-fold
-cross-validation; ``T`` by :func:`~hgpdm_torch.inference.calibration.fit_temperature`), as the
+cross-validation; ``T`` by :func:`~hgpdm_torch.calibration.fit_temperature`), as the
 GP IDDM's filters do with a given ``T`` and ``eps``.
 """
 
@@ -57,11 +57,14 @@ import math
 import numbers
 import warnings
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
+from ..calibration import check_temperature
+from ..intention_belief import IntentionBelief
+from ..observations import ObservationCheck
 from ..validation import (
     as_tensor,
     bad_observation,
@@ -84,10 +87,6 @@ from .conjugate_regression import (
 from .linear_iddm_persistence import LinearIDDMPersistence
 from .linear_iddm_selection import FORGETTING_CANDIDATES, BeliefSelection, forgetful_sum
 from .linear_iddm_stream import LinearIDDMStream
-
-if TYPE_CHECKING:  # the inference package imports the models: no import at run time
-    from ..inference.filtering import ObservationCheck
-    from ..inference.intention.grid import IntentionBelief
 
 __all__ = [
     "AUTO_COEF_PRECISION",
@@ -151,7 +150,7 @@ class LinearIDDM(LinearIDDMPersistence, BeliefSelection):
             ``cv_folds`` folds, every frame after the first; a continuous g is scored on the
             grid value nearest to it, the default 25-value grid for ``Dg = 1`` and the training
             intentions otherwise). ``T`` is searched in ``[1e-3, 1e3]``
-            (:data:`~hgpdm_torch.inference.calibration.TEMPERATURE_BOUNDS`) and warns at a bound.
+            (:data:`~hgpdm_torch.calibration.TEMPERATURE_BOUNDS`) and warns at a bound.
         forgetting: ``eps`` in ``[0, 1)``, how much of the log belief each new frame forgets
             (default 0: none, exact Bayes), or ``"cv"``: the value of
             :data:`FORGETTING_CANDIDATES` whose cross-validated beliefs (at their own fitted
@@ -160,13 +159,13 @@ class LinearIDDM(LinearIDDMPersistence, BeliefSelection):
             ``j mod cv_folds``; at most the number of sequences).
         outlier_sd: the plausibility threshold of the observations the beliefs take, in
             training standard deviations per observed dimension (default 100, the online
-            filter's :data:`~hgpdm_torch.inference.filtering.DEFAULT_OUTLIER_SD`), or ``None``
+            filter's :data:`~hgpdm_torch.observations.DEFAULT_OUTLIER_SD`), or ``None``
             to refuse only NaN and inf: a frame beyond it (or with an inf, or a NaN in some
             dimensions only) makes :meth:`beliefs`, :meth:`log_evidence` and
             :meth:`log_predictive` raise a ``ValueError`` naming it, and is rejected for its
             stream alone by :meth:`stream`, as
             :class:`~hgpdm_torch.inference.OnlineIntentionFilter` does
-            (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`, centred on the
+            (:class:`~hgpdm_torch.observations.ObservationCheck`, centred on the
             training mean, with the training standard deviation as the spread).
         select: how the ``"auto"`` noise kind and prior scales are chosen: ``"evidence"``
             (default: the marginal likelihood of the training transitions; fast) or ``"cv"``:
@@ -220,8 +219,6 @@ class LinearIDDM(LinearIDDMPersistence, BeliefSelection):
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if temperature != "cv":
-            from ..inference.calibration import check_temperature  # no import cycle at run time
-
             temperature = check_temperature(temperature)
         if forgetting != "cv":
             try:
@@ -555,7 +552,6 @@ class LinearIDDM(LinearIDDMPersistence, BeliefSelection):
         Raises:
             ValueError: a bad frame, naming its stream and frame (:meth:`log_evidence`).
         """
-        from ..inference.intention.grid import IntentionBelief
 
         values = self.grid(grid)
         steps = self._transition_evidence(obs, values) / self.temperature
@@ -623,10 +619,9 @@ class LinearIDDM(LinearIDDMPersistence, BeliefSelection):
             raise RuntimeError("this LinearIDDM is not fitted yet: call fit(sequences, intentions)")
 
     def _observation_check(self) -> ObservationCheck:
-        """Which rows are bad (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`):
+        """Which rows are bad (:class:`~hgpdm_torch.observations.ObservationCheck`):
         non-finite, or more than ``outlier_sd`` training standard deviations from the training
         mean in a dimension."""
-        from ..inference.filtering import ObservationCheck
 
         return ObservationCheck(self.obs_mean.double(), self.obs_std.double(), self.outlier_sd)
 

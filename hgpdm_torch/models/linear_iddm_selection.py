@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from ..calibration import TEMPERATURE_BOUNDS, fit_temperature
 from .conjugate_regression import default_grid, posterior
 
 if TYPE_CHECKING:
@@ -56,9 +57,8 @@ class BeliefSelection:
         held-out sequence, by the candidate fitted on the other folds (every frame after the
         first; the truth is the nearest grid value), give the truths the smallest mean negative
         log probability: for each candidate and each candidate ``eps``, ``T`` by
-        :func:`~hgpdm_torch.inference.calibration.fit_temperature` (or the given ``T``; the
+        :func:`~hgpdm_torch.calibration.fit_temperature` (or the given ``T``; the
         given ``eps``). Ties go to the earlier candidate."""
-        from ..inference.calibration import TEMPERATURE_BOUNDS, fit_temperature
 
         folds = min(self.cv_folds, len(seqs))  # >= 2: fit refuses a single intention value
         # the fitted model's default grid; the distinct training intentions for a 2-D+ g

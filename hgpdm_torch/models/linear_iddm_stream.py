@@ -11,8 +11,10 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-if TYPE_CHECKING:  # the inference package imports the models: no import at run time
-    from ..inference.intention.grid import IntentionBelief
+from ..intention_belief import IntentionBelief, belief_step, flagged_belief
+from ..observations import screen_observations
+
+if TYPE_CHECKING:  # linear_iddm imports this module
     from .linear_iddm import LinearIDDM
 
 __all__ = ["LinearIDDMStream"]
@@ -24,7 +26,7 @@ class LinearIDDMStream:
     Every :meth:`update` brings the next frame of all B streams, which therefore share their
     frame index (the phase). The frames are taken as by
     :class:`~hgpdm_torch.inference.OnlineIntentionFilter`, through the same code
-    (:func:`~hgpdm_torch.inference.intention.streams.screen_observations`): a row of NaN is a
+    (:func:`~hgpdm_torch.observations.screen_observations`): a row of NaN is a
     missing frame; a bad row (an inf, a NaN in some dimensions only, or more than the model's
     ``outlier_sd`` training standard deviations from the training mean in a dimension) is
     *rejected*: it counts as missing, ``belief.rejected`` flags it and ``rejected_count``
@@ -32,7 +34,7 @@ class LinearIDDMStream:
     state changed). A missing or rejected frame is missing for its stream alone: the
     transitions into and out of it carry no evidence. A frame whose transition's density
     overflows the arithmetic (possible only with ``outlier_sd=None``) is rejected too. The
-    belief follows Algorithm 3.2 (:func:`~hgpdm_torch.inference.intention.streams.belief_step`):
+    belief follows Algorithm 3.2 (:func:`~hgpdm_torch.intention_belief.belief_step`):
     with ``forgetting > 0`` every stream's log belief decays at every frame after the first,
     its row missing or not.
 
@@ -46,7 +48,7 @@ class LinearIDDMStream:
             it was the frame just before.
         frames: frames given so far (the next frame's index).
         rejected_count: ``[B]`` int64, rejected frames of each stream since :meth:`reset`.
-        check: the :class:`~hgpdm_torch.inference.filtering.ObservationCheck` in use.
+        check: the :class:`~hgpdm_torch.observations.ObservationCheck` in use.
     """
 
     def __init__(
@@ -122,7 +124,6 @@ class LinearIDDMStream:
                 training sequence, or (``strict``) a bad frame; the streams are then left as
                 they were.
         """
-        from ..inference.intention.streams import belief_step, flagged_belief, screen_observations
 
         model = self.model
         if model.phase and self.frames > model.num_phases:

@@ -418,17 +418,22 @@ def test_linear_iddm_stream_strict_and_without_the_threshold(generator):
 
 def test_every_online_belief_screens_rows_through_one_function(model, streams, monkeypatch):
     """The online filter and the LinearIDDM stream check and reject rows in one place."""
-    from hgpdm_torch.inference.intention import streams as shared
+    from hgpdm_torch import observations
+    from hgpdm_torch.inference.intention import streams as gp_streams
+    from hgpdm_torch.models import linear_iddm_stream
 
+    screen = observations.screen_observations
+    users = (gp_streams, linear_iddm_stream)
+    assert all(module.screen_observations is screen for module in users)
     linear, z = _linear_model(torch.Generator().manual_seed(0))
     calls = []
-    screen = shared.screen_observations
 
     def counting(*args, **kwargs):
         calls.append(args[1])  # the ObservationCheck
         return screen(*args, **kwargs)
 
-    monkeypatch.setattr(shared, "screen_observations", counting)
+    for module in users:
+        monkeypatch.setattr(module, "screen_observations", counting)
     OnlineIntentionFilter(model, GRID).update(streams[0, 0])
     linear.stream(LINEAR_B).update(z[:, 0])
     assert [type(check) for check in calls] == [ObservationCheck, ObservationCheck]

@@ -455,7 +455,7 @@ def test_stream_matches_beliefs_and_isolates_bad_rows(generator):
 def _coverage(model: LinearIDDM, obs: torch.Tensor, g: torch.Tensor) -> float:
     """How often the 90% credible set of the held-out beliefs (every frame after the first)
     holds the grid value nearest to the true g."""
-    from hgpdm_torch.inference.calibration import credible_set
+    from hgpdm_torch.calibration import credible_set
 
     values = model.grid()
     truth = (g[:, None] - values[:, 0]).abs().argmin(-1)
@@ -465,7 +465,7 @@ def _coverage(model: LinearIDDM, obs: torch.Tensor, g: torch.Tensor) -> float:
 
 
 def test_temperature_tempers_the_evidence_in_batch_and_stream(generator):
-    from hgpdm_torch.inference.calibration import temper
+    from hgpdm_torch.calibration import temper
 
     obs, g = _phase_system(40, generator)
     prior = torch.softmax(torch.linspace(0.0, 1.0, 25, dtype=torch.float64), 0)
@@ -547,7 +547,7 @@ def test_cv_calibration_against_a_hand_made_fold_loop(rank, generator):
     # per phase, sequences of 2 to 6 frames, 3 folds: j is held out in fold j mod 3, the others
     # refit with the chosen noise kind and prior, every held-out frame after the first scored
     # on the default 25-value grid at the value nearest its g
-    from hgpdm_torch.inference.calibration import fit_temperature
+    from hgpdm_torch.calibration import fit_temperature
 
     obs, g = _phase_system(60, generator)
     seqs = [s[: 2 + (2 * j) % 5] for j, s in enumerate(obs)]  # lengths vary within each fold
@@ -581,7 +581,7 @@ def test_cv_selection_against_a_brute_force_search(rank, generator, monkeypatch)
     # fold's other sequences, its held-out evidence steps forgotten and tempered as in
     # test_cv_calibration_against_a_hand_made_fold_loop; the fit must take the candidate, eps
     # and T of the smallest held-out negative log probability of the truths (first on ties)
-    from hgpdm_torch.inference.calibration import fit_temperature
+    from hgpdm_torch.calibration import fit_temperature
     from hgpdm_torch.models.linear_iddm import NOISE_KINDS
 
     obs, g = _phase_system(45, generator, T=5)

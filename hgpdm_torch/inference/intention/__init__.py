@@ -19,7 +19,7 @@ statistical linearisation (:func:`expected_log_conditional`).
 
 Observations: a row of NaN is a missing observation everywhere. Other rows that the filter
 cannot use (+-inf, partly NaN, or more than ``outlier_sd`` = 100 training standard deviations
-from the training mean in a channel; :class:`~hgpdm_torch.inference.filtering.ObservationCheck`)
+from the training mean in a channel; :class:`~hgpdm_torch.observations.ObservationCheck`)
 make the batch algorithm raise a ``ValueError`` naming the window, step and channel; the online
 filter rejects them for their stream only and restarts a stream whose update fails numerically,
 without touching the others.
@@ -27,7 +27,8 @@ without touching the others.
 One module per concept; this package re-exports their public names, so that
 ``from hgpdm_torch.inference.intention import OnlineIntentionFilter`` works as before:
 
-- :mod:`~hgpdm_torch.inference.intention.grid`: the intention grid and :class:`IntentionBelief`;
+- :mod:`~hgpdm_torch.inference.intention.grid`: the intention grid (the belief over it,
+  :class:`IntentionBelief`, lives in :mod:`hgpdm_torch.intention_belief`);
 - :mod:`~hgpdm_torch.inference.intention.state_prior`: the first state's prior (marginal or per
   class);
 - :mod:`~hgpdm_torch.inference.intention.linearisation`: ``E_q[log q~(y | x)]``;
@@ -55,8 +56,9 @@ Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`
 """
 
 from ...gp_shared import SharedTransition
+from ...intention_belief import IntentionBelief
 from .batch import batch_bound, batch_bound_terms, infer_intention
-from .grid import IntentionBelief, intention_grid
+from .grid import intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import LinearMeasurement
 from .member import FilterBeliefs

@@ -18,20 +18,17 @@ from typing import Any
 import torch
 
 from ... import settings
+from ...calibration import check_temperature, intention_log_prior
 from ...gaussian import entropy, expected_log_density
 from ...gp import GPPosterior
+from ...intention_belief import IntentionBelief
 from ...linalg import psd_cholesky, symmetrize
 from ...models import HGPDM
+from ...observations import DEFAULT_OUTLIER_SD, ObservationCheck, check_observations
 from ...progress import tqdm
 from ...validation import bad_observation
-from ..calibration import check_temperature, intention_log_prior
-from ..filtering import (
-    DEFAULT_OUTLIER_SD,
-    ObservationCheck,
-    filter_sequence,
-    smooth,
-)
-from .grid import IntentionBelief, check_chunk_size, check_observations, intention_grid
+from ..filtering import filter_sequence, smooth
+from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional, gaussian_entropy
 from .state_prior import first_state_prior
 
@@ -165,7 +162,7 @@ def infer_intention(
         z: ``[T, Dz]`` or ``[W, T, Dz]`` observations; NaN rows are missing. A bad row (inf,
             partly NaN, or more than ``outlier_sd`` training standard deviations from the
             training mean in a channel; see
-            :class:`~hgpdm_torch.inference.filtering.ObservationCheck`) raises a ``ValueError``
+            :class:`~hgpdm_torch.observations.ObservationCheck`) raises a ``ValueError``
             naming its window, step and channel.
         intentions: grid or codes, see :func:`intention_grid`.
         window: if given, a sliding window: the belief at every step ``t`` from
@@ -180,9 +177,9 @@ def infer_intention(
             moves, is evidence about g. On real gestures (MSRC-12) ``"class"`` recognises far
             better (docs, action recognition).
         temperature: ``T > 0``: the posterior is ``p(g) exp(B'(g) / T)`` normalised, with
-            ``B'`` the bound without ``log p(g)`` (:mod:`~hgpdm_torch.inference.calibration`);
+            ``B'`` the bound without ``log p(g)`` (:mod:`~hgpdm_torch.calibration`);
             1 is Algorithm 3.1. A uniform prior keeps the ranking (and the decisions); ``T``
-            chosen by :func:`~hgpdm_torch.inference.calibration.fit_temperature` on held-out
+            chosen by :func:`~hgpdm_torch.calibration.fit_temperature` on held-out
             windows calibrates the credible sets.
         chunk_size: positive int, windows processed together; default ``2^24 / (K N^2)``
             bounds the ``[K, chunk, N, N]`` moment-matching temporaries to about 128 MB each

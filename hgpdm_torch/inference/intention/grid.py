@@ -1,8 +1,9 @@
-"""The intention grid and the belief over it: set-up shared by batch and online inference.
+"""The intention grid: set-up shared by batch and online inference.
 
 Both algorithms score K values of the intention ``g`` (:func:`intention_grid`: the codes of a
 discrete g, or a grid over a continuous one; a plain :class:`~hgpdm_torch.models.GPDM` has no g
-and is one value) and report an :class:`IntentionBelief` over them.
+and is one value) and report an :class:`~hgpdm_torch.intention_belief.IntentionBelief` over
+them.
 
 Shapes: ``K`` intention values, ``Dg`` intention dims, ``Dz`` observed dims.
 """
@@ -10,63 +11,15 @@ Shapes: ``K`` intention values, ``Dg`` intention dims, ``Dz`` observed dims.
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-from ...gaussian import mixture_moments
 from ...models.gpdm import GPDM
 from ...models.hgpdm import HGPDM
-from ...validation import as_observations, as_tensor
-from ..calibration import credible_set
+from ...validation import as_tensor
 
-__all__ = ["IntentionBelief", "intention_grid"]
-
-
-@dataclass
-class IntentionBelief:
-    """A posterior over K intention values.
-
-    Attributes:
-        prob: ``[..., K]`` posterior probabilities.
-        log_prob: ``[..., K]`` their logs (normalised).
-        values: ``[K, Dg]`` the intention values (codes for a discrete g).
-        mean: ``[..., Dg]`` posterior mean of a continuous g (``None`` for a discrete g).
-        std: ``[..., Dg]`` posterior standard deviation of a continuous g (or ``None``).
-        rejected: (:meth:`OnlineIntentionFilter.update` only, else ``None``) ``[B]`` bool
-            (``[]`` for one ``[Dz]`` observation): the stream's observation of this update was
-            bad (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`) and was treated as
-            missing.
-        reset_streams: (:meth:`OnlineIntentionFilter.update` only) ``[B]`` bool: the stream
-            failed numerically in this update (or held a non-finite state) and was restarted
-            at the prior.
-    """
-
-    prob: torch.Tensor
-    log_prob: torch.Tensor
-    values: torch.Tensor
-    mean: torch.Tensor | None = None
-    std: torch.Tensor | None = None
-    rejected: torch.Tensor | None = None
-    reset_streams: torch.Tensor | None = None
-
-    @classmethod
-    def from_log(
-        cls, log_weights: torch.Tensor, values: torch.Tensor, continuous: bool
-    ) -> IntentionBelief:
-        """Normalise unnormalised log weights ``[..., K]`` over ``values [K, Dg]``."""
-        log_prob = log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
-        prob = log_prob.exp()
-        if not continuous:
-            return cls(prob, log_prob, values)
-        # centred second moment: E[g^2] - E[g]^2 would cancel for a grid far from 0
-        mean, cov = mixture_moments(prob, values)
-        return cls(prob, log_prob, values, mean, cov.diagonal(dim1=-2, dim2=-1).sqrt())
-
-    def credible_set(self, level: float = 0.9) -> torch.Tensor:
-        """``[..., K]`` mask of the smallest set of values holding at least ``level`` mass."""
-        return credible_set(self.prob, level)
+__all__ = ["intention_grid"]
 
 
 def intention_grid(model: GPDM, intentions: Any = None, num: int = 25) -> torch.Tensor:
@@ -115,15 +68,6 @@ def intention_grid(model: GPDM, intentions: Any = None, num: int = 25) -> torch.
                 f"discrete intentions must be integer codes in [0, {model.num_values - 1}]"
             )
     return values
-
-
-def check_observations(z: Any, dz: int, min_ndim: int) -> torch.Tensor:
-    """``z [..., Dz]`` as a floating tensor in its own precision (bad rows are kept: the caller
-    classifies them with an :class:`~hgpdm_torch.inference.filtering.ObservationCheck`)."""
-    z = as_observations(z, min_ndim=min_ndim)
-    if z.shape[-1] != dz:
-        raise ValueError(f"z must have Dz = {dz} columns (the model's), got {z.shape[-1]}")
-    return z
 
 
 def check_chunk_size(chunk_size: Any) -> int | None:

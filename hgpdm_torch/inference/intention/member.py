@@ -15,9 +15,10 @@ from typing import Any
 
 import torch
 
+from ...intention_belief import IntentionBelief
 from ...models import HGPDM
 from ...validation import as_tensor
-from .grid import IntentionBelief, intention_grid
+from .grid import intention_grid
 from .online import OnlineIntentionFilter
 
 __all__ = ["FilterBeliefs"]

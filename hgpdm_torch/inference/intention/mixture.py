@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .grid import IntentionBelief
+from ...intention_belief import IntentionBelief
 
 __all__ = ["BeliefMixture", "BeliefMixtureStream"]
 

@@ -28,18 +28,19 @@ from typing import Any
 import torch
 
 from ... import settings
+from ...calibration import check_temperature, intention_log_prior
 from ...gaussian import independent_joint, mixture_moments, rts_step
 from ...gp_shared import sparse_posterior
+from ...intention_belief import belief_step
 from ...linalg import symmetrize
 from ...models import GPDM
+from ...observations import DEFAULT_OUTLIER_SD, ObservationCheck
 from ...validation import check_choice, real_scalar
-from ..calibration import check_temperature, intention_log_prior
-from ..filtering import DEFAULT_OUTLIER_SD, ObservationCheck
 from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import measurement_update
 from .state_prior import STATE_PRIORS, first_state_prior, marginal_state_prior
-from .streams import IsolatedStreams, belief_step
+from .streams import IsolatedStreams
 from .transition import check_precision, transition_moments
 
 __all__ = ["OnlineIntentionFilter"]
@@ -85,7 +86,7 @@ class OnlineIntentionFilter(IsolatedStreams):
     rounding of a stream's update depends on the other streams' observations, failures or
     (re)starts.
 
-    - An observation row that is bad (:class:`~hgpdm_torch.inference.filtering.ObservationCheck`:
+    - An observation row that is bad (:class:`~hgpdm_torch.observations.ObservationCheck`:
       +-inf, NaN in some channels only, or more than ``outlier_sd`` training standard
       deviations from the training mean in a channel) is *rejected*: that stream takes a
       prediction-only step, exactly as for a NaN row, and ``belief.rejected`` flags it;
@@ -130,9 +131,9 @@ class OnlineIntentionFilter(IsolatedStreams):
             (:func:`class_state_prior`), ``B_1(g) = log p(g) + log q(z_1 | g)``, and ``q(x_1)``
             is the moment-matched mixture of the K posteriors; see :func:`infer_intention`.
         temperature: ``T > 0``; every step's evidence counts as ``E_t(g) / T``
-            (:mod:`~hgpdm_torch.inference.calibration`): 1 is the thesis's recursion, ``T > 1``
+            (:mod:`~hgpdm_torch.calibration`): 1 is the thesis's recursion, ``T > 1``
             a less confident belief (choose it with
-            :func:`~hgpdm_torch.inference.calibration.fit_temperature` on held-out streams).
+            :func:`~hgpdm_torch.calibration.fit_temperature` on held-out streams).
         dtype: computation dtype (default the model's; float32 halves memory traffic). Another
             dtype than the model's is refused (``ValueError``, naming the cause) where, at
             training latents and three state spreads, its rounding error in the transition
@@ -164,7 +165,7 @@ class OnlineIntentionFilter(IsolatedStreams):
             temporaries are passed over several times, so the default ``2^19 / N^2`` keeps them
             in cache.
         outlier_sd: plausibility threshold in training standard deviations per channel (default
-            100; see :class:`~hgpdm_torch.inference.filtering.ObservationCheck`); ``None``
+            100; see :class:`~hgpdm_torch.observations.ObservationCheck`); ``None``
             rejects only non-finite values and partly NaN rows.
         strict: raise instead of rejecting an observation or restarting a stream.
 
@@ -179,7 +180,7 @@ class OnlineIntentionFilter(IsolatedStreams):
             training sequences, one row per frame.
         rejected_count, reset_count: ``[B]`` int64, rejected observations and automatic restarts
             of each stream since :meth:`reset`.
-        check: the :class:`~hgpdm_torch.inference.filtering.ObservationCheck` in use.
+        check: the :class:`~hgpdm_torch.observations.ObservationCheck` in use.
         posterior: the transition :class:`~hgpdm_torch.gp.GPPosterior` in use (its sparse DTC
             approximation with ``inducing``), in the model's dtype.
 

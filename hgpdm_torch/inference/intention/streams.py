@@ -9,11 +9,12 @@ bisection and restarted at the prior. The filter's algorithm itself (Algorithm 3
 subclass's :meth:`~IsolatedStreams._step` and :meth:`~IsolatedStreams._initialise`
 (:class:`~hgpdm_torch.inference.intention.online.OnlineIntentionFilter`).
 
-Two pieces are shared with every online belief of the toolkit, so that all treat a frame the
-same way: :func:`screen_observations` (the shape check of one update's rows and the rejection of
-bad rows, which then count as missing) and :func:`belief_step` (the forgetful, tempered belief
-recursion of Algorithm 3.2, lines 10-11). :class:`~hgpdm_torch.models.LinearIDDMStream` uses
-both.
+Two pieces are shared with every online belief of the toolkit (:class:`~hgpdm_torch.models.
+LinearIDDMStream` uses both), so that all treat a frame the same way:
+:func:`~hgpdm_torch.observations.screen_observations` (the shape check of one update's rows and
+the rejection of bad rows, which then count as missing) and
+:func:`~hgpdm_torch.intention_belief.belief_step` (the forgetful, tempered belief recursion of
+Algorithm 3.2, lines 10-11).
 
 Shapes: ``B`` streams, ``K`` intention values, ``Dx`` latent, ``Dz`` observed dims.
 """
@@ -26,12 +27,11 @@ from typing import Any
 
 import torch
 
+from ...intention_belief import IntentionBelief, flagged_belief
 from ...linalg import CholeskyError, positive_definite
-from ...validation import bad_observation
-from ..filtering import ObservationCheck
-from .grid import IntentionBelief, check_observations
+from ...observations import ObservationCheck, screen_observations
 
-__all__ = ["IsolatedStreams", "belief_step", "flagged_belief", "screen_observations"]
+__all__ = ["IsolatedStreams"]
 
 #: What a failed update of one stream raises: a covariance that does not factorise
 #: (:func:`~hgpdm_torch.linalg.psd_cholesky`: ``CholeskyError``, or ``ValueError`` for NaN/inf),
@@ -39,102 +39,6 @@ __all__ = ["IsolatedStreams", "belief_step", "flagged_belief", "screen_observati
 _NUMERICAL_ERRORS = (CholeskyError, torch.linalg.LinAlgError, ValueError)
 #: Streams initialised together (a measurement update is cheap; fixed ranges, see ``update``).
 _INIT_CHUNK = 4096
-
-
-def screen_observations(
-    z: Any,
-    check: ObservationCheck,
-    batch_size: int,
-    obs_dim: int,
-    *,
-    device: torch.device,
-    strict: bool,
-    where: Callable[[int], str],
-) -> tuple[torch.Tensor, torch.Tensor, bool]:
-    """One update's observations of B streams, checked; bad rows become missing ones.
-
-    Args:
-        z: ``[B, Dz]`` rows (``[Dz]`` for one stream, ``B = 1``); a row of NaN is missing.
-        check: classifies the rows: a row that is not missing but has a NaN, an inf or a value
-            beyond the check's threshold is bad
-            (:meth:`~hgpdm_torch.inference.filtering.ObservationCheck.classify`).
-        batch_size: the expected number of streams B.
-        obs_dim: the expected observation size Dz.
-        device: where the streams' state lives (the rows, flags and counts go there).
-        strict: raise for a bad row instead of rejecting it.
-        where: ``b -> str``, how an error names row ``b`` (e.g. ``"z[3] (stream 3, step 7)"``).
-
-    Returns:
-        ``z [B, Dz]`` on ``device`` in its own floating dtype, with the bad rows set to NaN
-        (missing); ``rejected [B]`` bool, the bad rows; whether the input was one ``[Dz]`` row.
-
-    Raises:
-        ValueError: a wrong shape; with ``strict``, the first bad row, naming it (``where``) and
-            its first bad channel. Nothing is changed: the caller's state is not touched here.
-    """
-    z = check_observations(z, obs_dim, min_ndim=1)
-    single = z.dim() == 1
-    if single:
-        z = z[None]
-    if z.shape != (batch_size, obs_dim):
-        raise ValueError(
-            f"z must have shape [B, Dz] = [{batch_size}, {obs_dim}], got {tuple(z.shape)}"
-        )
-    z = z.to(device)  # the checks, flags and counts live on the streams' device
-    _, rejected = check.classify(z)
-    if bool(rejected.any()):
-        b = int(torch.nonzero(rejected)[0])
-        if strict:
-            raise bad_observation(where(b), check.reason(z[b]))
-        z = z.masked_fill(rejected[:, None], math.nan)
-    return z, rejected, single
-
-
-def belief_step(
-    log_belief: torch.Tensor,
-    evidence: torch.Tensor,
-    observed: torch.Tensor,
-    forgetting: float,
-    temperature: float,
-) -> torch.Tensor:
-    """Algorithm 3.2, lines 10-11: ``B_t = (1 - eps) B_{t-1} + E_t / T`` where the stream's step
-    was observed (``B_t = (1 - eps) B_{t-1}`` where not), normalised.
-
-    Args:
-        log_belief: ``[S, K]`` log belief ``B_{t-1}`` (normalised or not; ``-inf`` excludes a
-            value).
-        evidence: ``[S, K]`` evidence ``E_t(g)`` of this step; read only where ``observed``
-            (elsewhere it may be anything, NaN included).
-        observed: ``[S]`` bool, the streams whose step carries evidence.
-        forgetting: ``eps`` in ``[0, 1)``.
-        temperature: ``T > 0``.
-
-    Returns:
-        ``[S, K]`` normalised log belief ``B_t``.
-    """
-    new = (1.0 - forgetting) * log_belief
-    evidence = evidence / temperature
-    new = new + torch.where(observed[:, None], evidence, torch.zeros_like(evidence))
-    return new - torch.logsumexp(new, -1, keepdim=True)
-
-
-def flagged_belief(
-    log_belief: torch.Tensor,
-    values: torch.Tensor,
-    continuous: bool,
-    single: bool,
-    rejected: torch.Tensor,
-    reset: torch.Tensor | None = None,
-) -> IntentionBelief:
-    """The belief an online ``update`` returns: over ``log_belief [B, K]`` and ``values
-    [K, Dg]``, with the flags ``rejected`` (and ``reset_streams``) ``[B]``; for one ``[Dz]``
-    row (``single``) ``[K]`` with ``[]`` flags."""
-    if single:
-        log_belief, rejected = log_belief[0], rejected[0]
-        reset = None if reset is None else reset[0]
-    out = IntentionBelief.from_log(log_belief, values, continuous)
-    out.rejected, out.reset_streams = rejected, reset
-    return out
 
 
 def _usable_state(mean: torch.Tensor, cov: torch.Tensor, log_belief: torch.Tensor) -> torch.Tensor:
@@ -155,7 +59,7 @@ class IsolatedStreams:
     A subclass sets, before calling :meth:`reset`: ``batch_size`` (B), ``values [K, Dg]``,
     ``continuous`` (whether g is continuous), ``mu0 [Dx]``, ``Sigma0 [Dx, Dx]`` and
     ``log_prior [K]`` (the state of an unstarted stream, in the filter's ``dtype``),
-    ``check`` (an :class:`~hgpdm_torch.inference.filtering.ObservationCheck`), ``obs_dim``
+    ``check`` (an :class:`~hgpdm_torch.observations.ObservationCheck`), ``obs_dim``
     (Dz), ``chunk_size`` and ``strict``; and implements ``_initialise`` (a stream's first
     observation) and ``_step`` (every later one), both
     ``(mean [S, Dx], cov [S, Dx, Dx], log_belief [S, K], z [S, Dz], phase [S]) -> (mean, cov,

@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from scipy.optimize import minimize_scalar
 
-from ..validation import as_tensor, check_probability, real_scalar
+from .validation import as_tensor, check_probability, real_scalar
 
 __all__ = [
     "calibration",
