@@ -1,20 +1,19 @@
-"""Speed of the simulated table tennis: opponent and robot strokes/s, old vs new; reward table.
+"""Speed of the simulated table tennis: opponent and robot strokes/s, reference vs fast executor.
 
 The thesis's reward table enumerates 270 trials x 3 movements x 5 start times (Sec. 4.3.2).
 ``python -m benchmarks table_tennis`` (options: ``python -m benchmarks.table_tennis --trials N``)
 samples ``--trials`` trials (default 30) in one process and
 
-1. plays the first ``--legacy-trials`` of them (default 4, 60 strokes) with the previous
-   implementation (``stroke_legacy.execute_stroke_legacy``: 1 ms PhysX steps throughout, per-step
-   Python control, uncached planning on tensors) and with the current one, each with a fresh
-   planner (nothing cached), and reports both strokes/s, their ratio and whether the rewards
-   agree;
+1. plays the first ``--reference-trials`` of them (default 4, 60 strokes) with the reference
+   executor (``execute_stroke(..., reference=True)``: 1 ms PhysX steps throughout, the ball in
+   PhysX from the opponent's hit) and with the fast one, each with a fresh planner (nothing
+   cached), and reports both strokes/s, their ratio and whether the rewards agree;
 2. builds the reward table of all trials with :func:`reward_table` (the planner's cache shares
    the prediction and aiming of a trial between its 15 strokes), and extrapolates the full
    table's time from its strokes/s.
 
 All times are CPU seconds of this process (``time.process_time``), so that other jobs on the
-machine disturb them less. ``--quick`` plays 2 trials and 1 legacy trial (smoke mode, written to
+machine disturb them less. ``--quick`` plays 2 trials and 1 reference trial (smoke mode, written to
 ``table_tennis_quick.json``, not tracked). The success rate of each movement and start time is
 recorded alongside.
 """
@@ -91,7 +90,6 @@ def main(argv: list[str]) -> int:
     import torch
 
     from hgpdm_torch.robots.table_tennis.scene import TableTennisScene
-    from hgpdm_torch.robots.table_tennis.stroke_legacy import execute_stroke_legacy
     from hgpdm_torch.robots.table_tennis.strokes import MOVEMENTS, StrokePlanner, execute_stroke
     from hgpdm_torch.robots.table_tennis.trials import (
         DEFAULT_START_TIMES,
@@ -102,7 +100,7 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(1)
     quick = "--quick" in argv
     n = 2 if quick else _option(argv, "--trials", 30)
-    n_legacy = min(n, 1 if quick else _option(argv, "--legacy-trials", 4))
+    n_reference = min(n, 1 if quick else _option(argv, "--reference-trials", 4))
     per_trial = len(MOVEMENTS) * len(DEFAULT_START_TIMES)
     full = N_FULL * per_trial
 
@@ -110,23 +108,23 @@ def main(argv: list[str]) -> int:
     trials = make_trials(n, seed=0)
     sample_s = time.process_time() - t0
 
-    def play(legacy: bool) -> tuple[float, list[bool]]:
+    def play(reference: bool) -> tuple[float, list[bool]]:
         planner = StrokePlanner()  # fresh: no prediction, aim or IK cached
         scene = TableTennisScene(wam=planner.wam)
         t0 = time.process_time()
         won = [
-            (execute_stroke_legacy if legacy else execute_stroke)(
-                scene, planner, trials[i].ball_after_hit, m, st
+            execute_stroke(
+                scene, planner, trials[i].ball_after_hit, m, st, reference=reference
             ).success
-            for i in range(n_legacy)
+            for i in range(n_reference)
             for m in MOVEMENTS
             for st in DEFAULT_START_TIMES
         ]
         return time.process_time() - t0, won
 
-    old_s, old_won = play(legacy=True)
-    new_s, new_won = play(legacy=False)
-    strokes = n_legacy * per_trial
+    old_s, old_won = play(reference=True)
+    new_s, new_won = play(reference=False)
+    strokes = n_reference * per_trial
     agree = sum(a == b for a, b in zip(old_won, new_won, strict=True))
 
     with tempfile.TemporaryDirectory() as cache:
@@ -151,16 +149,16 @@ def main(argv: list[str]) -> int:
 
     row("opponent trials (sample_strokes)", n, sample_s, "measured", per_table=False)
     row(
-        "robot strokes, previous (execute_stroke_legacy, 1 ms)",
+        "robot strokes, reference (reference=True, 1 ms)",
         strokes,
         old_s,
-        f"{n_legacy} trials, extrapolated",
+        f"{n_reference} trials, extrapolated",
     )
     row(
         "robot strokes, current (execute_stroke)",
         strokes,
         new_s,
-        f"same {n_legacy} trials, nothing cached, extrapolated",
+        f"same {n_reference} trials, nothing cached, extrapolated",
     )
     row(
         "robot strokes, current (reward_table)",
@@ -172,7 +170,7 @@ def main(argv: list[str]) -> int:
     result.meta = {
         "command": "python -m benchmarks table_tennis --quick"
         if quick
-        else f"python -m benchmarks.table_tennis --trials {n} --legacy-trials {n_legacy}",
+        else f"python -m benchmarks.table_tennis --trials {n} --reference-trials {n_reference}",
         "speedup_same_strokes": old_s / new_s,
         "speedup_reward_table": table_per_s / (strokes / old_s),
         "rewards_agree": f"{agree} of {strokes} strokes",

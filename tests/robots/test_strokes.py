@@ -11,7 +11,6 @@ import torch
 from hgpdm_torch.robots.table_tennis import ball as B
 from hgpdm_torch.robots.table_tennis import geometry as geo
 from hgpdm_torch.robots.table_tennis.scene import TableTennisScene
-from hgpdm_torch.robots.table_tennis.stroke_legacy import execute_stroke_legacy
 from hgpdm_torch.robots.table_tennis.strokes import (
     EARLIEST_START,
     MOVEMENTS,
@@ -153,7 +152,7 @@ def _agreement(scene, planner, balls, start_times) -> tuple[int, int]:
     for ball in balls:
         for m in MOVEMENTS:
             for t0 in start_times:
-                old = execute_stroke_legacy(scene, planner, ball, m, t0)
+                old = execute_stroke(scene, planner, ball, m, t0, reference=True)
                 new = execute_stroke(scene, planner, ball, m, t0)
                 same += old.success == new.success
                 cells += 1
@@ -161,8 +160,8 @@ def _agreement(scene, planner, balls, start_times) -> tuple[int, int]:
 
 
 def test_rewards_are_those_of_one_ms_steps(sim, opponent_balls) -> None:
-    # The previous implementation (1 ms PhysX steps throughout, the ball in PhysX from the
-    # opponent's hit) and this one on 3 balls x 3 movements x 2 start times: the same rewards.
+    # The reference (1 ms PhysX steps throughout, the ball in PhysX from the opponent's hit) and
+    # the fast executor on 3 balls x 3 movements x 2 start times: the same rewards.
     scene, planner = sim
     same, cells = _agreement(scene, planner, opponent_balls.values(), (-0.24, 0.0))
     assert same == cells, f"{cells - same} of {cells} rewards differ"
@@ -182,6 +181,34 @@ def test_rewards_are_those_of_one_ms_steps_on_many_strokes() -> None:
     assert same >= 0.99 * cells, f"{cells - same} of {cells} rewards differ"
 
 
+def test_reference_takes_1_ms_steps_with_the_ball_in_physx(sim, opponent_balls, monkeypatch):
+    # the oracle of the agreement tests must differ from the fast executor where it cuts corners
+    scene, planner = sim
+    steps, parked = [], []
+    step = scene.step
+
+    def counting(n: int = 1) -> None:
+        steps.append(n)
+        parked.append(scene.ball_parked)  # during this step
+        step(n)
+
+    monkeypatch.setattr(scene, "step", counting)
+    for reference in (True, False):
+        steps.clear(), parked.clear()
+        out = execute_stroke(scene, planner, opponent_balls["centre"], "middle", -0.24,
+                             reference=reference)  # fmt: skip
+        assert out.hit
+        # start of each step relative to the opponent's hit (the movement starts at -0.24 s)
+        start = -0.24 + scene.dt * (np.cumsum(steps) - np.asarray(steps))
+        in_play = start > 1e-6
+        if reference:
+            assert set(steps) == {1} and not any(np.asarray(parked)[in_play])
+        else:
+            assert max(steps) == scene.config.coarse_steps and any(np.asarray(parked)[in_play])
+    with pytest.raises(TypeError, match="reference"):
+        execute_stroke(scene, planner, opponent_balls["centre"], "middle", -0.24, reference=1)
+
+
 def test_cached_plans_do_not_change_a_stroke(sim, opponent_balls) -> None:
     scene, planner = sim
     ball = opponent_balls["right"]
@@ -199,10 +226,10 @@ def test_start_times_outside_the_stroke_window_are_refused(sim, opponent_balls) 
     ball = opponent_balls["centre"]
     t_cross = float(B.predict_plane_crossing(ball, geo.HITTING_PLANE_Y, dt=0.01)[0])
     window = rf"start_time must lie in \[EARLIEST_START = {EARLIEST_START:g}, {t_cross:.3f}\) s"
-    for execute in (execute_stroke, execute_stroke_legacy):
+    for reference in (False, True):
         for bad in (-100.0, EARLIEST_START - 1e-3, t_cross, 1e9, math.inf):
             with pytest.raises(ValueError, match=window):
-                execute(scene, planner, ball, "middle", bad)
+                execute_stroke(scene, planner, ball, "middle", bad, reference=reference)
     with pytest.raises(ValueError, match="start_time"):
         execute_stroke(scene, planner, ball, "middle", "soon")  # type: ignore[arg-type]
     # the earliest start is allowed: the arm holds, prepares and swings for two seconds

@@ -12,9 +12,9 @@ planned hit to 20 ms after it, and whenever PhysX simulates the ball: from befor
 arm until it cannot, and through its bounce on the table. Elsewhere the ball is parked and the ball
 model flies it in floats (:class:`.ball.ScalarBall`). A ball's prediction, return aim and hitting
 IK are cached by the planner, so the 15 strokes of a reward-table row plan once per movement.
-The previous implementation (:func:`~hgpdm_torch.robots.table_tennis.stroke_legacy.
-execute_stroke_legacy`, which builds on this module and is imported by nothing here) stays as the
-reference of the benchmark and of the agreement tests.
+``execute_stroke(..., reference=True)`` runs the same stage machine with 1 ms PhysX steps
+throughout and the ball in PhysX from the opponent's hit, as the executor did before these
+shortcuts: the reference of the benchmark and of the reward-agreement tests.
 """
 
 from __future__ import annotations
@@ -86,6 +86,8 @@ def execute_stroke(
     ball_after_hit: B.BallState,
     movement: str,
     start_time: float,
+    *,
+    reference: bool = False,
 ) -> StrokeOutcome:
     """Simulate one hitting movement in the SAPIEN scene.
 
@@ -104,6 +106,16 @@ def execute_stroke(
     steps throughout. Predictions, aims and IK of a ball are cached by the planner.
     ``tests/robots/test_strokes.py`` checks that the rewards are those of 1 ms steps.
 
+    Args:
+        scene: the SAPIEN scene (its ball and arm are reset here).
+        planner: plans the movement's stages (and caches a ball's plans).
+        ball_after_hit: the ball as it leaves the opponent's racket, fields ``[3]``.
+        movement: ``"forehand"``, ``"middle"`` or ``"backhand"``.
+        start_time: movement initiation relative to the opponent's hit [s].
+        reference: 1 ms PhysX steps throughout, the ball in PhysX from the opponent's hit and
+            never flown by the ball model (about 12 times slower): the reference that the
+            shortcuts above must agree with.
+
     Raises:
         ValueError: unknown movement, or ``start_time`` outside ``[EARLIEST_START, t_cross)``
             (``t_cross``: when the ball reaches the hitting plane).
@@ -119,7 +131,9 @@ def execute_stroke(
     if not valid:
         raise ValueError("ball_after_hit never reaches the robot's hitting plane")
     start_time = check_start_time(start_time, t_cross)
-    return _Stroke(scene, planner, floats, movement, start_time, t_cross).run()
+    if not isinstance(reference, bool):
+        raise TypeError(f"reference must be a bool, got {reference!r}")
+    return _Stroke(scene, planner, floats, movement, start_time, t_cross, reference).run()
 
 
 # The stroke loop's use of PhysX (see execute_stroke). PhysX simulates the ball from
@@ -150,7 +164,8 @@ def _near_table(b: tuple[float, ...], horizon: float) -> bool:
 
 class _Stroke:
     """One stroke of :func:`execute_stroke`: the stage machine of the movement, stepped in
-    blocks of one or ``coarse_steps`` control periods."""
+    blocks of one or ``coarse_steps`` control periods (``reference``: one period each, the ball
+    in PhysX throughout)."""
 
     def __init__(
         self,
@@ -160,8 +175,10 @@ class _Stroke:
         movement: str,
         start_time: float,
         t_cross: float,
+        reference: bool = False,
     ) -> None:
         self.scene, self.planner, self.ball0 = scene, planner, ball
+        self.reference = reference
         self.movement, self.start_time = movement, start_time
         self.t_end = t_cross + 0.15
         self.tracker = LimitedTracker(
@@ -213,6 +230,8 @@ class _Stroke:
         where it had it); the arm is checked again ``coarse_steps // 2`` periods later.
         """
         scene, dt = self.scene, self.scene.dt
+        if self.reference:
+            return self.grid[k : k + 1]
         m = scene.config.coarse_steps
         times = self.grid[k : k + min(m, 10 - k % 10)]
         t = times[0]
@@ -254,6 +273,9 @@ class _Stroke:
         tracker = self.tracker
         if not self.in_play and t >= 0.0:
             self.in_play, self.ball = True, self.ball0
+            if self.reference:  # PhysX flies the ball from the opponent's hit
+                self.scene.set_ball_floats(self.ball0)
+                self.ball = None
         if self.prep is None and t >= self.start_time:
             self.prep = planner.preparation(self.movement, t, tracker.q)
         if self.plan is None and self.prep is not None and self.in_play and t >= cfg.predict_delay:

@@ -37,14 +37,12 @@ and ``strokes.MOVEMENTS`` work as before:
 * :mod:`~hgpdm_torch.robots.table_tennis.stroke_planner`: poses by IK and the plans of a ball;
 * :mod:`~hgpdm_torch.robots.table_tennis.stroke_tracker`: the joint reference within the limits;
 * :mod:`~hgpdm_torch.robots.table_tennis.stroke_execution`: one stroke simulated in SAPIEN, and
-  its outcome (with how the simulation is made fast);
-* :mod:`~hgpdm_torch.robots.table_tennis.stroke_legacy`: the previous executor
-  (``execute_stroke_legacy``), kept only as the reference of the speed benchmark and of the
-  reward-agreement tests.
+  its outcome (with how the simulation is made fast, and the slow reference,
+  ``execute_stroke(..., reference=True)``, that the speed benchmark and the reward-agreement
+  tests compare with).
 
 Imports flow one way: ``stroke_config``, ``stroke_quintic`` <- ``stroke_planner``; those and
-``stroke_tracker`` <- ``stroke_execution`` <- ``strokes``. ``stroke_legacy`` builds on all of them
-and nothing in the package imports it (only the benchmark and the tests).
+``stroke_tracker`` <- ``stroke_execution`` <- ``strokes``.
 """
 
 from __future__ import annotations
