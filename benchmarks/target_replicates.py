@@ -51,6 +51,7 @@ import torch
 from benchmarks.target_sweep import STEPS, abs_errors
 from hgpdm_torch.baselines import WindowGPR
 from hgpdm_torch.calibration import credible_set, fit_temperature, grid_index
+from hgpdm_torch.crossval import contiguous_folds
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     PHASE_IDDM,
@@ -132,7 +133,7 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
     out[METHODS[11]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
     # its evidence temperature from the held-out beliefs of 3-fold CV on the training strokes
     # (the experiment's calibration of its selected IDDM)
-    folds = torch.arange(n_train).tensor_split(3)
+    folds = contiguous_folds(n_train, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         _, logs, held_truth = _cv_mae(obs, y, folds, "linear", 6, steps, seed, "pls", grid, 0.2,

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from sklearn.model_selection import LeaveOneGroupOut, ParameterGrid
 
+from .crossval import best_index, checked_splits, held_out
 from .fitting import ConvergenceWarning
 from .inference.variational import VariationalInference
 from .progress import tqdm
@@ -178,39 +179,6 @@ def _fit_report(fit: Any) -> dict[str, Any]:
     }
 
 
-def _grouped_splits(
-    splitter: Any, groups: np.ndarray, labels: np.ndarray | None, discrete: bool
-) -> list[tuple[list[int], list[int]]]:
-    """The folds of ``splitter``, checked: both parts non-empty, no group on both sides and, for
-    integer labels of a discrete g, every test class present in the training part."""
-    num = groups.shape[0]
-    y = labels if labels is not None and labels.ndim == 1 else None
-    splits = [
-        (np.asarray(train).tolist(), np.asarray(test).tolist())
-        for train, test in splitter.split(np.zeros((num, 1)), y, groups)
-    ]
-    if not splits:
-        raise ValueError(f"splitter {splitter!r} produced no folds")
-    check_classes = discrete and y is not None and np.issubdtype(y.dtype, np.integer)
-    for k, (train, test) in enumerate(splits):
-        if not train or not test:
-            raise ValueError(f"fold {k} of {splitter!r} has an empty training or test part")
-        shared = set(groups[train].tolist()) & set(groups[test].tolist())
-        if shared:
-            raise ValueError(
-                f"fold {k} of {splitter!r} puts groups {sorted(shared)} in both the training and "
-                "the test part; use a group splitter (LeaveOneGroupOut, GroupKFold, ...)"
-            )
-        missing = set(y[test].tolist()) - set(y[train].tolist()) if check_classes else set()
-        if missing:
-            raise ValueError(
-                f"fold {k}: labels {sorted(missing)} occur in the test part but not in the "
-                "training part, so a discrete-g model cannot represent them; group the splits "
-                "so that every class is trained on (e.g. StratifiedGroupKFold)"
-            )
-    return splits
-
-
 def cross_validate(
     model_class: type,
     sequences: Sequence[Any] | torch.Tensor,
@@ -320,7 +288,26 @@ def cross_validate(
         {**params, **fixed, **options}.get("intention", "discrete") == "discrete"
         for options in option_sets
     )
-    splits = _grouped_splits(splitter, group_array, label_array, discrete)
+    splits = checked_splits(splitter, group_array, label_array, discrete)
+
+    def fit_and_score(k: int, train: list[int], test: list[int]) -> tuple[float, dict[str, Any]]:
+        """One fold of the current option set: fit on ``train``, score on ``test``."""
+        context = f"options {options}, fold {k}"
+        data = {"intentions": _subset(labels, label_array, train)} if takes_labels else {}
+        torch.manual_seed(seed)
+        model = model_class([sequences[i] for i in train], **data, **fixed, **options)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            fit = model.fit(steps=fit_steps, **fit_kwargs)
+        value = score(model, [sequences[i] for i in test], _subset(labels, label_array, test))
+        try:
+            value = float(value)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"score must return a real number, got {value!r} ({context})") from err
+        if not math.isfinite(value):
+            raise ValueError(f"score returned {value} for {context}; expected finite")
+        bar.update(1)
+        return value, _fit_report(fit)
 
     fold_scores: list[list[float]] = []
     fits: list[list[dict[str, Any]]] = []
@@ -330,33 +317,9 @@ def cross_validate(
         torch.random.fork_rng(devices=[]),
     ):
         for options in option_sets:
-            fold_scores.append([])
-            fits.append([])
-            for k, (train, test) in enumerate(splits):
-                context = f"options {options}, fold {k}"
-                data = {"intentions": _subset(labels, label_array, train)} if takes_labels else {}
-                torch.manual_seed(seed)
-                try:
-                    model = model_class([sequences[i] for i in train], **data, **fixed, **options)
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore", ConvergenceWarning)
-                        fit = model.fit(steps=fit_steps, **fit_kwargs)
-                    test_labels = _subset(labels, label_array, test)
-                    value = score(model, [sequences[i] for i in test], test_labels)
-                except Exception as err:
-                    err.add_note(f"cross_validate: {context}")
-                    raise
-                try:
-                    value = float(value)
-                except (TypeError, ValueError, RuntimeError) as err:
-                    raise TypeError(
-                        f"score must return a real number, got {value!r} ({context})"
-                    ) from err
-                if not math.isfinite(value):
-                    raise ValueError(f"score returned {value} for {context}; expected finite")
-                fold_scores[-1].append(value)
-                fits[-1].append(_fit_report(fit))
-                bar.update(1)
+            results = held_out(splits, fit_and_score, context=f"cross_validate: options {options}")
+            fold_scores.append([value for value, _ in results])
+            fits.append([report for _, report in results])
 
     table = ResultTable(
         f"Cross-validation of {model_class.__name__}: mean score over {len(splits)} folds "
@@ -385,7 +348,7 @@ def cross_validate(
             folds=n,
             **{"not converged": sum(r["converged"] is False for r in reports)},
         )
-    best = int(np.argmax(means) if greater_is_better else np.argmin(means))
+    best = best_index(means, greater_is_better)
     return CVResult(
         table=table,
         options=option_sets,

@@ -23,6 +23,27 @@ def test_the_docs_cite_result_tables():
     assert len(CITED) >= 4, CITED
 
 
+GLOBS = re.compile(r"^<!-- results: demo-seeds ([\w./*-]+) -->$", re.MULTILINE)
+SEED_TABLES = sorted(
+    (page.relative_to(ROOT), pattern)
+    for page in (ROOT / "docs").rglob("*.md")
+    for pattern in GLOBS.findall(page.read_text())
+)
+
+
+@pytest.mark.parametrize(("page", "pattern"), SEED_TABLES, ids=[f"{p}:{n}" for p, n in SEED_TABLES])
+def test_cited_demo_runs_exist_and_hold_what_the_summary_reads(page, pattern):
+    paths = sorted(ROOT.glob(pattern))
+    assert paths, f"{page} cites {pattern}, which matches no file"
+    for path in paths:
+        table = ResultTable.from_json(path)
+        players = {row["player"] for row in table.rows}
+        assert {"LSPI", "MCP", "best fixed time (training folds)"} <= players, path
+        assert {"seed", "wait_value", "MCP - best fixed time (training folds) 95% low"} <= set(
+            table.meta
+        ), path
+
+
 @pytest.mark.parametrize(("page", "name"), CITED, ids=[f"{p}:{n}" for p, n in CITED])
 def test_cited_result_table_exists_and_reads(page, name):
     path = ROOT / name

@@ -21,7 +21,7 @@ KNOWN_CYCLES: set[tuple[str, ...]] = set()
 #: (docs, architecture); a new top-level module or package needs a place here
 LAYERS = (
     {"validation", "settings", "progress", "linalg", "results", "parallel", "_lazy"},
-    {"gaussian", "kernels", "fitting", "calibration"},
+    {"gaussian", "kernels", "fitting", "calibration", "crossval"},
     {"expectations", "gp_shared", "gp", "observations", "intention_belief"},
     {"models"},
     {"inference"},

@@ -3,7 +3,9 @@
 A page line ``<!-- results: gpu-check -->`` becomes the latest accelerator check
 (``benchmarks/results/gpu_check.json``, written by ``make gpu-check``) and the benchmark tables
 it names; ``<!-- results: table PATH -->`` becomes the table of the JSON file ``PATH`` (relative
-to the repository root) that a command wrote, with the settings in its meta. Each goes through
+to the repository root) that a command wrote, with the settings in its meta;
+``<!-- results: demo-seeds GLOB -->`` one row per ``hgpdm demo`` file matching ``GLOB`` (its
+return rates and paired differences). Each table goes through
 :meth:`hgpdm_torch.results.ResultTable.to_markdown`, so the page shows what the files
 hold and never a copy typed by hand. A missing file is a warning (the strict build fails).
 """
@@ -20,7 +22,7 @@ from hgpdm_torch.results import ResultTable
 
 log = logging.getLogger("mkdocs.hooks.results")
 
-_MARKER = re.compile(r"^<!-- results: ([\w-]+)(?: ([\w./-]+))? -->$", re.MULTILINE)
+_MARKER = re.compile(r"^<!-- results: ([\w-]+)(?: ([\w./*-]+))? -->$", re.MULTILINE)
 
 
 def _gpu_check(root: Path) -> str:
@@ -61,7 +63,40 @@ def _table(root: Path, name: str | None) -> str:
                       + ".*"])  # fmt: skip
 
 
-_RENDERERS = {"gpu-check": lambda root, arg: _gpu_check(root), "table": _table}
+#: the players of :func:`_demo_seeds`' columns, and the paired differences it shows
+_DEMO_PLAYERS = ("best blind (training folds)", "best fixed time (training folds)", "LSPI", "MCP")
+_DEMO_DIFFERENCES = ("MCP - best fixed time (training folds)",
+                     "LSPI - best fixed time (training folds)")  # fmt: skip
+
+
+def _demo_seeds(root: Path, pattern: str | None) -> str:
+    """One row per ``hgpdm demo`` JSON file matching ``pattern`` (a glob relative to the
+    repository root): its seed, MCP's wait value, the return rates of the players and the paired
+    differences with their 95% intervals from its meta."""
+    paths = sorted(root.glob(pattern or ""))
+    if not paths:
+        log.warning(f"demo-seeds: no file matches {pattern!r}")
+        return f"*No result file matches `{pattern}`.*"
+    head = ["seed", "MCP wait value", *_DEMO_PLAYERS, *(f"{d} [95%]" for d in _DEMO_DIFFERENCES)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for path in paths:
+        table = ResultTable.from_json(path)
+        rate = {row["player"]: row["rate"] for row in table.rows}
+        meta = table.meta
+        cells = [str(meta["seed"]), str(meta["wait_value"]),
+                 *(f"{rate[name]:.3f}" for name in _DEMO_PLAYERS),
+                 *(f"{meta[d]:+.3f} [{meta[d + ' 95% low']:+.3f}, {meta[d + ' 95% high']:+.3f}]"
+                   for d in _DEMO_DIFFERENCES)]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
+    files = ", ".join(f"`{path.relative_to(root)}`" for path in paths)
+    return "\n".join([*lines, "", f"*Source: {files}.*"])
+
+
+_RENDERERS = {
+    "gpu-check": lambda root, arg: _gpu_check(root),
+    "table": _table,
+    "demo-seeds": _demo_seeds,
+}
 
 
 def on_page_markdown(markdown: str, page: Any, config: Any, **kwargs: Any) -> str:

@@ -16,6 +16,7 @@ import torch
 
 from ..baselines import HMMClassifier, WindowGPC, WindowSVM
 from ..calibration import fit_temperature
+from ..crossval import held_out
 from ..fitting import FitResult
 from ..inference.intention import IntentionBelief, OnlineIntentionFilter, infer_intention
 from ..models import IDDM
@@ -182,21 +183,21 @@ def fit_temperatures(
     Returns:
         ``{row name: T}`` and the ``FitResult.summary()`` of the inner fits.
     """
-    logs: dict[str, list[torch.Tensor]] = {}
-    truths, fits = [], []
-    for z_fit, y_fit, z_val, y_val in tqdm(
-        splits, disable=not progress, desc="calibration", leave=False
-    ):
+
+    def beliefs(k: int, z_fit, y_fit, z_val, y_val) -> tuple[dict, dict[str, torch.Tensor], Any]:
+        """Split ``k``'s fit summary, each row's log beliefs on ``z_val`` and their truths."""
         dx = min(latent_dim, z_fit.shape[-1])
         model, fit = fit_iddm(z_fit, y_fit, num_classes, dx, fit_steps, seed, progress, **iddm)
-        fits.append(fit.summary())
         rows = iddm_methods(
             model, windows=windows, forgettings=forgettings, state_prior=state_prior
         )
-        for name, run in rows:
-            logs.setdefault(name, []).append(run(z_val))
-        truths.append(y_val[:, None].expand(-1, z_val.shape[1]))
-    truth = torch.cat(truths)
+        logs = {name: run(z_val) for name, run in rows}
+        return fit.summary(), logs, y_val[:, None].expand(-1, z_val.shape[1])
+
+    out = held_out(splits, beliefs, progress=progress, desc="calibration")
+    fits = [fit for fit, _, _ in out]
+    logs = {name: [split[name] for _, split, _ in out] for name in out[0][1]}
+    truth = torch.cat([truth for _, _, truth in out])
     temps = {name: fit_temperature(torch.cat(parts), truth) for name, parts in logs.items()}
     return temps, fits
 

@@ -48,6 +48,7 @@ import torch
 
 from ..baselines import MedianPredictor, WindowGPR, WindowRidge
 from ..calibration import calibration, fit_temperature, grid_index
+from ..crossval import contiguous_folds, held_out
 from ..decision.beliefs import PHASE_IDDM
 from ..inference.intention import (
     BeliefMixture,
@@ -129,23 +130,27 @@ def _online(
 
 
 def _cv_mae(
-    obs, y, folds, kernel, dx, steps, seed, init, grid, forgetting, **options
+    obs, y, splits, kernel, dx, steps, seed, init, grid, forgetting, **options
 ) -> tuple[float, torch.Tensor, torch.Tensor]:
     """Cross-validated online-IDDM MAE [cm] over the four horizons, pooled over the held-out plays
-    of all folds: every training play is validated once, at every horizon (the 80 ms error of
-    a single 25% split of 100 plays left the selection to noise, SEM ~ 6 cm). Also returns the
-    held-out log beliefs ``[n, 4, K]`` at the horizons and the grid index of each play's target
-    ``[n, 4]`` (to calibrate the selected model's evidence temperature). ``options``: the
-    IDDM's, as :func:`_fit_iddm` takes them (e.g. :data:`PHASE_IDDM`)."""
-    errors, logs, truths = [], [], []
-    for held in folds:
-        keep = torch.ones(len(y), dtype=torch.bool)
-        keep[held] = False
-        model = _fit_iddm(obs[keep], y[keep], kernel, dx, steps, seed, init, **options)
+    of all folds (``splits``: :func:`~hgpdm_torch.crossval.contiguous_folds` of the training
+    plays): every training play is validated once, at every horizon (the 80 ms error of a single
+    25% split of 100 plays left the selection to noise, SEM ~ 6 cm). Also returns the held-out
+    log beliefs ``[n, 4, K]`` at the horizons and the grid index of each play's target ``[n,
+    4]`` (to calibrate the selected model's evidence temperature). ``options``: the IDDM's, as
+    :func:`_fit_iddm` takes them (e.g. :data:`PHASE_IDDM`)."""
+
+    def fold(k: int, train: list[int], held: list[int]) -> tuple[torch.Tensor, ...]:
+        model = _fit_iddm(obs[train], y[train], kernel, dx, steps, seed, init, **options)
         mean, _, log_prob = _online(model, obs[held][:, : _STEPS[-1] + 1], grid, forgetting)
-        errors.append(100.0 * (mean[:, list(_STEPS)] - y[held, None]).abs())
-        logs.append(log_prob[:, list(_STEPS)])
-        truths.append(grid_index(y[held], grid)[:, None].expand(-1, len(_STEPS)))
+        truth = grid_index(y[held], grid)[:, None].expand(-1, len(_STEPS))
+        return (
+            100.0 * (mean[:, list(_STEPS)] - y[held, None]).abs(),
+            log_prob[:, list(_STEPS)],
+            truth,
+        )
+
+    errors, logs, truths = zip(*held_out(splits, fold), strict=True)
     return float(torch.cat(errors).mean()), torch.cat(logs), torch.cat(truths)
 
 
@@ -206,7 +211,7 @@ def target_prediction(
     strokes = sample_strokes(n_train + n_test, generator=gen, progress=progress)
     obs, y = strokes.obs, strokes.targets
     train, test = slice(0, n_train), slice(n_train, n_train + n_test)
-    folds = torch.arange(n_train).tensor_split(cv_folds)
+    folds = contiguous_folds(n_train, cv_folds)
     lim = float(strokes_limit(y[train]))  # training targets only (the test ones are unseen)
     grid = torch.linspace(-lim, lim, grid_size)
     obs_test, y_test = obs[test][:, : _STEPS[-1] + 1], y[test]

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from ..calibration import TEMPERATURE_BOUNDS, fit_temperature
+from ..crossval import best_index, held_out, interleaved_folds
 from .conjugate_regression import default_grid, posterior
 
 if TYPE_CHECKING:
@@ -71,10 +72,9 @@ class BeliefSelection:
         # transitions, and the true value index of each transition
         # held-out training frames are scored whatever their distance from the other folds'
         sub = self._fold_model(num_values)
-        splits, hits = [], []
-        for fold in range(folds):
-            held = [j for j in range(len(seqs)) if j % folds == fold]
-            rest = [j for j in range(len(seqs)) if j % folds != fold]
+
+        def prepare(k: int, rest: list[int], held: list[int]) -> tuple:
+            """Fold ``k``'s design, held-out batch, transition mask and true value indices."""
             with warnings.catch_warnings():  # few transitions per phase: the full fit warned
                 warnings.simplefilter("ignore")
                 design = sub._design([seqs[j] for j in rest], g[rest], num_values)
@@ -88,13 +88,16 @@ class BeliefSelection:
             steps_idx = torch.arange(longest - 1, device=batch.device)
             lengths = torch.tensor([len(q) for q in held_seqs], device=batch.device)
             mask = steps_idx < (lengths[:, None] - 1)
-            hits.append(truth[held][:, None].expand_as(mask)[mask])
-            splits.append((design, rest, batch, mask))
+            return (design, rest, batch, mask), truth[held][:, None].expand_as(mask)[mask]
+
+        prepared = held_out(interleaved_folds(len(seqs), folds), prepare)
+        splits = [split for split, _ in prepared]
+        hits = [hit for _, hit in prepared]
         hits_all = torch.cat(hits)
         epsilons = (FORGETTING_CANDIDATES if self._forgetting_arg == "cv"
                     else (self._forgetting_arg,))  # fmt: skip
         posteriors: dict[tuple[int, tuple[float, float]], list] = {}  # per (fold, prior)
-        best = None
+        tried, losses = [], []  # (kind, prior, temperature, eps) and its held-out NLL
         for kind, prior in candidates:  # one candidate's held-out evidence in memory at a time
             steps = []  # per fold: [n, T - 1, K] evidence of each held-out transition, mask
             for fold, (design, rest, batch, mask) in enumerate(splits):
@@ -112,10 +115,9 @@ class BeliefSelection:
                 else:
                     temperature = self._temperature_arg
                 log_p = torch.log_softmax(logs / temperature, -1)
-                nll = -float(log_p.gather(-1, hits_all[:, None]).mean())
-                if best is None or nll < best[0]:
-                    best = (nll, kind, prior, temperature, float(eps))
-        _, kind, prior, temperature, eps = best
+                losses.append(-float(log_p.gather(-1, hits_all[:, None]).mean()))
+                tried.append((kind, prior, temperature, float(eps)))
+        kind, prior, temperature, eps = tried[best_index(losses)]
         if self._temperature_arg == "cv" and not (
             1.01 * TEMPERATURE_BOUNDS[0] < temperature < TEMPERATURE_BOUNDS[1] / 1.01
         ):
