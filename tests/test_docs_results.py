@@ -23,6 +23,26 @@ def test_the_docs_cite_result_tables():
     assert len(CITED) >= 4, CITED
 
 
+META = re.compile(r"^<!-- results: meta-table ([\w./-]+)#(\w+) -->$", re.MULTILINE)
+META_TABLES = sorted(
+    (page.relative_to(ROOT), name, key)
+    for page in (ROOT / "docs").rglob("*.md")
+    for name, key in META.findall(page.read_text())
+)
+
+
+@pytest.mark.parametrize(
+    ("page", "name", "key"), META_TABLES, ids=[f"{p}:{n}#{k}" for p, n, k in META_TABLES]
+)
+def test_cited_meta_records_exist(page, name, key):
+    path = ROOT / name
+    assert path.is_file(), f"{page} cites {name}, which does not exist"
+    records = ResultTable.from_json(path).meta.get(key)
+    assert isinstance(records, list) and records and all(isinstance(r, dict) for r in records), (
+        f"{page} cites the records {key!r} of {name}, which its meta does not hold"
+    )
+
+
 GLOBS = re.compile(r"^<!-- results: demo-seeds ([\w./*-]+) -->$", re.MULTILINE)
 SEED_TABLES = sorted(
     (page.relative_to(ROOT), pattern)

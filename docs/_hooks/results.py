@@ -5,7 +5,8 @@ A page line ``<!-- results: gpu-check -->`` becomes the latest accelerator check
 it names; ``<!-- results: table PATH -->`` becomes the table of the JSON file ``PATH`` (relative
 to the repository root) that a command wrote, with the settings in its meta;
 ``<!-- results: demo-seeds GLOB -->`` one row per ``hgpdm demo`` file matching ``GLOB`` (its
-return rates and paired differences). Each table goes through
+return rates and paired differences); ``<!-- results: meta-table PATH#KEY -->`` the list of
+records under ``KEY`` in the meta of ``PATH``. Each table goes through
 :meth:`hgpdm_torch.results.ResultTable.to_markdown`, so the page shows what the files
 hold and never a copy typed by hand. A missing file is a warning (the strict build fails).
 """
@@ -22,7 +23,7 @@ from hgpdm_torch.results import ResultTable
 
 log = logging.getLogger("mkdocs.hooks.results")
 
-_MARKER = re.compile(r"^<!-- results: ([\w-]+)(?: ([\w./*-]+))? -->$", re.MULTILINE)
+_MARKER = re.compile(r"^<!-- results: ([\w-]+)(?: ([\w./*#-]+))? -->$", re.MULTILINE)
 
 
 def _gpu_check(root: Path) -> str:
@@ -63,6 +64,23 @@ def _table(root: Path, name: str | None) -> str:
                       + ".*"])  # fmt: skip
 
 
+def _meta_table(root: Path, arg: str | None) -> str:
+    """``PATH#KEY``: the list of records under ``KEY`` in the meta of the JSON file ``PATH`` (e.g.
+    a benchmark's per-executor timings), one row per record, numbers to 3 significant digits."""
+    name, _, key = (arg or "").partition("#")
+    path = root / name
+    records = ResultTable.from_json(path).meta.get(key) if name and path.is_file() else None
+    if not isinstance(records, list) or not records or not isinstance(records[0], dict):
+        log.warning(f"meta-table: {name!r} has no list of records under {key!r} in its meta")
+        return f"*Missing `{key}` in the meta of `{name}`.*"
+    head = list(records[0])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for record in records:
+        cells = (f"{v:.3g}" if isinstance(v, float) else str(v) for v in record.values())
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join([*lines, "", f"*Source: `{name}`, meta `{key}`.*"])
+
+
 #: the players of :func:`_demo_seeds`' columns, and the paired differences it shows
 _DEMO_PLAYERS = ("best blind (training folds)", "best fixed time (training folds)", "LSPI", "MCP")
 _DEMO_DIFFERENCES = ("MCP - best fixed time (training folds)",
@@ -96,6 +114,7 @@ _RENDERERS = {
     "gpu-check": lambda root, arg: _gpu_check(root),
     "table": _table,
     "demo-seeds": _demo_seeds,
+    "meta-table": _meta_table,
 }
 
 

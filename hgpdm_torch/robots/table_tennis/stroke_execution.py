@@ -4,9 +4,10 @@ The stage machine of a movement (awaiting, preparation, hitting, finishing; thes
 the simulated arm through :class:`~.stroke_tracker.LimitedTracker`, and the return is judged with
 the ball model (:class:`StrokeOutcome`).
 
-Speed (``benchmarks/table_tennis.py``: ~12 times the strokes per second of 1 ms PhysX steps
-throughout, with the same rewards): the arm's reference is still computed every 1 ms, but in blocks
-of up to 10 ms that are one matrix product (:meth:`~.stroke_tracker.LimitedTracker.update_many`)
+Speed (``benchmarks/table_tennis.py``: ~3 times the strokes per second of 1 ms PhysX steps
+throughout with the ball in PhysX, ~12 times those of the executor before, with the same
+rewards): the arm's reference is still computed every 1 ms, but in blocks of up to 10 ms that
+are one matrix product (:meth:`~.stroke_tracker.LimitedTracker.update_many`)
 and one PhysX step. Steps are short (1 ms; 2 ms until 30 ms before the hit) from 100 ms before the
 planned hit to 20 ms after it, and whenever PhysX simulates the ball: from before it can touch the
 arm until it cannot, and through its bounce on the table. Elsewhere the ball is parked and the ball
@@ -113,7 +114,7 @@ def execute_stroke(
         movement: ``"forehand"``, ``"middle"`` or ``"backhand"``.
         start_time: movement initiation relative to the opponent's hit [s].
         reference: 1 ms PhysX steps throughout, the ball in PhysX from the opponent's hit and
-            never flown by the ball model (about 12 times slower): the reference that the
+            never flown by the ball model (about 3 times slower): the reference that the
             shortcuts above must agree with.
 
     Raises:
