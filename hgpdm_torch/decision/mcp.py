@@ -463,14 +463,14 @@ class ParticleProjector:
         mu = (z @ shared.gain - shared.gain_offset).view(num, K, dx)  # filtered means per g
         w = (z @ shared.white - shared.white_offset).view(num, K, dz)  # whitened innovations
         evidence = log_density_terms(w.pow(2).sum(-1), shared.z_logdet, dz)  # [I, K]
+        observed = torch.ones(num, dtype=torch.bool, device=z.device)
         if skip:
             mu = torch.where(missing[:, None, None], shared.pred_mean, mu)
-            evidence = evidence.masked_fill(missing[:, None], 0.0)
-        # the filter's recursion: B_t = (1 - eps) B_{t-1} + E_t / T
-        log_prob = (
-            1.0 - self.filter.forgetting
-        ) * shared.log_prob + evidence / self.filter.temperature
-        log_prob = log_prob - torch.logsumexp(log_prob, -1, keepdim=True)
+            observed = ~missing
+        # the filter's recursion B_t = (1 - eps) B_{t-1} + E_t / T from the shared B_{t-1}
+        log_prob = self.filter.options.belief.step(
+            shared.log_prob.expand(num, -1), evidence, observed
+        )
         p = log_prob.exp()  # [I, K]
         # mixture covariance: sum_k p_k P_k + Cov_p[mu_k], with P_k shared by all particles
         mean, spread = mixture_moments(p, mu)

@@ -40,6 +40,9 @@ One module per concept; this package re-exports their public names, so that
 - :mod:`~hgpdm_torch.inference.intention.measurement`: the GP-ADF measurement update
   (closed form for a linear kernel);
 - :mod:`~hgpdm_torch.inference.intention.streams`: B streams isolated from each other;
+- :mod:`~hgpdm_torch.inference.intention.options`: the filter's choices in groups
+  (:class:`BeliefUpdate`, :class:`Evidence`, :class:`StatePrior`, :class:`TransitionPath`,
+  :class:`ObservationPolicy`);
 - :mod:`~hgpdm_torch.inference.intention.online`: :class:`OnlineIntentionFilter`;
 - :mod:`~hgpdm_torch.inference.intention.batch`: :func:`infer_intention` and the bound's terms;
 - :mod:`~hgpdm_torch.inference.intention.mixture`: :class:`BeliefMixture`, the weighted mixture
@@ -48,8 +51,9 @@ One module per concept; this package re-exports their public names, so that
   beliefs as a member of such a mixture.
 
 Imports flow one way: ``grid``, ``state_prior``, ``linearisation``, ``measurement``,
-``transition`` (on :mod:`hgpdm_torch.gp` and :mod:`hgpdm_torch.gp_shared`), ``streams`` <-
-``online`` <- ``member``; ``batch`` uses the first three; ``mixture`` uses ``grid`` only.
+``transition`` (on :mod:`hgpdm_torch.gp` and :mod:`hgpdm_torch.gp_shared`), ``options`` (on
+``state_prior`` and ``transition``), ``streams`` <- ``online`` <- ``member``; ``batch`` uses the
+first three; ``mixture`` none of them (the belief type is :mod:`hgpdm_torch.intention_belief`'s).
 
 Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`` observed,
 ``Dg`` intention dims, ``N`` transition training points.
@@ -64,6 +68,14 @@ from .measurement import LinearMeasurement
 from .member import FilterBeliefs
 from .mixture import BeliefMixture, BeliefMixtureStream
 from .online import OnlineIntentionFilter
+from .options import (
+    BeliefUpdate,
+    Evidence,
+    FilterOptions,
+    ObservationPolicy,
+    StatePrior,
+    TransitionPath,
+)
 from .state_prior import STATE_PRIORS, class_state_prior
 from .transition import (
     EVIDENCE_LIMIT,
@@ -74,6 +86,12 @@ from .transition import (
 )
 
 __all__ = [
+    "BeliefUpdate",
+    "Evidence",
+    "FilterOptions",
+    "ObservationPolicy",
+    "StatePrior",
+    "TransitionPath",
     "BeliefMixture",
     "BeliefMixtureStream",
     "GenericTransition",

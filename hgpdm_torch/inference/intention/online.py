@@ -28,18 +28,25 @@ from typing import Any
 import torch
 
 from ... import settings
-from ...calibration import check_temperature, intention_log_prior
+from ...calibration import intention_log_prior
 from ...gaussian import independent_joint, mixture_moments, rts_step
 from ...gp_shared import sparse_posterior
-from ...intention_belief import belief_step
 from ...linalg import symmetrize
 from ...models import GPDM
 from ...observations import DEFAULT_OUTLIER_SD, ObservationCheck
-from ...validation import check_choice, real_scalar
 from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import measurement_update
-from .state_prior import STATE_PRIORS, first_state_prior, marginal_state_prior
+from .options import (
+    BeliefUpdate,
+    Evidence,
+    FilterOptions,
+    ObservationPolicy,
+    StatePrior,
+    TransitionPath,
+    resolve,
+)
+from .state_prior import first_state_prior, marginal_state_prior
 from .streams import IsolatedStreams
 from .transition import check_precision, transition_moments
 
@@ -168,8 +175,27 @@ class OnlineIntentionFilter(IsolatedStreams):
             100; see :class:`~hgpdm_torch.observations.ObservationCheck`); ``None``
             rejects only non-finite values and partly NaN rows.
         strict: raise instead of rejecting an observation or restarting a stream.
+        belief: the belief update as one object
+            (:class:`~hgpdm_torch.inference.intention.options.BeliefUpdate`: ``forgetting``,
+            ``temperature``, ``prior``), instead of those keywords.
+        observations: the observation policy as one object
+            (:class:`~hgpdm_torch.inference.intention.options.ObservationPolicy`:
+            ``outlier_sd``, ``strict``), instead of those keywords.
+
+    The keywords come in groups, each one choice of the algorithm
+    (:mod:`~hgpdm_torch.inference.intention.options`): ``belief`` (``forgetting``,
+    ``temperature``, ``prior``), ``evidence`` (with ``mixing``, ``relinearize``),
+    ``state_prior`` (with ``mu0``, ``Sigma0``), ``transition`` (with ``inducing``,
+    ``inducing_values``) and ``observations`` (``outlier_sd``, ``strict``). A group may be
+    passed as its object (``evidence=Evidence("bound", relinearize=True)``) or as its flat
+    keywords, not both (a ``ValueError`` names them); ``options`` holds the groups a filter
+    uses, and ``OnlineIntentionFilter(other_model, grid, **vars(f.options))`` makes the same
+    choices.
 
     Attributes:
+        options: the :class:`~hgpdm_torch.inference.intention.options.FilterOptions` in use
+            (``forgetting``, ``temperature``, ``evidence``, ``mixing``, ``relinearize``,
+            ``state_prior`` and ``strict`` read them).
         mean, cov: ``[B, Dx]``, ``[B, Dx, Dx]`` the shared ``q(x_t)`` of every stream.
         log_belief: ``[B, K]`` normalised log posterior over the grid.
         started: ``[B]`` bool, whether the stream has seen its first observation.
@@ -196,25 +222,38 @@ class OnlineIntentionFilter(IsolatedStreams):
         forgetting: float = 0.2,
         batch_size: int = 1,
         prior: Any = None,
-        evidence: str = "predictive",
+        evidence: str | Evidence = "predictive",
         mixing: str = "grid",
         relinearize: bool = False,
         mu0: Any = None,
         Sigma0: Any = None,
-        state_prior: str = "marginal",
+        state_prior: str | StatePrior = "marginal",
         temperature: float = 1.0,
         dtype: torch.dtype | None = None,
-        transition: str = "auto",
+        transition: str | TransitionPath = "auto",
         inducing: int | None = None,
         inducing_values: int | None = None,
         chunk_size: int | None = None,
         outlier_sd: float | None = DEFAULT_OUTLIER_SD,
         strict: bool = False,
+        belief: BeliefUpdate | None = None,
+        observations: ObservationPolicy | None = None,
     ) -> None:
         values = intention_grid(model, intentions)
-        eps = real_scalar(forgetting, "forgetting (epsilon)")
-        if not 0.0 <= eps < 1.0:
-            raise ValueError(f"forgetting (epsilon) must be in [0, 1), got {forgetting!r}")
+        # the option groups (options.py), each from a group object or its flat keywords
+        self.options = options = FilterOptions(
+            belief=resolve(BeliefUpdate, "belief", belief,
+                           {"forgetting": forgetting, "temperature": temperature, "prior": prior}),
+            evidence=resolve(Evidence, "evidence", evidence,
+                             {"mixing": mixing, "relinearize": relinearize}),
+            state_prior=resolve(StatePrior, "state_prior", state_prior,
+                                {"mu0": mu0, "Sigma0": Sigma0}),
+            transition=resolve(TransitionPath, "transition", transition,
+                               {"inducing": inducing, "inducing_values": inducing_values}),
+            observations=resolve(ObservationPolicy, "observations", observations,
+                                 {"outlier_sd": outlier_sd, "strict": strict}),
+        )  # fmt: skip
+        path, state = options.transition, options.state_prior
         if (
             isinstance(batch_size, bool)
             or not isinstance(batch_size, numbers.Integral)
@@ -222,10 +261,8 @@ class OnlineIntentionFilter(IsolatedStreams):
         ):
             raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
         chunk_size = check_chunk_size(chunk_size)
-        check_choice(evidence, "evidence", ("predictive", "bound"))
-        check_choice(mixing, "mixing", ("grid", "gaussian"))
         kind = getattr(model, "intention", None)  # None: a GPDM without g
-        if mixing == "gaussian" and (kind != "continuous" or evidence != "bound"):
+        if options.evidence.mixing == "gaussian" and kind != "continuous":
             raise ValueError("mixing='gaussian' needs a continuous g and evidence='bound'")
         self.dtype = dtype or model.latent.dtype
         self.continuous = kind == "continuous"
@@ -233,47 +270,80 @@ class OnlineIntentionFilter(IsolatedStreams):
         # a phase-aware IDDM's transition GP takes each stream's phase (frame index) too
         self.phase = getattr(model, "phase_width", None) is not None
         phased = {"phase": True} if self.phase else {}
-        if self.phase and inducing is not None:
+        if self.phase and path.inducing is not None:
             raise ValueError(
                 "inducing (a sparse transition GP) is not available for a phase-aware IDDM "
                 "(phase_width set): use the exact GP (inducing=None)"
             )
         trans = sparse_posterior(
-            model.transition_posterior(), values.shape[-1], inducing, inducing_values
+            model.transition_posterior(), values.shape[-1], path.inducing, path.inducing_values
         )
         self.posterior = trans
         self.transition = transition_moments(
-            trans, values, self.dtype, transition=transition, **phased
+            trans, values, self.dtype, transition=path.path, **phased
         )
         meas = model.measurement_posterior()
-        self.check = ObservationCheck.from_measurement(meas, outlier_sd)
+        self.check = ObservationCheck.from_measurement(meas, options.observations.outlier_sd)
         self.measure = measurement_update(meas, self.dtype)
         own = trans.train_inputs.dtype
         if self.dtype != own:
-            reference = transition_moments(trans, values, own, transition=transition, **phased)
+            reference = transition_moments(trans, values, own, transition=path.path, **phased)
             measure = measurement_update(meas, own)
             check_precision(model, reference, self.transition, measure, self.measure)
-        self.gaussian_transition = trans.to_dtype(self.dtype) if mixing == "gaussian" else None
+        gaussian = options.evidence.mixing == "gaussian"
+        self.gaussian_transition = trans.to_dtype(self.dtype) if gaussian else None
         self.values = self.transition.values
-        self.log_prior = intention_log_prior(prior, len(values), self.dtype, values.device)
-        check_choice(state_prior, "state_prior", STATE_PRIORS)
-        self.state_prior = state_prior
-        if state_prior == "class":
+        self.log_prior = intention_log_prior(
+            options.belief.prior, len(values), self.dtype, values.device
+        )
+        mu0, Sigma0 = state.mu0, state.Sigma0
+        if state.kind == "class":
             self.class_mu0, self.class_Sigma0 = first_state_prior(
-                model, values, mu0, Sigma0, state_prior, self.dtype
+                model, values, mu0, Sigma0, state.kind, self.dtype
             )
             mu0 = Sigma0 = None  # an unstarted stream stores the marginal prior
         self.mu0, self.Sigma0 = marginal_state_prior(model, mu0, Sigma0, self.dtype)
-        self.forgetting = eps
-        self.temperature = check_temperature(temperature)
         self.batch_size = int(batch_size)
-        self.evidence = evidence
-        self.mixing, self.relinearize = mixing, bool(relinearize) or mixing == "gaussian"
-        self.strict = bool(strict)
         self.obs_dim = model.obs_dim
         n = self.transition.inputs.shape[0]
         self.chunk_size = chunk_size or max(1, 2**19 // (n * n))
         self.reset()
+
+    # the flat view of the option groups, as the keywords name them
+    @property
+    def forgetting(self) -> float:
+        """``eps`` of :attr:`options` ``.belief``."""
+        return self.options.belief.forgetting
+
+    @property
+    def temperature(self) -> float:
+        """``T`` of :attr:`options` ``.belief``."""
+        return self.options.belief.temperature
+
+    @property
+    def evidence(self) -> str:
+        """``"predictive"`` or ``"bound"`` (:attr:`options` ``.evidence.kind``)."""
+        return self.options.evidence.kind
+
+    @property
+    def mixing(self) -> str:
+        """:attr:`options` ``.evidence.mixing``."""
+        return self.options.evidence.mixing
+
+    @property
+    def relinearize(self) -> bool:
+        """:attr:`options` ``.evidence.relinearize``."""
+        return self.options.evidence.relinearize
+
+    @property
+    def state_prior(self) -> str:
+        """``"marginal"`` or ``"class"`` (:attr:`options` ``.state_prior.kind``)."""
+        return self.options.state_prior.kind
+
+    @property
+    def strict(self) -> bool:
+        """:attr:`options` ``.observations.strict``."""
+        return self.options.observations.strict
 
     @settings.internal_step()  # the prior was checked when set
     def _initialise(
@@ -313,7 +383,7 @@ class OnlineIntentionFilter(IsolatedStreams):
             mf, Pf, evidence = self._predictive_step(m, P, z, p)
         else:
             mf, Pf, evidence = self._bound_step(m, P, log_belief, z, p)
-        new = belief_step(log_belief, evidence, observed, self.forgetting, self.temperature)
+        new = self.options.belief.step(log_belief, evidence, observed)
         if self.evidence == "predictive":
             mf, Pf = mixture_moments(new.exp(), mf, Pf)
         return mf, Pf, new
