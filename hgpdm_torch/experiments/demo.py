@@ -39,6 +39,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -241,9 +242,8 @@ def run_demo(
             ``belief`` or ``features``, ``workers`` with an ``executor``, or too few strokes
             inside the hitting region for the folds.
     """
-    from ..progress import tqdm
     from ..robots.table_tennis import strokes
-    from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
+    from ..robots.table_tennis.trials import DEFAULT_START_TIMES
 
     _check_sizes(num_trials, watched, folds, workers, executor, status, belief, features)
     config = config or ant.AnticipationConfig(centres=20, iddm_trials=150, seed=seed)
@@ -260,55 +260,19 @@ def run_demo(
         if executor is not None
         else get_executor(workers or max(1, min(4, available_cpus())))
     )
+    candidates = SELECTABLE_SOURCES if belief == "auto" else (belief,)
     try:
         with float64_default():
-            clock = time.perf_counter()
-            trials = make_trials(num_trials, seed=seed, progress=progress)
-            rewards = reward_table(
-                trials, movements, start_times, executor=pool, cache_dir=cache_dir,
-                progress=progress,
-            ).to(torch.float64)  # fmt: skip
-            t_sim = time.perf_counter() - clock
-            valid = torch.nonzero(ant.valid_trials(rewards)).flatten()
-            n = len(valid)
-            say(
-                f"simulate: {num_trials} strokes x {rewards[0].numel()} (movement, start) in "
-                f"SAPIEN, {n} inside the hitting region ({t_sim:.0f} s)"
+            trials, rewards, valid, t_sim = _simulate(
+                num_trials, folds, movements, start_times, pool, seed, cache_dir, progress, say
             )
-            if n < folds or n - math.ceil(n / folds) < 6:
-                raise ValueError(
-                    f"only {n} of {num_trials} strokes are inside the hitting region; "
-                    f"{folds} folds need more: simulate more (num_trials)"
-                )
+            n = len(valid)
             gen = torch.Generator().manual_seed(seed)
             fold_of = torch.empty(n, dtype=torch.long)
             fold_of[torch.randperm(n, generator=gen)] = torch.arange(n) % folds
-
-            # the belief models learn from the watched strokes only
-            clock = time.perf_counter()
-            seen = make_trials(watched, seed=seed + 1, progress=progress)
-            if not torch.equal(seen.obs_times, trials.obs_times):
-                raise RuntimeError("watched strokes must share the trials' observation times")
-            steps_at = decision_indices(trials.obs_times, start_times)
-            last = max(steps_at) + 1
-            candidates = SELECTABLE_SOURCES if belief == "auto" else (belief,)
-            tracks = {
-                src: track_beliefs(
-                    src,
-                    seen.obs[:, :last],
-                    seen.targets,
-                    trials.obs[:, :last],
-                    trials.targets,
-                    steps_at,
-                    config,
-                )  # fmt: skip
-                for src in (*candidates, "oracle")
-            }
-            t_fit = time.perf_counter() - clock
-            fits = {src: track.fits for src, track in tracks.items() if track.fits}
-            say(f"fit: {', '.join(candidates)} on {watched} watched strokes, beliefs tracked "
-                f"({t_fit:.0f} s)")  # fmt: skip
-
+            tracks, t_fit = _track(
+                trials, watched, candidates, start_times, config, seed, progress, say
+            )
             play = _learn_and_decide(
                 tracks, rewards, valid, fold_of, candidates, features, wait_value, config,
                 gen, progress=progress,
@@ -317,42 +281,130 @@ def run_demo(
                 f"learn: belief choice, baselines, LSPI and MCP decisions on {folds} folds "
                 f"({play.seconds:.0f} s)"
             )
-
-            # every MCP decision executed in SAPIEN
-            clock = time.perf_counter()
-            dtype = torch.get_default_dtype()
-            jobs = [
-                (trials[int(i)], movements[int(play.stop_action[j]) - 1],
-                 start_times[int(play.stop_step[j])], dtype)
-                for j, i in enumerate(valid.tolist())
-            ]  # fmt: skip
-            outcomes = list(
-                tqdm(pool.map(_play_rally, jobs), total=n, disable=not progress,
-                     desc="play (SAPIEN)", leave=False)
-            )  # fmt: skip
-            rallies = [
-                Rally(int(i), float(trials.targets[i]), job[1], job[2], outcome)
-                for i, job, outcome in zip(valid.tolist(), jobs, outcomes, strict=True)
-            ]
-            t_play = time.perf_counter() - clock
-            say(f"play: {n} rallies of the MCP player in SAPIEN ({t_play:.0f} s)")
+            rallies, t_play = _play_live(
+                trials, valid, play, movements, start_times, pool, progress, say
+            )
     finally:
         if executor is None:
             pool.close()
     won = play.won
     won["MCP"] = torch.tensor([bool(r.outcome.success) for r in rallies])
+    settings = {
+        "num_trials": num_trials,
+        "watched": watched,
+        "valid": n,
+        "folds": folds,
+        "seed": seed,
+        "belief": belief,
+        "features": features,
+        "wait_value": wait_value,
+    }
+    timings = {"simulate [s]": t_sim, "fit [s]": t_fit, "learn [s]": play.seconds,
+               "MCP per decision [ms]": 1e3 * play.plan_seconds / max(1, play.decisions),
+               "play [s]": t_play}  # fmt: skip
+    table, meta = _report(won, play, tracks, trials, valid, settings, timings)
+    used = torch.stack([tracks[s].prob[int(i)] for s, i in zip(play.sources_per_rally, valid,
+                                                                strict=True)])  # fmt: skip
+    beliefs = {src: track.prob[valid] for src, track in tracks.items()}
+    return DemoResult(table, rallies, tracks["oracle"].grid, start_times, used, meta, won,
+                      beliefs, play.sources_per_rally)  # fmt: skip
+
+
+def _simulate(
+    num_trials, folds, movements, start_times, pool, seed, cache_dir, progress, say
+) -> tuple[Any, torch.Tensor, torch.Tensor, float]:
+    """The opponent's strokes, every (movement, start time) of the robot on each in SAPIEN (the
+    reward table), and the strokes inside the hitting region (``valid``)."""
+    from ..robots.table_tennis.trials import make_trials, reward_table
+
+    clock = time.perf_counter()
+    trials = make_trials(num_trials, seed=seed, progress=progress)
+    rewards = reward_table(
+        trials, movements, start_times, executor=pool, cache_dir=cache_dir, progress=progress,
+    ).to(torch.float64)  # fmt: skip
+    t_sim = time.perf_counter() - clock
+    valid = torch.nonzero(ant.valid_trials(rewards)).flatten()
+    n = len(valid)
+    say(
+        f"simulate: {num_trials} strokes x {rewards[0].numel()} (movement, start) in "
+        f"SAPIEN, {n} inside the hitting region ({t_sim:.0f} s)"
+    )
+    if n < folds or n - math.ceil(n / folds) < 6:
+        raise ValueError(
+            f"only {n} of {num_trials} strokes are inside the hitting region; "
+            f"{folds} folds need more: simulate more (num_trials)"
+        )
+    return trials, rewards, valid, t_sim
+
+
+def _track(
+    trials, watched, candidates, start_times, config, seed, progress, say
+) -> tuple[dict[str, Any], float]:
+    """Each candidate belief source (and the oracle) fitted on ``watched`` further strokes and
+    tracked over the trials' observations up to the last decision."""
+    from ..robots.table_tennis.trials import make_trials
+
+    clock = time.perf_counter()
+    seen = make_trials(watched, seed=seed + 1, progress=progress)
+    if not torch.equal(seen.obs_times, trials.obs_times):
+        raise RuntimeError("watched strokes must share the trials' observation times")
+    steps_at = decision_indices(trials.obs_times, start_times)
+    last = max(steps_at) + 1
+    tracks = {
+        src: track_beliefs(src, seen.obs[:, :last], seen.targets, trials.obs[:, :last],
+                           trials.targets, steps_at, config)
+        for src in (*candidates, "oracle")
+    }  # fmt: skip
+    t_fit = time.perf_counter() - clock
+    say(f"fit: {', '.join(candidates)} on {watched} watched strokes, beliefs tracked "
+        f"({t_fit:.0f} s)")  # fmt: skip
+    return tracks, t_fit
+
+
+def _play_live(
+    trials, valid, play, movements, start_times, pool, progress, say
+) -> tuple[list[Rally], float]:
+    """Every MCP decision executed in SAPIEN: one rally per valid stroke."""
+    from ..progress import tqdm
+
+    clock = time.perf_counter()
+    dtype = torch.get_default_dtype()
+    jobs = [
+        (trials[int(i)], movements[int(play.stop_action[j]) - 1],
+         start_times[int(play.stop_step[j])], dtype)
+        for j, i in enumerate(valid.tolist())
+    ]  # fmt: skip
+    outcomes = list(
+        tqdm(pool.map(_play_rally, jobs), total=len(jobs), disable=not progress,
+             desc="play (SAPIEN)", leave=False)
+    )  # fmt: skip
+    rallies = [
+        Rally(int(i), float(trials.targets[i]), job[1], job[2], outcome)
+        for i, job, outcome in zip(valid.tolist(), jobs, outcomes, strict=True)
+    ]
+    t_play = time.perf_counter() - clock
+    say(f"play: {len(jobs)} rallies of the MCP player in SAPIEN ({t_play:.0f} s)")
+    return rallies, t_play
+
+
+def _report(
+    won: dict[str, torch.Tensor], play: _Play, tracks: dict[str, Any], trials: Any,
+    valid: torch.Tensor, settings: dict[str, Any], timings: dict[str, float],
+) -> tuple[ResultTable, dict[str, Any]]:  # fmt: skip
+    """The result table (each player's returns, rate and 95% interval) and its meta: the belief
+    and baselines chosen, the paired differences of MCP and LSPI against the baselines with
+    their intervals, the verdict, the timings, the agreement of the live rallies with the
+    reward table, the belief fits and each belief's mean error at the decision times."""
+    n, folds, num_trials = settings["valid"], settings["folds"], settings["num_trials"]
     # the scene is deterministic: each live rally must reproduce the reward the stopping
     # problem gave the planner's (step, action) decision
     agree = int((won["MCP"] == (play.table_reward > 0)).sum())
-
     table = ResultTable(
         f"hgpdm demo: anticipatory table tennis, {n} test rallies ({folds}-fold cross-fitting "
         f"over {n} of {num_trials} strokes)",
         ["player", "returns", "rate", "95% low", "95% high", "played in"],
-        meta={"num_trials": num_trials, "watched": watched, "valid": n, "folds": folds,
-              "seed": seed, "belief": belief, "features": features,
-              "wait_value": wait_value},
-    )  # fmt: skip
+        meta=dict(settings),
+    )
     for p in won:
         k = int(won[p].sum())
         low, high = return_rate_interval(k, n)
@@ -378,26 +430,16 @@ def run_demo(
         _verdict(meta[f"MCP - {o} 95% low"], meta[f"MCP - {o} 95% high"], o, n)
         for o in (BLIND, FIXED_TIME)
     )
-    meta.update({
-        "simulate [s]": t_sim,
-        "fit [s]": t_fit,
-        "learn [s]": play.seconds,
-        "MCP per decision [ms]": 1e3 * play.plan_seconds / max(1, play.decisions),
-        "play [s]": t_play,
-        "live = table": f"{agree}/{n}",
-        "belief fits": fits,
-    })  # fmt: skip
+    meta.update(timings)
+    meta["live = table"] = f"{agree}/{n}"
+    meta["belief fits"] = {src: track.fits for src, track in tracks.items() if track.fits}
     # how far each belief's mean lies from the true target at each decision time
     truth = trials.targets[valid]
-    beliefs = {src: track.prob[valid] for src, track in tracks.items()}
     for src, track in tracks.items():
         err = 100 * (track.mean()[valid] - truth[:, None]).abs().mean(0)
         meta[f"belief mean MAE [cm], {src}"] = [round(float(e), 1) for e in err]
     table.meta.update(meta)
-    used = torch.stack([tracks[s].prob[int(i)] for s, i in zip(play.sources_per_rally, valid,
-                                                                strict=True)])  # fmt: skip
-    return DemoResult(table, rallies, tracks["oracle"].grid, start_times, used, meta, won,
-                      beliefs, play.sources_per_rally)  # fmt: skip
+    return table, meta
 
 
 @dataclass
