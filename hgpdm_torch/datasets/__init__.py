@@ -2,13 +2,12 @@
 
 from .basic_motions import load_basic_motions
 from .cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol, load_trials
+from .kinect_features import PosePCA, kinect_features
 from .mocap import load_mocap, read_amc, read_asf
 from .msrc12 import (
     MSRC12,
     MissingTagstreamError,
     MSRC12Recording,
-    PosePCA,
-    kinect_features,
     load_msrc12_folder,
     load_msrc12_npz,
     read_msrc12_recording,

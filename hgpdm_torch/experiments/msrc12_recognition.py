@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 from sklearn.model_selection import GroupKFold
 
-from ..datasets.msrc12 import MSRC12, PosePCA, kinect_features, load_msrc12_folder, load_msrc12_npz
+from ..datasets.kinect_features import PosePCA, kinect_features
+from ..datasets.msrc12 import MSRC12, load_msrc12_folder, load_msrc12_npz
 from ..progress import tqdm
 from ..results import ResultTable
 from .action_methods import (
