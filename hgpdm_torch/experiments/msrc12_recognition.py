@@ -5,6 +5,7 @@ leave-persons-out cross-validation over the development archive or the original 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sklearn.model_selection import GroupKFold
@@ -23,6 +24,9 @@ from .action_methods import (
     table_methods,
 )
 from .intervals import mean_sem
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["MSRC12_DEV", "msrc12_recognition"]
 
@@ -202,22 +206,10 @@ def msrc12_recognition(
         table.meta["fits"].append(fit.summary())
         temps: dict[str, float] = {}
         if calibration_folds is not None:
-            inner_rng = np.random.default_rng([seed, fold])  # the outer subsets stay as they were
-            inner_splits = []
-            for a, b in GroupKFold(n_splits=calibration_folds).split(train, groups=persons[train]):
-                lacking = sorted(set(range(k)) - set(labels[train[a]].tolist()))
-                if lacking:
-                    raise ValueError(
-                        f"fold {fold}: a calibration split has no training instance of "
-                        f"{[data.names[c] for c in lacking]}; use fewer calibration_folds"
-                    )
-                inner_prep = PosePCA(pca).fit(features[train[a]])
-                zi = inner_prep.transform(features)
-                fit_set = _per_class(train[a], labels, train_per_class, inner_rng)
-                val_set = _per_class(train[b], labels, calibration_per_class, inner_rng)
-                inner_splits.append(
-                    (zi[fit_set], data.labels[fit_set], zi[val_set], data.labels[val_set])
-                )
+            inner_splits = _calibration_splits(
+                data, features, train, fold, pca, calibration_folds, train_per_class,
+                calibration_per_class, seed,
+            )  # fmt: skip
             temps, inner_fits = fit_temperatures(
                 inner_splits, k, latent_dim, fit_steps, seed, windows=windows,
                 forgettings=forgettings, state_prior=state_prior, progress=progress,
@@ -240,18 +232,7 @@ def msrc12_recognition(
         )
         methods = table_methods(model, z_train, y_train, table.meta, temperatures=temps, **settings)
         for name, pred, ms, credible in decide(methods, z_test, progress):
-            r = results.setdefault(name, {"all": [], "end": [], "ms": [], "cover": []})
-            r["all"].append(100.0 * float((pred == y_test[:, None]).double().mean()))
-            r["end"].append(100.0 * float((pred[:, -1] == y_test).double().mean()))
-            r["ms"].append(ms)
-            r["cover"].append(coverage(credible, y_test))
-            for key, p, truth in (
-                ("confusion", pred, y_test[:, None]),
-                ("confusion_end", pred[:, -1:], y_test[:, None]),
-            ):
-                m = confusion(p, truth, k)
-                old = table.meta[key].get(name)
-                table.meta[key][name] = (m if old is None else np.asarray(old) + m).tolist()
+            _record(results, table.meta, name, pred, ms, credible, y_test, k)
     for name, r in results.items():
         sem, sem_end = mean_sem(r["all"])[1], mean_sem(r["end"])[1]
         table.add(
@@ -269,6 +250,52 @@ def msrc12_recognition(
         )
         table.meta["per_fold"][name] = {key: r[key] for key in ("all", "end")}
     return table
+
+
+def _calibration_splits(
+    data: MSRC12, features: torch.Tensor, train: np.ndarray, fold: int, pca: Any,
+    calibration_folds: int, train_per_class: int | None, calibration_per_class: int | None,
+    seed: int,
+) -> list[tuple[torch.Tensor, ...]]:  # fmt: skip
+    """The calibration splits of outer fold ``fold`` (its training instances ``train``):
+    ``calibration_folds`` person folds, each with its own PCA fitted on its fitting persons,
+    ``(z_fit, y_fit, z_val, y_val)`` of balanced subsets (:func:`fit_temperatures`)."""
+    k, labels, persons = data.num_classes, data.labels.numpy(), np.array(data.person)
+    inner_rng = np.random.default_rng([seed, fold])  # the outer subsets stay as they were
+    inner_splits = []
+    for a, b in GroupKFold(n_splits=calibration_folds).split(train, groups=persons[train]):
+        lacking = sorted(set(range(k)) - set(labels[train[a]].tolist()))
+        if lacking:
+            raise ValueError(
+                f"fold {fold}: a calibration split has no training instance of "
+                f"{[data.names[c] for c in lacking]}; use fewer calibration_folds"
+            )
+        zi = PosePCA(pca).fit(features[train[a]]).transform(features)
+        fit_set = _per_class(train[a], labels, train_per_class, inner_rng)
+        val_set = _per_class(train[b], labels, calibration_per_class, inner_rng)
+        inner_splits.append((zi[fit_set], data.labels[fit_set], zi[val_set], data.labels[val_set]))
+    return inner_splits
+
+
+def _record(
+    results: dict[str, dict[str, list]], meta: dict[str, Any], name: str, pred: torch.Tensor,
+    ms: float, credible: torch.Tensor | None, y_test: torch.Tensor, k: int,
+) -> None:  # fmt: skip
+    """One method's decisions ``pred [M, T]`` on a fold's test instances: its accuracies (all
+    decisions, the last), CPU time and coverage into ``results[name]``, its confusion matrices
+    added into ``meta``."""
+    r = results.setdefault(name, {"all": [], "end": [], "ms": [], "cover": []})
+    r["all"].append(100.0 * float((pred == y_test[:, None]).double().mean()))
+    r["end"].append(100.0 * float((pred[:, -1] == y_test).double().mean()))
+    r["ms"].append(ms)
+    r["cover"].append(coverage(credible, y_test))
+    for key, p, truth in (
+        ("confusion", pred, y_test[:, None]),
+        ("confusion_end", pred[:, -1:], y_test[:, None]),
+    ):
+        m = confusion(p, truth, k)
+        old = meta[key].get(name)
+        meta[key][name] = (m if old is None else np.asarray(old) + m).tolist()
 
 
 # ------------------------------------------------------------------------------------------
