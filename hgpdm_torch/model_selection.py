@@ -26,6 +26,7 @@ import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -290,8 +291,10 @@ def cross_validate(
     )
     splits = checked_splits(splitter, group_array, label_array, discrete)
 
-    def fit_and_score(k: int, train: list[int], test: list[int]) -> tuple[float, dict[str, Any]]:
-        """One fold of the current option set: fit on ``train``, score on ``test``."""
+    def fit_and_score(
+        options: dict[str, Any], bar: Any, k: int, train: list[int], test: list[int]
+    ) -> tuple[float, dict[str, Any]]:
+        """Fold ``k`` of one option set: fit on ``train``, score on ``test`` (and tick ``bar``)."""
         context = f"options {options}, fold {k}"
         data = {"intentions": _subset(labels, label_array, train)} if takes_labels else {}
         torch.manual_seed(seed)
@@ -317,7 +320,8 @@ def cross_validate(
         torch.random.fork_rng(devices=[]),
     ):
         for options in option_sets:
-            results = held_out(splits, fit_and_score, context=f"cross_validate: options {options}")
+            fold = partial(fit_and_score, options, bar)
+            results = held_out(splits, fold, context=f"cross_validate: options {options}")
             fold_scores.append([value for value, _ in results])
             fits.append([report for _, report in results])
 

@@ -58,6 +58,22 @@ def test_a_group_object_and_its_flat_keywords_make_the_same_filter(model, z, fla
     assert default.options != a.options
 
 
+def test_array_valued_options_compare_by_value(model, z):
+    # a prior and a first-state mean as tensors: equal groups, the same filter
+    prior = torch.tensor([0.1, 0.2, 0.3, 0.2, 0.2], dtype=torch.float64)
+    mu0 = model.latent.detach().mean(0)
+    a = OnlineIntentionFilter(model, GRID, batch_size=2, prior=prior, mu0=mu0)
+    b = OnlineIntentionFilter(
+        model, GRID, batch_size=2, belief=BeliefUpdate(prior=prior.tolist()),
+        state_prior=StatePrior(mu0=mu0.clone()),
+    )  # fmt: skip
+    assert a.options == b.options
+    assert torch.equal(beliefs(a, z), beliefs(b, z))
+    assert BeliefUpdate(prior=prior) != BeliefUpdate(prior=prior.flip(0))
+    assert StatePrior(mu0=mu0) != StatePrior(mu0=mu0[:2])  # another shape
+    assert BeliefUpdate() != "BeliefUpdate()"
+
+
 def test_the_options_make_another_filter_with_the_same_choices(model, z):
     first = OnlineIntentionFilter(
         model, GRID, batch_size=2, forgetting=0.3, evidence="bound", outlier_sd=20.0

@@ -194,7 +194,8 @@ def test_reference_takes_1_ms_steps_with_the_ball_in_physx(sim, opponent_balls, 
 
     monkeypatch.setattr(scene, "step", counting)
     for reference in (True, False):
-        steps.clear(), parked.clear()
+        steps.clear()
+        parked.clear()
         out = execute_stroke(scene, planner, opponent_balls["centre"], "middle", -0.24,
                              reference=reference)  # fmt: skip
         assert out.hit

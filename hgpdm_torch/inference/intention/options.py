@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+import numpy as np
 import torch
 
 from ...calibration import check_temperature
@@ -45,8 +46,34 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class BeliefUpdate:
+def _same(a: Any, b: Any) -> bool:
+    """Whether two field values are equal: array-likes (a prior, ``mu0``, ``Sigma0``) entry for
+    entry in float64, anything else by ``==``."""
+    if a is b:
+        return True
+    arrays = (torch.Tensor, np.ndarray, list, tuple)
+    if isinstance(a, arrays) or isinstance(b, arrays):
+        try:
+            x, y = (torch.as_tensor(v).detach().cpu().to(torch.float64) for v in (a, b))
+        except (TypeError, ValueError, RuntimeError):
+            return False
+        return x.shape == y.shape and torch.equal(x, y)
+    return bool(a == b)
+
+
+class _Group:
+    """Equality of an option group field by field (:func:`_same`); groups are not hashable."""
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return all(_same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True, eq=False)
+class BeliefUpdate(_Group):
     """How the log belief takes each step's evidence: ``B_t = (1 - eps) B_{t-1} + E_t(g) / T``,
     normalised (Algorithm 3.2, lines 10-11, with the evidence temperature of
     :mod:`~hgpdm_torch.calibration`).
@@ -77,8 +104,8 @@ class BeliefUpdate:
         return belief_step(log_belief, evidence, observed, self.forgetting, self.temperature)
 
 
-@dataclass(frozen=True)
-class Evidence:
+@dataclass(frozen=True, eq=False)
+class Evidence(_Group):
     """What evidence ``E_t(g)`` a step gives about g.
 
     Attributes:
@@ -103,8 +130,8 @@ class Evidence:
         object.__setattr__(self, "relinearize", bool(self.relinearize) or self.mixing == "gaussian")
 
 
-@dataclass(frozen=True)
-class StatePrior:
+@dataclass(frozen=True, eq=False)
+class StatePrior(_Group):
     """The first latent state's prior.
 
     Attributes:
@@ -124,8 +151,8 @@ class StatePrior:
         check_choice(self.kind, "state_prior", STATE_PRIORS)
 
 
-@dataclass(frozen=True)
-class TransitionPath:
+@dataclass(frozen=True, eq=False)
+class TransitionPath(_Group):
     """How the transition moments of the K intention values are computed
     (:func:`~hgpdm_torch.inference.intention.transition.transition_moments`).
 
@@ -148,8 +175,8 @@ class TransitionPath:
         # (hgpdm_torch.gp_shared.sparse_posterior), against the model's training data
 
 
-@dataclass(frozen=True)
-class ObservationPolicy:
+@dataclass(frozen=True, eq=False)
+class ObservationPolicy(_Group):
     """Which observation rows are refused, and what a refusal or a numerical failure does.
 
     Attributes:

@@ -14,7 +14,7 @@ arm until it cannot, and through its bounce on the table. Elsewhere the ball is 
 model flies it in floats (:class:`.ball.ScalarBall`). A ball's prediction, return aim and hitting
 IK are cached by the planner, so the 15 strokes of a reward-table row plan once per movement.
 ``execute_stroke(..., reference=True)`` runs the same stage machine with 1 ms PhysX steps
-throughout and the ball in PhysX from the opponent's hit, as the executor did before these
+throughout and the ball in PhysX from the opponent's hit, the simulation without these
 shortcuts: the reference of the benchmark and of the reward-agreement tests.
 """
 
