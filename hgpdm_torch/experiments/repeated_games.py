@@ -289,7 +289,9 @@ def table_tennis_serves(
 
     Returns:
         One row per ``every`` serves: AER of delta-safe play with and without change detection,
-        minimax, and each pure strategy. ``meta`` holds the full curves.
+        minimax, and each pure strategy. ``meta`` holds the full curves and, for delta-safe play
+        with and without detection, the mean over sessions of its final AER minus minimax's on
+        the same serves, with its standard error.
     """
     if volunteer not in VOLUNTEERS:
         raise ValueError(f"unknown volunteer {volunteer!r}; expected one of {list(VOLUNTEERS)}")
@@ -298,9 +300,9 @@ def table_tennis_serves(
     truths = np.array([after if switch and t >= switch else before for t in range(n_serves)])
     pi_mm = minimax_strategy(r)[0]
     names = ["delta_safe_detection", "delta_safe", "minimax"] + [f"pure_{a}" for a in SERVE_ACTIONS]
-    totals = {k: np.zeros(n_serves) for k in names}
+    rewards = {k: np.zeros((repeats, n_serves)) for k in names}  # [session, serve]
     rng = np.random.default_rng(seed)
-    for _ in tqdm(range(repeats), disable=not progress, desc="sessions"):
+    for i in tqdm(range(repeats), disable=not progress, desc="sessions"):
         regions = np.array([rng.choice(3, p=p) for p in truths])
         success = rng.random((n_serves, 3)) < r[:, regions].T  # [T, robot action]
         learners = {
@@ -309,19 +311,27 @@ def table_tennis_serves(
         }
         for t in range(n_serves):
             for key, learner in learners.items():
-                totals[key][t] += learner.strategy @ success[t]
+                rewards[key][i, t] = learner.strategy @ success[t]
                 learner.observe(int(regions[t]))
-        totals["minimax"] += success @ pi_mm
+        rewards["minimax"][i] = success @ pi_mm
         for k, a in enumerate(SERVE_ACTIONS):
-            totals[f"pure_{a}"] += success[:, k]
+            rewards[f"pure_{a}"][i] = success[:, k]
+    totals = {k: v.sum(0) for k, v in rewards.items()}
     aer = {k: np.cumsum(v / repeats) / np.arange(1, n_serves + 1) for k, v in totals.items()}
+    # each session's AER after all serves, paired against minimax (the same serves)
+    final = {k: v.mean(1) for k, v in rewards.items()}
+    paired = {}
+    for k in ("delta_safe_detection", "delta_safe"):
+        diff = final[k] - final["minimax"]
+        paired[f"{k} - minimax"] = float(diff.mean())
+        paired[f"{k} - minimax SEM"] = float(diff.std(ddof=1) / np.sqrt(repeats))
     table = ResultTable(
         f"Fig. 5.5-5.7: average expected reward against the {volunteer} volunteer",
         ["serves", *names],
         meta={
             "volunteer": volunteer, "before": before, "after": after, "switch": switch,
             "n_min": n_min, "delta": delta, "alpha": alpha, "repeats": repeats, "seed": seed,
-            "curves": {k: v.tolist() for k, v in aer.items()},
+            **paired, "curves": {k: v.tolist() for k, v in aer.items()},
         },
     )  # fmt: skip
     for t in range(every, n_serves + 1, every):

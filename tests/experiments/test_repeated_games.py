@@ -54,6 +54,13 @@ def test_table_tennis_serves_aer() -> None:
     # the middle pose is optimal against uniform serves; delta-safe beats minimax, nears it
     assert final["pure_middle"] > max(final["pure_forehand"], final["pure_backhand"])
     assert final["delta_safe_detection"] > final["minimax"]
+    # the paired difference over sessions averages to the difference of the final AERs (the
+    # mean of the sessions' means), and its SEM is that of 8 sessions' differences
+    meta = uniform.meta
+    assert meta["delta_safe_detection - minimax"] == pytest.approx(
+        final["delta_safe_detection"] - final["minimax"], abs=1e-12
+    )
+    assert 0.0 < meta["delta_safe_detection - minimax SEM"] < 0.1
     switching = table_tennis_serves("switching", n_serves=150, repeats=8, seed=5)
     end = switching.rows[-1]
     assert end["delta_safe_detection"] > end["delta_safe"]
