@@ -91,3 +91,20 @@ def test_replicate_ratio_interval_against_a_plain_loop():
     assert (lo, hi) == pytest.approx(expected.tolist(), rel=1e-12)
     point = float(sum(e[:, -1].sum() for e in err) / sum(r[:, -1].sum() for r in ref))
     assert lo < point < hi
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--draws=0"], "at least two seeds"),
+        (["--draws=0,x"], "comma-separated seeds"),
+        (["--workers=0"], "positive integer"),
+        (["--workers=two"], "positive integer"),
+    ],
+)
+def test_target_draws_refuses_bad_options(argv, message, capsys):
+    """Bad ``--draws``/``--workers`` are refused before any work, with the option named."""
+    from benchmarks.target_draws import main
+
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
