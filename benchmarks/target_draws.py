@@ -43,9 +43,9 @@ import torch
 
 from benchmarks.target_sweep import STEPS, abs_errors, gpr_errors, keep_mask
 from hgpdm_torch.decision.beliefs import PHASE_IDDM
-from hgpdm_torch.experiments.target_prediction import HORIZONS_MS, strokes_limit
+from hgpdm_torch.experiments.target_prediction import HORIZONS_MS, _fit_iddm, strokes_limit
 from hgpdm_torch.inference import OnlineIntentionFilter
-from hgpdm_torch.models import IDDM, supervised_init
+from hgpdm_torch.models import IDDM
 from hgpdm_torch.parallel import get_executor
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
@@ -69,15 +69,10 @@ ROWS: list[tuple[str, list[tuple[int, int]], dict[str, Any]]] = [
 
 
 def _fit(obs: torch.Tensor, y: torch.Tensor, dx: int, steps: int, seed: int) -> IDDM:
-    torch.manual_seed(seed)
-    model = IDDM(
-        list(obs), y, dx, intention="continuous", measurement="linear",
-        init=supervised_init(obs, y, dx), **PHASE_IDDM,
-    )  # fmt: skip
+    """The experiment's IDDM with :data:`PHASE_IDDM`'s options (PLS start, linear measurement)."""
     with warnings.catch_warnings():  # a step budget: the fits do not converge (FitResult says so)
         warnings.simplefilter("ignore")
-        model.fit(steps)
-    return model
+        return _fit_iddm(obs, y, "linear", dx, steps, seed, **PHASE_IDDM)
 
 
 def _probabilities(model: IDDM, obs: torch.Tensor, grid: torch.Tensor, **options) -> torch.Tensor:
@@ -90,7 +85,16 @@ def _probabilities(model: IDDM, obs: torch.Tensor, grid: torch.Tensor, **options
 QUICK_ROWS = (0, 7, 12)
 
 
-def _draw(seed: int, *, n_draw: int, n_train: int, folds: int, grid_size: int, steps_scale, rows):
+def _draw(
+    seed: int,
+    *,
+    n_draw: int,
+    n_train: int,
+    folds: int,
+    grid_size: int,
+    steps_scale: float,
+    rows: list[tuple[str, list[tuple[int, int]], dict[str, Any]]],
+) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Absolute errors ``[n_train, 4]`` of each of ``rows`` and of GPR on the first ``n_train``
     of the ``n_draw`` strokes of seed ``seed`` (a stroke depends on how many are drawn)."""
     gen = torch.Generator().manual_seed(seed)
