@@ -12,16 +12,15 @@ repeated on the training strokes of several draws (each seed draws the protocol'
 as ``hgpdm target-prediction`` and ``target_replicates`` do, and only the first 100, the
 training strokes, are used: seed 0's are ``target_sweep``'s, seeds 1-10 the replicates'; the
 test strokes are never touched), so that an option is judged by how it does on an average draw
-rather than on one. Rows, each against
-the same folds' GPR (``WindowGPR``):
+rather than on one. Rows, each against the same folds' GPR (``WindowGPR``):
 
 - ``PHASE_IDDM`` as the experiment uses it (linear measurement kernel, ``Dx = 6``, 40 MAP steps,
   online at ``eps = 0.2``), then with one change each: ``Dx`` 5, 7, 8; 20 or 60 MAP steps (the
   fits do not converge, so the step count is early stopping); the online filter's forgetting
   ``eps`` 0, 0.1, 0.4, evidence temperature 0.7 or 1.5, and the thesis's bound instead of the
   predictive likelihood as the evidence (:class:`~hgpdm_torch.inference.Evidence`);
-- equal mixtures of the beliefs (the probabilities averaged over the members, as
-  :class:`~hgpdm_torch.inference.BeliefMixture` with equal weights) of fits that differ only in
+- equal mixtures (:class:`~hgpdm_torch.inference.BeliefMixture` of
+  :class:`~hgpdm_torch.inference.FilterBeliefs`) of the beliefs of fits that differ only in
   their step count (20, 40, 60), in ``Dx`` (5-8), or in both (12 members): how much of the
   draw-to-draw variation is the variation of one MAP fit.
 
@@ -44,7 +43,7 @@ import torch
 from benchmarks.target_sweep import STEPS, abs_errors, gpr_errors, keep_mask
 from hgpdm_torch.decision.beliefs import PHASE_IDDM
 from hgpdm_torch.experiments.target_prediction import HORIZONS_MS, _fit_iddm, strokes_limit
-from hgpdm_torch.inference import OnlineIntentionFilter
+from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
 from hgpdm_torch.models import IDDM
 from hgpdm_torch.parallel import get_executor
 from hgpdm_torch.results import ResultTable
@@ -75,10 +74,10 @@ def _fit(obs: torch.Tensor, y: torch.Tensor, dx: int, steps: int, seed: int) -> 
         return _fit_iddm(obs, y, "linear", dx, steps, seed, **PHASE_IDDM)
 
 
-def _probabilities(model: IDDM, obs: torch.Tensor, grid: torch.Tensor, **options) -> torch.Tensor:
-    """The online filter's belief over the grid after each observation, ``[n, T, K]``."""
-    f = OnlineIntentionFilter(model, grid, batch_size=obs.shape[0], **(BASE_FILTER | options))
-    return torch.stack([f.update(obs[:, t]).log_prob.exp() for t in range(obs.shape[1])], 1)
+def _source(fits: list[IDDM], **options: Any) -> FilterBeliefs | BeliefMixture:
+    """The online filter's beliefs of one fit, or the equal mixture of several fits' beliefs."""
+    members = [FilterBeliefs(model, **(BASE_FILTER | options)) for model in fits]
+    return members[0] if len(members) == 1 else BeliefMixture(members)
 
 
 #: the rows of ``--quick``: the first, a filter option, a mixture
@@ -110,15 +109,13 @@ def _draw(
         seen = obs[held][:, : STEPS[-1] + 1]
         fits: dict[tuple[int, int], IDDM] = {}
         for name, members, options in rows:
-            probs = []
             for dx, steps in members:
                 if (dx, steps) not in fits:
                     fits[dx, steps] = _fit(
                         obs[keep], y[keep], dx, max(1, round(steps * steps_scale)), seed
                     )
-                probs.append(_probabilities(fits[dx, steps], seen, grid, **options))
-            mean = (torch.stack(probs).mean(0) * grid).sum(-1)
-            errors[name].append(abs_errors(mean, y[held]))
+            belief = _source([fits[m] for m in members], **options).beliefs(seen, grid)
+            errors[name].append(abs_errors(belief.mean[..., 0], y[held]))
     return {name: torch.cat(e) for name, e in errors.items()}, gpr
 
 
@@ -146,7 +143,7 @@ def run(
         ["variant", *(f"{h} ms" for h in HORIZONS_MS), "ratio per draw", "ratio",
          "- first row"],
         meta={"draws": list(draws), "n_train": n_train, "folds": folds, "grid": grid_size,
-              "phase_iddm": {k: v for k, v in PHASE_IDDM.items()}, "filter": BASE_FILTER,
+              "phase_iddm": dict(PHASE_IDDM), "filter": BASE_FILTER,
               "seconds": round(time.time() - start)},
     )  # fmt: skip
     gpr = torch.cat([g for _, g in per_draw])
