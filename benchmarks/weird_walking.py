@@ -2,8 +2,8 @@
 15 minutes on 2 cores, both window lengths, stride 2).
 
 ``python -m benchmarks weird_walking [--quick]`` (about 6-7 minutes on 2 cores with the
-protocol's defaults: the learned measurement width, 150 pseudo-inputs, 150 MAP steps). Writes
-``benchmarks/results/weird_walking.json``. Needs the Weird Walking training trials in
+protocol's defaults: Dx = 10, the learned measurement width, 150 pseudo-inputs, 150 MAP steps).
+Writes ``benchmarks/results/weird_walking.json``. Needs the Weird Walking training trials in
 ``../shared/data/cmu`` (seen from the project root).
 
 The thesis's test trials are held back from this project, so the run scores stand-ins of the
@@ -75,6 +75,7 @@ def main(argv: list[str]) -> int:
             **options,
             "model_options": result.meta["model_options"],
             "fit_steps": result.meta["fit_steps"],
+            "latent_dim": result.meta["latent_dim"],
             "measurement_points": result.meta["measurement_points"],
         },
     )

@@ -15,8 +15,10 @@ from hgpdm_torch.datasets.walkers import Standardizer
 from hgpdm_torch.experiments.style_recognition import forecast_windows
 from hgpdm_torch.experiments.walkers import (
     DEFAULT_FIT_STEPS,
+    DEFAULT_LATENT_DIM,
     DEFAULT_MEASUREMENT_POINTS,
     FALLBACK_FIT_STEPS,
+    FALLBACK_LATENT_DIM,
     FALLBACK_MEASUREMENT_POINTS,
     METHODS,
     _protocol_choice,
@@ -154,6 +156,17 @@ def test_step_count_is_the_protocols_unless_given():
     for bad in (0, -1, 2.0, True, "all", None):
         with pytest.raises(ValueError, match="fit_steps"):
             steps("walkers", bad)
+
+
+def test_latent_dim_is_the_protocols_unless_given():
+    dims = partial(_protocol_choice, "latent_dim")
+    assert dims("weird-walking", "protocol") == 10  # its CV choice (docs page)
+    assert dims("walkers", "protocol") == DEFAULT_LATENT_DIM["walkers"] == 3  # the thesis's
+    assert dims("mine", "protocol") == FALLBACK_LATENT_DIM == 3
+    assert dims("walkers", 5) == 5
+    for bad in (0, -1, 2.0, True, "all", None):
+        with pytest.raises(ValueError, match="latent_dim"):
+            dims("walkers", bad)
 
 
 def test_pseudo_input_count_is_the_protocols_unless_given():
