@@ -29,7 +29,9 @@ def test_benchmarks_are_found():
 #: Weird Walking command on a real-data slice in tests/experiments/test_walkers.py)
 SLOW = {"table_tennis", "target_information", "weird_walking"}
 #: benchmarks of real recordings (``../shared/data``, seen from the project root)
-NEEDS_DATA = {name: Path("../shared/data/cmu") for name in ("map_solver", "weird_walking")}
+NEEDS_DATA = {
+    name: Path("../shared/data/cmu") for name in ("forecast_anatomy", "map_solver", "weird_walking")
+}
 
 
 @pytest.mark.parametrize(
@@ -108,3 +110,35 @@ def test_target_draws_refuses_bad_options(argv, message, capsys):
 
     assert main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["--protocols=foo"], ["--protocols=walkers,"]])
+def test_forecast_anatomy_refuses_unknown_protocols(argv, capsys):
+    """An unknown protocol is refused before any data is read, naming the valid ones."""
+    from benchmarks.forecast_anatomy import main
+
+    assert main(argv) == 2
+    assert "weird-walking" in capsys.readouterr().err
+
+
+def test_pca_reconstruction_against_sklearn():
+    """The linear manifold's floor equals sklearn's PCA round trip (fit on the training frames,
+    transform and inverse-transform the test frames); and frames inside the training span
+    reconstruct exactly."""
+    from sklearn.decomposition import PCA
+
+    from benchmarks.forecast_anatomy import pca_reconstruction_rmse
+
+    gen = torch.Generator().manual_seed(0)
+    train = torch.randn(60, 7, generator=gen, dtype=torch.float64) * torch.arange(1.0, 8.0)
+    test = torch.randn(15, 7, generator=gen, dtype=torch.float64) * torch.arange(1.0, 8.0)
+    pca = PCA(3).fit(train.numpy())
+    back = torch.from_numpy(pca.inverse_transform(pca.transform(test.numpy())))
+    expected = float((back - test).pow(2).mean().sqrt())
+    # a projection of O(1) numbers through an SVD: agreement to ~1e-12 relative on any machine
+    assert pca_reconstruction_rmse(train, test, 3) == pytest.approx(expected, rel=1e-9)
+    centre = train.mean(0)
+    basis = torch.from_numpy(pca.components_)  # [3, 7], orthonormal rows
+    inside = centre + (test - centre) @ basis.T @ basis
+    assert pca_reconstruction_rmse(train, inside, 3) < 1e-12
+    assert pca_reconstruction_rmse(train, test, 7) < 1e-12
