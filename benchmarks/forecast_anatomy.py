@@ -128,8 +128,7 @@ def _score_fold(
         cf_gp = candidate_forecasts(vb_gp, z, **kw)
         g_ml = cf_hg.result.g_ml
         hg_ar1 = cf_hg.pick(g_ml, ar1=True)
-        with_row = torch.cat([z, torch.full_like(z[:, :1], float("nan"))], 1)
-        recon = vb_hg.predict_observations(with_row, cf_hg.result, joint=False)[0]
+        recon = cf_hg.reconstruction[torch.arange(z.shape[0]), g_ml]  # [W, T + 1, Dz]
         seen = torch.cat([z, nxt[:, None]], 1)
         seen_res = vb_hg.infer(seen, **kw)
         recon_seen = vb_hg.predict_observations(seen, seen_res, joint=False)[0]

@@ -320,6 +320,13 @@ def test_candidate_forecasts_match_separate_inferences(hgpdm, styles):
     torch.testing.assert_close(cf.pick(index, map_states=True), map_oracle, rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match="AR"):
         cf.pick(index, ar1=True, map_states=True)
+    # the per-step reconstruction under the ML g is VB's unconditioned (FIC marginal) prediction
+    # of every row of the window with the forecast row appended
+    assert cf.reconstruction.shape == (4, 2, 6, 5)
+    with_row = torch.cat([z, torch.full_like(z[:, :1], float("nan"))], 1)
+    marginal = vb.predict_observations(with_row, cf.result, joint=False)[0]
+    rec_ml = cf.reconstruction[torch.arange(4), cf.result.g_ml]
+    torch.testing.assert_close(rec_ml, marginal, rtol=0, atol=1e-9)
     post = cf.result.posterior
     want = post[:, 0, None] * cf.mean[:, 0] + post[:, 1, None] * cf.mean[:, 1]
     torch.testing.assert_close(cf.averaged(), want, rtol=0, atol=1e-12)

@@ -217,6 +217,10 @@ class CandidateForecasts:
         ar1_mean, ar1_var: ``[..., K, Dz]`` the same with the AR(1) residual
             (:func:`~hgpdm_torch.inference.residual.ar1_residual_forecast`).
         result: the :class:`~hgpdm_torch.inference.variational.VBResult` of the windows.
+        reconstruction: ``[..., K, T + 1, Dz]`` the per-step marginal means of ``q(z_t)``
+            (:func:`observation_marginals`) of the window's rows and the appended one under each
+            candidate's ``q(x)``: how well the model reconstructs what it saw (the AR(1)
+            residual's deviations are the observed rows minus these).
         map_mean: ``[..., K, Dz]`` the MAP baseline's forecast under each candidate: the
             measurement GP's mean at the appended row's MAP state (``result.map_states``, the
             Laplace start), as :meth:`~hgpdm_torch.inference.map.MAPInference.forecast` gives
@@ -228,6 +232,7 @@ class CandidateForecasts:
     ar1_mean: torch.Tensor
     ar1_var: torch.Tensor
     result: Any
+    reconstruction: torch.Tensor
     map_mean: torch.Tensor | None = None
 
     def pick(
@@ -287,4 +292,6 @@ def candidate_forecasts(engine: Any, z: object, **infer_kwargs: Any) -> Candidat
         with torch.no_grad():
             map_mean = engine.window.h.predict_point(res.map_states[..., -1, :])[0]
             map_mean = map_mean + engine.window.measurement.offset
-    return CandidateForecasts(mean[..., -1, :], var[..., -1, :], ar1_mean, ar1_var, res, map_mean)
+    return CandidateForecasts(
+        mean[..., -1, :], var[..., -1, :], ar1_mean, ar1_var, res, rec, map_mean
+    )
