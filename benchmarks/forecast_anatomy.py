@@ -10,11 +10,14 @@ Each protocol runs the leave-one-trial-out folds of ``hgpdm walkers`` (all 7 on 
 4 of ``--max-folds 4`` on Weird Walking) with the command's defaults: an H-GPDM and a GPDM
 fitted with the protocol's latent dimension, options, pseudo-input count and step count
 (:data:`~hgpdm_torch.experiments.walkers.DEFAULT_LATENT_DIM` and its siblings; Dx = 3 on
-both protocols with ``--dx3``, the thesis's), and ridge AR with its order and penalty by
-grouped CV. Per held-out trial and window length T (windows every 2 frames), the RMSE over the
-standardised channels of:
+both protocols with ``--dx3``, the thesis's) on the poses alone (the thesis's observations,
+whose manifold this measures; the command's velocity features, where its CV chose them, are
+not used here), and ridge AR with its order and penalty by grouped CV. Per held-out trial and
+window length T (windows every 2 frames), the RMSE over the standardised channels of:
 
-- the forecasts: ``ridge AR``, ``repeat last frame``, ``H-GPDM VB`` (the ML style's forecast,
+- the forecasts: ``ridge AR``, ``ridge AR order 1`` (the last frame only, its penalty by the
+  same CV: what ridge AR gains from the frame before, i.e. from the velocity), ``repeat last
+  frame``, ``H-GPDM VB`` (the ML style's forecast,
   the thesis's: the joint ``q(z)`` conditioned on the window), ``H-GPDM VB + AR(1)`` (with the
   residual of :func:`~hgpdm_torch.inference.residual.ar1_residual_forecast`, the command's best
   H-GPDM forecast), ``GPDM VB + AR(1)``, and ``H-GPDM + AR(1) / ridge mean`` (the two
@@ -67,6 +70,7 @@ MAX_FOLDS = {"walkers": None, "weird-walking": 4}
 PCA_DIMS = (3, 8, 20)
 FORECASTS = (
     "ridge AR",
+    "ridge AR order 1",
     "repeat last frame",
     "H-GPDM VB",
     "H-GPDM VB + AR(1)",
@@ -115,6 +119,7 @@ def _score_fold(
         hg.fit(fit_steps)
         gp.fit(fit_steps)
     ridge, last = RidgeAR().fit(tr), LastFrameForecaster().fit(tr)
+    ridge1 = RidgeAR().fit(tr, orders=(1,))
     vb_hg = VariationalInference(hg, measurement_points=points)
     vb_gp = VariationalInference(gp, measurement_points=points)
     frames = torch.cat(tr)
@@ -135,6 +140,7 @@ def _score_fold(
         ridge_pred = ridge.predict(z)
         preds = {
             "ridge AR": ridge_pred,
+            "ridge AR order 1": ridge1.predict(z),
             "repeat last frame": last.predict(z),
             "H-GPDM VB": cf_hg.pick(g_ml),
             "H-GPDM VB + AR(1)": hg_ar1,

@@ -13,7 +13,7 @@ from .msrc12 import (
     read_msrc12_recording,
 )
 from .synthetic import MovementSet, styled_movements, targeted_movements
-from .walkers import Standardizer, motion_features
+from .walkers import Standardizer, motion_features, with_velocity
 
 __all__ = [
     "MSRC12",
@@ -38,4 +38,5 @@ __all__ = [
     "read_msrc12_recording",
     "styled_movements",
     "targeted_movements",
+    "with_velocity",
 ]

@@ -6,6 +6,8 @@ and protocols themselves are in :mod:`hgpdm_torch.datasets.cmu`.
   radians wrapped to ``[-pi, pi)``, after resampling to a common frame rate.
 - :class:`Standardizer`: drops the channels that are constant in the training trials and
   standardises the rest with training statistics; maps back to the full channel layout.
+- :func:`with_velocity`: each frame beside its change from the previous frame, the features a
+  model needs to tell phases of a movement apart that pass through the same pose.
 
 Conventions of the CMU (VICON) data, checked on the files: ``y`` is up; the root's ``rx ry rz``
 are rotations about the fixed global axes in the sequence of the ASF ``order`` line (``RX RY RZ``:
@@ -28,7 +30,7 @@ import torch
 from ..validation import as_tensor
 from .mocap import Skeleton
 
-__all__ = ["Standardizer", "motion_features"]
+__all__ = ["Standardizer", "motion_features", "with_velocity"]
 
 ROOT_FEATURES = (
     "root.vx_heading",
@@ -279,3 +281,31 @@ class Standardizer:
         if len(names) != self.keep_.numel():
             raise ValueError(f"names must list the {self.keep_.numel()} channels, got {len(names)}")
         return [n for n, k in zip(names, self.keep_.tolist(), strict=True) if k]
+
+
+# ------------------------------------------------------------------------------------------
+# Velocity features
+# ------------------------------------------------------------------------------------------
+
+
+def with_velocity(z: Any) -> torch.Tensor:
+    """Frames beside their frame-to-frame change: ``[..., T, D]`` -> ``[..., T - 1, 2 D]``, row
+    ``t`` holding ``[z_{t+1}, z_{t+1} - z_t]`` (the first frame has no predecessor and is dropped).
+
+    The thesis's measurement model scales each output (``W``, Sec. 2.2) so that "raw features
+    measured in different units, such as positions and velocities" can be modelled together;
+    with the change beside the pose, one latent state must also say where the movement is going
+    (a hop's way up and way down pass through the same poses). A row with a missing (NaN) value
+    gives NaN changes in that row and the next.
+
+    Args:
+        z: ``[..., T, D]`` frames, ``T >= 2``.
+
+    Returns:
+        ``[..., T - 1, 2 D]``; the first ``D`` channels are the frames ``z_{2:T}``.
+    """
+    z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+    if z.shape[-2] < 2:
+        raise ValueError(f"z needs at least 2 frames (rows) for a change, got {tuple(z.shape)}")
+    later = z[..., 1:, :]
+    return torch.cat([later, later - z[..., :-1, :]], dim=-1)
