@@ -133,7 +133,8 @@ FALLBACK_LATENT_DIM = 3
 #: Walkers: on (the H-GPDM + AR(1) residual forecast 0.318 / 0.291 at T = 5 / 10 against 0.325 /
 #: 0.301 with the poses alone, and ahead of ridge AR, the GRU and the last frame on every
 #: subject; 07, where one walk trains per fold, gains most: 0.460 / 0.422 against 0.519 / 0.471).
-#: Weird Walking: off (with them the same forecast errs 0.48 / 0.49 against 0.371 / 0.367).
+#: Weird Walking: off (scratch runs: with them the same forecast errs 0.48 / 0.49 against 0.371 /
+#: 0.367, recognition 70%; the changes scaled by 0.4, 0.45 / 0.48).
 #: Others: False, the thesis's poses alone.
 DEFAULT_VELOCITY: dict[str, bool] = {"walkers": True, "weird-walking": False}
 FALLBACK_VELOCITY = False
