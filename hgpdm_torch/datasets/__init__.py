@@ -13,9 +13,10 @@ from .msrc12 import (
     read_msrc12_recording,
 )
 from .synthetic import MovementSet, styled_movements, targeted_movements
-from .walkers import Standardizer, motion_features, with_velocity
+from .walkers import FRAME_FEATURES, Standardizer, frame_features, motion_features
 
 __all__ = [
+    "FRAME_FEATURES",
     "MSRC12",
     "MSRC12Recording",
     "MotionTrials",
@@ -25,6 +26,7 @@ __all__ = [
     "PosePCA",
     "Protocol",
     "Standardizer",
+    "frame_features",
     "kinect_features",
     "load_basic_motions",
     "load_mocap",
@@ -38,5 +40,4 @@ __all__ = [
     "read_msrc12_recording",
     "styled_movements",
     "targeted_movements",
-    "with_velocity",
 ]

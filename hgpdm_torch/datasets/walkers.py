@@ -6,8 +6,9 @@ and protocols themselves are in :mod:`hgpdm_torch.datasets.cmu`.
   radians wrapped to ``[-pi, pi)``, after resampling to a common frame rate.
 - :class:`Standardizer`: drops the channels that are constant in the training trials and
   standardises the rest with training statistics; maps back to the full channel layout.
-- :func:`with_velocity`: each frame beside its change from the previous frame, the features a
-  model needs to tell phases of a movement apart that pass through the same pose.
+- :func:`frame_features`: each frame alone, beside its change from the previous frame, or beside
+  the previous frame: what a model observes to tell apart phases of a movement that pass through
+  the same pose.
 
 Conventions of the CMU (VICON) data, checked on the files: ``y`` is up; the root's ``rx ry rz``
 are rotations about the fixed global axes in the sequence of the ASF ``order`` line (``RX RY RZ``:
@@ -30,7 +31,7 @@ import torch
 from ..validation import as_tensor
 from .mocap import Skeleton
 
-__all__ = ["Standardizer", "motion_features", "with_velocity"]
+__all__ = ["FRAME_FEATURES", "Standardizer", "frame_features", "motion_features"]
 
 ROOT_FEATURES = (
     "root.vx_heading",
@@ -284,28 +285,45 @@ class Standardizer:
 
 
 # ------------------------------------------------------------------------------------------
-# Velocity features
+# Features of consecutive frames
 # ------------------------------------------------------------------------------------------
 
+#: the kinds of :func:`frame_features`
+FRAME_FEATURES = ("frames", "velocity", "lagged")
 
-def with_velocity(z: Any) -> torch.Tensor:
-    """Frames beside their frame-to-frame change: ``[..., T, D]`` -> ``[..., T - 1, 2 D]``, row
-    ``t`` holding ``[z_{t+1}, z_{t+1} - z_t]`` (the first frame has no predecessor and is dropped).
+
+def frame_features(z: Any, kind: str) -> torch.Tensor:
+    """What a model observes of frames ``z [..., T, D]``.
+
+    - ``"frames"``: the frames themselves, ``[..., T, D]``;
+    - ``"velocity"``: each frame beside its change, ``[..., T - 1, 2 D]``, row ``t`` holding
+      ``[z_{t+1}, z_{t+1} - z_t]``;
+    - ``"lagged"``: each frame beside the previous one, ``[..., T - 1, 2 D]``, row ``t`` holding
+      ``[z_{t+1}, z_t]`` (the same information as ``"velocity"``, a different basis: with one
+      RBF measurement GP per output and the output scales ``W`` the models differ).
 
     The thesis's measurement model scales each output (``W``, Sec. 2.2) so that "raw features
     measured in different units, such as positions and velocities" can be modelled together;
-    with the change beside the pose, one latent state must also say where the movement is going
-    (a hop's way up and way down pass through the same poses). A row with a missing (NaN) value
-    gives NaN changes in that row and the next.
+    with the change (or the previous frame) beside the pose, a latent state must also say where
+    the movement goes (a hop's way up and way down pass through the same poses). The first frame
+    has no predecessor and is dropped. A missing (NaN) value spoils its own row and, in the
+    second half, the next row.
 
     Args:
-        z: ``[..., T, D]`` frames, ``T >= 2``.
+        z: ``[..., T, D]`` frames (``T >= 2`` unless ``kind`` is ``"frames"``).
+        kind: one of :data:`FRAME_FEATURES`.
 
     Returns:
-        ``[..., T - 1, 2 D]``; the first ``D`` channels are the frames ``z_{2:T}``.
+        The features; their first ``D`` channels are the frames (from the second frame on).
     """
+    if kind not in FRAME_FEATURES:
+        raise ValueError(f"kind must be one of {FRAME_FEATURES}, got {kind!r}")
     z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
+    if kind == "frames":
+        return z
     if z.shape[-2] < 2:
-        raise ValueError(f"z needs at least 2 frames (rows) for a change, got {tuple(z.shape)}")
-    later = z[..., 1:, :]
-    return torch.cat([later, later - z[..., :-1, :]], dim=-1)
+        raise ValueError(
+            f"{kind} features need at least 2 frames (rows) of z, got {tuple(z.shape)}"
+        )
+    later, earlier = z[..., 1:, :], z[..., :-1, :]
+    return torch.cat([later, later - earlier if kind == "velocity" else earlier], dim=-1)

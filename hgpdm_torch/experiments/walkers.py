@@ -15,9 +15,9 @@ Two evaluations:
   the protocol's test trials found there (those absent are listed).
 
 Every held-out trial is cut into windows of T frames (every ``stride`` frames) and each method
-forecasts the next frame. Where the protocol's CV chose it (:data:`DEFAULT_VELOCITY`), the GP
-models observe each frame beside its change from the previous frame
-(:func:`~hgpdm_torch.datasets.walkers.with_velocity`, in training and in the windows) and
+forecasts the next frame. The GP models observe what the protocol's CV chose
+(:data:`DEFAULT_FEATURES`, :func:`~hgpdm_torch.datasets.walkers.frame_features`: the frames, or
+each frame beside its change or beside the previous frame, in training and in the windows) and
 forecast the frame part; the baselines always see the frames. From one VB posterior per
 window over all g (every candidate refined):
 
@@ -50,7 +50,7 @@ import torch
 from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
 from ..calibration import calibration
 from ..datasets.cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol
-from ..datasets.walkers import Standardizer, with_velocity
+from ..datasets.walkers import FRAME_FEATURES, Standardizer, frame_features
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
@@ -61,15 +61,15 @@ from .intervals import mean_sem
 from .style_recognition import chunked_windows, forecast_windows, window_entries
 
 __all__ = [
+    "DEFAULT_FEATURES",
     "DEFAULT_FIT_STEPS",
     "DEFAULT_LATENT_DIM",
     "DEFAULT_MEASUREMENT_POINTS",
     "DEFAULT_OPTIONS",
-    "DEFAULT_VELOCITY",
+    "FALLBACK_FEATURES",
     "FALLBACK_FIT_STEPS",
     "FALLBACK_LATENT_DIM",
     "FALLBACK_MEASUREMENT_POINTS",
-    "FALLBACK_VELOCITY",
     "FORECAST_PROTOCOLS",
     "METHODS",
     "MODEL_METHODS",
@@ -128,16 +128,18 @@ FALLBACK_FIT_STEPS = 300
 #: frames). Others: 3, the thesis's.
 DEFAULT_LATENT_DIM: dict[str, int] = {"walkers": 3, "weird-walking": 10}
 FALLBACK_LATENT_DIM = 3
-#: per protocol, whether both models observe each frame's change beside the frame
-#: (:func:`~hgpdm_torch.datasets.walkers.with_velocity`), the same cross-validation's choice.
-#: Walkers: on (the H-GPDM + AR(1) residual forecast 0.318 / 0.291 at T = 5 / 10 against 0.325 /
-#: 0.301 with the poses alone, and ahead of ridge AR, the GRU and the last frame on every
-#: subject; 07, where one walk trains per fold, gains most: 0.460 / 0.422 against 0.519 / 0.471).
-#: Weird Walking: off (scratch runs: with them the same forecast errs 0.48 / 0.49 against 0.371 /
-#: 0.367, recognition 70%; the changes scaled by 0.4, 0.45 / 0.48).
-#: Others: False, the thesis's poses alone.
-DEFAULT_VELOCITY: dict[str, bool] = {"walkers": True, "weird-walking": False}
-FALLBACK_VELOCITY = False
+#: per protocol, what both models observe of the frames
+#: (:func:`~hgpdm_torch.datasets.walkers.frame_features`), the same cross-validation's choice.
+#: Walkers: ``"velocity"``, each frame beside its change (the H-GPDM + AR(1) residual forecast
+#: 0.318 / 0.291 at T = 5 / 10 against 0.325 / 0.301 with the frames alone and 0.322 / 0.297
+#: beside the previous frame, and ahead of ridge AR, the GRU and the last frame on every subject;
+#: 07, where one walk trains per fold, gains most: 0.460 / 0.422 against 0.519 / 0.471).
+#: Weird Walking: ``"frames"`` (scratch runs: beside the change 0.48 / 0.49 against 0.371 /
+#: 0.367, recognition 70%; the changes scaled by 0.4, 0.45 / 0.48; beside the previous frame
+#: 0.352 / 0.365, a candidate not yet run through the command).
+#: Others: ``"frames"``, the thesis's.
+DEFAULT_FEATURES: dict[str, str] = {"walkers": "velocity", "weird-walking": "frames"}
+FALLBACK_FEATURES = "frames"
 
 
 # Levenberg-Marquardt iterations of the Laplace start, VB's default, which also give the MAP rows
@@ -219,10 +221,10 @@ def _score_split(
     options: dict[str, Any],
     sharing: float,
     measurement_points: int | None,
-    velocity: bool,
+    features: str,
 ) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
-    """Fit every model on ``train`` (raw features) and score each ``test`` trial. With
-    ``velocity`` the GP models observe :func:`~hgpdm_torch.datasets.walkers.with_velocity` of the
+    """Fit every model on ``train`` (raw features) and score each ``test`` trial. The GP models
+    observe :func:`~hgpdm_torch.datasets.walkers.frame_features` ``(., features)`` of the
     standardised frames (windows too) and forecast the frame part; the baselines see the frames.
 
     Returns:
@@ -238,9 +240,8 @@ def _score_split(
     std = Standardizer().fit(train)
     tr = [std.transform(s) for s in train]
     te = [std.transform(s) for s in test]
-    features = with_velocity if velocity else torch.as_tensor
     start = time.perf_counter()
-    observed = [features(s) for s in tr]
+    observed = [frame_features(s, features) for s in tr]
     hg = HGPDM(observed, train_labels, latent_dim, sharing=sharing, **options)
     gp = GPDM(observed, latent_dim, **options)
     fits: dict[str, Any] = {
@@ -260,8 +261,8 @@ def _score_split(
         trial = torch.cat(
             [torch.full((len(range(0, s.shape[0] - T, stride)),), j) for j, s in enumerate(te)]
         )
-        hg_rows, g_ml, post = _vb_forecasts(vb_hg, features(z), y)
-        gp_rows, _, _ = _vb_forecasts(vb_gp, features(z), y)
+        hg_rows, g_ml, post = _vb_forecasts(vb_hg, frame_features(z, features), y)
+        gp_rows, _, _ = _vb_forecasts(vb_gp, frame_features(z, features), y)
         frames = z.shape[-1]  # the forecast frame: the first channels of the features
         hg_rows = {k: v[..., :frames] for k, v in hg_rows.items()}
         gp_rows = {k: v[..., :frames] for k, v in gp_rows.items()}
@@ -294,22 +295,25 @@ def _score_split(
 
 def _protocol_choice(name: str, protocol: str, value: object) -> Any:
     """The value of the setting ``name`` (``"measurement_points"``, ``"fit_steps"``,
-    ``"latent_dim"`` or ``"velocity"``) to run: ``value``, or for ``"protocol"`` the protocol's
+    ``"latent_dim"`` or ``"features"``) to run: ``value``, or for ``"protocol"`` the protocol's
     CV choice (:data:`DEFAULT_MEASUREMENT_POINTS` / :data:`DEFAULT_FIT_STEPS` /
-    :data:`DEFAULT_LATENT_DIM` / :data:`DEFAULT_VELOCITY`, else the fallback). ``None`` (the
-    exact GP) only for ``measurement_points``; ``velocity`` is a bool."""
+    :data:`DEFAULT_LATENT_DIM` / :data:`DEFAULT_FEATURES`, else the fallback). ``None`` (the
+    exact GP) only for ``measurement_points``; ``features`` is one of
+    :data:`~hgpdm_torch.datasets.walkers.FRAME_FEATURES`."""
     defaults, fallback = {
         "measurement_points": (DEFAULT_MEASUREMENT_POINTS, FALLBACK_MEASUREMENT_POINTS),
         "fit_steps": (DEFAULT_FIT_STEPS, FALLBACK_FIT_STEPS),
         "latent_dim": (DEFAULT_LATENT_DIM, FALLBACK_LATENT_DIM),
-        "velocity": (DEFAULT_VELOCITY, FALLBACK_VELOCITY),
+        "features": (DEFAULT_FEATURES, FALLBACK_FEATURES),
     }[name]
     if isinstance(value, str) and value == "protocol":
         return defaults.get(protocol, fallback)
-    if name == "velocity":
-        if not isinstance(value, bool | np.bool_):
-            raise ValueError(f"velocity must be a bool or 'protocol', got {value!r}")
-        return bool(value)
+    if name == "features":
+        if value not in FRAME_FEATURES:
+            raise ValueError(
+                f"features must be one of {FRAME_FEATURES} or 'protocol', got {value!r}"
+            )
+        return value
     exact = name == "measurement_points" and value is None
     if not exact and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
         also = ", None (the exact GP)" if name == "measurement_points" else ""
@@ -329,7 +333,7 @@ def walkers(
     model_options: dict[str, Any] | None = None,
     sharing: float = 0.0,
     measurement_points: int | None | Literal["protocol"] = "protocol",
-    velocity: bool | Literal["protocol"] = "protocol",
+    features: str = "protocol",
     max_folds: int | None = None,
     progress: bool = False,
 ) -> ResultTable:
@@ -358,11 +362,13 @@ def walkers(
             a window then costs ``M^2`` instead of ``N^2``; ``None``: the exact GP;
             ``"protocol"`` (default): the protocol's CV choice, :data:`DEFAULT_MEASUREMENT_POINTS`
             (exact on Walkers, 150 on Weird Walking; 500 for a protocol of one's own).
-        velocity: both GP models observe each frame beside its change from the previous one
-            (:func:`~hgpdm_torch.datasets.walkers.with_velocity`; a window of T frames gives
-            them T - 1 rows) and forecast the frame; ``"protocol"`` (default): the protocol's
-            CV choice, :data:`DEFAULT_VELOCITY` (on for Walkers, off for Weird Walking; False for
-            a protocol of one's own: the thesis's poses alone).
+        features: what both GP models observe
+            (:func:`~hgpdm_torch.datasets.walkers.frame_features`): ``"frames"``, ``"velocity"``
+            (each frame beside its change) or ``"lagged"`` (beside the previous frame; with
+            either, a window of T frames gives them T - 1 rows); they forecast the frame.
+            ``"protocol"`` (default): the protocol's CV choice, :data:`DEFAULT_FEATURES`
+            (``"velocity"`` on Walkers, ``"frames"`` on Weird Walking; ``"frames"`` for a
+            protocol of one's own, the thesis's).
         max_folds: CV only: hold out at most this many trials (spread over the labels), for a
             quick look; ``None`` holds out every testable trial.
         progress: progress bar over folds.
@@ -382,11 +388,11 @@ def walkers(
     measurement_points = _protocol_choice("measurement_points", spec.name, measurement_points)
     fit_steps = _protocol_choice("fit_steps", spec.name, fit_steps)
     latent_dim = _protocol_choice("latent_dim", spec.name, latent_dim)
-    velocity = _protocol_choice("velocity", spec.name, velocity)
-    if velocity and min(lengths) < 2:
+    features = _protocol_choice("features", spec.name, features)
+    if features != "frames" and min(lengths) < 2:
         raise ValueError(
-            f"velocity features need windows of at least 2 frames (a change), got lengths "
-            f"{tuple(lengths)}; pass velocity=False for shorter ones"
+            f"{features} features need windows of at least 2 frames, got lengths "
+            f"{tuple(lengths)}; pass features='frames' for shorter ones"
         )
     data = load_protocol(spec, "train", folder)
     options = DEFAULT_OPTIONS.get(spec.name, {}) | dict(model_options or {})
@@ -401,7 +407,7 @@ def walkers(
         if measurement_points is not None and measurement_points < sum(map(len, data.sequences))
         else None,
         "fit_steps": fit_steps,
-        "velocity": velocity,
+        "features": features,
         "stride": stride,
         "fps": data.fps,
         "labels": list(spec.label_names),
@@ -418,7 +424,7 @@ def walkers(
         "options": options,
         "sharing": sharing,
         "measurement_points": measurement_points,
-        "velocity": velocity,
+        "features": features,
     }
     if test_folder is not None:
         test = load_protocol(spec, "test", [test_folder, folder])
@@ -573,8 +579,8 @@ def compare_runs(tables: list[ResultTable]) -> ResultTable:
         parts.append("learned measurement width" if learned else "fixed measurement width")
         if opts.get("learn_noise") == "True":
             parts.append("learned alpha_4")
-        if meta.get("velocity"):
-            parts.append("velocity features")
+        if meta.get("features", "frames") != "frames":
+            parts.append(f"{meta['features']} features")
         name = ", ".join(parts)
         if meta.get("measurement_points"):
             name += f", measurement_points {meta['measurement_points']}"
@@ -661,13 +667,12 @@ def main(argv: list[str]) -> int:
         "CV, " + ", ".join(f"{k} {v}" for k, v in DEFAULT_MEASUREMENT_POINTS.items()) + ")",
     )
     parser.add_argument(
-        "--velocity",
-        action=argparse.BooleanOptionalAction,
+        "--features",
+        choices=FRAME_FEATURES,
         default=None,
-        help="the GP models observe each frame beside its change from the previous frame "
-        "(default: the protocol's choice by leave-one-trial-out CV, "
-        + ", ".join(f"{k} {'on' if v else 'off'}" for k, v in DEFAULT_VELOCITY.items())
-        + ")",
+        help="what the GP models observe: the frames, each beside its change (velocity) or "
+        "beside the previous frame (lagged) (default: the protocol's choice by leave-one-trial-"
+        "out CV, " + ", ".join(f"{k} {v}" for k, v in DEFAULT_FEATURES.items()) + ")",
     )
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
     parser.add_argument(
@@ -719,7 +724,7 @@ def main(argv: list[str]) -> int:
         measurement_points="protocol"
         if args.measurement_points is None
         else args.measurement_points or None,
-        velocity="protocol" if args.velocity is None else args.velocity,
+        features="protocol" if args.features is None else args.features,
         max_folds=args.max_folds,
         progress=args.progress,
     )

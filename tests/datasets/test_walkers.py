@@ -11,7 +11,7 @@ import torch
 from scipy.spatial.transform import Rotation
 from sklearn.preprocessing import StandardScaler
 
-from hgpdm_torch.datasets import Standardizer, motion_features, with_velocity
+from hgpdm_torch.datasets import Standardizer, frame_features, motion_features
 from hgpdm_torch.datasets.mocap import Bone, Skeleton
 
 
@@ -215,25 +215,31 @@ def test_standardizer_bad_inputs():
 # ------------------------------------------------------------------------------------------
 
 
-def test_velocity_features_are_frames_beside_numpy_differences(generator):
+def test_frame_features_are_frames_beside_numpy_differences_or_lags(generator):
     z = torch.randn(3, 6, 4, generator=generator, dtype=torch.float64)
-    v = with_velocity(z)
-    assert v.shape == (3, 5, 8)
-    np.testing.assert_array_equal(v[..., :4].numpy(), z[:, 1:].numpy())
+    torch.testing.assert_close(frame_features(z, "frames"), z, rtol=0, atol=0)
+    v, lag = frame_features(z, "velocity"), frame_features(z, "lagged")
+    assert v.shape == lag.shape == (3, 5, 8)
+    for f in (v, lag):
+        np.testing.assert_array_equal(f[..., :4].numpy(), z[:, 1:].numpy())
     np.testing.assert_allclose(v[..., 4:].numpy(), np.diff(z.numpy(), axis=1), rtol=0, atol=0)
-    # a missing frame spoils its own row and the next row's change, nothing else
+    np.testing.assert_array_equal(lag[..., 4:].numpy(), z[:, :-1].numpy())
+    # a missing frame spoils its own row and the next row's second half, nothing else
     z[1, 2] = float("nan")
-    v = with_velocity(z)
-    bad = torch.isnan(v).any(-1)
-    assert bad.nonzero().tolist() == [[1, 1], [1, 2]]
-    assert torch.isnan(v[1, 1]).all()  # the missing frame and its change
-    assert torch.isnan(v[1, 2, 4:]).all() and not torch.isnan(v[1, 2, :4]).any()
-    # one sequence [T, D] works the same way
-    torch.testing.assert_close(with_velocity(z[0]), with_velocity(z)[0], equal_nan=True)
+    for kind in ("velocity", "lagged"):
+        f = frame_features(z, kind)
+        assert torch.isnan(f).any(-1).nonzero().tolist() == [[1, 1], [1, 2]]
+        assert torch.isnan(f[1, 1, :4]).all()
+        assert torch.isnan(f[1, 2, 4:]).all() and not torch.isnan(f[1, 2, :4]).any()
+        # one sequence [T, D] works the same way
+        torch.testing.assert_close(frame_features(z[0], kind), f[0], equal_nan=True)
 
 
-def test_velocity_features_bad_inputs():
+def test_frame_features_bad_inputs():
     with pytest.raises(ValueError, match="at least 2 frames"):
-        with_velocity(torch.zeros(1, 3))
+        frame_features(torch.zeros(1, 3), "velocity")
+    assert frame_features(torch.zeros(1, 3), "frames").shape == (1, 3)
     with pytest.raises(ValueError, match="z"):
-        with_velocity(torch.zeros(3))
+        frame_features(torch.zeros(3), "lagged")
+    with pytest.raises(ValueError, match="kind"):
+        frame_features(torch.zeros(2, 3), "speed")

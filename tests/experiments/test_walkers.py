@@ -14,14 +14,14 @@ from hgpdm_torch.datasets.cmu import Protocol, load_protocol
 from hgpdm_torch.datasets.walkers import Standardizer
 from hgpdm_torch.experiments.style_recognition import forecast_windows
 from hgpdm_torch.experiments.walkers import (
+    DEFAULT_FEATURES,
     DEFAULT_FIT_STEPS,
     DEFAULT_LATENT_DIM,
     DEFAULT_MEASUREMENT_POINTS,
-    DEFAULT_VELOCITY,
+    FALLBACK_FEATURES,
     FALLBACK_FIT_STEPS,
     FALLBACK_LATENT_DIM,
     FALLBACK_MEASUREMENT_POINTS,
-    FALLBACK_VELOCITY,
     METHODS,
     _protocol_choice,
     compare_runs,
@@ -69,7 +69,7 @@ def test_small_cv_run_has_every_method_and_an_exact_baseline():
     assert table.meta["model_options"]["learn_measurement_width"] == "False"
     # and its pseudo-input count (500) exceeds the fold's frames: the exact GP ran
     assert table.meta["measurement_points"] is None
-    assert table.meta["velocity"] is DEFAULT_VELOCITY["walkers"] is True
+    assert table.meta["features"] == DEFAULT_FEATURES["walkers"] == "velocity"
 
 
 @REAL
@@ -121,19 +121,21 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     )  # fmt: skip
     assert sparse.meta["measurement_points"] == 20
     assert compare_runs([sparse]).rows[0]["options"].endswith("measurement_points 20")
-    # velocity features: the GP models see frames and changes, the baselines the same frames
-    assert table.meta["velocity"] is FALLBACK_VELOCITY is False
-    moving = walkers(
-        mine, folder=CMU, test_folder=tmp_path, lengths=(3,), fit_steps=3, stride=6,
-        velocity=True,
-    )  # fmt: skip
-    assert moving.meta["velocity"] is True
-    assert "velocity features" in compare_runs([moving]).rows[0]["options"]
-    for base, vel in zip(table.rows[:2], moving.rows[:2], strict=True):
-        assert vel["windows"] == base["windows"]
-        for m in ("repeat last frame", "ridge AR (CV)"):
-            assert vel[m] == base[m]
-        assert vel["VB H-GPDM"] != base["VB H-GPDM"]
+    # velocity / lagged features: the GP models see more than the frames, the baselines the
+    # same frames
+    assert table.meta["features"] == FALLBACK_FEATURES == "frames"
+    for kind in ("velocity", "lagged"):
+        moving = walkers(
+            mine, folder=CMU, test_folder=tmp_path, lengths=(3,), fit_steps=3, stride=6,
+            features=kind,
+        )  # fmt: skip
+        assert moving.meta["features"] == kind
+        assert f"{kind} features" in compare_runs([moving]).rows[0]["options"]
+        for base, other in zip(table.rows[:2], moving.rows[:2], strict=True):
+            assert other["windows"] == base["windows"]
+            for m in ("repeat last frame", "ridge AR (CV)"):
+                assert other[m] == base[m]
+            assert other["VB H-GPDM"] != base["VB H-GPDM"]
 
 
 def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
@@ -158,10 +160,13 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
         walkers("walkers", measurement_points=0)  # before any file is read
     with pytest.raises(ValueError, match="fit_steps"):
         walkers("walkers", fit_steps=0)
-    with pytest.raises(ValueError, match="velocity"):
-        walkers("walkers", velocity="yes")
+    with pytest.raises(ValueError, match="features"):
+        walkers("walkers", features="speed")
     with pytest.raises(ValueError, match="at least 2 frames"):
         walkers("walkers", lengths=(1, 5))  # Walkers' velocity features need a change
+    with pytest.raises(SystemExit):
+        main(["--features", "speed"])
+    assert "invalid choice" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--compare", str(tmp_path / "none.json")])
     assert "--compare" in capsys.readouterr().err
@@ -201,12 +206,12 @@ def test_pseudo_input_count_is_the_protocols_unless_given():
             points("walkers", bad)
 
 
-def test_velocity_features_are_the_protocols_unless_given():
-    velocity = partial(_protocol_choice, "velocity")
-    assert velocity("walkers", "protocol") is DEFAULT_VELOCITY["walkers"] is True  # its CV's
-    assert velocity("weird-walking", "protocol") is DEFAULT_VELOCITY["weird-walking"]
-    assert velocity("mine", "protocol") is FALLBACK_VELOCITY is False  # the thesis's poses
-    assert velocity("walkers", False) is False
-    for bad in (0, 1, None, "on"):
-        with pytest.raises(ValueError, match="velocity"):
-            velocity("walkers", bad)
+def test_features_are_the_protocols_unless_given():
+    features = partial(_protocol_choice, "features")
+    assert features("walkers", "protocol") == DEFAULT_FEATURES["walkers"] == "velocity"  # CV's
+    assert features("weird-walking", "protocol") == DEFAULT_FEATURES["weird-walking"]
+    assert features("mine", "protocol") == FALLBACK_FEATURES == "frames"  # the thesis's
+    assert features("walkers", "lagged") == "lagged"
+    for bad in (0, True, None, "speed"):
+        with pytest.raises(ValueError, match="features"):
+            features("walkers", bad)
