@@ -136,8 +136,8 @@ FALLBACK_LATENT_DIM = 3
 #: 07, where one walk trains per fold, gains most: 0.460 / 0.422 against 0.519 / 0.471).
 #: Weird Walking: ``"frames"`` (scratch runs: beside the change 0.48 / 0.49 against 0.371 /
 #: 0.367, recognition 70%; the changes scaled by 0.4, 0.45 / 0.48; beside the previous frame
-#: ``--features lagged`` 0.354 / 0.366, CV's choice by the criterion, not adopted until the
-#: command with it is timed against its 900 s).
+#: ``--features lagged`` 0.354 / 0.366, CV's choice by the criterion; the switch, with its
+#: results and notebook, is pending).
 #: Others: ``"frames"``, the thesis's.
 DEFAULT_FEATURES: dict[str, str] = {"walkers": "velocity", "weird-walking": "frames"}
 FALLBACK_FEATURES = "frames"
