@@ -262,8 +262,9 @@ def _score_split(
         trial = torch.cat(
             [torch.full((len(range(0, s.shape[0] - T, stride)),), j) for j, s in enumerate(te)]
         )
-        hg_rows, g_ml, post = _vb_forecasts(vb_hg, frame_features(z, features), y)
-        gp_rows, _, _ = _vb_forecasts(vb_gp, frame_features(z, features), y)
+        seen = frame_features(z, features)
+        hg_rows, g_ml, post = _vb_forecasts(vb_hg, seen, y)
+        gp_rows, _, _ = _vb_forecasts(vb_gp, seen, y)
         frames = z.shape[-1]  # the forecast frame: the first channels of the features
         hg_rows = {k: v[..., :frames] for k, v in hg_rows.items()}
         gp_rows = {k: v[..., :frames] for k, v in gp_rows.items()}
