@@ -20,6 +20,7 @@ from hgpdm_torch.inference.variational import (
     VariationalInference,
     batched_lbfgs,
     condition_gaussian,
+    prediction,
     window_mask,
 )
 from hgpdm_torch.inference.variational.prediction import candidate_forecasts
@@ -295,6 +296,23 @@ def test_forecast_and_gap_shapes_batched(hgpdm, styles):
     assert (rv[:, 1:3] > 0).all() and torch.all(rv[:, 0] == 0)
     oracle = vb.infer(gap, values=styles.labels[:4, None], steps=10)
     assert oracle.log_evidence.shape == (4, 1)
+
+
+def test_joint_prediction_in_chunks_matches_one_batch(hgpdm, styles, monkeypatch):
+    """The joint q(z) is conditioned in chunks of windows (``_JOINT_ENTRIES``): one window at a
+    time gives what one batch gives, for windows whose missing rows differ (so a chunk takes
+    the gathered path where the whole batch takes the masked one). Tolerance: the same
+    conditioning of O(1) values on 20 entries, by Cholesky with or without identity padding
+    (1e-10)."""
+    vb = VariationalInference(hgpdm)
+    z = torch.stack([styles.sequences[j][2:7] for j in range(4)])
+    z[0, 4] = z[1, 2:4] = z[2, 0] = float("nan")  # window 3 is complete
+    res = vb.infer(z, steps=20)
+    whole = vb.predict_observations(z, res)
+    monkeypatch.setattr(prediction, "_JOINT_ENTRIES", 1.0)  # one window and candidate per chunk
+    for got, want in zip(vb.predict_observations(z, res), whole, strict=True):
+        assert got.shape == want.shape == (4, 5, 5)
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-10)
 
 
 def test_candidate_forecasts_match_separate_inferences(hgpdm, styles):
