@@ -1,8 +1,9 @@
 """Wall time of ``hgpdm walkers --protocol weird-walking --test-data FOLDER`` (issue 30: within
 15 minutes on 2 cores, both window lengths, stride 2).
 
-``python -m benchmarks weird_walking [--quick]`` (about 6-7 minutes on 2 cores with the
-protocol's defaults: Dx = 10, the learned measurement width, 150 pseudo-inputs, 150 MAP steps).
+``python -m benchmarks weird_walking [--quick]`` (about 12 minutes on 2 cores with the
+protocol's defaults: Dx = 10, each frame beside the previous one, the learned measurement width,
+150 pseudo-inputs, 150 MAP steps).
 Writes ``benchmarks/results/weird_walking.json``. Needs the Weird Walking training trials in
 ``../shared/data/cmu`` (seen from the project root).
 
@@ -76,6 +77,7 @@ def main(argv: list[str]) -> int:
             "model_options": result.meta["model_options"],
             "fit_steps": result.meta["fit_steps"],
             "latent_dim": result.meta["latent_dim"],
+            "features": result.meta["features"],
             "measurement_points": result.meta["measurement_points"],
         },
     )

@@ -43,9 +43,10 @@ import torch
 from hgpdm_torch.baselines import RidgeAR
 from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.datasets.cmu import PROTOCOLS, load_protocol
-from hgpdm_torch.datasets.walkers import Standardizer
+from hgpdm_torch.datasets.walkers import Standardizer, frame_features
 from hgpdm_torch.experiments.style_recognition import forecast_windows
 from hgpdm_torch.experiments.walkers import (
+    DEFAULT_FEATURES,
     DEFAULT_FIT_STEPS,
     DEFAULT_LATENT_DIM,
     DEFAULT_MEASUREMENT_POINTS,
@@ -103,7 +104,10 @@ print("held out:", ", ".join(f"{n} ({styles[c]})" for n, c in held_out))
 # ## 2. Models
 #
 # Both with the settings leave-one-trial-out cross-validation chose on the Weird Walking
-# training trials (docs page *Walking motion capture*): a 10-D latent space
+# training trials (docs page *Walking motion capture*). The models observe each frame beside the
+# previous one (`frame_features(., "lagged")`, `DEFAULT_FEATURES["weird-walking"]`: 112 channels,
+# one row fewer per trial), which lets the latent dynamics see how the pose is changing; the
+# forecast is the frame part. Then a 10-D latent space
 # (`DEFAULT_LATENT_DIM["weird-walking"]`; the thesis's Dx = 3 cannot hold these poses: held-out
 # frames lie 0.8 sd from the best 3-D linear subspace of the training frames), the measurement
 # GP's width learned by MAP (`DEFAULT_OPTIONS["weird-walking"]`; on Walkers the same
@@ -112,15 +116,18 @@ print("held out:", ", ".join(f"{n} ({styles[c]})" for n, c in held_out))
 # convergence test (`warn=False` keeps that warning out of the output).
 
 # %%
+features = DEFAULT_FEATURES["weird-walking"]
+observed = [frame_features(s, features) for s in train]
 dx = DEFAULT_LATENT_DIM["weird-walking"]
 steps = 30 if SMOKE else DEFAULT_FIT_STEPS["weird-walking"]
 start = time.perf_counter()
 options = DEFAULT_OPTIONS["weird-walking"]
-hgpdm = HGPDM(train, train_labels, dx, **options)
-gpdm = GPDM(train, dx, **options)
+hgpdm = HGPDM(observed, train_labels, dx, **options)
+gpdm = GPDM(observed, dx, **options)
 for model in (hgpdm, gpdm):
     model.fit(steps, warn=False)
-print(f"two MAP fits of {steps} steps, Dx = {dx}: {time.perf_counter() - start:.0f} s")
+seconds = time.perf_counter() - start
+print(f"two MAP fits of {steps} steps, Dx = {dx}, features {features!r}: {seconds:.0f} s")
 
 # %% [markdown]
 # ## 3. The four styles in the shared latent space
@@ -133,7 +140,7 @@ latent = hgpdm.latent.detach()
 bounds = torch.cumsum(torch.cat([torch.zeros(1, dtype=torch.long), hgpdm.lengths]), 0)
 colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-for j in range(len(train)):
+for j in range(len(observed)):
     x = latent[bounds[j] : bounds[j + 1]]
     c = int(train_labels[j])
     for ax, (a, b) in zip(axes, ((0, 1), (0, 2)), strict=True):
@@ -161,9 +168,10 @@ T, stride = (5, 4) if SMOKE else (10, 2)
 vb = VariationalInference(hgpdm, measurement_points=POINTS)
 fig, axes = plt.subplots(1, len(test), figsize=(3.2 * len(test), 2.8), sharey=True)
 for ax, seq, name, c in zip(axes, test, test_names, test_labels.tolist(), strict=True):
-    windows = torch.stack([seq[i : i + T] for i in range(0, seq.shape[0] - T + 1, stride)])
+    frames = torch.stack([seq[i : i + T] for i in range(0, seq.shape[0] - T + 1, stride)])
+    windows = frame_features(frames, features)  # [n, T - 1, 112]
     post = torch.cat([vb.infer(windows[i : i + 16]).posterior for i in range(0, len(windows), 16)])
-    ends = torch.arange(len(windows)) * stride + T
+    ends = torch.arange(len(frames)) * stride + T
     ax.stackplot(ends.numpy(), post.T.numpy(), colors=colours[: len(styles)], labels=styles)
     acc = float((post.argmax(-1) == c).double().mean())
     ax.set_title(f"{name}: {styles[c]}\nML style right in {acc:.0%} of windows", fontsize=9)
@@ -182,15 +190,17 @@ plt.tight_layout()
 
 # %%
 z, nxt, y = forecast_windows(test, test_labels, T, stride)
+seen = frame_features(z, features)  # what the GP models observe of each window
+D = z.shape[-1]  # the forecast pose: the first D channels of the features
 counts = [len(range(0, s.shape[0] - T, stride)) for s in test]
 trial = torch.repeat_interleave(torch.arange(len(test)), torch.tensor(counts))
 gp_vb = VariationalInference(gpdm, measurement_points=POINTS)
 preds = {name: [] for name in ("VB H-GPDM", "VB H-GPDM + AR(1) residual", "GPDM VB")}
 for i in range(0, len(z), 16):
-    cf = candidate_forecasts(vb, z[i : i + 16], prune=None)
-    preds["VB H-GPDM"].append(cf.pick(cf.result.g_ml))
-    preds["VB H-GPDM + AR(1) residual"].append(cf.pick(cf.result.g_ml, ar1=True))
-    preds["GPDM VB"].append(candidate_forecasts(gp_vb, z[i : i + 16]).mean[:, 0])
+    cf = candidate_forecasts(vb, seen[i : i + 16], prune=None)
+    preds["VB H-GPDM"].append(cf.pick(cf.result.g_ml)[:, :D])
+    preds["VB H-GPDM + AR(1) residual"].append(cf.pick(cf.result.g_ml, ar1=True)[:, :D])
+    preds["GPDM VB"].append(candidate_forecasts(gp_vb, seen[i : i + 16]).mean[:, 0, :D])
 preds = {k: torch.cat(v) for k, v in preds.items()}
 preds["ridge AR (CV)"] = RidgeAR().fit(train).predict(z)
 print(f"{'method':28s}" + "".join(f"{n:>10s}" for n in test_names))

@@ -209,7 +209,7 @@ def test_pseudo_input_count_is_the_protocols_unless_given():
 def test_features_are_the_protocols_unless_given():
     features = partial(_protocol_choice, "features")
     assert features("walkers", "protocol") == DEFAULT_FEATURES["walkers"] == "velocity"  # CV's
-    assert features("weird-walking", "protocol") == DEFAULT_FEATURES["weird-walking"]
+    assert features("weird-walking", "protocol") == DEFAULT_FEATURES["weird-walking"] == "lagged"
     assert features("mine", "protocol") == FALLBACK_FEATURES == "frames"  # the thesis's
     assert features("walkers", "lagged") == "lagged"
     for bad in (0, True, None, "speed"):
