@@ -1,7 +1,7 @@
 """Wall time of ``hgpdm walkers --protocol weird-walking --test-data FOLDER`` (issue 30: within
 15 minutes on 2 cores, both window lengths, stride 2).
 
-``python -m benchmarks weird_walking [--quick]`` (about 12 minutes on 2 cores with the
+``python -m benchmarks weird_walking [--quick]`` (about 11 minutes on 2 cores with the
 protocol's defaults: Dx = 10, each frame beside the previous one, the learned measurement width,
 150 pseudo-inputs, 150 MAP steps).
 Writes ``benchmarks/results/weird_walking.json``. Needs the Weird Walking training trials in

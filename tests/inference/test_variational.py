@@ -302,7 +302,7 @@ def test_joint_prediction_in_chunks_matches_one_batch(hgpdm, styles, monkeypatch
     """The joint q(z) is conditioned in chunks of windows (``_JOINT_ENTRIES``): one window at a
     time gives what one batch gives, for windows whose missing rows differ (so a chunk takes
     the gathered path where the whole batch takes the masked one). Tolerance: the same
-    conditioning of O(1) values on 20 entries, by Cholesky with or without identity padding
+    conditioning of O(1) values on at most 25 entries, by Cholesky with or without identity padding
     (1e-10)."""
     vb = VariationalInference(hgpdm)
     z = torch.stack([styles.sequences[j][2:7] for j in range(4)])
