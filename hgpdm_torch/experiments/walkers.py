@@ -369,7 +369,7 @@ def walkers(
             (each frame beside its change) or ``"lagged"`` (beside the previous frame; with
             either, a window of T frames gives them T - 1 rows); they forecast the frame.
             ``"protocol"`` (default): the protocol's CV choice, :data:`DEFAULT_FEATURES`
-            (``"velocity"`` on Walkers, ``"frames"`` on Weird Walking; ``"frames"`` for a
+            (``"velocity"`` on Walkers, ``"lagged"`` on Weird Walking; ``"frames"`` for a
             protocol of one's own, the thesis's).
         max_folds: CV only: hold out at most this many trials (spread over the labels), for a
             quick look; ``None`` holds out every testable trial.

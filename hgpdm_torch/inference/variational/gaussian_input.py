@@ -43,6 +43,9 @@ class GaussianInputGP:
     def __init__(self, post: GPPosterior, codes: torch.Tensor | None = None) -> None:
         self.post = post
         self.parts: list[GaussianInputGP] = []
+        # the noise of a new output: the shared one (alpha_4), or with a noise per code
+        # (HGPDM(noise_per_value=True)) that of the input's code, set per branch below
+        self.noise = post.noise
         with torch.no_grad():
             leaves = kernel_leaves(post.kernel, post.input_dim)
         if codes is None:
@@ -69,6 +72,8 @@ class GaussianInputGP:
             if codes.numel() == 1:  # one code: a view of its own block, without the padding
                 c = int(codes.reshape(-1)[0])
                 X, beta, kinv, mask = (b[c] for b in post.blocks())
+                if post.code_noise is not None:
+                    self.noise = post.code_noise[c]
                 n = max(int(mask.sum()), 1)  # a code without training points keeps one pad row
                 batch = codes.shape
                 X, beta = X[:n].expand(*batch, n, -1), beta[:n].expand(*batch, n, -1)
@@ -76,6 +81,8 @@ class GaussianInputGP:
                 mask = None if bool(mask[:n].all()) else mask[:n].expand(*batch, n)
             else:
                 X, beta, kinv, mask = (b[codes] for b in post.blocks())
+                if post.code_noise is not None:
+                    self.noise = post.code_noise[codes.long()]  # [...], the batch shape
             d = X.shape[-1] - 1
             self.X, self.beta, self.kinv, self.mask = X[..., :d], beta, kinv, mask
             self.leaves = [replace(lf, weight=lf.weight[:d], codes=()) for lf in leaves]
@@ -89,6 +96,8 @@ class GaussianInputGP:
                 post.kinv,
                 None,
             )
+            if post.code_noise is not None:
+                self.noise = post.code_noise[codes.long()]
             g = codes[..., None].to(post.train_inputs.dtype)
             self.terms = split_terms(leaves, post.train_inputs, g, d)
             # k(x, x) at equal codes: delta(g, g) = 1
@@ -162,7 +171,7 @@ class GaussianInputGP:
         quad = (kinv_k * k).sum(-1)
         kxx = leaves_psi0(self.leaves, mu, torch.zeros_like(mu).diag_embed(), None)
         mean = shared_matmul(self.beta.transpose(-1, -2), k[..., :, None])[..., 0]
-        var = (kxx - quad).clamp_min(0.0) + self.post.noise
+        var = (kxx - quad).clamp_min(0.0) + self.noise
         if not jacobian:
             return mean, var
         # k(mu, mu) is constant for stationary parts; its linear parts' gradient by autograd on

@@ -134,11 +134,13 @@ class WindowModel:
         self.kind = model.intention if isinstance(model, HGPDM) else "none"
         self.measurement = model.measurement_posterior(measurement_points)
         self.transition = model.transition_posterior()
-        if self.transition.noise.dim() != 0:
+        if self.transition.noise.dim() != 0 and self.transition.code_noise is None:
+            # a noise per training point is fine for the training factor, but a new step then
+            # needs the noise of its code (a model with noise_per_value=True gives one)
             raise ValueError(
-                "variational inference needs one shared process noise; this model has a noise "
-                "per intention value (noise_per_value=True): use infer_intention or "
-                "OnlineIntentionFilter, or a model with noise_per_value=False"
+                "variational inference needs the process noise of a new step: one shared noise "
+                "or one per code of a discrete g (code_noise); this transition GP has only a "
+                "noise per training point"
             )
         self.latent_dim = model.latent_dim
         self.obs_dim = model.obs_dim
