@@ -221,6 +221,7 @@ def _score_split(
     fit_steps: int,
     options: dict[str, Any],
     sharing: float,
+    noise_per_label: bool,
     measurement_points: int | None,
     features: str,
 ) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
@@ -243,7 +244,14 @@ def _score_split(
     te = [std.transform(s) for s in test]
     start = time.perf_counter()
     observed = [frame_features(s, features) for s in tr]
-    hg = HGPDM(observed, train_labels, latent_dim, sharing=sharing, **options)
+    hg = HGPDM(
+        observed,
+        train_labels,
+        latent_dim,
+        sharing=sharing,
+        noise_per_value=noise_per_label,
+        **options,
+    )
     gp = GPDM(observed, latent_dim, **options)
     fits: dict[str, Any] = {
         name: m.fit(fit_steps).summary() for name, m in (("H-GPDM", hg), ("GPDM", gp))
@@ -334,6 +342,7 @@ def walkers(
     stride: int = 2,
     model_options: dict[str, Any] | None = None,
     sharing: float = 0.0,
+    noise_per_label: bool = False,
     measurement_points: int | None | Literal["protocol"] = "protocol",
     features: str = "protocol",
     max_folds: int | None = None,
@@ -359,6 +368,9 @@ def walkers(
             :data:`DEFAULT_OPTIONS` (e.g. ``{"back_constraint": "kernel"}``;
             ``{"learn_measurement_width": True}`` for the thesis's model).
         sharing: the H-GPDM's share of dynamics common to all g (0: the thesis's model).
+        noise_per_label: the H-GPDM gives each label its own process noise ``alpha_4,k``
+            (``HGPDM(noise_per_value=True)``, estimated after the fit; needs ``sharing=0`` and
+            a fixed noise); ``False`` (default): one shared ``alpha_4``, the thesis's model.
         measurement_points: VB and MAP inference route the measurement GP through at most this
             many pseudo-inputs (DTC, :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`):
             a window then costs ``M^2`` instead of ``N^2``; ``None``: the exact GP;
@@ -391,6 +403,13 @@ def walkers(
     fit_steps = _protocol_choice("fit_steps", spec.name, fit_steps)
     latent_dim = _protocol_choice("latent_dim", spec.name, latent_dim)
     features = _protocol_choice("features", spec.name, features)
+    if not isinstance(noise_per_label, bool):
+        raise TypeError(f"noise_per_label must be a bool, got {noise_per_label!r}")
+    if noise_per_label and (sharing or (model_options or {}).get("learn_noise")):
+        raise ValueError(
+            "noise_per_label=True needs sharing=0 and a fixed process noise (no learn_noise), "
+            f"got sharing={sharing!r}"
+        )
     if features != "frames" and min(lengths) < 2:
         raise ValueError(
             f"{features} features need windows of at least 2 frames, got lengths "
@@ -404,6 +423,7 @@ def walkers(
         "latent_dim": latent_dim,
         "model_options": {k: str(v) for k, v in options.items()},
         "sharing": sharing,
+        "noise_per_label": noise_per_label,
         # recorded where it applies: fewer pseudo-inputs than training frames
         "measurement_points": measurement_points
         if measurement_points is not None and measurement_points < sum(map(len, data.sequences))
@@ -425,6 +445,7 @@ def walkers(
         "fit_steps": fit_steps,
         "options": options,
         "sharing": sharing,
+        "noise_per_label": noise_per_label,
         "measurement_points": measurement_points,
         "features": features,
     }
@@ -581,6 +602,8 @@ def compare_runs(tables: list[ResultTable]) -> ResultTable:
         parts.append("learned measurement width" if learned else "fixed measurement width")
         if opts.get("learn_noise") == "True":
             parts.append("learned alpha_4")
+        if meta.get("noise_per_label"):
+            parts.append("alpha_4 per label")
         if meta.get("features", "frames") != "frames":
             parts.append(f"{meta['features']} features")
         name = ", ".join(parts)
@@ -653,6 +676,12 @@ def main(argv: list[str]) -> int:
         help="H-GPDM: share of the dynamics common to all g, in [0, 1) (default 0)",
     )
     parser.add_argument(
+        "--noise-per-label",
+        action="store_true",
+        help="H-GPDM: a process noise alpha_4 per label, estimated after the fit (needs "
+        "--sharing 0 and no --learn-noise; default: one shared alpha_4, the thesis's)",
+    )
+    parser.add_argument(
         "--learn-measurement-width",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -709,6 +738,8 @@ def main(argv: list[str]) -> int:
         options["back_constraint"] = args.back_constraint
     if not 0.0 <= args.sharing < 1.0:
         parser.error(f"--sharing must lie in [0, 1), got {args.sharing}")
+    if args.noise_per_label and (args.sharing or args.learn_noise):
+        parser.error("--noise-per-label needs --sharing 0 and no --learn-noise")
     for name, path in (("--data", args.data), ("--test-data", args.test_data)):
         if path is not None and not path.is_dir():
             parser.error(f"{name} {path} is not a folder (it needs the CMU files; docs, Walking)")
@@ -723,6 +754,7 @@ def main(argv: list[str]) -> int:
         stride=args.stride,
         model_options=options,
         sharing=args.sharing,
+        noise_per_label=args.noise_per_label,
         measurement_points="protocol"
         if args.measurement_points is None
         else args.measurement_points or None,

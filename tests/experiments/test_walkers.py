@@ -121,6 +121,18 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
     )  # fmt: skip
     assert sparse.meta["measurement_points"] == 20
     assert compare_runs([sparse]).rows[0]["options"].endswith("measurement_points 20")
+    # a process noise per label: only the H-GPDM's rows change
+    noisy = walkers(
+        mine, folder=CMU, test_folder=tmp_path, lengths=(3,), fit_steps=3, stride=6,
+        noise_per_label=True,
+    )  # fmt: skip
+    assert noisy.meta["noise_per_label"] is True
+    assert "alpha_4 per label" in compare_runs([noisy]).rows[0]["options"]
+    noise_rows = ("repeat last frame", "ridge AR (CV)", "GPDM VB")
+    for base, other in zip(table.rows[:2], noisy.rows[:2], strict=True):
+        assert all(other[m] == base[m] for m in noise_rows)
+    pairs = zip(table.rows[:2], noisy.rows[:2], strict=True)
+    assert any(o["VB H-GPDM"] != b["VB H-GPDM"] for b, o in pairs)
     # velocity / lagged features: the GP models see more than the frames, the baselines the
     # same frames
     assert table.meta["features"] == FALLBACK_FEATURES == "frames"
@@ -170,6 +182,13 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--compare", str(tmp_path / "none.json")])
     assert "--compare" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--noise-per-label", "--sharing", "0.5"])
+    assert "--noise-per-label" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="noise_per_label"):
+        walkers("walkers", noise_per_label=True, sharing=0.5)
+    with pytest.raises(TypeError, match="noise_per_label"):
+        walkers("walkers", noise_per_label="yes")
 
 
 def test_step_count_is_the_protocols_unless_given():
