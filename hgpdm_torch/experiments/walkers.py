@@ -257,6 +257,8 @@ def _score_split(
         name: m.fit(fit_steps).summary() for name, m in (("H-GPDM", hg), ("GPDM", gp))
     }
     fits["seconds"] = time.perf_counter() - start
+    if noise_per_label:
+        fits["H-GPDM"]["alpha_4 per label"] = hg.value_noise.tolist()
     last, ridge = LastFrameForecaster().fit(tr), RidgeAR().fit(tr)
     fits["ridge_order"] = ridge.order_
     sparse = {"measurement_points": measurement_points}

@@ -127,6 +127,7 @@ def test_test_trials_are_scored_and_absent_ones_listed(tmp_path):
         noise_per_label=True,
     )  # fmt: skip
     assert noisy.meta["noise_per_label"] is True
+    assert len(noisy.meta["fits"][0]["H-GPDM"]["alpha_4 per label"]) == 2
     assert "alpha_4 per label" in compare_runs([noisy]).rows[0]["options"]
     noise_rows = ("repeat last frame", "ridge AR (CV)", "GPDM VB")
     for base, other in zip(table.rows[:2], noisy.rows[:2], strict=True):
