@@ -30,7 +30,9 @@ class GaussianInputGP:
     """A GP posterior in the form the free energy needs: all input columns Gaussian.
 
     ``X [..., N, D]``, ``beta [..., N, Dout]``, ``kinv [..., N, N]`` and a 0/1 ``mask [..., N]``
-    (padding of per-code blocks), where ``...`` broadcasts against the inputs' batch dims.
+    (padding of per-code blocks), where ``...`` broadcasts against the inputs' batch dims;
+    ``noise`` is the variance a new output adds: the GP's shared noise, or with a noise per code
+    (``code_noise``) that of each input's code (a scalar for one code, ``[...]`` for several).
 
     With the codes of a block-diagonal (discrete g) kernel, code c reads only its own block.
     Codes that vary along a single batch axis (``[K, 1]``: the same K candidates for every
