@@ -341,3 +341,13 @@ def test_window_inference_uses_each_candidates_noise(fitted, styles):
     torch.testing.assert_close(
         every.log_evidence[..., 2], one.log_evidence[..., 0], rtol=1e-7, atol=1e-7
     )
+    # candidates that differ per window (codes varying along two axes) gather each code's
+    # block and noise in one batch
+    per_window = torch.tensor([[0, 2], [1, 0], [2, 1], [0, 1]])
+    mixed = per_vb.infer(z, values=per_window, steps=5, prune=None)
+    for w in range(4):
+        for j in range(2):
+            alone = per_vb.infer(z[w : w + 1], values=[int(per_window[w, j])], steps=5, prune=None)
+            torch.testing.assert_close(
+                mixed.log_evidence[w, j], alone.log_evidence[0, 0], rtol=1e-7, atol=1e-7
+            )
