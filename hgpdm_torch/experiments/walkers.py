@@ -407,10 +407,11 @@ def walkers(
     features = _protocol_choice("features", spec.name, features)
     if not isinstance(noise_per_label, bool):
         raise TypeError(f"noise_per_label must be a bool, got {noise_per_label!r}")
-    if noise_per_label and (sharing or (model_options or {}).get("learn_noise")):
+    learned = [k for k in ("learn_noise", "learn_alpha") if (model_options or {}).get(k)]
+    if noise_per_label and (sharing or learned):
         raise ValueError(
-            "noise_per_label=True needs sharing=0 and a fixed process noise (no learn_noise), "
-            f"got sharing={sharing!r}"
+            "noise_per_label=True needs sharing=0 and a fixed process noise (no learn_noise or "
+            f"learn_alpha), got sharing={sharing!r}, learned {learned}"
         )
     if features != "frames" and min(lengths) < 2:
         raise ValueError(

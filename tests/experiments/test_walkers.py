@@ -190,6 +190,8 @@ def test_cli_rejects_bad_values_before_any_work(tmp_path, capsys):
         walkers("walkers", noise_per_label=True, sharing=0.5)
     with pytest.raises(TypeError, match="noise_per_label"):
         walkers("walkers", noise_per_label="yes")
+    with pytest.raises(ValueError, match="learn_alpha"):
+        walkers("walkers", noise_per_label=True, model_options={"learn_alpha": True})
 
 
 def test_step_count_is_the_protocols_unless_given():
