@@ -98,6 +98,7 @@ __all__ = [
     "psi0_cross",
     "psi1",
     "psi2",
+    "rbf_psi2_exponent",
     "split_terms",
     "term_k",
     "term_psi1_grad",
@@ -517,7 +518,18 @@ def _x_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -> 
     return mu[..., :, None] * p1[..., None, :] + Sigma @ grad
 
 
-def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
+def rbf_psi2_exponent(
+    a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The RBF x RBF ``psi2`` block as ``exp(left @ right)`` (module docstring's closed form).
+
+    Shapes: ``mu [..., D]``, ``Sigma [..., D, D]``, ``X [..., N, D]`` -> ``left [..., N, D+2]``
+    and ``right [..., D+2, N]``, with ``(left @ right)_ij = log psi2_ij = row_i + col_j +
+    uC_i . v_j``: the whole exponent as one product with a small inner dimension, so that the
+    ``N x N`` work is one matmul and one exponential, whether the block is stored
+    (:func:`term_psi2`) or reduced tile by tile (:mod:`hgpdm_torch.tiling`). ``right`` is built
+    contiguous (a transposed view makes the small-inner-dimension matmul 2-3x slower).
+    """
     s, L, logdet = _rbf_factor(a.weight + b.weight, Sigma)
     inv_s = torch.where(s > 0, 1.0 / torch.where(s > 0, s, torch.ones_like(s)), torch.zeros_like(s))
     d = X - mu[..., None, :]  # [..., N, D]
@@ -528,13 +540,14 @@ def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: to
     row = -0.5 * (d.pow(2) * a.weight).sum(-1) + 0.5 * (uC * u).sum(-1)
     row = row + torch.log(a.coef * b.coef) - 0.5 * logdet[..., None]
     col = -0.5 * (d.pow(2) * b.weight).sum(-1) + 0.5 * (vC * v).sum(-1)
-    # the whole exponent row_i + col_j + uC_i . v_j as one [N, D+2] x [D+2, N] product, so the
-    # N x N work is one matmul and one in-place exp (the hot path of moment matching)
     one = torch.ones_like(row)
     left = torch.cat([uC, row[..., None], one[..., None]], dim=-1)
-    # the right factor built transposed: a contiguous [D+2, N] operand (a transposed view makes
-    # the small-inner-dimension matmul 2-3x slower)
     right = torch.cat([v.expand_as(uC).transpose(-1, -2), one[..., None, :], col[..., None, :]], -2)
+    return left, right
+
+
+def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):
+    left, right = rbf_psi2_exponent(a, b, mu, Sigma, X)
     return (left @ right).exp_()
 
 

@@ -28,28 +28,16 @@ Two more capabilities build on it (thesis Sec. 3.3.1-3.3.3):
 from __future__ import annotations
 
 import copy
-import math
-from collections.abc import Callable
 from dataclasses import replace
 
 import torch
 from gpytorch.kernels import Kernel
 
-from .expectations import (
-    Leaf,
-    Term,
-    check_gaussian,
-    kernel_leaves,
-    leaves_psi0,
-    split_terms,
-    term_psi1,
-    term_psi1_grad,
-    term_psi2,
-    term_psi2_factors,
-)
+from .expectations import Leaf, check_gaussian, kernel_leaves, leaves_psi0, split_terms
 from .gp_shared import SharedTransition
 from .kernels import DiscreteIntentionKernel
-from .linalg import psd_cholesky, shared_matmul, symmetrize
+from .linalg import psd_cholesky, symmetrize
+from .moments import input_moments
 from .validation import as_tensor, check_shape
 
 __all__ = ["GPPosterior", "input_moments"]
@@ -537,118 +525,6 @@ def _psd_part(a: torch.Tensor, diag: torch.Tensor) -> torch.Tensor:
     out = total.clone()
     out[bad] = symmetrize(fixed) + diag.expand_as(total)[bad]
     return out
-
-
-def input_moments(
-    terms: list[Term],
-    mu: torch.Tensor,
-    Sigma: torch.Tensor,
-    X: torch.Tensor,
-    beta: torch.Tensor,
-    kinv: torch.Tensor | None,
-    *,
-    diagonal: bool = False,
-    grad: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """``psi1 beta``, ``beta^T psi2 beta``, ``tr(K^-1 psi2)`` and ``E[d f / dx]``.
-
-    Shapes: ``X [..., N, D]``, ``beta [..., N, Dout]``, ``kinv [..., N, N]`` -> ``[..., Dout]``,
-    ``[..., Dout, Dout]``, ``[...]``, ``[..., D, Dout]``. ``psi2`` is summed over term pairs
-    without forming it per intention: factors rescale ``beta`` (``shared_matmul``), and pairs
-    with a linear or constant term use their rank ``<= D`` factors (no ``N x N`` matrix).
-
-    With ``diagonal=True`` the second moment is only its diagonal ``[..., Dout]`` (the free
-    energy's ``E[m_d(x)^2]``); ``kinv=None`` skips the trace (returned as ``None``) and
-    ``grad=False`` the expected gradient.
-    """
-    ones = torch.ones(X.shape[-2], dtype=X.dtype, device=X.device)
-    factors = [ones if t.factor is None else t.factor for t in terms]
-    fbeta = [f[..., None] * beta for f in factors]  # [..., N, Dout]
-    mean, gradient = 0.0, 0.0
-    for t, fb in zip(terms, fbeta, strict=True):
-        if grad:
-            p1, gr = term_psi1_grad(t, mu, Sigma, X)
-            gradient = gradient + shared_matmul(gr, fb)
-        else:
-            p1 = term_psi1(t, mu, Sigma, X)
-        mean = mean + shared_matmul(p1[..., None, :], fb)[..., 0, :]
-
-    def pair(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-        """``left^T right`` over the points: ``[..., Dout, Dout]`` or its diagonal."""
-        return (left * right).sum(-2) if diagonal else left.transpose(-1, -2) @ right
-
-    second, trace = 0.0, 0.0
-    for i, (a, fa, fba) in enumerate(zip(terms, factors, fbeta, strict=True)):
-        for j in range(i, len(terms)):
-            b, fb, fbb = terms[j], factors[j], fbeta[j]
-            low_rank = term_psi2_factors(a, b, mu, Sigma, X)
-            tr = None
-            if low_rank is None:  # RBF x RBF: one N x N matrix per input Gaussian
-                m, tr = _rbf_pair(a, b, mu, Sigma, X, (fa, fba, fb, fbb), kinv, pair)
-            else:  # psi2 = U^T V of rank <= D: no N x N matrix per input
-                U, V, a_on_u = low_rank
-                (fu, fbu), (fv, fbv) = ((fa, fba), (fb, fbb)) if a_on_u else ((fb, fbb), (fa, fba))
-                mu_u, mu_v = shared_matmul(U, fbu), shared_matmul(V, fbv)  # [..., r, Dout]
-                m = pair(mu_u, mu_v) if a_on_u else pair(mu_v, mu_u)
-                if kinv is not None:
-                    vk = (V * fv[..., None, :]) @ kinv  # [..., r, N]; constant when fv is
-                    tr = (U * fu[..., None, :] * vk).sum((-1, -2))
-            if j > i:  # the (j, i) pair is the transpose
-                m = m + (m if diagonal else m.transpose(-1, -2))
-                tr = None if tr is None else 2.0 * tr
-            second = second + m
-            trace = None if tr is None else trace + tr
-    return mean, second, trace, gradient if grad else None
-
-
-# psi2 entries per chunk of input Gaussians (16 MB in float64): the N x N matrices are built,
-# exponentiated and reduced while they are in cache instead of streaming a [..., N, N] batch of
-# hundreds of MB through memory several times (with the contiguous factors of _psi2_rbf_rbf,
-# 1.8x faster on Weird Walking's VB forecasts, 2 cores)
-_PSI2_CHUNK = 2**21
-
-
-def _rbf_pair(
-    a: Term,
-    b: Term,
-    mu: torch.Tensor,
-    Sigma: torch.Tensor,
-    X: torch.Tensor,
-    weights: tuple[torch.Tensor, ...],
-    kinv: torch.Tensor | None,
-    pair: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """The RBF x RBF term pair of :func:`input_moments`: ``pair(fa beta, psi2 fb beta)`` and
-    ``fa^T (psi2 * K^-1) fb`` (``None`` without ``kinv``), in chunks of input Gaussians when the
-    training side (``X``, ``weights = (fa, fa beta, fb, fb beta)``, ``kinv``) has no batch dims."""
-    fa, fba, fb, fbb = weights
-
-    def reduce(mu_c: torch.Tensor, Sigma_c: torch.Tensor, X_c: torch.Tensor, *w: torch.Tensor):
-        fa_c, fba_c, fb_c, fbb_c, *k = w
-        q = term_psi2(a, b, mu_c, Sigma_c, X_c)
-        m = pair(fba_c, shared_matmul(q, fbb_c))
-        if not k:
-            return m, None
-        qk = q * k[0] if q.requires_grad else q.mul_(k[0])  # reuse q's memory
-        return m, (fa_c * shared_matmul(qk, fb_c[..., None])[..., 0]).sum(-1)
-
-    n, d = X.shape[-2:]
-    rows = [X, fba, fbb] + ([] if kinv is None else [kinv])  # [..., N, .]
-    if any(math.prod(t.shape[:-2]) > 1 for t in rows) or fa.dim() > 1 or fb.dim() > 1:
-        return reduce(mu, Sigma, X, *weights, *([] if kinv is None else [kinv]))
-    batch = torch.broadcast_shapes(mu.shape[:-1], Sigma.shape[:-2], X.shape[:-2])
-    flat_mu = mu.expand(*batch, d).reshape(-1, d)
-    flat_S = Sigma.expand(*batch, d, d).reshape(-1, d, d)
-    flat = [X.reshape(n, d), fa, fba.reshape(n, -1), fb, fbb.reshape(n, -1)]
-    flat += [] if kinv is None else [kinv.reshape(n, n)]
-    size = max(1, _PSI2_CHUNK // (n * n))
-    parts = [
-        reduce(flat_mu[i : i + size], flat_S[i : i + size], *flat)
-        for i in range(0, flat_mu.shape[0], size)
-    ]
-    m = torch.cat([p[0] for p in parts]).reshape(*batch, *parts[0][0].shape[1:])
-    tr = None if kinv is None else torch.cat([p[1] for p in parts]).reshape(batch)
-    return m, tr
 
 
 # Smallest ratio of the smallest to the largest eigenvalue of K_MM that GPPosterior.sparse lets

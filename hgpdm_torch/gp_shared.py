@@ -23,9 +23,20 @@ import math
 from typing import TYPE_CHECKING
 
 import torch
+from torch.utils.checkpoint import checkpoint
 
-from .expectations import Leaf, Term, kernel_leaves, split_terms, term_psi1_grad, term_psi2
+from . import settings
+from .expectations import (
+    Leaf,
+    Term,
+    kernel_leaves,
+    rbf_psi2_exponent,
+    split_terms,
+    term_psi1_grad,
+    term_psi2,
+)
 from .linalg import symmetrize
+from .tiling import OpCount, exp_, per_tile
 
 if TYPE_CHECKING:  # gp.py imports this module: GPPosterior only annotates here
     from .gp import GPPosterior
@@ -249,6 +260,13 @@ class SharedTransition:
         self.phi = term.factor.to(dtype)  # [K, U]
         # phi_k(u_n) beta_n for every grid value k and padded point n: [K, U L, Dx]
         self.weighted_beta = (self.phi[:, :, None, None] * self.beta).reshape(len(values), -1, dx)
+        # the fused path's columns in the order (m, v), point m of group v, so that the group
+        # sums of a [rows (u, l), cols (m, v)] tile are one reduction over a middle dim
+        self.columns = torch.arange(u_count * size, device=X.device).view(u_count, size).T
+        self.columns = self.columns.reshape(-1)
+        self.kinv_cols = self.kinv[:, self.columns].contiguous()  # [U L, L U]
+        self.weighted_beta_cols = self.weighted_beta[:, self.columns].contiguous()  # [K, L U, Dx]
+        self.beta_rows = self.beta.transpose(1, 2).contiguous()  # [U, Dx, L]
         self.term = Term("rbf", term.coef.detach().to(dtype), term.weight.detach().to(dtype), None)
         self.coef = self.term.coef
         if posterior.code_noise is not None:  # alpha_4,k of each intention value: [K]
@@ -306,23 +324,16 @@ class SharedTransition:
             raise ValueError("the shared transition path has no phase: see GenericTransition")
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
-        q = term_psi2(self.term, self.term, mu, Sigma, self.inputs)  # [B, UL, UL]
         phi, beta = self.phi, self.beta
         m_u = torch.einsum("bul,ula->bua", p1.view(b, U, L), beta)
         mean = torch.einsum("ku,bua->bka", phi, m_u)
         g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
         cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
-        T = (q * self.kinv).view(b, U, L, U, L).sum(2).sum(-1)  # [B, U, U]; strided sum first
+        if settings.moment_path.get() == "fused":
+            T, cov = self._fused_second(mu, Sigma, mean)
+        else:
+            T, cov = self._materialised_second(mu, Sigma, p1)
         trace = ((phi @ T) * phi).sum(-1)
-        # Cov[f] = beta_k^T (psi2 - psi1 psi1^T) beta_k: centring the N x N matrix first keeps
-        # float32 usable (beta is large when the noise is small) and gives the covariance
-        # without the cancellation of second moment minus squared mean.
-        q = torch.baddbmm(q, p1[:, :, None], p1[:, None, :], alpha=-1.0)
-        # sum_uv phi_ku phi_kv beta_u^T q_uv beta_v: contract each group's weights
-        # (block-sparse, O(N^2 Dx)), then phi over groups, then the rows
-        P1 = beta.transpose(1, 2) @ q.view(b, U, L, U * L)  # [B, U, Dx, UL]
-        P2 = (phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
-        cov = P2 @ self.weighted_beta  # [B, K, Dx, Dx]
         var = (self.coef - trace).clamp_min(0.0) + self.noise
         var = (
             var[..., None].expand(b, -1, dx)
@@ -331,3 +342,108 @@ class SharedTransition:
         )
         cov = symmetrize(cov) + torch.diag_embed(var)
         return mean if self.offset is None else mean + self.offset, cov, cross
+
+    def _materialised_second(
+        self, mu: torch.Tensor, Sigma: torch.Tensor, p1: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Group sums ``T [B, U, U]`` of ``psi2 * K^-1`` and ``beta_k^T (psi2 - psi1 psi1^T)
+        beta_k [B, K, Dx, Dx]`` with ``psi2`` formed for all B inputs (the materialised path)."""
+        b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
+        q = term_psi2(self.term, self.term, mu, Sigma, self.inputs)  # [B, UL, UL]
+        T = (q * self.kinv).view(b, U, L, U, L).sum(2).sum(-1)  # [B, U, U]; strided sum first
+        # Cov[f] = beta_k^T (psi2 - psi1 psi1^T) beta_k: centring the N x N matrix first keeps
+        # float32 usable (beta is large when the noise is small) and gives the covariance
+        # without the cancellation of second moment minus squared mean.
+        q = torch.baddbmm(q, p1[:, :, None], p1[:, None, :], alpha=-1.0)
+        # sum_uv phi_ku phi_kv beta_u^T q_uv beta_v: contract each group's weights
+        # (block-sparse, O(N^2 Dx)), then phi over groups, then the rows
+        P1 = self.beta.transpose(1, 2) @ q.view(b, U, L, U * L)  # [B, U, Dx, UL]
+        P2 = (self.phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
+        return T, P2 @ self.weighted_beta
+
+    def _fused_second(
+        self, mu: torch.Tensor, Sigma: torch.Tensor, mean: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """What :meth:`_materialised_second` gives, one tile of streams at a time.
+
+        A tile is ``psi2 = exp(left @ right)`` of :func:`~hgpdm_torch.tiling.per_tile` streams,
+        its rows in groups ``(u, l)`` and its columns in the order ``(m, v)`` (``columns``),
+        reduced at once into buffers reused by every tile: the group weights (``[U, Dx, N]``),
+        phi over groups (``[K, Dx, N]``) and the weighted columns give ``beta_k^T psi2 beta_k``;
+        then, in place, the product with ``K^-1`` and one sum over the middle dim ``(l, m)`` give
+        ``T``. The covariance is centred afterwards, ``- mean_k mean_k^T`` (``mean_k = beta_k^T
+        psi1``): in float32 this errs about twice as much as centring ``psi2`` itself (0.06
+        against 0.03 of the smallest predictive variance on the benchmark's IDDM, limit 10) and
+        saves a pass over every tile. Under autograd each tile is recomputed in the backward
+        pass instead of kept.
+        """
+        b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
+        n, K = U * L, self.num_values
+        left, right = rbf_psi2_exponent(self.term, self.term, mu, Sigma, self.inputs)
+        right = right[..., self.columns]
+        size = per_tile(self.workspace(), mu.dtype, mu.device)
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in (left, right))
+        if grad:
+            parts = [
+                checkpoint(self._tile, left[i : i + size], right[i : i + size], use_reentrant=False)
+                for i in range(0, b, size)
+            ]
+            T, second = (torch.cat([p[j] for p in parts]) for j in (0, 1))
+        else:  # one set of buffers for all tiles; a tile's results go straight out
+            new = mu.new_empty
+            size = min(size, b)
+            bufs = (new(size, n, n), new(size, U, dx, n), new(size, K, dx, n))
+            T, second = new(b, U, U), new(b, K, dx, dx)
+            for i in range(0, b, size):
+                rows = slice(i, min(i + size, b))
+                self._tile(left[rows], right[rows], out=(T[rows], second[rows]), bufs=bufs)
+        return T, second - mean[..., :, None] * mean[..., None, :]
+
+    def _tile(
+        self,
+        left: torch.Tensor,
+        right: torch.Tensor,
+        *,
+        out: tuple[torch.Tensor, torch.Tensor] | None = None,
+        bufs: tuple[torch.Tensor, ...] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``T [S, U, U]`` and ``beta_k^T psi2 beta_k [S, K, Dx, Dx]`` of one tile of S streams
+        (:meth:`_fused_second`): into ``out`` with the ``bufs`` work space, or as new
+        (differentiable) tensors."""
+        s, dx, U, L = left.shape[0], self.dx, self.groups, self.group_size
+        n, K = U * L, self.num_values
+        if bufs is None:
+            E = (left @ right).exp()
+            P1 = self.beta_rows @ E.view(s, U, L, n)
+            P2 = self.phi @ P1.view(s, U, dx * n)
+            T = (E * self.kinv_cols).view(s, U, L * L, U).sum(2)
+            return T, P2.view(s, K, dx, n) @ self.weighted_beta_cols
+        E, P1, P2 = (buf[:s] for buf in bufs)
+        exp_(torch.bmm(left, right, out=E))
+        torch.matmul(self.beta_rows, E.view(s, U, L, n), out=P1)
+        torch.matmul(self.phi, P1.view(s, U, dx * n), out=P2.view(s, K, dx * n))
+        torch.matmul(P2, self.weighted_beta_cols, out=out[1])
+        torch.sum(E.mul_(self.kinv_cols).view(s, U, L * L, U), 2, out=out[0])  # E is done
+        return out
+
+    def workspace(self) -> int:
+        """Entries of the fused path's work space per stream: the tile ``N^2``, the group
+        weights ``U Dx N`` and phi over groups ``K Dx N``."""
+        n = self.groups * self.group_size
+        return n * n + (self.groups + self.num_values) * self.dx * n
+
+    def operations(self) -> OpCount:
+        """Work of :meth:`moments` per stream on the fused path (the floor's count).
+
+        ``N^2`` exponentials and ``N`` for ``psi1``; multiply-adds: ``N^2 (Dx + 2)`` for the
+        exponent, ``2 N^2`` for the product with ``K^-1`` and its group sums, ``N^2 Dx`` for
+        the group weights, ``K U Dx N`` for phi over groups, ``K Dx^2 N`` for the weighted
+        columns, ``K U^2`` for the traces, and the ``O(N Dx^2)`` and ``O(K U Dx^2)`` work of
+        ``psi1``, ``E[grad k]``, the means, the centring and ``Cov[x, f]``.
+        """
+        dx, U, K = self.dx, self.groups, self.num_values
+        n = U * self.group_size
+        madds = n * n * (dx + 2) + 2 * n * n + n * n * dx + K * U * dx * n
+        madds += K * dx * dx * n + K * U * U + K * U + K * dx * dx
+        madds += 4 * n * dx * dx + 3 * n * dx + K * U * dx * (1 + dx) + K * dx**3
+        return OpCount(exps=n * n + n, madds=madds)

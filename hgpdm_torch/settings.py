@@ -27,6 +27,12 @@ Example::
 
     with settings.debug(True):
         filter_sequence(transition, measurement, z, mu0, Sigma0)
+
+:class:`moment_path` chooses how the Gaussian-input second moments ``psi2`` (``N x N`` per input
+Gaussian) are reduced: ``"fused"`` (default) contracts them tile by tile without storing them per
+input (:mod:`hgpdm_torch.tiling`), ``"materialised"`` is the earlier path that forms them for a
+chunk of inputs and then reduces them; it stays for comparison in benchmarks and tests.
+:class:`tile_bytes` overrides the tile size that :mod:`hgpdm_torch.tiling` picks per device.
 """
 
 from __future__ import annotations
@@ -36,10 +42,12 @@ import contextvars
 from collections.abc import Iterator
 from types import TracebackType
 
-__all__ = ["debug", "internal_step", "validate_internal"]
+__all__ = ["debug", "internal_step", "moment_path", "tile_bytes", "validate_internal"]
 
 _debug = contextvars.ContextVar("hgpdm_torch_debug", default=False)
 _internal = contextvars.ContextVar("hgpdm_torch_internal", default=False)
+_path = contextvars.ContextVar("hgpdm_torch_moment_path", default="fused")
+_tile = contextvars.ContextVar("hgpdm_torch_tile_bytes", default=None)
 
 
 class debug:
@@ -97,3 +105,72 @@ def validate_internal() -> bool:
     """Whether a structure check of a Gaussian should run now: always for a user's call,
     inside :func:`internal_step` only under :class:`debug`."""
     return _debug.get() or not _internal.get()
+
+
+class _Setting:
+    """A context manager setting one context variable for its block (per thread/async context)."""
+
+    _var: contextvars.ContextVar
+
+    def __init__(self, value: object) -> None:
+        self.value = value
+        self._token: contextvars.Token | None = None
+
+    def __enter__(self) -> _Setting:
+        self._token = self._var.set(self.value)
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._token is not None:
+            self._var.reset(self._token)
+            self._token = None
+
+
+class moment_path(_Setting):
+    """Context manager choosing how ``psi2`` is reduced (module docstring).
+
+    Args:
+        path: ``"fused"`` (the default outside any block) or ``"materialised"``.
+
+    ``moment_path.get()`` is the current choice.
+    """
+
+    _var = _path
+    choices = ("fused", "materialised")
+
+    def __init__(self, path: str) -> None:
+        if path not in self.choices:
+            raise ValueError(f"path must be one of {self.choices}, got {path!r}")
+        super().__init__(path)
+
+    @staticmethod
+    def get() -> str:
+        """The path in effect: ``"fused"`` or ``"materialised"``."""
+        return _path.get()
+
+
+class tile_bytes(_Setting):
+    """Context manager fixing the size of one ``psi2`` tile in bytes, instead of the device's
+    default (:func:`hgpdm_torch.tiling.tile_budget`); e.g. small tiles to test the tiled loops.
+
+    Args:
+        size: positive int, bytes of the ``[tile, N, N]`` block evaluated at once (at least one
+            input Gaussian per tile whatever the size).
+    """
+
+    _var = _tile
+
+    def __init__(self, size: int) -> None:
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise ValueError(f"size must be a positive int (bytes), got {size!r}")
+        super().__init__(size)
+
+    @staticmethod
+    def get() -> int | None:
+        """The size in effect, or ``None`` for the device's default."""
+        return _tile.get()

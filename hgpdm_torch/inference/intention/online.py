@@ -34,6 +34,7 @@ from ...gp_shared import sparse_posterior
 from ...linalg import symmetrize
 from ...models import GPDM
 from ...observations import DEFAULT_OUTLIER_SD, ObservationCheck
+from ...tiling import stream_chunk
 from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import measurement_update
@@ -168,9 +169,12 @@ class OnlineIntentionFilter(IsolatedStreams):
             (not ``noise_per_value``).
         inducing_values: distinct intention values among the pseudo-inputs (continuous g;
             default ``round(sqrt(inducing))``, all training values when ``inducing >= N``).
-        chunk_size: positive int, streams processed together; the ``[chunk, N, N]``
-            temporaries are passed over several times, so the default ``2^19 / N^2`` keeps them
-            in cache.
+        chunk_size: positive int, streams processed together (fixed ranges of stream indices,
+            see above). The default (:func:`~hgpdm_torch.tiling.stream_chunk`) is 32 on a CPU
+            and on an accelerator as many streams as one ``psi2`` tile holds; the ``N x N``
+            expectations are tiled inside the transition whatever the chunk
+            (:class:`~hgpdm_torch.settings.moment_path`; on the materialised path
+            ``2^19 / N^2``, which keeps its ``[chunk, N, N]`` temporaries in cache).
         outlier_sd: plausibility threshold in training standard deviations per channel (default
             100; see :class:`~hgpdm_torch.observations.ObservationCheck`); ``None``
             rejects only non-finite values and partly NaN rows.
@@ -306,7 +310,7 @@ class OnlineIntentionFilter(IsolatedStreams):
         self.batch_size = int(batch_size)
         self.obs_dim = model.obs_dim
         n = self.transition.inputs.shape[0]
-        self.chunk_size = chunk_size or max(1, 2**19 // (n * n))
+        self.chunk_size = chunk_size or stream_chunk(3 * n * n, self.dtype, self.mu0.device)
         self.reset()
 
     # the flat view of the option groups, as the keywords name them
