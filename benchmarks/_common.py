@@ -11,6 +11,8 @@ from pathlib import Path
 
 import torch
 
+from hgpdm_torch.tiling import OpCount, exp_
+
 RESULTS = Path(__file__).parent / "results"
 
 #: process noise alpha_4 of the models timed in float32: the online filter refuses float32 for
@@ -120,3 +122,60 @@ def parse_options(argv: list[str], prog: str) -> Options:
 
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+@dataclass(frozen=True)
+class Rates:
+    """What this device does per second, measured in this process (:func:`measure_rates`):
+    multiply-adds in a large GEMM and exponentials in a large in-place ``exp``."""
+
+    madd: float
+    exp: float
+
+    def floor_ms(self, ops: OpCount) -> float:
+        """Milliseconds ``ops`` take at these rates: the floor of a computation."""
+        return 1e3 * ops.seconds(self.exp, self.madd)
+
+    def as_dict(self) -> dict[str, float]:
+        return {"GEMM [Gmadd/s]": self.madd / 1e9, "exp [G/s]": self.exp / 1e9}
+
+
+def measure_rates(device: torch.device, dtype: torch.dtype, repeats: int = 5) -> Rates:
+    """The floor's rates on ``device`` in ``dtype``, best of ``repeats``: a square GEMM (1,024
+    on a CPU, 8,192 on an accelerator) and the library's in-place exponential
+    (:func:`hgpdm_torch.tiling.exp_`, NumPy's where it is the faster) over 2^20 entries in
+    [-20, 0] (2^26 on an accelerator), each repeat on a fresh copy."""
+    n, m = (1024, 2**20) if device.type == "cpu" else (8192, 2**26)
+    a = torch.randn(n, n, dtype=dtype, device=device)
+    b = torch.randn(n, n, dtype=dtype, device=device)
+    gemm = best_of(lambda: a @ b, repeats, device)
+    x = torch.empty(m, dtype=dtype, device=device).uniform_(-20.0, 0.0)
+    copies = iter([x.clone() for _ in range(repeats)])
+    expo = best_of(lambda: exp_(next(copies)), repeats, device)
+    return Rates(madd=n**3 / gemm, exp=m / expo)
+
+
+def peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
+    """Peak bytes allocated while ``fn()`` runs, above what was allocated before it.
+
+    On an accelerator the allocator's peak statistic; on a CPU the running sum of the
+    allocation and release events that ``torch.profiler`` records (in the order they happened).
+    """
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        before = torch.cuda.memory_allocated(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        fn()
+        torch.cuda.synchronize(device)
+        return torch.cuda.max_memory_allocated(device) - before
+    with torch.profiler.profile(
+        activities=[torch.profiler.ProfilerActivity.CPU], profile_memory=True
+    ) as prof:
+        fn()
+    events = [e for e in prof.profiler.kineto_results.events() if e.name() == "[memory]"]
+    events.sort(key=lambda e: e.start_ns())
+    current = peak = 0
+    for e in events:
+        current += e.nbytes()
+        peak = max(peak, current)
+    return peak

@@ -12,6 +12,13 @@ per movement), Dz = 15, Dx = 4, linear measurement kernel, K = 25 grid values, o
 - ``online B streams``: time per stream of one batched update of B streams, and the same B
   updates as a Python loop over B single-stream filters (``x loop`` = loop / batched; target
   >= 3x at B = 256);
+- ``online batched`` by ``path``: the fused psi2 contraction (``settings.moment_path``, the
+  default) and the materialised path it replaced, timed in turn in this process, each with
+  ``floor [ms/stream]`` (the step's operation count, :meth:`OnlineIntentionFilter.operations`,
+  at this device's rates: a large GEMM and a large exponential timed in this process, recorded
+  in ``meta["rates"]``), ``x floor`` (time over floor) and ``peak MB/stream`` (peak allocation
+  of one update over B); each path at its own default chunk of streams;
+- ``streams at 30 Hz`` by path: the largest B whose whole update fits in 33 ms;
 - ``online sparse M``: the sparse pseudo-input transition (Sec. 3.3.3; M pseudo-inputs on
   ``round(sqrt(M))`` intention values), one stream and B = 256 streams (``x exact loop``: the
   batched sparse update against the loop of exact single-stream updates), and the mean shift of
@@ -30,6 +37,7 @@ wall-clock latency also counts the time other processes hold the core. On an acc
 Options (:func:`benchmarks._common.parse_options`): ``--device``, ``--dtype`` (the filters'
 computation dtype; the model stays float64; the Q-bound row stays float64) and ``--gpu-sizes``:
 B = 1, 4, ..., 4096 streams (N = 500, K = 25), the Python loop only up to B = 16.
+``--quick`` runs N = 150 and B up to 64 (the floor and memory columns included).
 """
 
 from __future__ import annotations
@@ -39,7 +47,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks._common import FLOAT32_NOISE, Options, parse_options
+from benchmarks._common import (
+    FLOAT32_NOISE,
+    Options,
+    Rates,
+    measure_rates,
+    parse_options,
+    peak_bytes,
+)
+from hgpdm_torch import settings
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.beliefs import PHASE_IDDM
 from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
@@ -94,20 +110,10 @@ def single_stream(
     return _percentiles(times)
 
 
-def batched(opts: Options, model, grid, streams, B: int, loop_max: int, inducing=None):
-    """(batched ms/stream, loop ms/stream or None) for one update of B streams."""
+def loop_ms(opts: Options, model, grid, streams, B: int, inducing=None) -> float:
+    """ms per stream of the same update as a Python loop over B single-stream filters."""
     z = streams[torch.arange(B, device=streams.device) % len(streams)]
     options = {"forgetting": 0.2, "inducing": inducing, "dtype": opts.dtype}
-    f = OnlineIntentionFilter(model, grid, batch_size=B, **options)
-    f.update(z[:, 0])
-    times = []
-    for t in range(1, 4):
-        start = opts.clock()
-        f.update(z[:, t])
-        times.append(opts.clock() - start)
-    per_stream = 1e3 * min(times) / B
-    if B > loop_max:
-        return per_stream, None
     singles = [OnlineIntentionFilter(model, grid, **options) for _ in range(B)]
     for b, s in enumerate(singles):
         s.update(z[b, 0])
@@ -117,7 +123,64 @@ def batched(opts: Options, model, grid, streams, B: int, loop_max: int, inducing
         for b, s in enumerate(singles):
             s.update(z[b, t])
         loops.append(opts.clock() - start)
-    return per_stream, 1e3 * min(loops) / B
+    return 1e3 * min(loops) / B
+
+
+def batched(opts: Options, model, grid, streams, B: int, inducing=None) -> float:
+    """ms per stream of one batched update of B streams."""
+    z = streams[torch.arange(B, device=streams.device) % len(streams)]
+    options = {"forgetting": 0.2, "inducing": inducing, "dtype": opts.dtype}
+    return _update_ms(opts, OnlineIntentionFilter(model, grid, batch_size=B, **options), z) / B
+
+
+def _update_ms(opts: Options, f: OnlineIntentionFilter, z: torch.Tensor, updates: int = 3):
+    """Best of ``updates`` timed updates [ms] of the filter ``f`` (after one untimed first
+    observation, which only initialises the streams) on the observations ``z [B, T, Dz]``."""
+    f.update(z[:, 0])
+    times = []
+    for t in range(1, 1 + updates):
+        start = opts.clock()
+        f.update(z[:, t])
+        times.append(opts.clock() - start)
+    return 1e3 * min(times)
+
+
+def path_row(opts: Options, rates: Rates, model, grid, streams, B: int, path: str) -> dict:
+    """The online update of B streams on one psi2 path (``settings.moment_path``): ms per
+    stream, its floor (the step's operation count at this device's rates) and the peak memory
+    of one update per stream."""
+    z = streams[torch.arange(B, device=streams.device) % len(streams)]
+    with settings.moment_path(path):
+        f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
+        per_stream = _update_ms(opts, f, z) / B
+        peak = peak_bytes(lambda: f.update(z[:, 4]), opts.device)
+    floor = rates.floor_ms(f.operations())
+    return {
+        "algorithm": "online batched", "path": path, "B": B,
+        "p50 [ms/obs/stream]": per_stream, "floor [ms/stream]": floor,
+        "x floor": per_stream / floor, "peak MB/stream": peak / B / 1e6,
+    }  # fmt: skip
+
+
+def streams_at(opts: Options, model, grid, streams, path: str, budget_ms: float = 1e3 / 30):
+    """The largest B whose update fits in ``budget_ms`` (33 ms: 30 Hz) on this path: B doubles
+    until an update takes longer, then bisection between the last two (best of 2 updates)."""
+    with settings.moment_path(path):
+
+        def fits(B: int) -> bool:
+            z = streams[torch.arange(B, device=streams.device) % len(streams)]
+            f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
+            return _update_ms(opts, f, z, updates=2) <= budget_ms
+
+        if not fits(1):
+            return 0
+        low, high = 1, 2
+        while high <= 2**16 and fits(high):
+            low, high = high, 2 * high
+        while high - low > 1:
+            mid = (low + high) // 2
+            low, high = (mid, high) if fits(mid) else (low, mid)
+        return low
 
 
 def sparse_error(model, grid, streams, inducing: int) -> float:
@@ -147,15 +210,21 @@ def run(opts: Options) -> ResultTable:
     model32 = build_model(steps, opts.device, FLOAT32_NOISE, movements)[0]
     model = model32 if opts.dtype == torch.float32 else model64
     n = int(model.src_index.numel())
+    rates = measure_rates(opts.device, opts.dtype)
     table = ResultTable(
         f"IDDM intention inference, N={n}, Dz={DZ}, Dx={DX}, K={K}, 1 CPU thread, "
         f"device {opts.device}",
         [
             "algorithm",
+            "path",
             "dtype",
             "B",
             "p50 [ms/obs/stream]",
             "p99 [ms]",
+            "floor [ms/stream]",
+            "x floor",
+            "peak MB/stream",
+            "streams at 30 Hz",
             "loop [ms/stream]",
             "x loop",
             "x exact loop",
@@ -166,6 +235,7 @@ def run(opts: Options) -> ResultTable:
             **opts.meta(),
             "command": "python -m benchmarks online_intention",
             "alpha_4": {"float64": 1e-2, "float32": FLOAT32_NOISE},
+            "rates": rates.as_dict(),
         },  # fmt: skip
     )
     repeats = 3 if quick else 40
@@ -189,14 +259,21 @@ def run(opts: Options) -> ResultTable:
         sizes, loop_max = [1, 4, 16, 64, 256, 1024], 256
     name = str(opts.dtype).removeprefix("torch.")
     exact_loop = {}
+    # the fused psi2 path (the default) and the materialised one it replaced, in turn in this
+    # process: time, floor and peak memory per stream; the loop of single-stream filters
     for B in sizes:
-        per_stream, loop = batched(opts, model, grid, streams, B, loop_max)
-        row = {"algorithm": "online batched", "dtype": name, "B": B,
-               "p50 [ms/obs/stream]": per_stream}  # fmt: skip
-        if loop is not None:
-            exact_loop[B] = loop
-            row.update({"loop [ms/stream]": loop, "x loop": loop / per_stream})
-        table.add(**row)
+        for path in settings.moment_path.choices:
+            row = path_row(opts, rates, model, grid, streams, B, path)
+            if path == "fused" and B <= loop_max:
+                exact_loop[B] = loop = loop_ms(opts, model, grid, streams, B)
+                row.update({"loop [ms/stream]": loop, "x loop": loop / row["p50 [ms/obs/stream]"]})
+            table.add(dtype=name, **row)
+            print(table.rows[-1], flush=True)
+    for path in settings.moment_path.choices:
+        table.add(**{
+            "algorithm": "streams at 30 Hz", "path": path, "dtype": name,
+            "streams at 30 Hz": streams_at(opts, model, grid, streams, path),
+        })  # fmt: skip
         print(table.rows[-1], flush=True)
     # the sparse pseudo-input transition (Sec. 3.3.3): latency, throughput and accuracy cost
     for m in (50, 25) if quick else (250, 125):
@@ -205,7 +282,8 @@ def run(opts: Options) -> ResultTable:
             p50, p99 = single_stream(
                 opts, model, grid, streams, opts.dtype, "predictive", repeats, m
             )
-            per_stream, loop = batched(opts, model, grid, streams, B, loop_max, m)
+            per_stream = batched(opts, model, grid, streams, B, m)
+            loop = loop_ms(opts, model, grid, streams, B, m)
         except ValueError as err:  # the filter refuses a dtype too coarse for this model
             print(f"online sparse M={m} skipped: {err}", flush=True)
             continue
@@ -243,8 +321,8 @@ def phase_options(
     plain1 = single_stream(opts, model, grid, streams, opts.dtype, "predictive", repeats)[0]
     one = single_stream(opts, phase, grid, streams, opts.dtype, "predictive", repeats)
     B = 256
-    plainB = batched(opts, model, grid, streams, B, 0)[0]
-    manyB = batched(opts, phase, grid, streams, B, 0)[0]
+    plainB = batched(opts, model, grid, streams, B)
+    manyB = batched(opts, phase, grid, streams, B)
     table.add(**{
         "algorithm": "online phase + scales", "dtype": name, "B": 1,
         "p50 [ms/obs/stream]": one[0], "p99 [ms]": one[1], "x plain": one[0] / plain1,

@@ -533,13 +533,17 @@ def rbf_psi2_exponent(
     s, L, logdet = _rbf_factor(a.weight + b.weight, Sigma)
     inv_s = torch.where(s > 0, 1.0 / torch.where(s > 0, s, torch.ones_like(s)), torch.zeros_like(s))
     d = X - mu[..., None, :]  # [..., N, D]
-    u, v = d * (a.weight * inv_s), d * (b.weight * inv_s)
     eye = torch.eye(s.shape[-1], dtype=Sigma.dtype, device=Sigma.device)
     C = eye - torch.cholesky_inverse(L)  # I - B^{-1}, PSD with eigenvalues in [0, 1)
-    uC, vC = u @ C, v @ C
-    row = -0.5 * (d.pow(2) * a.weight).sum(-1) + 0.5 * (uC * u).sum(-1)
-    row = row + torch.log(a.coef * b.coef) - 0.5 * logdet[..., None]
-    col = -0.5 * (d.pow(2) * b.weight).sum(-1) + 0.5 * (vC * v).sum(-1)
+    u = d * (a.weight * inv_s)
+    uC = u @ C
+    col = -0.5 * (d.pow(2) * a.weight).sum(-1) + 0.5 * (uC * u).sum(-1)
+    row = col + (torch.log(a.coef * b.coef) - 0.5 * logdet[..., None])
+    if b is not a:  # a psi2 across two terms (e.g. the parts of a sum kernel)
+        v = d * (b.weight * inv_s)
+        col = -0.5 * (d.pow(2) * b.weight).sum(-1) + 0.5 * ((v @ C) * v).sum(-1)
+    else:
+        v = u
     one = torch.ones_like(row)
     left = torch.cat([uC, row[..., None], one[..., None]], dim=-1)
     right = torch.cat([v.expand_as(uC).transpose(-1, -2), one[..., None, :], col[..., None, :]], -2)

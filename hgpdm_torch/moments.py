@@ -41,7 +41,7 @@ from .expectations import (
 from .linalg import shared_matmul
 from .tiling import OpCount, exp_, per_tile
 
-__all__ = ["input_moments", "pair_operations"]
+__all__ = ["input_moments", "input_operations", "pair_operations"]
 
 
 def input_moments(
@@ -231,3 +231,43 @@ def pair_operations(
     if trace:
         madds += n * n * (1 + sets)
     return OpCount(exps=n * n, madds=madds)
+
+
+def input_operations(
+    terms: list[Term],
+    n: int,
+    dout: int,
+    *,
+    sets: int = 1,
+    diagonal: bool = False,
+    trace: bool = True,
+    grad: bool = True,
+) -> OpCount:
+    """Work of :func:`input_moments` for one input Gaussian, in the loops it runs.
+
+    Per term: ``psi1`` (``N`` exponentials for an RBF; ``N D^2`` multiply-adds to whiten the
+    inputs) and with ``grad`` as many again for ``E[d k / dx]``, each contracted with ``S``
+    weight sets (``N S Dout``, times ``D`` for the gradient). Per term pair: an RBF x RBF pair
+    :func:`pair_operations`; a low-rank pair of rank ``r`` (``D``, or 1 with a constant term)
+    ``2 r N S Dout`` for the two projections, ``r S Dout^2`` for the pair and with ``trace``
+    ``r N^2 + r N`` against ``K^-1``. ``D`` is the terms' Gaussian dim (their ``weight``).
+    """
+    ops = OpCount()
+    for t in terms:
+        d = t.weight.shape[-1]
+        one = OpCount(exps=n if t.kind == "rbf" else 0, madds=n * d * d + n * sets * dout)
+        ops = ops + one * (1 + int(grad))
+        if grad:
+            ops = ops + OpCount(madds=n * d * sets * dout)
+    for i, a in enumerate(terms):
+        for b in terms[i:]:
+            d = a.weight.shape[-1]
+            if a.kind == "rbf" and b.kind == "rbf":
+                ops = ops + pair_operations(
+                    n, d, dout, sets=sets, diagonal=diagonal, trace=trace
+                )
+                continue
+            r = 1 if "const" in (a.kind, b.kind) else d
+            madds = 2 * r * n * sets * dout + r * sets * (dout if diagonal else dout * dout)
+            ops = ops + OpCount(madds=madds + (r * n * n + r * n if trace else 0))
+    return ops

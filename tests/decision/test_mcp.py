@@ -18,6 +18,7 @@ import pytest
 import torch
 from scipy import stats
 
+from hgpdm_torch import settings
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import LinearQ, lspi
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
@@ -124,6 +125,24 @@ def test_batched_particle_update_equals_the_online_filter(
     out = ref.update(z)
     rounding = gp_rounding(f.posterior)
     _assert_filter_close((log_prob, mean, cov), (out.log_prob, ref.mean, ref.cov), rounding)
+
+
+def test_planner_is_the_same_on_both_moment_paths(model, pipeline, gp_rounding):
+    """The fused and the materialised psi2 paths (settings.moment_path) give the same particle
+    updates and projected values, to the rounding of the shared transition moments."""
+    f, basis, q, states = pipeline
+    belief = _belief(states, 5, 2)
+    z = model.measurement_posterior().predict(belief.mean[None])[0].expand(8, -1)
+    out = {}
+    for path in ("materialised", "fused"):
+        with settings.moment_path(path):
+            planner = MonteCarloPlanner(model, f, q, basis, num_particles=60, chunk_size=30)
+            values = planner.project(belief, generator=torch.Generator().manual_seed(3))
+            out[path] = (*planner.step(belief, z)[:3], values)
+    rounding = gp_rounding(f.posterior)
+    _assert_filter_close(out["fused"][:3], out["materialised"][:3], rounding)
+    # the values read the particles' beliefs through the features: the same rounding
+    torch.testing.assert_close(out["fused"][3], out["materialised"][3], rtol=0.0, atol=rounding)
 
 
 def _filter_in(model, belief, num, **options):

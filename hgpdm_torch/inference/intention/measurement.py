@@ -10,16 +10,19 @@ Shapes: ``Dx`` latent, ``Dz`` observed; ``...`` any leading dims (streams B, int
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 
 import torch
 
-from ...expectations import kernel_leaves
+from ...expectations import kernel_leaves, split_terms
 from ...gaussian import log_density_terms
 from ...gp import GPPosterior
 from ...linalg import cholesky_logdet, psd_cholesky, symmetrize
+from ...moments import input_operations
+from ...tiling import OpCount
 from ..filtering import gp_adf_update
 
-__all__ = ["LinearMeasurement"]
+__all__ = ["LinearMeasurement", "measurement_operations"]
 
 
 class LinearMeasurement:
@@ -75,6 +78,18 @@ class LinearMeasurement:
         self.offset = posterior.offset.to(dtype)
         self.noise = posterior.noise.to(dtype)
 
+    def operations(self) -> OpCount:
+        """Work of :meth:`update` per Gaussian (the floor's count), ``k = min(Dx, Dz)``:
+        ``2 Dx^2`` for ``v``, ``2 Dz k`` for the projections of ``z``, ``k Dx`` for ``r``,
+        ``k Dx^2 + k^2 Dx`` for ``S``, ``k^3 / 3`` for its Cholesky factor, ``k^2 (Dx + 1)``
+        for the solves, ``Dx k + Dx^2 k`` for the posterior and ``k + Dz`` for the density;
+        ``Dz`` divisions and 2 logarithms counted as exponentials."""
+        dz, k = self.U.shape
+        dx = self.R.shape[1]
+        madds = 2 * dx * dx + 2 * dz * k + k * dx + k * dx * dx + k * k * dx + k**3 / 3
+        madds += k * k * (dx + 1) + dx * k + dx * dx * k + k + dz
+        return OpCount(exps=2 + dz, madds=madds)
+
     def update(
         self, mu: torch.Tensor, P: torch.Tensor, z: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -112,3 +127,21 @@ def measurement_update(posterior: GPPosterior, dtype: torch.dtype):
     except TypeError:
         post = posterior.to_dtype(dtype)
         return functools.partial(gp_adf_update, post)  # picklable, unlike a lambda
+
+
+def measurement_operations(update: Callable[..., object], dx: int) -> OpCount:
+    """Work of one measurement update (:func:`measurement_update`'s result) per Gaussian of
+    ``Dx`` dims: :meth:`LinearMeasurement.operations`, or for
+    :func:`~hgpdm_torch.inference.filtering.gp_adf_update` the moment matching of the
+    measurement GP (:func:`~hgpdm_torch.moments.input_operations`) and the conditioning on
+    ``z`` (``Dz^3 / 3`` for the Cholesky factor, ``Dz^2 (Dx + 1)`` for the solves, ``Dx^2 Dz``
+    for the posterior covariance)."""
+    owner = getattr(update, "__self__", None)
+    if isinstance(owner, LinearMeasurement):
+        return owner.operations()
+    post = update.args[0]
+    leaves = kernel_leaves(post.kernel, post.input_dim)
+    terms = split_terms(leaves, post.train_inputs, None, post.input_dim)
+    dz = post.output_dim
+    ops = input_operations(terms, post.train_inputs.shape[0], dz)
+    return ops + OpCount(exps=1, madds=dz**3 / 3 + dz * dz * (dx + 1) + dx * dx * dz)

@@ -34,10 +34,10 @@ from ...gp_shared import sparse_posterior
 from ...linalg import symmetrize
 from ...models import GPDM
 from ...observations import DEFAULT_OUTLIER_SD, ObservationCheck
-from ...tiling import stream_chunk
+from ...tiling import OpCount, stream_chunk
 from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
-from .measurement import measurement_update
+from .measurement import measurement_operations, measurement_update
 from .options import (
     BeliefUpdate,
     Evidence,
@@ -348,6 +348,18 @@ class OnlineIntentionFilter(IsolatedStreams):
     def strict(self) -> bool:
         """:attr:`options` ``.observations.strict``."""
         return self.options.observations.strict
+
+    def operations(self) -> OpCount:
+        """Work of one :meth:`update` per stream after its first observation (the floor's
+        count; predictive evidence): the transition moments of the K grid values
+        (:meth:`~hgpdm_torch.gp_shared.SharedTransition.operations` or
+        :meth:`~hgpdm_torch.inference.intention.transition.GenericTransition.operations`), K
+        measurement updates (:func:`~hgpdm_torch.inference.intention.measurement.
+        measurement_operations`), and the belief and mixture (``K`` exponentials, ``3 K Dx^2``
+        multiply-adds)."""
+        K, dx = self.num_values, self.mu0.shape[0]
+        ops = self.transition.operations() + measurement_operations(self.measure, dx) * K
+        return ops + OpCount(exps=K, madds=3 * K * dx * dx + 2 * K * dx + 4 * K)
 
     @settings.internal_step()  # the prior was checked when set
     def _initialise(

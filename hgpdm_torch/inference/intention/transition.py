@@ -27,14 +27,18 @@ GPDM), ``N`` transition training points.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Protocol
 
 import torch
 
 from ... import settings
+from ...expectations import kernel_leaves, split_terms
 from ...gp import GPPosterior
 from ...gp_shared import SharedTransition, sparse_posterior
 from ...models import GPDM
+from ...moments import input_operations
+from ...tiling import OpCount
 from ...validation import check_choice
 from .state_prior import marginal_state_prior
 
@@ -70,6 +74,8 @@ class TransitionMoments(Protocol):
     def moments(
         self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+    def operations(self) -> OpCount: ...
 
 
 class GenericTransition:
@@ -157,6 +163,29 @@ class GenericTransition:
             return self.posterior.predict_gaussian(
                 mu[:, None], Sigma[:, None], g=self._g, include_noise=True
             )
+
+
+    def operations(self) -> OpCount:
+        """Work of :meth:`moments` per stream (the floor's count): the moment matching of the
+        transition GP for the K grid values sharing one input Gaussian
+        (:func:`~hgpdm_torch.moments.input_operations`); with a discrete g's blocks
+        (:meth:`GPPosterior.blocks <hgpdm_torch.gp.GPPosterior.blocks>`) K separate ones over
+        the padded block of each code."""
+        post = self.posterior
+        dx, X = post.output_dim, post.train_inputs
+        leaves = kernel_leaves(post.kernel, post.input_dim)
+        g = None if self._g is None else self._g[0]
+        if self.phase:  # the phase is one more known column (its value does not matter here)
+            p = X.new_zeros(self.num_values, 1)
+            g = p if g is None else torch.cat([g, p], -1)
+        blocks = post.blocks() if g is not None else None
+        if blocks is None:
+            terms = split_terms(leaves, X, g, dx)
+            return input_operations(terms, X.shape[0], dx, sets=self.num_values)
+        Xb = blocks[0][0, :, :dx]  # one code's padded block: [M, Dx]
+        x_leaves = [replace(lf, weight=lf.weight[:dx], codes=()) for lf in leaves]
+        terms = split_terms(x_leaves, Xb, None, dx)
+        return input_operations(terms, Xb.shape[0], dx) * self.num_values
 
 
 def transition_moments(
