@@ -1,7 +1,9 @@
 """Target prediction on fresh draws of the full protocol (issue #14, item 4).
 
-``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick] [--first-seed=S]`` (about
-14 min on 2 cores for 10 replicates; each draws and simulates 226 strokes). Writes
+``OMP_NUM_THREADS=1 python -m benchmarks target_replicates [--quick] [--first-seed=S]
+[--workers=W] [--ray-address=ADDRESS]`` (about 14 min on 2 cores for 10 replicates; each draws
+and simulates 226 strokes; ``--workers`` runs W replicates at once in local processes,
+``--ray-address`` on a Ray cluster (``local``, ``auto`` or HOST:PORT), with the same table). Writes
 ``benchmarks/results/target_replicates.json`` (``..._quick.json`` with ``--quick``,
 ``..._from{S}.json`` for the seeds ``S .. S + 9`` instead of ``1 .. 10``).
 
@@ -44,6 +46,7 @@ from __future__ import annotations
 import sys
 import time
 import warnings
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -62,6 +65,7 @@ from hgpdm_torch.experiments.target_prediction import (
 )
 from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
 from hgpdm_torch.models import LinearIDDM
+from hgpdm_torch.parallel import Executor, get_executor
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
@@ -161,7 +165,21 @@ def _ratio_interval(
     return float(lo), float(hi)
 
 
-def run(quick: bool = False, replicates: int = 10, first_seed: int = 1) -> ResultTable:
+def _timed_replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int):
+    """:func:`_replicate` and its wall time [s] (one executor job)."""
+    start = time.time()
+    out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
+    return out, choices, time.time() - start
+
+
+def run(
+    quick: bool = False,
+    replicates: int = 10,
+    first_seed: int = 1,
+    executor: Executor | None = None,
+) -> ResultTable:
+    """The table; ``executor`` (:func:`~hgpdm_torch.parallel.get_executor`) runs the replicates
+    at once (each is seeded by its own seed: the same table as one after the other)."""
     if quick:
         replicates, n_train, n_test, grid_size, steps = 2, 20, 10, 13, 5
     else:
@@ -186,12 +204,13 @@ def run(quick: bool = False, replicates: int = 10, first_seed: int = 1) -> Resul
             "replicates": {},
         },  # fmt: skip
     )
-    for seed in seeds:
-        start = time.time()
-        out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
+    job = partial(_timed_replicate, n_train=n_train, n_test=n_test, grid_size=grid_size,
+                  steps=steps)  # fmt: skip
+    results = map(job, seeds) if executor is None else executor.map(job, seeds)
+    for seed, (out, choices, seconds) in zip(seeds, results, strict=True):
         ref = out[METHODS[0]][0][:, -1].sum()
         table.meta["replicates"][seed] = {
-            "seconds": round(time.time() - start, 1),
+            "seconds": round(seconds, 1),
             "phase_iddm_temperature": choices.pop(METHODS[12])["temperature"],
             "linear_iddm_choices": choices,
             "mae_80ms": {m: float(e[:, -1].mean()) for m, (e, _) in out.items()},
@@ -225,7 +244,20 @@ def main(argv: list[str]) -> int:
     # --first-seed=S: the replicates S .. S + 9 (a confirmation on draws never looked at)
     seeds = [a.split("=", 1)[1] for a in argv if a.startswith("--first-seed=")]
     first = int(seeds[-1]) if seeds else 1
-    table = run(quick=quick, first_seed=first)
+    workers = [int(a.split("=", 1)[1]) for a in argv if a.startswith("--workers=")]
+    address = [a.split("=", 1)[1] for a in argv if a.startswith("--ray-address=")]
+    pool = (
+        get_executor(workers[-1] if workers else None, address[-1])
+        if address
+        else get_executor(workers[-1])
+        if workers
+        else None
+    )
+    try:
+        table = run(quick=quick, first_seed=first, executor=pool)
+    finally:
+        if pool is not None:
+            pool.close()
     print(table.to_markdown())
     name = "target_replicates" + ("_quick" if quick else "") + (f"_from{first}" if first != 1
                                                                  else "")  # fmt: skip

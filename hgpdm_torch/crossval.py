@@ -13,7 +13,8 @@ live here:
   class of a discrete label trained on);
 - the loop: :func:`held_out` runs ``fit_predict(fold, train, test)`` for every fold (or, for
   folds that carry their own data, ``fit_predict(fold, *data)``), with a progress bar and the
-  fold named in any error;
+  fold named in any error; in this process, or on an :class:`~hgpdm_torch.parallel.Executor`
+  (local processes, a Ray cluster) with the same results in the same order;
 - the choice: :func:`best_index` (the first best score; ties go to the earlier candidate).
 
 A split is a pair ``(train, test)`` of lists of item indices.
@@ -22,11 +23,12 @@ A split is a pair ``(train, test)`` of lists of item indices.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 import numpy as np
 
+from .parallel import Executor
 from .progress import tqdm
 
 __all__ = [
@@ -120,6 +122,7 @@ def held_out(
     splits: Sequence[tuple[Any, ...]],
     fit_predict: Callable[..., Out],
     *,
+    executor: Executor | None = None,
     progress: bool = False,
     desc: str = "folds",
     context: str = "",
@@ -136,18 +139,38 @@ def held_out(
         splits: the folds, e.g. from :func:`interleaved_folds` or :func:`checked_splits`, or
             tuples of each fold's data.
         fit_predict: ``(fold index, *split) -> result``.
+        executor: run the folds on it (:func:`~hgpdm_torch.parallel.get_executor`: local
+            processes or a Ray cluster), the results still in fold order: the same as here for a
+            ``fit_predict`` whose randomness is its own (e.g. seeded per fold). ``fit_predict``
+            and the splits must then pickle (a module-level function or a ``functools.partial``
+            of one; Ray also takes closures), and must not read this process's settings (see
+            :mod:`hgpdm_torch.parallel`). ``None``: one after the other in this process.
         progress: show a progress bar over the folds.
         desc: the bar's label.
         context: what the error note names besides the fold.
     """
+    jobs, fold = list(enumerate(splits)), _Fold(fit_predict)
+    results: Iterator[Out] = map(fold, jobs) if executor is None else executor.map(fold, jobs)
     out = []
-    for k, split in enumerate(tqdm(splits, disable=not progress, desc=desc, leave=False)):
+    for k in tqdm(range(len(jobs)), disable=not progress, desc=desc, leave=False):
         try:
-            out.append(fit_predict(k, *split))
+            out.append(next(results))
         except Exception as err:
             err.add_note(f"cross-validation: {context + ', ' if context else ''}fold {k}")
             raise
     return out
+
+
+class _Fold:
+    """``(k, split) -> fit_predict(k, *split)``: one fold as an executor's job (picklable
+    whenever ``fit_predict`` is)."""
+
+    def __init__(self, fit_predict: Callable[..., Any]) -> None:
+        self.fit_predict = fit_predict
+
+    def __call__(self, job: tuple[int, tuple[Any, ...]]) -> Any:
+        k, split = job
+        return self.fit_predict(k, *split)
 
 
 def best_index(scores: Sequence[float], greater_is_better: bool = False) -> int:

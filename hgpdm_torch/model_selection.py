@@ -36,8 +36,9 @@ from sklearn.model_selection import LeaveOneGroupOut, ParameterGrid
 from .crossval import best_index, checked_splits, held_out
 from .fitting import ConvergenceWarning
 from .inference.variational import VariationalInference
-from .progress import tqdm
+from .parallel import Executor
 from .results import ResultTable
+from .settings import default_dtype
 from .validation import as_tensor
 
 __all__ = ["CVResult", "cross_validate", "forecast_rmse"]
@@ -194,6 +195,7 @@ def cross_validate(
     fit_kwargs: Mapping[str, Any] | None = None,
     greater_is_better: bool = False,
     seed: int = 0,
+    executor: Executor | None = None,
     progress: bool = False,
 ) -> CVResult:
     """Cross-validate a model class over a grid of constructor options with grouped splits.
@@ -227,6 +229,11 @@ def cross_validate(
         fit_kwargs: further keyword arguments of ``model.fit`` (e.g. ``{"optimizer": "adam"}``).
         greater_is_better: whether a higher score is better (default: lower, e.g. an RMSE).
         seed: seed set by ``torch.manual_seed`` before building and fitting each model.
+        executor: fit the (option set, fold) pairs on it, all at once
+            (:func:`~hgpdm_torch.parallel.get_executor`: local processes or a Ray cluster); the
+            table is the serial run's, each fit being seeded on its own. ``model_class`` and
+            ``score`` must then pickle (a module-level class or function, e.g.
+            :func:`forecast_rmse`'s; Ray also takes closures). ``None``: in this process.
         progress: show a progress bar over the fits.
 
     Returns:
@@ -291,39 +298,19 @@ def cross_validate(
     )
     splits = checked_splits(splitter, group_array, label_array, discrete)
 
-    def fit_and_score(
-        options: dict[str, Any], bar: Any, k: int, train: list[int], test: list[int]
-    ) -> tuple[float, dict[str, Any]]:
-        """Fold ``k`` of one option set: fit on ``train``, score on ``test`` (and tick ``bar``)."""
-        context = f"options {options}, fold {k}"
-        data = {"intentions": _subset(labels, label_array, train)} if takes_labels else {}
-        torch.manual_seed(seed)
-        model = model_class([sequences[i] for i in train], **data, **fixed, **options)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            fit = model.fit(steps=fit_steps, **fit_kwargs)
-        value = score(model, [sequences[i] for i in test], _subset(labels, label_array, test))
-        try:
-            value = float(value)
-        except (TypeError, ValueError, RuntimeError) as err:
-            raise TypeError(f"score must return a real number, got {value!r} ({context})") from err
-        if not math.isfinite(value):
-            raise ValueError(f"score returned {value} for {context}; expected finite")
-        bar.update(1)
-        return value, _fit_report(fit)
-
-    fold_scores: list[list[float]] = []
-    fits: list[list[dict[str, Any]]] = []
-    total = len(option_sets) * len(splits)
-    with (
-        tqdm(total=total, disable=not progress, desc="cross-validate") as bar,
-        torch.random.fork_rng(devices=[]),
-    ):
-        for options in option_sets:
-            fold = partial(fit_and_score, options, bar)
-            results = held_out(splits, fold, context=f"cross_validate: options {options}")
-            fold_scores.append([value for value, _ in results])
-            fits.append([report for _, report in results])
+    job = partial(
+        _fit_and_score, model_class, sequences, labels, label_array, takes_labels, fixed, score,
+        fit_steps, fit_kwargs, seed, torch.get_default_dtype(),
+    )  # fmt: skip
+    pairs = [(options, k, *split) for options in option_sets for k, split in enumerate(splits)]
+    with torch.random.fork_rng(devices=[]):
+        results = held_out(
+            pairs, job, executor=executor, progress=progress, desc="cross-validate",
+            context="cross_validate, (option set, fold) pair",
+        )  # fmt: skip
+    per_set = [results[i : i + len(splits)] for i in range(0, len(results), len(splits))]
+    fold_scores = [[value for value, _ in part] for part in per_set]
+    fits = [[report for _, report in part] for part in per_set]
 
     table = ResultTable(
         f"Cross-validation of {model_class.__name__}: mean score over {len(splits)} folds "
@@ -364,6 +351,48 @@ def cross_validate(
     )
 
 
+def _fit_and_score(
+    model_class: type,
+    sequences: Sequence[Any],
+    labels: Any,
+    label_array: np.ndarray | None,
+    takes_labels: bool,
+    fixed: Mapping[str, Any],
+    score: Score,
+    fit_steps: int,
+    fit_kwargs: Mapping[str, Any],
+    seed: int,
+    dtype: torch.dtype,
+    pair: int,
+    options: dict[str, Any],
+    k: int,
+    train: list[int],
+    test: list[int],
+) -> tuple[float, dict[str, Any]]:
+    """One fit of :func:`cross_validate`: fold ``k`` of one option set, fitted on ``train`` after
+    ``torch.manual_seed(seed)`` and scored on ``test``, with the caller's default ``dtype``
+    (module-level, so that it pickles to an executor; ``pair`` is its index among all fits)."""
+    context = f"options {options}, fold {k}"
+    try:
+        data = {"intentions": _subset(labels, label_array, train)} if takes_labels else {}
+        torch.manual_seed(seed)
+        with default_dtype(dtype), warnings.catch_warnings():
+            model = model_class([sequences[i] for i in train], **data, **fixed, **options)
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            fit = model.fit(steps=fit_steps, **fit_kwargs)
+            value = score(model, [sequences[i] for i in test], _subset(labels, label_array, test))
+    except Exception as err:
+        err.add_note(f"cross_validate: {context}")
+        raise
+    try:
+        value = float(value)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"score must return a real number, got {value!r} ({context})") from err
+    if not math.isfinite(value):
+        raise ValueError(f"score returned {value} for {context}; expected finite")
+    return value, _fit_report(fit)
+
+
 def forecast_rmse(
     window: int = 5, *, stride: int = 1, batch_size: int = 32, **infer_kwargs: Any
 ) -> Score:
@@ -392,21 +421,32 @@ def forecast_rmse(
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
 
-    def score(model: Any, sequences: list[torch.Tensor], labels: Any = None) -> float:
-        dtype = model.latent.dtype
-        seqs = [
-            as_tensor(s, f"sequences[{j}]", ndim=2, dtype=dtype) for j, s in enumerate(sequences)
-        ]
-        # [W_j, T + 1, Dz]: windows of T frames, each with the frame that follows it
-        parts = [s.unfold(0, window + 1, stride).transpose(-1, -2) for s in seqs if len(s) > window]
-        if not parts:
-            raise ValueError(f"no test sequence has more than window={window} frames to forecast")
-        windows = torch.cat(parts)
-        vb = VariationalInference(model)
-        means = [
-            vb.forecast(windows[i : i + batch_size, :window], **infer_kwargs)[0]
-            for i in range(0, windows.shape[0], batch_size)
-        ]
-        return float((torch.cat(means) - windows[:, window]).pow(2).mean().sqrt())
+    return partial(
+        _forecast_rmse, window=window, stride=stride, batch_size=batch_size, **infer_kwargs
+    )
 
-    return score
+
+def _forecast_rmse(
+    model: Any,
+    sequences: list[torch.Tensor],
+    labels: Any = None,
+    *,
+    window: int,
+    stride: int,
+    batch_size: int,
+    **infer_kwargs: Any,
+) -> float:
+    """:func:`forecast_rmse`'s score (module-level, so that it pickles to an executor)."""
+    dtype = model.latent.dtype
+    seqs = [as_tensor(s, f"sequences[{j}]", ndim=2, dtype=dtype) for j, s in enumerate(sequences)]
+    # [W_j, T + 1, Dz]: windows of T frames, each with the frame that follows it
+    parts = [s.unfold(0, window + 1, stride).transpose(-1, -2) for s in seqs if len(s) > window]
+    if not parts:
+        raise ValueError(f"no test sequence has more than window={window} frames to forecast")
+    windows = torch.cat(parts)
+    vb = VariationalInference(model)
+    means = [
+        vb.forecast(windows[i : i + batch_size, :window], **infer_kwargs)[0]
+        for i in range(0, windows.shape[0], batch_size)
+    ]
+    return float((torch.cat(means) - windows[:, window]).pow(2).mean().sqrt())

@@ -263,9 +263,7 @@ def input_operations(
         for b in terms[i:]:
             d = a.weight.shape[-1]
             if a.kind == "rbf" and b.kind == "rbf":
-                ops = ops + pair_operations(
-                    n, d, dout, sets=sets, diagonal=diagonal, trace=trace
-                )
+                ops = ops + pair_operations(n, d, dout, sets=sets, diagonal=diagonal, trace=trace)
                 continue
             r = 1 if "const" in (a.kind, b.kind) else d
             madds = 2 * r * n * sets * dout + r * sets * (dout if diagonal else dout * dout)

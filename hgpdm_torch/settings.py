@@ -33,6 +33,10 @@ Gaussian) are reduced: ``"fused"`` (default) contracts them tile by tile without
 input (:mod:`hgpdm_torch.tiling`), ``"materialised"`` is the earlier path that forms them for a
 chunk of inputs and then reduces them; it stays for comparison in benchmarks and tests.
 :class:`tile_bytes` overrides the tile size that :mod:`hgpdm_torch.tiling` picks per device.
+
+:func:`default_dtype` sets torch's default dtype for a block: an executor's worker
+(:mod:`hgpdm_torch.parallel`) is a fresh process that does not inherit the caller's, so a job
+that depends on it takes the caller's in its arguments and runs in this context.
 """
 
 from __future__ import annotations
@@ -42,7 +46,16 @@ import contextvars
 from collections.abc import Iterator
 from types import TracebackType
 
-__all__ = ["debug", "internal_step", "moment_path", "tile_bytes", "validate_internal"]
+import torch
+
+__all__ = [
+    "debug",
+    "default_dtype",
+    "internal_step",
+    "moment_path",
+    "tile_bytes",
+    "validate_internal",
+]
 
 _debug = contextvars.ContextVar("hgpdm_torch_debug", default=False)
 _internal = contextvars.ContextVar("hgpdm_torch_internal", default=False)
@@ -99,6 +112,18 @@ def internal_step() -> Iterator[None]:
         yield
     finally:
         _internal.reset(token)
+
+
+@contextlib.contextmanager
+def default_dtype(dtype: torch.dtype) -> Iterator[None]:
+    """Context in which ``torch.get_default_dtype()`` is ``dtype``; the previous one is
+    restored (process-wide, as torch's setting is)."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(previous)
 
 
 def validate_internal() -> bool:

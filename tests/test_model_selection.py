@@ -17,6 +17,7 @@ from hgpdm_torch.datasets import styled_movements
 from hgpdm_torch.inference.variational import VariationalInference
 from hgpdm_torch.model_selection import forecast_rmse
 from hgpdm_torch.models import GPDM, HGPDM
+from hgpdm_torch.parallel import get_executor
 from hgpdm_torch.results import ResultTable
 
 # Two styles, three sequences each; person p performs sequences p and p + 3 (one of each style),
@@ -247,6 +248,20 @@ def test_bad_input_names_the_argument(data, changes, error, match):
     kwargs.update(changes)
     with pytest.raises(error, match=match):
         hg.cross_validate(**kwargs)
+
+
+def test_folds_on_local_processes_give_the_serial_table(data, monkeypatch):
+    """cross_validate on 2 spawned processes (each fit seeded on its own, the workers with this
+    process's thread count, so the same BLAS kernels): the same table, bit for bit."""
+    kw = dict(labels=data.labels, groups=PERSONS, grid={"measurement": ["rbf", "linear"]},
+              fixed={"latent_dim": 2}, fit_steps=5, seed=3)  # fmt: skip
+    serial = hg.cross_validate(HGPDM, data.sequences, spread_score, **kw)
+    monkeypatch.setenv("OMP_NUM_THREADS", str(torch.get_num_threads()))
+    with get_executor(2) as pool:
+        parallel = hg.cross_validate(HGPDM, data.sequences, spread_score, executor=pool, **kw)
+    assert parallel.fold_scores == serial.fold_scores
+    assert parallel.table.rows == serial.table.rows
+    assert parallel.table.meta["fits"] == serial.table.meta["fits"]
 
 
 def test_non_finite_or_non_numeric_score_names_options_and_fold(data):

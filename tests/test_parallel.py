@@ -73,6 +73,11 @@ def unused_port() -> int:
         return s.getsockname()[1]
 
 
+def latent_norm(model, test, labels) -> float:
+    """A cross-validation score that depends on the fit: the fitted latents' norm."""
+    return float(model.latent.detach().norm())
+
+
 SEEDS = [3, 2, 1, 0, 7, 6, 5, 4]
 EXPECTED = [value(s) for s in SEEDS]
 
@@ -220,6 +225,17 @@ def test_ray_matches_serial_and_local_processes(ray_local: Executor, tmp_path) -
     with RayExecutor(address, workers=1) as one_at_a_time:
         assert list(one_at_a_time.map(draw, SEEDS)) == EXPECTED
     assert list(ray_local.map(draw, SEEDS[:2])) == EXPECTED[:2]
+
+    # a cross-validation fold loop (issue: scale-out of the CV loops) on Ray: the serial table
+    from hgpdm_torch import cross_validate
+    from hgpdm_torch.datasets import styled_movements
+    from hgpdm_torch.models import HGPDM
+
+    moves = styled_movements(num_styles=2, per_style=2, length=12, obs_dim=4, seed=0)
+    kw = dict(labels=moves.labels, fixed={"latent_dim": 2}, fit_steps=3, seed=1)
+    serial_cv = cross_validate(HGPDM, moves.sequences, latent_norm, **kw)
+    ray_cv = cross_validate(HGPDM, moves.sequences, latent_norm, executor=ray_local, **kw)
+    assert ray_cv.table.rows == serial_cv.table.rows and ray_cv.fold_scores == serial_cv.fold_scores
 
     # a real reward table (SAPIEN) in this process, in 2 local processes and on Ray
     config = OpponentConfig(late_change_prob=0.0)

@@ -38,11 +38,13 @@ import dataclasses
 import os
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from ..crossval import held_out
 from ..decision.beliefs import Beliefs, decision_indices, fit_beliefs
 from ..decision.lspi import lspi
 from ..decision.mcp import WAIT_VALUES, EarlyStopping
@@ -61,11 +63,18 @@ from ..decision.policies import (
 from ..decision.sources import FEATURES, PLAYER_SOURCES, SELECTABLE_SOURCES, track_beliefs
 from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
 from ..models import supervised_init
-from ..parallel import Executor, get_executor, ray_address_type
-from ..progress import tqdm
+from ..parallel import Executor
 from ..results import ResultTable
+from ..settings import default_dtype
 from ..validation import as_tensor, check_choice
-from .arguments import int_at_least, output_folder, positive_int, random_seed
+from .arguments import (
+    add_executor_arguments,
+    connect,
+    int_at_least,
+    output_folder,
+    positive_int,
+    random_seed,
+)
 from .dtype import float64_default
 
 __all__ = [
@@ -217,6 +226,7 @@ def run_protocol(
     start_times: tuple[float, ...],
     config: AnticipationConfig | None = None,
     *,
+    executor: Executor | None = None,
     progress: bool = False,
 ) -> tuple[ResultTable, ResultTable]:
     """Cross-validated comparison of Sec. 4.3.2 on given trials.
@@ -229,7 +239,11 @@ def run_protocol(
         start_times: ``T`` decision times relative to the hit [s], increasing; must include
             -0.24, -0.16 and -0.08 (single-movement and oracle-timing baselines).
         config: sizes and settings (default :class:`AnticipationConfig`).
-        progress: tqdm bar over repetitions x folds.
+        executor: run the folds (each with all its repetitions) on it
+            (:func:`~hgpdm_torch.parallel.get_executor`: local processes or a Ray cluster); the
+            tables are the serial run's, every random choice being seeded by ``config.seed``,
+            the fold and the repetition. ``None``: in this process.
+        progress: tqdm bar over the folds.
 
     Returns:
         The Fig. 4.6 table (successful returns per method, mean and SEM over repetitions, and the
@@ -271,123 +285,31 @@ def run_protocol(
     fold_of[perm] = torch.arange(n) % config.folds
 
     candidates = SELECTABLE_SOURCES if config.belief == "auto" else (config.belief,)
-    methods = [f"single {m} @240ms" for m in MOVEMENTS]
-    methods += [f"oracle timing @{int(round(-1000 * s))}ms" for s in ORACLE_TIMES]
-    methods += [BLIND, FIXED_TIME, "NAC", "LSPI", "MCP"]
-    methods += [f"LSPI ({src} belief)" for src in candidates] + ["MCP (oracle belief)"]
+    methods = _methods(candidates)
     counts = {m: torch.zeros(config.repetitions) for m in methods}
     sample_counts = {
         (a, e): torch.zeros(config.repetitions) for a in ("LSPI", "MCP") for e in config.episodes
     }
 
-    bar = tqdm(total=config.folds * config.repetitions, disable=not progress, desc="anticipation")
     start = time.perf_counter()
+    job = partial(
+        _fold, obs, targets, rewards, fold_of, steps_at, step_of, candidates, config,
+        torch.get_default_dtype(),
+    )  # fmt: skip
+    folds = held_out(
+        [() for _ in range(config.folds)], job, executor=executor, progress=progress,
+        desc="anticipation",
+    )  # fmt: skip
     fits, chosen, rates = {}, [], []
-    rule = EarlyStopping(config.particles, config.confidence, min(100, config.particles))
-    for k in range(config.folds):
-        train = torch.nonzero(fold_of != k).flatten()
-        test = torch.nonzero(fold_of == k).flatten()
-        tracks = {
-            src: track_beliefs(src, obs[train], targets[train], obs, targets, steps_at, config)
-            for src in (*candidates, "oracle")
-        }
-        for src, track in tracks.items():
-            fits.setdefault(src, []).extend(track.fits)
-        # the training strokes' beliefs for choosing the source and learning the players come
-        # from models that did not see them (2-fold cross-fitting within the training folds):
-        # a model's beliefs on its own training strokes are better than on new ones, which
-        # would favour the more flexible source and teach the players to trust it too much
-        vectors = {}
-        for src, track in tracks.items():
-            v = track.vectors(config.features).clone()
-            if src != "oracle":
-                v[train] = _cross_fitted(src, obs, targets, steps_at, train, config)
-            vectors[src] = v
-        source, cv = choose_source({s: v[train] for s, v in vectors.items()}, rewards[train],
-                                   candidates, config.features, centres=config.centres,
-                                   ridge=config.ridge, seed=config.seed)  # fmt: skip
-        chosen.append(source)
-        rates.append(cv)
-        learned = {}
-        for src in (*candidates, "oracle"):
-            problem = StoppingProblem(vectors[src], rewards)
-            train_p, test_p = problem.subset(train), problem.subset(test)
-            basis, q = learn_stopping(train_p, config.features, centres=config.centres,
-                                      ridge=config.ridge, seed=config.seed)  # fmt: skip
-            learned[src] = (train_p, test_p, basis, q)
-        train_p, test_p, basis, q = learned[source]
-        # deterministic methods: the same in every repetition
-        fixed = {}
-        for a, name in enumerate(MOVEMENTS):
-            fixed[f"single {name} @240ms"] = int(
-                (test_p.rewards[:, a, step_of[SINGLE_TIME]] > 0).sum()
-            )
-        for s in ORACLE_TIMES:
-            q_t = stop_only_q(train_p, step_of[s], basis, config.ridge)
-            ep = test_p.run(fixed_time_policy(q_t, basis, step_of[s]))
-            fixed[f"oracle timing @{int(round(-1000 * s))}ms"] = successes(ep)
-        a, t = blind_choice(rewards[train])
-        fixed[BLIND] = int((rewards[test, a, t] > 0).sum())
-        step, q_t = fixed_time_choice(train_p, basis, config.ridge)
-        fixed[FIXED_TIME] = successes(test_p.run(fixed_time_policy(q_t, basis, step)))
-        fixed["LSPI"] = successes(test_p.run(greedy_policy(q, basis, test_p)))
-        for src in candidates:
-            _, tp, b, qs = learned[src]
-            fixed[f"LSPI ({src} belief)"] = successes(tp.run(greedy_policy(qs, b, tp)))
-        for r in range(config.repetitions):
-            gen = torch.Generator().manual_seed(config.seed + 1000 * r + k)
-            for name, value in fixed.items():
-                counts[name][r] += value
-            counts["MCP"][r] += successes(
-                test_p.run(
-                    planning_policy(
-                        tracks[source],
-                        test,
-                        q,
-                        basis,
-                        rule,
-                        test_p.horizon,
-                        config.features,
-                        gen,
-                        config.wait_value,
-                    )
-                )
-            )
-            _, tp, b, qs = learned["oracle"]
-            counts["MCP (oracle belief)"][r] += successes(
-                tp.run(
-                    planning_policy(
-                        tracks["oracle"],
-                        test,
-                        qs,
-                        b,
-                        rule,
-                        tp.horizon,
-                        config.features,
-                        gen,
-                        config.wait_value,
-                    )
-                )
-            )
-            result = nac(
-                train_p, basis(train_p.beliefs), iterations=config.nac_iterations,
-                episodes_per_trial=config.nac_episodes, step_size=config.nac_step, generator=gen,
-            )  # fmt: skip
-            allowed = torch.stack([test_p.allowed(t) for t in range(test_p.horizon)])
-            probs = result.policy.probs(basis(test_p.beliefs), allowed)
-            # expected successes of the stochastic policy: (1 + E[r]) / 2 per trial
-            counts["NAC"][r] += float(((1 + test_p.expected_reward(probs)) / 2).sum())
-            for e in config.episodes:
-                sampled = train_p.sample_episodes(e, generator=gen)
-                q_e = lspi(train_p.transitions(sampled), features=basis, ridge=config.ridge).q
-                sample_counts[("LSPI", e)][r] += successes(
-                    test_p.run(greedy_policy(q_e, basis, test_p))
-                )
-                sample_counts[("MCP", e)][r] += successes(test_p.run(planning_policy(
-                    tracks[source], test, q_e, basis, rule, test_p.horizon, config.features,
-                    gen, config.wait_value)))  # fmt: skip
-            bar.update()
-    bar.close()
+    for fold in folds:
+        for src, src_fits in fold["fits"].items():
+            fits.setdefault(src, []).extend(src_fits)
+        chosen.append(fold["source"])
+        rates.append(fold["rate"])
+        for name, value in fold["counts"].items():
+            counts[name] += value
+        for key, value in fold["sample_counts"].items():
+            sample_counts[key] += value
     meta = {**dataclasses.asdict(config), "valid trials": n,
             "seconds": time.perf_counter() - start, "belief used": chosen,
             "belief CV return rates": rates, "belief fits": fits}  # fmt: skip
@@ -415,6 +337,144 @@ def run_protocol(
         (lm, ls), (mm, ms) = stats(sample_counts[("LSPI", e)]), stats(sample_counts[("MCP", e)])
         fig7.add(**{"episodes": e, "LSPI": lm, "LSPI SEM": ls, "MCP": mm, "MCP SEM": ms})
     return fig6, fig7
+
+
+def _methods(candidates: tuple[str, ...]) -> list[str]:
+    """The rows of the Fig. 4.6 table for these belief sources."""
+    methods = [f"single {m} @240ms" for m in MOVEMENTS]
+    methods += [f"oracle timing @{int(round(-1000 * s))}ms" for s in ORACLE_TIMES]
+    methods += [BLIND, FIXED_TIME, "NAC", "LSPI", "MCP"]
+    return methods + [f"LSPI ({src} belief)" for src in candidates] + ["MCP (oracle belief)"]
+
+
+def _fold(
+    obs: torch.Tensor,
+    targets: torch.Tensor,
+    rewards: torch.Tensor,
+    fold_of: torch.Tensor,
+    steps_at: list[int],
+    step_of: dict[float, int],
+    candidates: tuple[str, ...],
+    config: AnticipationConfig,
+    dtype: torch.dtype,
+    k: int,
+) -> dict[str, Any]:
+    """Fold ``k`` of :func:`run_protocol` with all its repetitions, in the caller's default
+    ``dtype`` (module-level, so that it pickles to an executor; its randomness is seeded by
+    ``config.seed``, the repetition and ``k``): the beliefs' fits, the source chosen with its
+    CV return rate, and per method the ``[repetitions]`` successes on the fold's test trials."""
+    with default_dtype(dtype):
+        return _fold_counts(obs, targets, rewards, fold_of, steps_at, step_of, candidates,
+                            config, k)  # fmt: skip
+
+
+def _fold_counts(obs, targets, rewards, fold_of, steps_at, step_of, candidates, config, k):
+    """:func:`_fold` in the default dtype it set."""
+    counts = {m: torch.zeros(config.repetitions) for m in _methods(candidates)}
+    sample_counts = {
+        (a, e): torch.zeros(config.repetitions) for a in ("LSPI", "MCP") for e in config.episodes
+    }
+    rule = EarlyStopping(config.particles, config.confidence, min(100, config.particles))
+    fits: dict[str, list] = {}
+    train = torch.nonzero(fold_of != k).flatten()
+    test = torch.nonzero(fold_of == k).flatten()
+    tracks = {
+        src: track_beliefs(src, obs[train], targets[train], obs, targets, steps_at, config)
+        for src in (*candidates, "oracle")
+    }
+    for src, track in tracks.items():
+        fits.setdefault(src, []).extend(track.fits)
+    # the training strokes' beliefs for choosing the source and learning the players come
+    # from models that did not see them (2-fold cross-fitting within the training folds):
+    # a model's beliefs on its own training strokes are better than on new ones, which
+    # would favour the more flexible source and teach the players to trust it too much
+    vectors = {}
+    for src, track in tracks.items():
+        v = track.vectors(config.features).clone()
+        if src != "oracle":
+            v[train] = _cross_fitted(src, obs, targets, steps_at, train, config)
+        vectors[src] = v
+    source, cv = choose_source({s: v[train] for s, v in vectors.items()}, rewards[train],
+                               candidates, config.features, centres=config.centres,
+                               ridge=config.ridge, seed=config.seed)  # fmt: skip
+    learned = {}
+    for src in (*candidates, "oracle"):
+        problem = StoppingProblem(vectors[src], rewards)
+        train_p, test_p = problem.subset(train), problem.subset(test)
+        basis, q = learn_stopping(train_p, config.features, centres=config.centres,
+                                  ridge=config.ridge, seed=config.seed)  # fmt: skip
+        learned[src] = (train_p, test_p, basis, q)
+    train_p, test_p, basis, q = learned[source]
+    # deterministic methods: the same in every repetition
+    fixed = {}
+    for a, name in enumerate(MOVEMENTS):
+        fixed[f"single {name} @240ms"] = int((test_p.rewards[:, a, step_of[SINGLE_TIME]] > 0).sum())
+    for s in ORACLE_TIMES:
+        q_t = stop_only_q(train_p, step_of[s], basis, config.ridge)
+        ep = test_p.run(fixed_time_policy(q_t, basis, step_of[s]))
+        fixed[f"oracle timing @{int(round(-1000 * s))}ms"] = successes(ep)
+    a, t = blind_choice(rewards[train])
+    fixed[BLIND] = int((rewards[test, a, t] > 0).sum())
+    step, q_t = fixed_time_choice(train_p, basis, config.ridge)
+    fixed[FIXED_TIME] = successes(test_p.run(fixed_time_policy(q_t, basis, step)))
+    fixed["LSPI"] = successes(test_p.run(greedy_policy(q, basis, test_p)))
+    for src in candidates:
+        _, tp, b, qs = learned[src]
+        fixed[f"LSPI ({src} belief)"] = successes(tp.run(greedy_policy(qs, b, tp)))
+    for r in range(config.repetitions):
+        gen = torch.Generator().manual_seed(config.seed + 1000 * r + k)
+        for name, value in fixed.items():
+            counts[name][r] += value
+        counts["MCP"][r] += successes(
+            test_p.run(
+                planning_policy(
+                    tracks[source],
+                    test,
+                    q,
+                    basis,
+                    rule,
+                    test_p.horizon,
+                    config.features,
+                    gen,
+                    config.wait_value,
+                )
+            )
+        )
+        _, tp, b, qs = learned["oracle"]
+        counts["MCP (oracle belief)"][r] += successes(
+            tp.run(
+                planning_policy(
+                    tracks["oracle"],
+                    test,
+                    qs,
+                    b,
+                    rule,
+                    tp.horizon,
+                    config.features,
+                    gen,
+                    config.wait_value,
+                )
+            )
+        )
+        result = nac(
+            train_p, basis(train_p.beliefs), iterations=config.nac_iterations,
+            episodes_per_trial=config.nac_episodes, step_size=config.nac_step, generator=gen,
+        )  # fmt: skip
+        allowed = torch.stack([test_p.allowed(t) for t in range(test_p.horizon)])
+        probs = result.policy.probs(basis(test_p.beliefs), allowed)
+        # expected successes of the stochastic policy: (1 + E[r]) / 2 per trial
+        counts["NAC"][r] += float(((1 + test_p.expected_reward(probs)) / 2).sum())
+        for e in config.episodes:
+            sampled = train_p.sample_episodes(e, generator=gen)
+            q_e = lspi(train_p.transitions(sampled), features=basis, ridge=config.ridge).q
+            sample_counts[("LSPI", e)][r] += successes(
+                test_p.run(greedy_policy(q_e, basis, test_p))
+            )
+            sample_counts[("MCP", e)][r] += successes(test_p.run(planning_policy(
+                tracks[source], test, q_e, basis, rule, test_p.horizon, config.features,
+                gen, config.wait_value)))  # fmt: skip
+    return {"fits": fits, "source": source, "rate": cv, "counts": counts,
+            "sample_counts": sample_counts}  # fmt: skip
 
 
 def _cross_fitted(
@@ -449,7 +509,8 @@ def run_experiment(
 
     The reward table is cached on disk (``cache_dir``, default ``$HGPDM_CACHE`` or
     ``~/.cache/hgpdm_torch``); ``executor`` (an :class:`~hgpdm_torch.parallel.Executor`, e.g.
-    a Ray cluster; left open) or else ``config.workers`` local SAPIEN processes fill it.
+    a Ray cluster; left open) or else ``config.workers`` local SAPIEN processes fill it; the
+    executor also runs the cross-validation's folds (:func:`run_protocol`).
     """
     from ..robots.table_tennis import strokes
     from ..robots.table_tennis.trials import DEFAULT_START_TIMES, make_trials, reward_table
@@ -465,7 +526,7 @@ def run_experiment(
         )
         return run_protocol(
             trials.obs, trials.obs_times, trials.targets, rewards.to(torch.float64),
-            DEFAULT_START_TIMES, config, progress=progress,
+            DEFAULT_START_TIMES, config, executor=executor, progress=progress,
         )  # fmt: skip
 
 
@@ -509,19 +570,6 @@ def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[
     return paths
 
 
-def connect(
-    parser: argparse.ArgumentParser, workers: int | None, ray_address: str | None
-) -> Executor | None:
-    """The Ray executor of a command's ``--ray-address`` (``None`` without one); Ray missing or
-    a cluster that does not answer ends in a usage error naming the option."""
-    if ray_address is None:
-        return None
-    try:
-        return get_executor(workers, ray_address)
-    except (ImportError, ConnectionError) as err:
-        parser.error(f"argument --ray-address: {err}")
-
-
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm anticipation [--full] [--trials N] [--folds K] [--repetitions R]
     [--belief SOURCE] [--features moments|rbf] [--wait-value lspi|stop]
@@ -534,20 +582,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--trials", type=positive_int, help="simulated strokes before exclusion")
     parser.add_argument("--folds", type=int_at_least(2))
     parser.add_argument("--repetitions", type=positive_int)
-    parser.add_argument(
-        "--workers",
-        type=positive_int,
-        default=None,
-        help="SAPIEN jobs at once for the rewards: local processes (default 1); with "
-        "--ray-address local the Ray instance's CPUs, with a cluster the most tasks in flight",
-    )
-    parser.add_argument(
-        "--ray-address",
-        type=ray_address_type,
-        default=None,
-        help="simulate the rewards on Ray: 'local' (a Ray instance here), 'auto' ($RAY_ADDRESS "
-        "or the cluster `ray start` runs here) or HOST:PORT of a head node",
-    )
+    add_executor_arguments(parser, "the rewards' SAPIEN simulations and the folds")
     parser.add_argument(
         "--belief", choices=BELIEFS, default="auto",
         help="the players' belief source: auto (best cross-validated return rate on the "
@@ -578,7 +613,7 @@ def main(argv: list[str]) -> int:
         config = AnticipationConfig.smoke(**changes) if smoke else AnticipationConfig(**changes)
     except ValueError as err:  # sizes that contradict each other, e.g. more folds than trials
         parser.error(str(err))
-    executor = connect(parser, args.workers, args.ray_address)
+    executor = connect(parser, args.workers, args.ray_address, local=True)
     try:
         fig6, fig7 = run_experiment(
             config, executor=executor, cache_dir=args.cache_dir, progress=args.progress

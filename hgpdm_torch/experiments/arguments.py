@@ -2,7 +2,10 @@
 (exit code 2) naming the option, before any data is generated or any model fitted.
 
 Each function is an ``argparse`` ``type=``: it takes the option's text and returns the parsed
-value or raises :class:`argparse.ArgumentTypeError`. Only the standard library is imported here.
+value or raises :class:`argparse.ArgumentTypeError`. :func:`add_executor_arguments` and
+:func:`connect` give a command the toolkit's ``--workers`` / ``--ray-address`` convention. Only
+the standard library (and the standard-library-only :mod:`hgpdm_torch.parallel`) is imported
+here.
 """
 
 from __future__ import annotations
@@ -13,8 +16,12 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from ..parallel import Executor, get_executor, ray_address_type
+
 __all__ = [
     "MAX_SEED",
+    "add_executor_arguments",
+    "connect",
     "int_at_least",
     "non_negative_int",
     "output_file",
@@ -106,3 +113,40 @@ def output_file(text: str) -> Path:
     if path.is_dir() or text.endswith(("/", "\\")):
         raise argparse.ArgumentTypeError(f"{text} is a folder, expected a file path")
     return path
+
+
+def add_executor_arguments(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--workers W`` and ``--ray-address ADDRESS`` for running ``what`` (e.g. "the folds")
+    on local processes or a Ray cluster (:func:`connect`)."""
+    parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=None,
+        help=f"run {what} W at a time in local processes (default 1: in this process); with "
+        "--ray-address local the Ray instance's CPUs, with a cluster the most tasks in flight",
+    )
+    parser.add_argument(
+        "--ray-address",
+        type=ray_address_type,
+        default=None,
+        help=f"run {what} on Ray: 'local' (a Ray instance here), 'auto' ($RAY_ADDRESS or the "
+        "cluster `ray start` runs here) or HOST:PORT of a head node",
+    )
+
+
+def connect(
+    parser: argparse.ArgumentParser,
+    workers: int | None,
+    ray_address: str | None,
+    *,
+    local: bool = False,
+) -> Executor | None:
+    """The executor of a command's ``--workers`` / ``--ray-address``: Ray where an address is
+    given (Ray missing, or a cluster that does not answer, ends in a usage error naming the
+    option); with ``local``, ``workers > 1`` local processes; else ``None`` (this process)."""
+    if ray_address is None:
+        return get_executor(workers) if local and workers is not None and workers > 1 else None
+    try:
+        return get_executor(workers, ray_address)
+    except (ImportError, ConnectionError) as err:
+        parser.error(f"argument --ray-address: {err}")

@@ -62,6 +62,7 @@ from ..validation import check_choice
 from . import anticipation as ant
 from .anticipation import BELIEFS, BLIND, FIXED_TIME
 from .arguments import (
+    connect,
     int_at_least,
     output_folder,
     positive_int,
@@ -717,7 +718,7 @@ def main(argv: list[str]) -> int:
         print(f"[hgpdm demo {time.perf_counter() - start:5.0f} s] {line}", file=sys.stderr,
               flush=True)  # fmt: skip
 
-    executor = ant.connect(parser, args.workers, args.ray_address)
+    executor = connect(parser, args.workers, args.ray_address)
     try:
         result = run_demo(
             num_trials=DEFAULT_TRIALS if args.trials is None else args.trials,

@@ -7,15 +7,13 @@ from contextlib import contextmanager
 
 import torch
 
+from ..settings import default_dtype
+
 __all__ = ["float64_default"]
 
 
 @contextmanager
 def float64_default() -> Iterator[None]:
     """Context in which ``torch.get_default_dtype()`` is float64; the previous one is restored."""
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    try:
+    with default_dtype(torch.float64):
         yield
-    finally:
-        torch.set_default_dtype(previous)

@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -49,14 +50,16 @@ import torch
 
 from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
 from ..calibration import calibration
+from ..crossval import held_out
 from ..datasets.cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol
 from ..datasets.walkers import FRAME_FEATURES, Standardizer, frame_features
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
-from ..progress import tqdm
+from ..parallel import Executor
 from ..results import ResultTable
-from .arguments import int_at_least, output_file, positive_int
+from ..settings import default_dtype
+from .arguments import add_executor_arguments, connect, int_at_least, output_file, positive_int
 from .intervals import mean_sem
 from .style_recognition import chunked_windows, forecast_windows, window_entries
 
@@ -348,6 +351,7 @@ def walkers(
     measurement_points: int | None | Literal["protocol"] = "protocol",
     features: str = "protocol",
     max_folds: int | None = None,
+    executor: Executor | None = None,
     progress: bool = False,
 ) -> ResultTable:
     """Tables 2.1-2.4 on a CMU protocol, with baselines (see the module docstring).
@@ -387,6 +391,9 @@ def walkers(
             protocol of one's own, the thesis's).
         max_folds: CV only: hold out at most this many trials (spread over the labels), for a
             quick look; ``None`` holds out every testable trial.
+        executor: CV only: run the folds on it (:func:`~hgpdm_torch.parallel.get_executor`:
+            local processes or a Ray cluster); the table is the serial run's. ``None``: one
+            fold after the other in this process.
         progress: progress bar over folds.
 
     Returns:
@@ -478,19 +485,36 @@ def walkers(
         folds, untestable = loto_folds(data.labels)
         folds = spread_folds(folds, data, max_folds)
         meta["not testable by leave-one-trial-out"] = [data.trials[j] for j in untestable]
-        for train, held in tqdm(folds, disable=not progress, desc=spec.name):
-            rows, fits = _score_split(
-                [data.sequences[i] for i in train],
-                data.labels[train],
-                [data.sequences[i] for i in held],
-                data.labels[held],
-                **kwargs,
-            )
+        job = partial(_score_fold, data.sequences, data.labels, kwargs, torch.get_default_dtype())
+        done = held_out(folds, job, executor=executor, progress=progress, desc=spec.name)
+        for (_, held), (rows, fits) in zip(folds, done, strict=True):
             fits["held out"] = data.trials[held[0]]
             meta["fits"].append(fits)
             label = data.label_names[int(data.labels[held[0]])]
             scored.append((data.trials[held[0]], label, {T: rows[T][0] for T in lengths}))
     return _table(spec.table, spec.name, scored, tuple(lengths), meta)
+
+
+def _score_fold(
+    sequences: list[torch.Tensor],
+    labels: torch.Tensor,
+    kwargs: dict[str, Any],
+    dtype: torch.dtype,
+    k: int,
+    train: list[int],
+    held: list[int],
+) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
+    """Fold ``k`` of the leave-one-trial-out CV: :func:`_score_split` on the trials ``train``
+    and ``held`` with the caller's default ``dtype`` (module-level, so that it pickles to an
+    executor, whose workers do not inherit the caller's default dtype)."""
+    with default_dtype(dtype):
+        return _score_split(
+            [sequences[i] for i in train],
+            labels[train],
+            [sequences[i] for i in held],
+            labels[held],
+            **kwargs,
+        )
 
 
 def spread_folds(
@@ -639,7 +663,8 @@ def report(table: ResultTable, out: Path | None) -> None:
 
 def main(argv: list[str]) -> int:
     """``hgpdm walkers [--protocol walkers|weird-walking] [--data DIR] [--test-data DIR]
-    [--lengths 5 10] [--latent-dim DX] [--fit-steps N] [--stride 2] [--out table.json]``."""
+    [--lengths 5 10] [--latent-dim DX] [--fit-steps N] [--stride 2] [--out table.json]
+    [--workers W] [--ray-address ADDRESS]``."""
     parser = argparse.ArgumentParser(prog="hgpdm walkers", description=__doc__)
     parser.add_argument("--protocol", choices=FORECAST_PROTOCOLS, default="walkers")
     parser.add_argument("--data", type=Path, default=Path("../shared/data/cmu"))
@@ -709,6 +734,7 @@ def main(argv: list[str]) -> int:
         "out CV, " + ", ".join(f"{k} {v}" for k, v in DEFAULT_FEATURES.items()) + ")",
     )
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
+    add_executor_arguments(parser, "the cross-validation folds")
     parser.add_argument(
         "--progress",
         action=argparse.BooleanOptionalAction,
@@ -747,23 +773,31 @@ def main(argv: list[str]) -> int:
         if path is not None and not path.is_dir():
             parser.error(f"{name} {path} is not a folder (it needs the CMU files; docs, Walking)")
     torch.set_default_dtype(torch.float64)
-    table = walkers(
-        args.protocol,
-        folder=args.data,
-        test_folder=args.test_data,
-        lengths=tuple(args.lengths),
-        latent_dim="protocol" if args.latent_dim is None else args.latent_dim,
-        fit_steps="protocol" if args.fit_steps is None else args.fit_steps,
-        stride=args.stride,
-        model_options=options,
-        sharing=args.sharing,
-        noise_per_label=args.noise_per_label,
-        measurement_points="protocol"
-        if args.measurement_points is None
-        else args.measurement_points or None,
-        features="protocol" if args.features is None else args.features,
-        max_folds=args.max_folds,
-        progress=args.progress,
-    )
+    if args.test_data is not None and (args.workers or args.ray_address) is not None:
+        parser.error("--workers and --ray-address run the CV folds; --test-data has none")
+    executor = connect(parser, args.workers, args.ray_address, local=True)
+    try:
+        table = walkers(
+            args.protocol,
+            folder=args.data,
+            test_folder=args.test_data,
+            lengths=tuple(args.lengths),
+            latent_dim="protocol" if args.latent_dim is None else args.latent_dim,
+            fit_steps="protocol" if args.fit_steps is None else args.fit_steps,
+            stride=args.stride,
+            model_options=options,
+            sharing=args.sharing,
+            noise_per_label=args.noise_per_label,
+            measurement_points="protocol"
+            if args.measurement_points is None
+            else args.measurement_points or None,
+            features="protocol" if args.features is None else args.features,
+            max_folds=args.max_folds,
+            executor=executor,
+            progress=args.progress,
+        )
+    finally:
+        if executor is not None:
+            executor.close()
     report(table, args.out)
     return 0

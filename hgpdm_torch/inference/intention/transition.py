@@ -164,7 +164,6 @@ class GenericTransition:
                 mu[:, None], Sigma[:, None], g=self._g, include_noise=True
             )
 
-
     def operations(self) -> OpCount:
         """Work of :meth:`moments` per stream (the floor's count): the moment matching of the
         transition GP for the K grid values sharing one input Gaussian
