@@ -179,3 +179,20 @@ def peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
         current += e.nbytes()
         peak = max(peak, current)
     return peak
+
+
+def largest_fitting(fits: Callable[[int], bool], cap: int = 2**14) -> int:
+    """The largest ``B <= cap`` with ``fits(B)``, for a ``fits`` that holds up to some B and not
+    beyond (e.g. "an update of B streams takes at most 33 ms"): B doubles from 1 until it
+    fails, then bisection between the last two; 0 when ``fits(1)`` fails."""
+    if not fits(1):
+        return 0
+    low, high = 1, 2
+    while high <= cap and fits(high):
+        low, high = high, 2 * high
+    if high > cap:
+        return low
+    while high - low > 1:
+        mid = (low + high) // 2
+        low, high = (mid, high) if fits(mid) else (low, mid)
+    return low

@@ -18,7 +18,11 @@ machine is closer to what an idle core gives than the wall time:
 - ``early``: with Student-t early termination (confidence 0.99, checks every 100 particles),
   and the mean particles used;
 - ``points``: ``full`` with the literal sampling chain of Algorithm 4.2 (GP predictions at the
-  particles instead of the moment-matched observation distribution).
+  particles instead of the moment-matched observation distribution);
+- ``floor``: :meth:`MonteCarloPlanner.operations` (the work of ``full``) at this device's rates
+  (a large GEMM and a large exponential timed in this process, ``meta["rates"]``); ``x floor``
+  is ``full cpu`` over it; ``peak MB`` the peak allocation of one ``full`` decision;
+  ``decisions in 33 ms`` how many ``full`` decisions fit one 30 Hz frame.
 
 Options (:func:`benchmarks._common.parse_options`): ``--device`` and ``--dtype`` (the filter's
 and the planner's computation dtype; the value function is learned on the CPU in float64, then
@@ -37,7 +41,7 @@ from functools import partial
 
 import torch
 
-from benchmarks._common import FLOAT32_NOISE, Options, parse_options
+from benchmarks._common import FLOAT32_NOISE, Options, measure_rates, parse_options, peak_bytes
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import lspi
@@ -132,6 +136,7 @@ def _mean_time(opts: Options, fn, states, repeats: int) -> tuple[float, float]:
 def run(
     opts: Options, sizes: list[int], particles: list[int], k: int, num_states: int, repeats: int
 ) -> ResultTable:
+    rates = measure_rates(opts.device, opts.dtype)
     table = ResultTable(
         f"MCP decision time per step (I particles, K = {k}, Dx = {DX}, Dz = {DZ}, "
         f"{str(opts.dtype).removeprefix('torch.')}, 1 thread, device {opts.device})",
@@ -145,9 +150,14 @@ def run(
             "early cpu [ms]",
             "particles used",
             "points cpu [ms]",
+            "floor [ms]",
+            "x floor",
+            "peak MB",
+            "decisions in 33 ms",
         ],
         meta={
             **opts.meta(),
+            "rates": rates.as_dict(),
             "load average": os.getloadavg()[0],
             "states timed": num_states,
             "repeats (best of)": repeats,
@@ -168,6 +178,8 @@ def run(
             used = [early_run(s).particles for s in states]
             _, early = _mean_time(opts, early_run, states, repeats)
             _, points = _mean_time(opts, points_run, states, repeats)
+            peak = peak_bytes(partial(full_run, states[0]), opts.device)
+        floor = rates.floor_ms(planner.operations())
         table.add(
             **{
                 "N": n_trans,
@@ -179,6 +191,10 @@ def run(
                 "early cpu [ms]": early,
                 "particles used": sum(used) / len(used),
                 "points cpu [ms]": points,
+                "floor [ms]": floor,
+                "x floor": full[1] / floor,
+                "peak MB": peak / 1e6,
+                "decisions in 33 ms": int(1e3 / 30 // full[1]),
             }
         )
         print(table.rows[-1], flush=True)

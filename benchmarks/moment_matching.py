@@ -13,7 +13,13 @@ float64, one thread. For each (N, B, K):
 - ``loop``: the naive alternative measured in the same process, one call per intention
   (B streams batched, K calls), each redoing the N x N work; ``x faster`` = loop / shared;
 - ``filter step``: one :func:`gp_adf_predict` + :func:`gp_adf_update` (linear measurement,
-  Dz = 4) for K x B distinct state Gaussians, as in :func:`filter_sequence` with all K at once.
+  Dz = 4) for K x B distinct state Gaussians, as in :func:`filter_sequence` with all K at once;
+- ``path``: ``shared`` on the fused psi2 path (``settings.moment_path``, the default; the other
+  columns are timed on it) and on the materialised one it replaced, in turn in this process,
+  with ``floor`` (the call's operation count, :meth:`GenericTransition.operations`, at this
+  device's rates, ``meta["rates"]``), ``x floor`` and ``peak MB/stream`` (peak allocation of
+  one call over B); per kernel and path, ``streams at 30 Hz``: the largest B whose call at the
+  largest N and K takes at most 33 ms.
 
 Options (:func:`benchmarks._common.parse_options`): ``--device``, ``--dtype`` and
 ``--gpu-sizes``: N = 500, K = 25, B = 1, 4, 16, ..., 1024 streams.
@@ -23,9 +29,18 @@ from __future__ import annotations
 
 import torch
 
-from benchmarks._common import Options, best_of, parse_options
+from benchmarks._common import (
+    Options,
+    best_of,
+    largest_fitting,
+    measure_rates,
+    parse_options,
+    peak_bytes,
+)
+from hgpdm_torch import settings
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.inference.filtering import gp_adf_predict, gp_adf_update
+from hgpdm_torch.inference.intention import GenericTransition
 from hgpdm_torch.kernels import measurement_kernel, transition_kernel
 from hgpdm_torch.results import ResultTable
 
@@ -54,13 +69,17 @@ def _posteriors(opts: Options, kind: str, n: int, k: int, gen: torch.Generator):
 def run(
     opts: Options, sizes: list[int], configs: list[tuple[int, int]], repeats: int
 ) -> ResultTable:
+    rates = measure_rates(opts.device, opts.dtype)
     table = ResultTable(
         f"Moment matching (Dx=3, {str(opts.dtype).removeprefix('torch.')}, 1 thread, device "
         f"{opts.device}): predict_gaussian for B streams x K intentions, shared vs a "
         "per-intention loop, and one GP-ADF filter step",
-        ["kernel", "N", "B", "K", "shared [ms]", "loop [ms]", "x faster", "filter step [ms]"],
-        meta={**opts.meta(), "repeats (best of)": repeats},
-    )
+        [
+            "kernel", "N", "B", "K", "path", "shared [ms]", "floor [ms]", "x floor",
+            "peak MB/stream", "streams at 30 Hz", "loop [ms]", "x faster", "filter step [ms]",
+        ],
+        meta={**opts.meta(), "repeats (best of)": repeats, "rates": rates.as_dict()},
+    )  # fmt: skip
 
     def randn(*shape: int) -> torch.Tensor:  # drawn on the CPU: the same data on every device
         return torch.randn(*shape, generator=gen, dtype=torch.float64).to(opts.device, opts.dtype)
@@ -96,24 +115,44 @@ def run(
                     m, s, _ = gp_adf_predict(trans, mu_kb, sig_kb, g=g)
                     gp_adf_update(meas, m, s, z)
 
+                ops = GenericTransition(trans, values).operations(b) * b
                 with torch.no_grad():
                     shared(), loop(), step()  # warm-up (and kinv cache)
-                    t_shared = best_of(shared, repeats, opts.device)
                     t_loop = best_of(loop, repeats, opts.device)
                     t_step = best_of(step, repeats, opts.device)
-                table.add(
-                    **{
-                        "kernel": kind,
-                        "N": n,
-                        "B": b,
-                        "K": k,
-                        "shared [ms]": 1e3 * t_shared,
-                        "loop [ms]": 1e3 * t_loop,
-                        "x faster": t_loop / t_shared,
-                        "filter step [ms]": 1e3 * t_step,
-                    }
-                )
-                print(table.rows[-1], flush=True)
+                    for path in settings.moment_path.choices:
+                        with settings.moment_path(path):
+                            t_shared = best_of(shared, repeats, opts.device)
+                            peak = peak_bytes(shared, opts.device)
+                        row = {"kernel": kind, "N": n, "B": b, "K": k, "path": path,
+                               "shared [ms]": 1e3 * t_shared,
+                               "floor [ms]": rates.floor_ms(ops),
+                               "x floor": 1e3 * t_shared / rates.floor_ms(ops),
+                               "peak MB/stream": peak / b / 1e6}  # fmt: skip
+                        if path == "fused":  # the default: the loop and the filter step
+                            row.update({"loop [ms]": 1e3 * t_loop, "x faster": t_loop / t_shared,
+                                        "filter step [ms]": 1e3 * t_step})  # fmt: skip
+                        table.add(**row)
+                        print(table.rows[-1], flush=True)
+        # how many streams one call serves within a 30 Hz frame, at the largest N and K
+        trans, _, values = _posteriors(opts, kind, sizes[-1], configs[-1][1], gen)
+        for path in settings.moment_path.choices:
+
+            def fits(b: int, trans=trans, values=values) -> bool:
+                mu = 0.3 * randn(b, 1, DX)
+                a = 0.2 * randn(b, 1, DX, DX)
+                eye = torch.eye(DX, dtype=opts.dtype, device=opts.device)
+                sigma = a @ a.transpose(-1, -2) + 0.01 * eye
+
+                def call() -> None:
+                    trans.predict_gaussian(mu, sigma, g=values[None], include_noise=True)
+
+                return best_of(call, 2, opts.device) <= 1 / 30
+
+            with torch.no_grad(), settings.moment_path(path):
+                table.add(kernel=kind, N=sizes[-1], K=configs[-1][1], path=path,
+                          **{"streams at 30 Hz": largest_fitting(fits)})  # fmt: skip
+            print(table.rows[-1], flush=True)
     return table
 
 

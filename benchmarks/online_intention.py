@@ -36,7 +36,8 @@ wall-clock latency also counts the time other processes hold the core. On an acc
 
 Options (:func:`benchmarks._common.parse_options`): ``--device``, ``--dtype`` (the filters'
 computation dtype; the model stays float64; the Q-bound row stays float64) and ``--gpu-sizes``:
-B = 1, 4, ..., 4096 streams (N = 500, K = 25), the Python loop only up to B = 16.
+B = 1, 4, ..., 4096 streams (N = 500, K = 25), the Python loop only up to B = 16, the
+materialised path up to B = 1,024.
 ``--quick`` runs N = 150 and B up to 64 (the floor and memory columns included).
 """
 
@@ -51,6 +52,7 @@ from benchmarks._common import (
     FLOAT32_NOISE,
     Options,
     Rates,
+    largest_fitting,
     measure_rates,
     parse_options,
     peak_bytes,
@@ -163,24 +165,16 @@ def path_row(opts: Options, rates: Rates, model, grid, streams, B: int, path: st
 
 
 def streams_at(opts: Options, model, grid, streams, path: str, budget_ms: float = 1e3 / 30):
-    """The largest B whose update fits in ``budget_ms`` (33 ms: 30 Hz) on this path: B doubles
-    until an update takes longer, then bisection between the last two (best of 2 updates)."""
+    """The largest B whose update fits in ``budget_ms`` (33 ms: 30 Hz) on this path (best of 2
+    updates; :func:`~benchmarks._common.largest_fitting`)."""
+
+    def fits(B: int) -> bool:
+        z = streams[torch.arange(B, device=streams.device) % len(streams)]
+        f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
+        return _update_ms(opts, f, z, updates=2) <= budget_ms
+
     with settings.moment_path(path):
-
-        def fits(B: int) -> bool:
-            z = streams[torch.arange(B, device=streams.device) % len(streams)]
-            f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
-            return _update_ms(opts, f, z, updates=2) <= budget_ms
-
-        if not fits(1):
-            return 0
-        low, high = 1, 2
-        while high <= 2**16 and fits(high):
-            low, high = high, 2 * high
-        while high - low > 1:
-            mid = (low + high) // 2
-            low, high = (mid, high) if fits(mid) else (low, mid)
-        return low
+        return largest_fitting(fits)
 
 
 def sparse_error(model, grid, streams, inducing: int) -> float:
@@ -263,6 +257,8 @@ def run(opts: Options) -> ResultTable:
     # process: time, floor and peak memory per stream; the loop of single-stream filters
     for B in sizes:
         for path in settings.moment_path.choices:
+            if path == "materialised" and B > 1024:  # 2 streams per chunk: minutes per update
+                continue
             row = path_row(opts, rates, model, grid, streams, B, path)
             if path == "fused" and B <= loop_max:
                 exact_loop[B] = loop = loop_ms(opts, model, grid, streams, B)

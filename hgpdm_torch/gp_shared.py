@@ -432,8 +432,9 @@ class SharedTransition:
         n = self.groups * self.group_size
         return n * n + (self.groups + self.num_values) * self.dx * n
 
-    def operations(self) -> OpCount:
-        """Work of :meth:`moments` per stream on the fused path (the floor's count).
+    def operations(self, streams: int = 1) -> OpCount:
+        """Work of :meth:`moments` per stream on the fused path (the floor's count; nothing is
+        shared between the ``streams`` of a call).
 
         ``N^2`` exponentials and ``N`` for ``psi1``; multiply-adds: ``N^2 (Dx + 2)`` for the
         exponent, ``2 N^2`` for the product with ``K^-1`` and its group sums, ``N^2 Dx`` for

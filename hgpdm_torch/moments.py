@@ -242,6 +242,7 @@ def input_operations(
     diagonal: bool = False,
     trace: bool = True,
     grad: bool = True,
+    inputs: int = 1,
 ) -> OpCount:
     """Work of :func:`input_moments` for one input Gaussian, in the loops it runs.
 
@@ -250,7 +251,9 @@ def input_operations(
     weight sets (``N S Dout``, times ``D`` for the gradient). Per term pair: an RBF x RBF pair
     :func:`pair_operations`; a low-rank pair of rank ``r`` (``D``, or 1 with a constant term)
     ``2 r N S Dout`` for the two projections, ``r S Dout^2`` for the pair and with ``trace``
-    ``r N^2 + r N`` against ``K^-1``. ``D`` is the terms' Gaussian dim (their ``weight``).
+    ``r N`` against ``K^-1``, plus its ``r N^2 S`` product with ``K^-1``, which one call does
+    once for all its ``inputs`` Gaussians (counted here as a share). ``D`` is the terms'
+    Gaussian dim (their ``weight``).
     """
     ops = OpCount()
     for t in terms:
@@ -267,5 +270,5 @@ def input_operations(
                 continue
             r = 1 if "const" in (a.kind, b.kind) else d
             madds = 2 * r * n * sets * dout + r * sets * (dout if diagonal else dout * dout)
-            ops = ops + OpCount(madds=madds + (r * n * n + r * n if trace else 0))
+            ops = ops + OpCount(madds=madds + (r * n * n * sets / inputs + r * n if trace else 0))
     return ops

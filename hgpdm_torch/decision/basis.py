@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from sklearn.cluster import KMeans
 
+from ..tiling import OpCount
 from ..validation import as_tensor
 
 __all__ = ["MomentBasis", "RadialBasis", "action_features"]
@@ -94,6 +95,15 @@ class RadialBasis:
         if self.centres is None:
             raise RuntimeError("RadialBasis is not fitted; call fit(states) first")
         return self.centres.shape[0] + int(self.bias)
+
+    def operations(self, num: int) -> OpCount:
+        """Work of :meth:`__call__` on ``num`` states (a floor's count): the standardisation
+        (``F``), the squared distances to the K centres (``K (F + 1)``) and ``K``
+        exponentials per state."""
+        if self.centres is None:
+            raise RuntimeError("RadialBasis is not fitted; call fit(states) first")
+        k, f = self.centres.shape
+        return OpCount(exps=k, madds=f + k * (f + 1)) * num
 
     def __call__(self, states: torch.Tensor) -> torch.Tensor:
         """``phi'(theta)`` of Eq. 37: ``states [..., F] -> [..., K (+1)]``."""

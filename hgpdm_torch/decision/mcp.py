@@ -59,10 +59,13 @@ import torch
 from scipy import stats
 
 from .. import settings
+from ..expectations import kernel_leaves, split_terms
 from ..gaussian import conditional, log_density_terms, mixture_moments
 from ..inference.intention import OnlineIntentionFilter
 from ..linalg import cholesky_logdet, psd_cholesky, symmetrize
 from ..models import GPDM
+from ..moments import input_operations
+from ..tiling import OpCount
 from ..validation import as_observations, as_tensor, bad_observation, check_choice
 from .lspi import LinearQ
 from .stopping import WAIT, belief_vector, belief_vector_unchecked
@@ -535,6 +538,34 @@ class MonteCarloPlanner(ParticleProjector):
 
     def _stop_values(self, vectors: torch.Tensor) -> torch.Tensor:
         return self.q.values(self.features(vectors))[..., WAIT + 1 :]
+
+    def operations(self, num: int | None = None) -> OpCount:
+        """Work of one :meth:`decide` with ``num`` particles (default ``num_particles``; the
+        floor's count, without early termination).
+
+        Shared by the particles: the K transition moments of the belief (the filter's
+        ``transition.operations()``), the measurement GP's moments at the K predictions
+        (:func:`~hgpdm_torch.moments.input_operations`), their Cholesky factors, gains and
+        whitening (``K (Dz^3 / 2 + Dz^2 Dx + Dz Dx^2)``). Per particle: the drawn observation
+        (``Dz^2``), its conditioning on all K (``Dz K (Dx + Dz + 1)``), the belief and mixture
+        (``2 K Dx^2 + K Dx``, ``K`` exponentials), the features (``features.operations(1)``
+        where the feature map has one, e.g.
+        :meth:`~hgpdm_torch.decision.basis.RadialBasis.operations`) and the values
+        (``F A`` for F features and A actions).
+        """
+        num = self.num_particles if num is None else num
+        f, meas = self.filter, self.measurement
+        K, dx, dz = f.num_values, f.mu0.shape[0], meas.output_dim
+        leaves = kernel_leaves(meas.kernel, meas.input_dim)
+        terms = split_terms(leaves, meas.train_inputs, None, meas.input_dim)
+        shared = f.transition.operations(1)
+        shared = shared + input_operations(terms, meas.train_inputs.shape[0], dz, inputs=K) * K
+        shared = shared + OpCount(madds=K * (dz**3 / 2 + dz * dz * dx + dz * dx * dx))
+        count = getattr(self.features, "operations", None)
+        features = count(1) if callable(count) else OpCount()
+        a, phi = self.q.weights.shape
+        one = OpCount(exps=K, madds=dz * dz + dz * K * (dx + dz + 1) + 2 * K * dx * dx + K * dx)
+        return shared + (one + features + OpCount(madds=phi * a)) * num
 
     def _project(
         self, shared: _Shared, num: int, generator: torch.Generator | None, can_wait_next: bool

@@ -129,13 +129,13 @@ def measurement_update(posterior: GPPosterior, dtype: torch.dtype):
         return functools.partial(gp_adf_update, post)  # picklable, unlike a lambda
 
 
-def measurement_operations(update: Callable[..., object], dx: int) -> OpCount:
+def measurement_operations(update: Callable[..., object], dx: int, inputs: int = 1) -> OpCount:
     """Work of one measurement update (:func:`measurement_update`'s result) per Gaussian of
     ``Dx`` dims: :meth:`LinearMeasurement.operations`, or for
     :func:`~hgpdm_torch.inference.filtering.gp_adf_update` the moment matching of the
     measurement GP (:func:`~hgpdm_torch.moments.input_operations`) and the conditioning on
     ``z`` (``Dz^3 / 3`` for the Cholesky factor, ``Dz^2 (Dx + 1)`` for the solves, ``Dx^2 Dz``
-    for the posterior covariance)."""
+    for the posterior covariance), ``inputs`` Gaussians sharing a call."""
     owner = getattr(update, "__self__", None)
     if isinstance(owner, LinearMeasurement):
         return owner.operations()
@@ -143,5 +143,5 @@ def measurement_operations(update: Callable[..., object], dx: int) -> OpCount:
     leaves = kernel_leaves(post.kernel, post.input_dim)
     terms = split_terms(leaves, post.train_inputs, None, post.input_dim)
     dz = post.output_dim
-    ops = input_operations(terms, post.train_inputs.shape[0], dz)
+    ops = input_operations(terms, post.train_inputs.shape[0], dz, inputs=inputs)
     return ops + OpCount(exps=1, madds=dz**3 / 3 + dz * dz * (dx + 1) + dx * dx * dz)

@@ -350,15 +350,17 @@ class OnlineIntentionFilter(IsolatedStreams):
         return self.options.observations.strict
 
     def operations(self) -> OpCount:
-        """Work of one :meth:`update` per stream after its first observation (the floor's
-        count; predictive evidence): the transition moments of the K grid values
-        (:meth:`~hgpdm_torch.gp_shared.SharedTransition.operations` or
+        """Work of one :meth:`update` per stream after its first observation, in chunks of
+        ``chunk_size`` streams (the floor's count; predictive evidence): the transition moments
+        of the K grid values (:meth:`~hgpdm_torch.gp_shared.SharedTransition.operations` or
         :meth:`~hgpdm_torch.inference.intention.transition.GenericTransition.operations`), K
-        measurement updates (:func:`~hgpdm_torch.inference.intention.measurement.
-        measurement_operations`), and the belief and mixture (``K`` exponentials, ``3 K Dx^2``
-        multiply-adds)."""
+        measurement updates (``measurement_operations`` of
+        :mod:`~hgpdm_torch.inference.intention.measurement`), and the belief and mixture (``K``
+        exponentials, ``3 K Dx^2`` multiply-adds)."""
         K, dx = self.num_values, self.mu0.shape[0]
-        ops = self.transition.operations() + measurement_operations(self.measure, dx) * K
+        streams = min(self.batch_size, self.chunk_size)  # that share one transition call
+        ops = self.transition.operations(streams)
+        ops = ops + measurement_operations(self.measure, dx, streams * K) * K
         return ops + OpCount(exps=K, madds=3 * K * dx * dx + 2 * K * dx + 4 * K)
 
     @settings.internal_step()  # the prior was checked when set

@@ -75,7 +75,7 @@ class TransitionMoments(Protocol):
         self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
 
-    def operations(self) -> OpCount: ...
+    def operations(self, streams: int = 1) -> OpCount: ...
 
 
 class GenericTransition:
@@ -164,12 +164,12 @@ class GenericTransition:
                 mu[:, None], Sigma[:, None], g=self._g, include_noise=True
             )
 
-    def operations(self) -> OpCount:
-        """Work of :meth:`moments` per stream (the floor's count): the moment matching of the
-        transition GP for the K grid values sharing one input Gaussian
-        (:func:`~hgpdm_torch.moments.input_operations`); with a discrete g's blocks
-        (:meth:`GPPosterior.blocks <hgpdm_torch.gp.GPPosterior.blocks>`) K separate ones over
-        the padded block of each code."""
+    def operations(self, streams: int = 1) -> OpCount:
+        """Work of :meth:`moments` per stream when ``streams`` share a call (the floor's
+        count): the moment matching of the transition GP for the K grid values sharing one
+        input Gaussian (:func:`~hgpdm_torch.moments.input_operations`); with a discrete g's
+        blocks (:meth:`GPPosterior.blocks <hgpdm_torch.gp.GPPosterior.blocks>`) K separate
+        ones over the padded block of each code."""
         post = self.posterior
         dx, X = post.output_dim, post.train_inputs
         leaves = kernel_leaves(post.kernel, post.input_dim)
@@ -180,11 +180,11 @@ class GenericTransition:
         blocks = post.blocks() if g is not None else None
         if blocks is None:
             terms = split_terms(leaves, X, g, dx)
-            return input_operations(terms, X.shape[0], dx, sets=self.num_values)
+            return input_operations(terms, X.shape[0], dx, sets=self.num_values, inputs=streams)
         Xb = blocks[0][0, :, :dx]  # one code's padded block: [M, Dx]
         x_leaves = [replace(lf, weight=lf.weight[:dx], codes=()) for lf in leaves]
         terms = split_terms(x_leaves, Xb, None, dx)
-        return input_operations(terms, Xb.shape[0], dx) * self.num_values
+        return input_operations(terms, Xb.shape[0], dx, inputs=streams) * self.num_values
 
 
 def transition_moments(
