@@ -62,6 +62,7 @@ from .. import settings
 from ..expectations import kernel_leaves, split_terms
 from ..gaussian import conditional, log_density_terms, mixture_moments
 from ..inference.intention import OnlineIntentionFilter
+from ..inference.intention.measurement import LinearMeasurement
 from ..linalg import cholesky_logdet, psd_cholesky, symmetrize
 from ..models import GPDM
 from ..moments import input_operations
@@ -366,12 +367,16 @@ class ParticleProjector:
         phase = None if belief.phase is None else m.new_full((1,), float(belief.phase))
         mean, cov, _ = f.transition.moments(m, P, phase)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
-        gp_dtype = self.measurement.train_inputs.dtype
-        with settings.internal_step():  # the filter's own predictions
-            moments = self.measurement.predict_gaussian(
-                mean.to(gp_dtype), cov.to(gp_dtype), include_noise=True
-            )
-        mz, Sz, Cxz = (v.to(f.dtype) for v in moments)
+        linear = getattr(f.measure, "__self__", None)
+        if isinstance(linear, LinearMeasurement):  # the filter's own, precomputed: O(Dx Dz^2)
+            mz, Sz, Cxz = linear.moments(mean, cov)
+        else:
+            gp_dtype = self.measurement.train_inputs.dtype
+            with settings.internal_step():  # the filter's own predictions
+                moments = self.measurement.predict_gaussian(
+                    mean.to(gp_dtype), cov.to(gp_dtype), include_noise=True
+                )
+            mz, Sz, Cxz = (v.to(f.dtype) for v in moments)
         L = psd_cholesky(Sz, name="predicted observation covariance")
         gain_t, post_cov = conditional(cov, Cxz, L)  # S^-1 C^T  [K, Dz, Dx]
         log_prob = belief.log_prob.to(f.dtype)
@@ -544,8 +549,10 @@ class MonteCarloPlanner(ParticleProjector):
         floor's count, without early termination).
 
         Shared by the particles: the K transition moments of the belief (the filter's
-        ``transition.operations()``), the measurement GP's moments at the K predictions
-        (:func:`~hgpdm_torch.moments.input_operations`), their Cholesky factors, gains and
+        ``transition.operations()``), the measurement's moments at the K predictions (``Dx^2
+        (Dz + 2) + Dz^2 Dx`` each through the filter's
+        :class:`~hgpdm_torch.inference.intention.measurement.LinearMeasurement`, else the GP's,
+        :func:`~hgpdm_torch.moments.input_operations`), their Cholesky factors, gains and
         whitening (``K (Dz^3 / 2 + Dz^2 Dx + Dz Dx^2)``). Per particle: the drawn observation
         (``Dz^2``), its conditioning on all K (``Dz K (Dx + Dz + 1)``), the belief and mixture
         (``2 K Dx^2 + K Dx``, ``K`` exponentials), the features (``features.operations(1)``
@@ -556,10 +563,14 @@ class MonteCarloPlanner(ParticleProjector):
         num = self.num_particles if num is None else num
         f, meas = self.filter, self.measurement
         K, dx, dz = f.num_values, f.mu0.shape[0], meas.output_dim
-        leaves = kernel_leaves(meas.kernel, meas.input_dim)
-        terms = split_terms(leaves, meas.train_inputs, None, meas.input_dim)
         shared = f.transition.operations(1)
-        shared = shared + input_operations(terms, meas.train_inputs.shape[0], dz, inputs=K) * K
+        if isinstance(getattr(f.measure, "__self__", None), LinearMeasurement):
+            shared = shared + OpCount(madds=K * (2 * dx * dx + dx * dx * dz + dz * dz * dx))
+        else:
+            leaves = kernel_leaves(meas.kernel, meas.input_dim)
+            terms = split_terms(leaves, meas.train_inputs, None, meas.input_dim)
+            n = meas.train_inputs.shape[0]
+            shared = shared + input_operations(terms, n, dz, inputs=K) * K
         shared = shared + OpCount(madds=K * (dz**3 / 2 + dz * dz * dx + dz * dx * dx))
         count = getattr(self.features, "operations", None)
         features = count(1) if callable(count) else OpCount()

@@ -505,16 +505,11 @@ def _score_fold(
     held: list[int],
 ) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
     """Fold ``k`` of the leave-one-trial-out CV: :func:`_score_split` on the trials ``train``
-    and ``held`` with the caller's default ``dtype`` (module-level, so that it pickles to an
-    executor, whose workers do not inherit the caller's default dtype)."""
+    and ``held`` in the caller's default ``dtype`` (an executor's job: module-level, and its
+    worker does not inherit the caller's default dtype)."""
     with default_dtype(dtype):
-        return _score_split(
-            [sequences[i] for i in train],
-            labels[train],
-            [sequences[i] for i in held],
-            labels[held],
-            **kwargs,
-        )
+        parts = [([sequences[i] for i in idx], labels[idx]) for idx in (train, held)]
+        return _score_split(*parts[0], *parts[1], **kwargs)
 
 
 def spread_folds(

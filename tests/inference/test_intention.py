@@ -135,6 +135,9 @@ def test_linear_measurement_equals_gp_adf_update(continuous_model, generator, gp
     # the same update by other algebra (Woodbury): rounding of solves with the measurement
     # GP's K + noise I, gp_rounding of each quantity's scale (measured: up to 0.02 of it)
     _assert_rounding_close(got, want, gp_rounding(post))
+    # its predictive moments (what Monte-Carlo planning conditions on) are predict_gaussian's
+    moments = post.predict_gaussian(mu, P, include_noise=True)
+    _assert_rounding_close(fast.moments(mu, P), moments, gp_rounding(post))
     with pytest.raises(TypeError, match="linear kernel"):
         LinearMeasurement(continuous_model.transition_posterior())
 

@@ -90,6 +90,23 @@ class LinearMeasurement:
         madds += k * k * (dx + 1) + dx * k + dx * dx * k + k + dz
         return OpCount(exps=2 + dz, madds=madds)
 
+    def moments(
+        self, mu: torch.Tensor, P: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The predictive moments of ``z`` at ``x ~ N(mu, P)`` (the class docstring's mean, cov
+        and ``Cov[x, z]``: :meth:`GPPosterior.predict_gaussian
+        <hgpdm_torch.gp.GPPosterior.predict_gaussian>` with ``include_noise=True``) in
+        ``O(Dx Dz^2)``. Shapes ``[..., Dx]``, ``[..., Dx, Dx]`` -> ``[..., Dz]``,
+        ``[..., Dz, Dz]``, ``[..., Dx, Dz]``."""
+        W = (self.U @ self.R).transpose(-1, -2) * self.scale  # [Dx, Dz]
+        second = P + mu[..., :, None] * mu[..., None, :]
+        v = (self.Q * second).sum((-1, -2)) + self.noise  # [...]
+        cross = P @ W
+        cov = symmetrize(W.transpose(-1, -2) @ cross) + torch.diag_embed(
+            v[..., None] * self.scale.pow(2)
+        )
+        return mu @ W + self.offset, cov, cross
+
     def update(
         self, mu: torch.Tensor, P: torch.Tensor, z: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
