@@ -7,11 +7,15 @@ all K values of an intention grid, so the ``N x N`` expectation ``psi2`` over ``
 once per stream and step; and as ``g`` is constant within a training sequence, the N training
 points form U groups of equal ``g``. All K second moments and traces then follow from ``U x U``
 group sums of ``psi2``: ``beta_k^T psi2 beta_k = sum_uv phi_ku phi_kv (beta_u^T psi2_uv beta_v)``,
-with no ``N x N`` work per value (DESIGN.md sec. 8). :class:`SharedTransition` does this
+with no ``N x N`` work per value. :class:`SharedTransition` does this
 (:meth:`GPPosterior.shared_moments <hgpdm_torch.gp.GPPosterior.shared_moments>`), optionally on
 M < N pseudo-inputs (:func:`sparse_posterior`, Sec. 3.3.3: :meth:`GPPosterior.sparse
-<hgpdm_torch.gp.GPPosterior.sparse>` on pseudo-inputs that share few values of g). Other kernels
-take :meth:`GPPosterior.predict_gaussian <hgpdm_torch.gp.GPPosterior.predict_gaussian>`.
+<hgpdm_torch.gp.GPPosterior.sparse>` on pseudo-inputs that share few values of g), and for a
+phase-aware IDDM (inputs ``[x, g, p]``), whose phase factor rescales each training point per
+stream. ``psi2`` is contracted tile by tile without being stored for all streams (the fused
+path, :mod:`hgpdm_torch.tiling`) or formed for all of them (the materialised path,
+:class:`~hgpdm_torch.settings.moment_path`). Other kernels take :meth:`GPPosterior.predict_gaussian
+<hgpdm_torch.gp.GPPosterior.predict_gaussian>`.
 
 Shapes: ``B`` streams, ``K`` grid values, ``Dx`` latent, ``Dg`` intention dims, ``N`` training
 points, ``M`` pseudo-inputs.
@@ -20,6 +24,7 @@ points, ``M`` pseudo-inputs.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -156,16 +161,37 @@ def _group_terms(
     return uniq, group, terms
 
 
+def _phase_split(
+    leaves: list[Leaf], X: torch.Tensor, phase: bool
+) -> tuple[list[Leaf], torch.Tensor, torch.Tensor | None, torch.Tensor | None] | None:
+    """Leaves and inputs over ``[x, g]``, each point's phase ``[N]`` and the phase precision
+    ``w_p``: for a phase-aware GP over ``[x, g, p]`` whose kernel is one RBF leaf (the IDDM's
+    tensor product with ``exp(-w_p (p - p')^2 / 2)``), that leaf without its phase column;
+    ``None`` where the kernel has another form. Without ``phase``: the leaves and inputs as they
+    are."""
+    if not phase:
+        return leaves, X, None, None
+    if len(leaves) != 1 or leaves[0].kind != "rbf" or leaves[0].factors:
+        return None
+    (leaf,) = leaves
+    last = X.shape[1] - 1
+    if last in leaf.codes:
+        return None
+    plain = replace(leaf, weight=leaf.weight[:last], cols=leaf.cols - {last})
+    return [plain], X[:, :last], X[:, last], leaf.weight[last]
+
+
 def _tensor_product(terms: list[Term]) -> bool:
     """Whether the kernel is one RBF over ``x`` times a factor of ``g`` (the IDDM form)."""
     return len(terms) == 1 and terms[0].kind == "rbf" and terms[0].factor is not None
 
 
-def _check_values(posterior: GPPosterior, values: torch.Tensor) -> None:
-    """``values`` must be a ``[K, Dg]`` tensor of trailing input columns, ``1 <= Dg < Din``."""
+def _check_values(posterior: GPPosterior, values: torch.Tensor, phase: bool = False) -> None:
+    """``values`` must be a ``[K, Dg]`` tensor of trailing input columns (before the phase),
+    ``1 <= Dg < Din``."""
     if not isinstance(values, torch.Tensor):
         raise TypeError(f"values must be a tensor [K, Dg], got {type(values).__name__}")
-    din = posterior.input_dim
+    din = posterior.input_dim - int(phase)
     if values.dim() != 2 or not 1 <= values.shape[1] < din:
         raise ValueError(
             f"values must be [K, Dg] with 1 <= Dg < Din = {din} (the trailing input columns), "
@@ -206,6 +232,10 @@ class SharedTransition:
         inducing_values: number of distinct intention values among the pseudo-inputs for a
             continuous g, at most M (default ``round(sqrt(M))``, or all training values when
             ``M >= N``).
+        phase: the GP's last input column is the phase of a phase-aware IDDM
+            (``IDDM(phase_width=...)``, inputs ``[x, g, p]``): its factor
+            ``exp(-w_p (p - p_i)^2 / 2)`` rescales every training point per stream, so the
+            groups stay those of g and :meth:`moments` takes each stream's phase (exact GP only).
     """
 
     def __init__(
@@ -216,19 +246,30 @@ class SharedTransition:
         *,
         inducing: int | None = None,
         inducing_values: int | None = None,
+        phase: bool = False,
     ) -> None:
-        _check_values(posterior, values)
+        _check_values(posterior, values, phase)
         dtype = dtype or posterior.train_inputs.dtype
+        if phase and inducing is not None:
+            raise ValueError("a phase-aware transition GP has no sparse (inducing) variant")
         posterior = sparse_posterior(posterior, values.shape[1], inducing, inducing_values)
         X = posterior.train_inputs
-        dx = X.shape[1] - values.shape[1]
+        dx = X.shape[1] - values.shape[1] - int(phase)
         if dx != posterior.output_dim:
             raise ValueError(
-                f"the transition GP has Din = {X.shape[1]} input columns, more than x (Dx = "
-                f"{posterior.output_dim}) and g (Dg = {values.shape[1]}): a phase-aware GP "
-                "(IDDM(phase_width=...)) runs on GenericTransition"
+                f"the transition GP has Din = {X.shape[1]} input columns, not x (Dx = "
+                f"{posterior.output_dim}), g (Dg = {values.shape[1]})"
+                + (" and the phase" if phase else "")
+                + (": a phase-aware GP (IDDM(phase_width=...)) needs phase=True" if not phase
+                   and dx == posterior.output_dim + 1 else "")
+            )  # fmt: skip
+        split = _phase_split(kernel_leaves(posterior.kernel, X.shape[1]), X, phase)
+        if split is None:
+            raise TypeError(
+                "SharedTransition with a phase needs the phase-aware IDDM kernel (one RBF over "
+                "[x, g, p]); this kernel runs on GenericTransition"
             )
-        leaves = kernel_leaves(posterior.kernel, X.shape[1])
+        leaves, X, point_phase, phase_weight = split
         weights, kinv = posterior.weights, posterior.kinv
         uniq, group, terms = _group_terms(leaves, X, values, dx)
         if not _tensor_product(terms):
@@ -258,6 +299,11 @@ class SharedTransition:
         self.kinv = kinv[flat[:, None], flat[None, :]].to(dtype)  # [U L, U L]
         self.real = real
         self.phi = term.factor.to(dtype)  # [K, U]
+        # a phase-aware GP: each padded point's phase [U L] and the phase precision w_p
+        self.phase, self.phases, self.phase_weight = bool(phase), None, None
+        if phase:
+            self.phases = torch.cat([point_phase, point_phase.new_zeros(1)])[flat].to(dtype)
+            self.phase_weight = phase_weight.detach().to(dtype)
         # phi_k(u_n) beta_n for every grid value k and padded point n: [K, U L, Dx]
         self.weighted_beta = (self.phi[:, :, None, None] * self.beta).reshape(len(values), -1, dx)
         # the fused path's columns in the order (m, v), point m of group v, so that the group
@@ -289,7 +335,7 @@ class SharedTransition:
         return self.phi.shape[0]
 
     @staticmethod
-    def supports(posterior: GPPosterior, values: torch.Tensor) -> bool:
+    def supports(posterior: GPPosterior, values: torch.Tensor, phase: bool = False) -> bool:
         """Whether the kernel of ``posterior`` has the form this class needs (one RBF term over
         ``x`` times a factor of ``g``: ``iddm_continuous``, or ``iddm_discrete`` without
         sharing) for the grid ``values [K, Dg]`` (``Dg >= 1``).
@@ -300,11 +346,13 @@ class SharedTransition:
         if values.shape[-1] == 0:  # no g: nothing to share between intentions
             return False
         X = posterior.train_inputs
-        dx = X.shape[1] - values.shape[1]
-        if dx != posterior.output_dim:  # more known columns than g (a phase)
+        dx = X.shape[1] - values.shape[1] - int(phase)
+        if dx != posterior.output_dim:  # other known columns than g (and the phase)
             return False
-        leaves = kernel_leaves(posterior.kernel, X.shape[1])
-        return _tensor_product(_group_terms(leaves, X, values, dx)[2])
+        split = _phase_split(kernel_leaves(posterior.kernel, X.shape[1]), X, phase)
+        if split is None:
+            return False
+        return _tensor_product(_group_terms(split[0], split[1], values, dx)[2])
 
     def moments(
         self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
@@ -314,25 +362,36 @@ class SharedTransition:
 
         Args:
             mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
-            phase: must be ``None`` (a phase-aware GP runs on
-                :class:`~hgpdm_torch.inference.intention.transition.GenericTransition`).
+            phase: ``[B]`` each stream's phase (the frame index of ``x``); required for, and
+                only for, a phase-aware GP (``phase=True``). Its factor
+                ``exp(-w_p (p - p_i)^2 / 2)`` rescales each training point's weight per stream,
+                so it multiplies ``psi1`` and ``E[grad k]`` and enters ``psi2``'s exponent.
 
         Returns:
             ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
         """
-        if phase is not None:
-            raise ValueError("the shared transition path has no phase: see GenericTransition")
+        if (phase is None) != (self.phases is None):
+            raise ValueError(
+                "this transition GP takes each stream's phase: pass phase [B]"
+                if self.phases is not None
+                else "phase is for a phase-aware transition GP (IDDM(phase_width=...)) only"
+            )
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
+        log_phase = None
+        if phase is not None:  # log of each point's phase factor per stream: [B, UL]
+            log_phase = -0.5 * self.phase_weight * (phase.to(mu)[:, None] - self.phases).pow(2)
+            factor = log_phase.exp()
+            p1, grad = p1 * factor, grad * factor[:, None, :]
         phi, beta = self.phi, self.beta
         m_u = torch.einsum("bul,ula->bua", p1.view(b, U, L), beta)
         mean = torch.einsum("ku,bua->bka", phi, m_u)
         g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
         cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
         if settings.moment_path.get() == "fused":
-            T, cov = self._fused_second(mu, Sigma, mean)
+            T, cov = self._fused_second(mu, Sigma, mean, log_phase)
         else:
-            T, cov = self._materialised_second(mu, Sigma, p1)
+            T, cov = self._materialised_second(mu, Sigma, p1, log_phase)
         trace = ((phi @ T) * phi).sum(-1)
         var = (self.coef - trace).clamp_min(0.0) + self.noise
         var = (
@@ -344,12 +403,20 @@ class SharedTransition:
         return mean if self.offset is None else mean + self.offset, cov, cross
 
     def _materialised_second(
-        self, mu: torch.Tensor, Sigma: torch.Tensor, p1: torch.Tensor
+        self,
+        mu: torch.Tensor,
+        Sigma: torch.Tensor,
+        p1: torch.Tensor,
+        log_phase: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Group sums ``T [B, U, U]`` of ``psi2 * K^-1`` and ``beta_k^T (psi2 - psi1 psi1^T)
-        beta_k [B, K, Dx, Dx]`` with ``psi2`` formed for all B inputs (the materialised path)."""
+        beta_k [B, K, Dx, Dx]`` with ``psi2`` formed for all B inputs (the materialised path;
+        ``log_phase [B, UL]`` the log phase factors, if any)."""
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         q = term_psi2(self.term, self.term, mu, Sigma, self.inputs)  # [B, UL, UL]
+        if log_phase is not None:
+            factor = log_phase.exp()
+            q = q * factor[:, :, None] * factor[:, None, :]
         T = (q * self.kinv).view(b, U, L, U, L).sum(2).sum(-1)  # [B, U, U]; strided sum first
         # Cov[f] = beta_k^T (psi2 - psi1 psi1^T) beta_k: centring the N x N matrix first keeps
         # float32 usable (beta is large when the noise is small) and gives the covariance
@@ -362,7 +429,11 @@ class SharedTransition:
         return T, P2 @ self.weighted_beta
 
     def _fused_second(
-        self, mu: torch.Tensor, Sigma: torch.Tensor, mean: torch.Tensor
+        self,
+        mu: torch.Tensor,
+        Sigma: torch.Tensor,
+        mean: torch.Tensor,
+        log_phase: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """What :meth:`_materialised_second` gives, one tile of streams at a time.
 
@@ -380,6 +451,9 @@ class SharedTransition:
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         n, K = U * L, self.num_values
         left, right = rbf_psi2_exponent(self.term, self.term, mu, Sigma, self.inputs)
+        if log_phase is not None:  # psi2_ij times both points' phase factors: in the exponent
+            left[..., dx] += log_phase  # the row term (left and right are this call's own)
+            right[..., dx + 1, :] += log_phase  # the column term
         right = right[..., self.columns]
         size = per_tile(self.workspace(), mu.dtype, mu.device)
         grad = torch.is_grad_enabled() and any(t.requires_grad for t in (left, right))

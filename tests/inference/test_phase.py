@@ -96,11 +96,12 @@ def test_transition_inputs_carry_the_frame_index_and_the_model_saves_it(data, tm
         torch.testing.assert_close(out[step + 1], x, rtol=1e-12, atol=1e-12)
 
 
-def test_moments_with_phase_match_monte_carlo(data):
+@pytest.mark.parametrize("path", ["generic", "shared"])
+def test_moments_with_phase_match_monte_carlo(data, path):
     model = _model(data, 1.0, fit=True)
     post = model.transition_posterior()
-    moments = transition_moments(post, GRID[:, None].double(), phase=True)
-    assert isinstance(moments, GenericTransition)
+    moments = transition_moments(post, GRID[:, None].double(), phase=True, transition=path)
+    assert isinstance(moments, {"generic": GenericTransition, "shared": SharedTransition}[path])
     gen = torch.Generator().manual_seed(2)
     mu = model.latent.detach()[[1, 9]]
     Sigma = 0.05 * torch.eye(2, dtype=mu.dtype).expand(2, 2, 2)
@@ -119,6 +120,35 @@ def test_moments_with_phase_match_monte_carlo(data):
             assert ((mean[b, k] - mc_mean).abs() < 5 * sd + 1e-12).all()
             torch.testing.assert_close(cov[b, k], mc_cov.to(cov), rtol=0.02, atol=2e-3 * float(
                 mc_cov.diagonal().max()))  # fmt: skip
+
+
+@pytest.mark.parametrize("intention", ["continuous", "discrete"])
+def test_shared_phase_path_equals_the_generic_one(data, intention, gp_rounding):
+    """The phase-aware IDDM on the shared (fused) path: the phase factor rescales each training
+    point per stream, the same moments as moment matching at [x, g, p] (the generic path), and
+    the same beliefs over 6 steps of 3 streams; the filter picks the shared path by default."""
+    model = _model(data, 1.0, intention=intention, fit=True)
+    post = model.transition_posterior()
+    grid = GRID if intention == "continuous" else None
+    shared = OnlineIntentionFilter(model, grid, forgetting=0.1, batch_size=3)
+    generic = OnlineIntentionFilter(model, grid, forgetting=0.1, batch_size=3,
+                                    transition="generic")  # fmt: skip
+    assert isinstance(shared.transition, SharedTransition)
+    mu = model.latent.detach()[[0, 4, 9]]
+    Sigma = 0.05 * torch.eye(2, dtype=mu.dtype).expand(3, 2, 2)
+    phase = torch.tensor([0.0, 2.0, 4.0], dtype=mu.dtype)
+    # the same moments by other algebra and shapes: the rounding of solves with K + noise I
+    # (gp_rounding) of each quantity's scale
+    rel = gp_rounding(post)
+    got = shared.transition.moments(mu, Sigma, phase)
+    want = generic.transition.moments(mu, Sigma, phase)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=rel, atol=rel * float(b.abs().max()))
+    z = torch.stack([data.sequences[j] for j in (0, 5, 6)])
+    rel = 6 * gp_rounding(post, model.measurement_posterior())
+    for t in range(6):
+        a, b = shared.update(z[:, t]), generic.update(z[:, t])
+        torch.testing.assert_close(a.prob, b.prob, rtol=rel, atol=rel)
 
 
 def test_filter_uses_each_steps_phase(data):
@@ -177,12 +207,12 @@ def test_phase_model_is_refused_where_no_phase_is_known(data):
         VariationalInference(model)
     with pytest.raises(ValueError, match="inducing"):
         OnlineIntentionFilter(model, GRID, inducing=10)
-    with pytest.raises(ValueError, match="generic path"):
-        OnlineIntentionFilter(model, GRID, transition="shared")
     post, values = model.transition_posterior(), GRID[:, None].double()
-    assert not SharedTransition.supports(post, values)
-    with pytest.raises(ValueError, match="runs on GenericTransition"):
+    assert not SharedTransition.supports(post, values)  # without its phase
+    with pytest.raises(ValueError, match="needs phase=True"):
         SharedTransition(post, values)
+    with pytest.raises(ValueError, match="inducing"):
+        SharedTransition(post, values, phase=True, inducing=10)
     f = OnlineIntentionFilter(model, GRID)
     with pytest.raises(ValueError, match="pass phase"):
         f.transition.moments(model.latent[:1].detach(), torch.eye(2)[None].double())

@@ -211,21 +211,24 @@ def transition_moments(
         inducing: number of pseudo-inputs M of a sparse (DTC) transition GP on either path
             (:func:`~hgpdm_torch.gp_shared.sparse_posterior`), or ``None`` for the exact GP.
         inducing_values: its distinct intention values (continuous g; see there).
-        phase: the GP's last input column is the phase (``IDDM(phase_width=...)``): the generic
-            path on the exact GP (``"auto"`` picks it; ``"shared"`` and ``inducing`` are
-            refused: their pseudo-inputs and groups are built over ``[x, g]``).
+        phase: the GP's last input column is the phase (``IDDM(phase_width=...)``), given to
+            ``moments`` per stream; either path on the exact GP (``inducing`` is refused: its
+            pseudo-inputs are built over ``[x, g]``), the shared one where the kernel is the
+            IDDM's tensor product with the phase factor.
     """
     check_choice(transition, "transition", TRANSITIONS)
-    if phase:
-        if transition == "shared" or inducing is not None:
-            raise ValueError(
-                "a phase-aware transition GP (IDDM(phase_width=...)) runs on the generic path "
-                "of the exact GP: use transition='auto' or 'generic' and inducing=None"
-            )
-        return GenericTransition(posterior, values, dtype, phase=True)
+    if phase and inducing is not None:
+        raise ValueError(
+            "a phase-aware transition GP (IDDM(phase_width=...)) runs on the exact GP: its "
+            "pseudo-inputs would be built over [x, g] without the phase; use inducing=None"
+        )
     if transition == "auto":
-        shared = SharedTransition.supports(posterior, values)
+        shared = SharedTransition.supports(posterior, values, phase)
         transition = "shared" if shared else "generic"
+    if phase:
+        if transition == "shared":
+            return SharedTransition(posterior, values, dtype, phase=True)
+        return GenericTransition(posterior, values, dtype, phase=True)
     posterior = sparse_posterior(posterior, values.shape[-1], inducing, inducing_values)
     if transition == "shared":
         return posterior.shared_moments(values, dtype)
