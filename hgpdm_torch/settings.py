@@ -63,7 +63,31 @@ _path = contextvars.ContextVar("hgpdm_torch_moment_path", default="fused")
 _tile = contextvars.ContextVar("hgpdm_torch_tile_bytes", default=None)
 
 
-class debug:
+class _Setting:
+    """A context manager setting one context variable for its block (per thread/async context)."""
+
+    _var: contextvars.ContextVar
+
+    def __init__(self, value: object) -> None:
+        self.value = value
+        self._token: contextvars.Token | None = None
+
+    def __enter__(self) -> _Setting:
+        self._token = self._var.set(self.value)
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._token is not None:
+            self._var.reset(self._token)
+            self._token = None
+
+
+class debug(_Setting):
     """Context manager (and flag) for the debugging checks of the hot loops (module docstring).
 
     ``with debug(True): ...`` switches them on for the block (``debug(False)`` off); the setting
@@ -73,9 +97,15 @@ class debug:
         state: whether the checks run inside the block.
     """
 
+    _var = _debug
+
     def __init__(self, state: bool = True) -> None:
-        self.state = bool(state)
-        self._token: contextvars.Token[bool] | None = None
+        super().__init__(bool(state))
+
+    @property
+    def state(self) -> bool:
+        """Whether the checks run inside the block."""
+        return self.value
 
     @staticmethod
     def on() -> bool:
@@ -86,20 +116,6 @@ class debug:
     def off() -> bool:
         """Whether the debugging checks are skipped now."""
         return not _debug.get()
-
-    def __enter__(self) -> debug:
-        self._token = _debug.set(self.state)
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        if self._token is not None:
-            _debug.reset(self._token)
-            self._token = None
 
 
 @contextlib.contextmanager
@@ -130,30 +146,6 @@ def validate_internal() -> bool:
     """Whether a structure check of a Gaussian should run now: always for a user's call,
     inside :func:`internal_step` only under :class:`debug`."""
     return _debug.get() or not _internal.get()
-
-
-class _Setting:
-    """A context manager setting one context variable for its block (per thread/async context)."""
-
-    _var: contextvars.ContextVar
-
-    def __init__(self, value: object) -> None:
-        self.value = value
-        self._token: contextvars.Token | None = None
-
-    def __enter__(self) -> _Setting:
-        self._token = self._var.set(self.value)
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        if self._token is not None:
-            self._var.reset(self._token)
-            self._token = None
 
 
 class moment_path(_Setting):
