@@ -43,6 +43,7 @@ replicate's figures and what each LinearIDDM variant chose).
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 import warnings
@@ -52,9 +53,11 @@ from pathlib import Path
 import torch
 
 from benchmarks.target_sweep import STEPS, abs_errors
+from hgpdm_torch import settings
 from hgpdm_torch.baselines import WindowGPR
 from hgpdm_torch.calibration import credible_set, fit_temperature, grid_index
 from hgpdm_torch.crossval import contiguous_folds
+from hgpdm_torch.experiments.arguments import add_executor_arguments, connect, positive_int
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
     PHASE_IDDM,
@@ -65,7 +68,7 @@ from hgpdm_torch.experiments.target_prediction import (
 )
 from hgpdm_torch.inference import BeliefMixture, FilterBeliefs
 from hgpdm_torch.models import LinearIDDM
-from hgpdm_torch.parallel import Executor, get_executor
+from hgpdm_torch.parallel import Executor
 from hgpdm_torch.results import ResultTable
 from hgpdm_torch.robots.table_tennis.opponent import sample_strokes
 
@@ -165,10 +168,14 @@ def _ratio_interval(
     return float(lo), float(hi)
 
 
-def _timed_replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int):
-    """:func:`_replicate` and its wall time [s] (one executor job)."""
+def _timed_replicate(
+    seed: int, n_train: int, n_test: int, grid_size: int, steps: int, snap: settings.Snapshot
+):
+    """:func:`_replicate` in the caller's settings ``snap`` (default dtype included: a worker
+    inherits none) and its wall time [s] (one executor job)."""
     start = time.time()
-    out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
+    with snap.applied():
+        out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
     return out, choices, time.time() - start
 
 
@@ -205,7 +212,7 @@ def run(
         },  # fmt: skip
     )
     job = partial(_timed_replicate, n_train=n_train, n_test=n_test, grid_size=grid_size,
-                  steps=steps)  # fmt: skip
+                  steps=steps, snap=settings.snapshot())  # fmt: skip
     results = map(job, seeds) if executor is None else executor.map(job, seeds)
     for seed, (out, choices, seconds) in zip(seeds, results, strict=True):
         ref = out[METHODS[0]][0][:, -1].sum()
@@ -240,19 +247,16 @@ def run(
 
 
 def main(argv: list[str]) -> int:
-    quick = "--quick" in argv
-    # --first-seed=S: the replicates S .. S + 9 (a confirmation on draws never looked at)
-    seeds = [a.split("=", 1)[1] for a in argv if a.startswith("--first-seed=")]
-    first = int(seeds[-1]) if seeds else 1
-    workers = [int(a.split("=", 1)[1]) for a in argv if a.startswith("--workers=")]
-    address = [a.split("=", 1)[1] for a in argv if a.startswith("--ray-address=")]
-    pool = (
-        get_executor(workers[-1] if workers else None, address[-1])
-        if address
-        else get_executor(workers[-1])
-        if workers
-        else None
-    )
+    parser = argparse.ArgumentParser(prog="python -m benchmarks target_replicates")
+    parser.add_argument("--quick", action="store_true", help="smoke mode: 2 small replicates")
+    parser.add_argument(
+        "--first-seed", type=positive_int, default=1,
+        help="the replicates S .. S + 9 (a confirmation on draws never looked at)",
+    )  # fmt: skip
+    add_executor_arguments(parser, "the replicates")
+    args = parser.parse_args(argv)
+    quick, first = args.quick, args.first_seed
+    pool = connect(parser, args.workers, args.ray_address, local=True)
     try:
         table = run(quick=quick, first_seed=first, executor=pool)
     finally:

@@ -126,6 +126,7 @@ def held_out(
     progress: bool = False,
     desc: str = "folds",
     context: str = "",
+    item: str = "fold",
 ) -> list[Out]:
     """``[fit_predict(k, *split) for k, split in enumerate(splits)]``.
 
@@ -148,6 +149,7 @@ def held_out(
         progress: show a progress bar over the folds.
         desc: the bar's label.
         context: what the error note names besides the fold.
+        item: what the note calls the ``k``-th split (default ``"fold"``).
     """
     jobs, fold = list(enumerate(splits)), _Fold(fit_predict)
     results: Iterator[Out] = map(fold, jobs) if executor is None else executor.map(fold, jobs)
@@ -156,7 +158,7 @@ def held_out(
         try:
             out.append(next(results))
         except Exception as err:
-            err.add_note(f"cross-validation: {context + ', ' if context else ''}fold {k}")
+            err.add_note(f"cross-validation: {context + ', ' if context else ''}{item} {k}")
             raise
     return out
 

@@ -456,7 +456,9 @@ class SharedTransition:
             right[..., dx + 1, :] += log_phase  # the column term
         right = right[..., self.columns]
         size = per_tile(self.workspace(), mu.dtype, mu.device)
-        grad = torch.is_grad_enabled() and any(t.requires_grad for t in (left, right))
+        # the inputs' gradient, or the GP's (a posterior with detach=False): differentiable tiles
+        needs = (left, right, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
         if grad:
             parts = [
                 checkpoint(self._tile, left[i : i + size], right[i : i + size], use_reentrant=False)
@@ -465,7 +467,7 @@ class SharedTransition:
             T, second = (torch.cat([p[j] for p in parts]) for j in (0, 1))
         else:  # one set of buffers for all tiles; a tile's results go straight out
             new = mu.new_empty
-            size = min(size, b)
+            size = max(1, min(size, b))  # b = 0: no tile
             bufs = (new(size, n, n), new(size, U, dx, n), new(size, K, dx, n))
             T, second = new(b, U, U), new(b, K, dx, dx)
             for i in range(0, b, size):
@@ -514,11 +516,14 @@ class SharedTransition:
         exponent, ``2 N^2`` for the product with ``K^-1`` and its group sums, ``N^2 Dx`` for
         the group weights, ``K U Dx N`` for phi over groups, ``K Dx^2 N`` for the weighted
         columns, ``K U^2`` for the traces, and the ``O(N Dx^2)`` and ``O(K U Dx^2)`` work of
-        ``psi1``, ``E[grad k]``, the means, the centring and ``Cov[x, f]``.
+        ``psi1``, ``E[grad k]``, the means, the centring and ``Cov[x, f]`` (with a phase, its
+        ``N`` factors per stream and their products).
         """
         dx, U, K = self.dx, self.groups, self.num_values
         n = U * self.group_size
         madds = n * n * (dx + 2) + 2 * n * n + n * n * dx + K * U * dx * n
         madds += K * dx * dx * n + K * U * U + K * U + K * dx * dx
         madds += 4 * n * dx * dx + 3 * n * dx + K * U * dx * (1 + dx) + K * dx**3
+        if self.phase:  # each point's phase factor, and its use in psi1, E[grad k], the exponent
+            return OpCount(exps=n * n + 2 * n, madds=madds + n * (dx + 5))
         return OpCount(exps=n * n + n, madds=madds)

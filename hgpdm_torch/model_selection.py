@@ -33,12 +33,12 @@ import numpy as np
 import torch
 from sklearn.model_selection import LeaveOneGroupOut, ParameterGrid
 
+from . import settings
 from .crossval import best_index, checked_splits, held_out
 from .fitting import ConvergenceWarning
 from .inference.variational import VariationalInference
 from .parallel import Executor
 from .results import ResultTable
-from .settings import default_dtype
 from .validation import as_tensor
 
 __all__ = ["CVResult", "cross_validate", "forecast_rmse"]
@@ -300,13 +300,13 @@ def cross_validate(
 
     job = partial(
         _fit_and_score, model_class, sequences, labels, label_array, takes_labels, fixed, score,
-        fit_steps, fit_kwargs, seed, torch.get_default_dtype(),
+        fit_steps, fit_kwargs, seed, settings.snapshot(),
     )  # fmt: skip
     pairs = [(options, k, *split) for options in option_sets for k, split in enumerate(splits)]
     with torch.random.fork_rng(devices=[]):
         results = held_out(
             pairs, job, executor=executor, progress=progress, desc="cross-validate",
-            context="cross_validate, (option set, fold) pair",
+            context="cross_validate", item="(option set, fold) pair",
         )  # fmt: skip
     per_set = [results[i : i + len(splits)] for i in range(0, len(results), len(splits))]
     fold_scores = [[value for value, _ in part] for part in per_set]
@@ -362,7 +362,7 @@ def _fit_and_score(
     fit_steps: int,
     fit_kwargs: Mapping[str, Any],
     seed: int,
-    dtype: torch.dtype,
+    snap: settings.Snapshot,
     pair: int,
     options: dict[str, Any],
     k: int,
@@ -370,13 +370,13 @@ def _fit_and_score(
     test: list[int],
 ) -> tuple[float, dict[str, Any]]:
     """One fit of :func:`cross_validate`: fold ``k`` of one option set, fitted on ``train`` after
-    ``torch.manual_seed(seed)`` and scored on ``test``, with the caller's default ``dtype``
+    ``torch.manual_seed(seed)`` and scored on ``test``, in the caller's settings ``snap``
     (module-level, so that it pickles to an executor; ``pair`` is its index among all fits)."""
     context = f"options {options}, fold {k}"
     try:
         data = {"intentions": _subset(labels, label_array, train)} if takes_labels else {}
         torch.manual_seed(seed)
-        with default_dtype(dtype), warnings.catch_warnings():
+        with snap.applied(), warnings.catch_warnings():
             model = model_class([sequences[i] for i in train], **data, **fixed, **options)
             warnings.simplefilter("ignore", ConvergenceWarning)
             fit = model.fit(steps=fit_steps, **fit_kwargs)

@@ -39,7 +39,7 @@ from .expectations import (
     term_psi2_factors,
 )
 from .linalg import shared_matmul
-from .tiling import OpCount, exp_, per_tile
+from .tiling import OpCount, exp_, tile_budget
 
 __all__ = ["input_moments", "input_operations", "pair_operations"]
 
@@ -173,10 +173,13 @@ def _fused_pair(
     :func:`_materialised_pair` gives, with ``psi2`` evaluated and reduced one tile of input
     Gaussians at a time.
 
-    The tiles run along the first batch dim in which the input Gaussians differ (streams,
-    windows), as many per tile as :func:`~hgpdm_torch.tiling.per_tile` allows; the other batch
-    dims (e.g. K intentions sharing an input, whose factors only rescale the weights) stay whole
-    inside a tile. ``left`` and ``right`` (``O(N D)`` per input) are computed once for all.
+    The tiles run along the batch dims in which the input Gaussians differ (streams, windows,
+    intentions with their own inputs), outermost first: as many along the first as
+    :func:`~hgpdm_torch.tiling.per_tile` allows with the inner dims whole, and where even one
+    slice of it is over the budget, one at a time and tiled along the next dim, and so on. Dims
+    along which only the weights differ (K intentions sharing an input, whose factors rescale
+    the weights) stay whole inside a tile. ``left`` and ``right`` (``O(N D)`` per input) are
+    computed once for all.
     """
     fa, fba, fb, fbb = weights
     left, right = rbf_psi2_exponent(a, b, mu, Sigma, X)
@@ -185,10 +188,8 @@ def _fused_pair(
     parts += [] if kinv is None else [kinv]
     nb = max(p.dim() - 2 for p in parts)
     parts = [p.reshape((1,) * (nb + 2 - p.dim()) + p.shape) for p in parts]
-    inputs = left.shape[:-2]
-    inputs = (1,) * (nb - len(inputs)) + tuple(inputs)
-    along = next((i for i, size in enumerate(inputs) if size > 1), None)
     grad = torch.is_grad_enabled() and any(p.requires_grad for p in parts)
+    budget = tile_budget(left.device) // left.element_size()  # psi2 entries per tile
 
     def reduce(left_t, right_t, fa_t, fba_t, fb_t, fbb_t, *k):
         q = left_t @ right_t
@@ -204,16 +205,24 @@ def _fused_pair(
             return checkpoint(reduce, *t, use_reentrant=False)
         return reduce(*t)
 
-    if along is None:
-        return tile(*parts)
-    size = per_tile(n * n * math.prod(inputs) // inputs[along], left.dtype, left.device)
-    out = [
-        tile(*(p if p.shape[along] == 1 else p.narrow(along, i, min(size, p.shape[along] - i))
-               for p in parts))
-        for i in range(0, inputs[along], size)
-    ]  # fmt: skip
-    m = torch.cat([o[0] for o in out], along)
-    return m, None if kinv is None else torch.cat([o[1] for o in out], along)
+    def tiled(t: list[torch.Tensor], start: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+        inputs = t[0].shape[:-2]  # the input Gaussians' batch (left's), from dim start on
+        along = next((i for i in range(start, nb) if inputs[i] > 1), None)
+        inner = n * n * math.prod(inputs[along + 1 :]) if along is not None else 0
+        if along is None or n * n * math.prod(inputs) <= budget:
+            return tile(*t)
+        size = max(1, budget // inner)
+        out = [
+            (tile if inner <= budget else lambda *x: tiled(list(x), along + 1))(
+                *(p if p.shape[along] == 1 else p.narrow(along, i, min(size, p.shape[along] - i))
+                  for p in t)
+            )
+            for i in range(0, inputs[along], size)
+        ]  # fmt: skip
+        m = torch.cat([o[0] for o in out], along)
+        return m, None if kinv is None else torch.cat([o[1] for o in out], along)
+
+    return tiled(parts, 0)
 
 
 def pair_operations(
@@ -246,22 +255,23 @@ def input_operations(
 ) -> OpCount:
     """Work of :func:`input_moments` for one input Gaussian, in the loops it runs.
 
-    Per term: ``psi1`` (``N`` exponentials for an RBF; ``N D^2`` multiply-adds to whiten the
-    inputs) and with ``grad`` as many again for ``E[d k / dx]``, each contracted with ``S``
-    weight sets (``N S Dout``, times ``D`` for the gradient). Per term pair: an RBF x RBF pair
-    :func:`pair_operations`; a low-rank pair of rank ``r`` (``D``, or 1 with a constant term)
-    ``2 r N S Dout`` for the two projections, ``r S Dout^2`` for the pair and with ``trace``
-    ``r N`` against ``K^-1``, plus its ``r N^2 S`` product with ``K^-1``, which one call does
-    once for all its ``inputs`` Gaussians (counted here as a share). ``D`` is the terms'
-    Gaussian dim (their ``weight``).
+    Per term: ``psi1`` (for an RBF ``N`` exponentials and ``N D^2`` multiply-adds to whiten the
+    inputs, with ``grad`` ``N D^2`` more for ``E[d k / dx]``; ``N D`` for a linear term),
+    contracted with ``S`` weight sets (``N S Dout``, times ``D + 1`` with the gradient). Per term
+    pair: an RBF x RBF pair :func:`pair_operations`; a low-rank pair of rank ``r`` (``D``, or 1
+    with a constant term) ``2 r N S Dout`` for the two projections, ``r S Dout^2`` for the pair
+    and with ``trace`` ``r N S`` against ``K^-1``, plus its ``r N^2 S`` product with ``K^-1``,
+    which one call does once for all its ``inputs`` Gaussians (counted here as a share). ``D``
+    is the terms' Gaussian dim (their ``weight``).
     """
     ops = OpCount()
     for t in terms:
         d = t.weight.shape[-1]
-        one = OpCount(exps=n if t.kind == "rbf" else 0, madds=n * d * d + n * sets * dout)
-        ops = ops + one * (1 + int(grad))
-        if grad:
-            ops = ops + OpCount(madds=n * d * sets * dout)
+        if t.kind == "rbf":  # whitening solve (and with grad its Cholesky solve), N exps
+            ops = ops + OpCount(exps=n, madds=n * d * d * (1 + int(grad)))
+        elif t.kind == "linear":
+            ops = ops + OpCount(madds=n * d)
+        ops = ops + OpCount(madds=n * sets * dout * (1 + d * int(grad)))  # against the weights
     for i, a in enumerate(terms):
         for b in terms[i:]:
             d = a.weight.shape[-1]
@@ -270,5 +280,6 @@ def input_operations(
                 continue
             r = 1 if "const" in (a.kind, b.kind) else d
             madds = 2 * r * n * sets * dout + r * sets * (dout if diagonal else dout * dout)
-            ops = ops + OpCount(madds=madds + (r * n * n * sets / inputs + r * n if trace else 0))
+            shared = r * n * n * sets / inputs  # V K^-1: once per call, for all its inputs
+            ops = ops + OpCount(madds=madds + (shared + r * n * sets if trace else 0))
     return ops

@@ -34,9 +34,10 @@ input (:mod:`hgpdm_torch.tiling`), ``"materialised"`` is the earlier path that f
 chunk of inputs and then reduces them; it stays for comparison in benchmarks and tests.
 :class:`tile_bytes` overrides the tile size that :mod:`hgpdm_torch.tiling` picks per device.
 
-:func:`default_dtype` sets torch's default dtype for a block: an executor's worker
-(:mod:`hgpdm_torch.parallel`) is a fresh process that does not inherit the caller's, so a job
-that depends on it takes the caller's in its arguments and runs in this context.
+:func:`default_dtype` sets torch's default dtype for a block. :func:`snapshot` captures all of
+these (and the default dtype) where a job is made: an executor's worker
+(:mod:`hgpdm_torch.parallel`) is a fresh process that inherits none of them, so a job takes the
+snapshot with it and runs in ``with snap.applied():``.
 """
 
 from __future__ import annotations
@@ -44,15 +45,18 @@ from __future__ import annotations
 import contextlib
 import contextvars
 from collections.abc import Iterator
+from dataclasses import dataclass
 from types import TracebackType
 
 import torch
 
 __all__ = [
+    "Snapshot",
     "debug",
     "default_dtype",
     "internal_step",
     "moment_path",
+    "snapshot",
     "tile_bytes",
     "validate_internal",
 ]
@@ -191,3 +195,40 @@ class tile_bytes(_Setting):
     def get() -> int | None:
         """The size in effect, or ``None`` for the device's default."""
         return _tile.get()
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """The settings in effect where :func:`snapshot` was called: torch's default dtype,
+    :class:`moment_path`, :class:`tile_bytes` and :class:`debug` (picklable)."""
+
+    dtype: torch.dtype
+    path: str
+    tile: int | None
+    debug: bool
+
+    @contextlib.contextmanager
+    def applied(self) -> Iterator[None]:
+        """Context in which these settings are in effect (the previous ones are restored)."""
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(default_dtype(self.dtype))
+            stack.enter_context(moment_path(self.path))
+            stack.enter_context(debug(self.debug))
+            if self.tile is not None:
+                stack.enter_context(tile_bytes(self.tile))
+            else:
+                stack.enter_context(_Unset(_tile))
+            yield
+
+
+class _Unset(_Setting):
+    """Context in which a setting is back at its default (``None``)."""
+
+    def __init__(self, var: contextvars.ContextVar) -> None:
+        self._var = var
+        super().__init__(None)
+
+
+def snapshot() -> Snapshot:
+    """The settings in effect now, for a job that runs elsewhere (module docstring)."""
+    return Snapshot(torch.get_default_dtype(), _path.get(), _tile.get(), _debug.get())

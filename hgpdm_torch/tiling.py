@@ -8,9 +8,9 @@ against training weights (``beta^T psi2 beta``), group sums or ``K^-1`` (a trace
 (:class:`hgpdm_torch.settings.moment_path` ``"fused"``) evaluates it for a tile of input Gaussians
 at a time and reduces each tile before the next, so no ``[B, N, N]`` tensor exists:
 
-- a tile holds as many inputs as fit :func:`tile_budget` bytes: on a CPU one or two inputs at
-  N = 500 (the tile and its reductions stay in the L2/L3 cache, where the passes over it cost
-  little), on a GPU hundreds (one launch per operation does the work of all of them);
+- a tile holds as many inputs as fit :func:`tile_budget` bytes: on a CPU one input at N = 500
+  (the tile and its reductions stay in the L2/L3 cache, where the passes over it cost little),
+  on a GPU hundreds (one launch per operation does the work of all of them);
 - its exponential runs in place through :func:`exp_`, the faster of two vectorised
   implementations for the device.
 
@@ -32,29 +32,30 @@ from . import settings
 
 __all__ = ["CPU_STREAM_CHUNK", "OpCount", "exp_", "per_tile", "stream_chunk", "tile_budget"]
 
-#: Bytes of one psi2 tile on a CPU: the tile, a second buffer of its size (the product with
-#: K^-1) and the weight contractions stay in the cache (on the 2-core EPYC of the development
-#: machines, 1 MB L2 per core and a shared L3: N = 500 streams one at a time ran the shared
-#: transition at 1.0 ms per stream, two at a time at 1.1 ms).
+#: Bytes of one psi2 tile on a CPU: the tile and its weight contractions stay in the cache (on
+#: the 2-core EPYC of the development machines, 1 MB L2 per core and a shared L3: N = 500
+#: streams one at a time ran the shared transition at 1.0 ms per stream, two at a time at 1.1).
 CPU_TILE_BYTES = 2**21
 #: Bytes of one psi2 tile on an accelerator: large enough that each launch does the work of
-#: hundreds of input Gaussians (at N = 500 in float64: 512 of them), small enough to leave room
-#: for the rest of a step in any GPU with 8 GB or more. At most a quarter of the free memory.
+#: hundreds of input Gaussians (at N = 500 in float64 about 500 tiles' worth of psi2 alone),
+#: small enough to leave room for the rest of a step; at most an eighth of the device's memory.
 GPU_TILE_BYTES = 2**30
 
 
 def tile_budget(device: torch.device) -> int:
     """Bytes of one ``psi2`` tile on ``device``: :class:`hgpdm_torch.settings.tile_bytes` when
-    set, else :data:`CPU_TILE_BYTES` on a CPU and :data:`GPU_TILE_BYTES` (at most a quarter of
-    the free memory) on an accelerator."""
+    set, else :data:`CPU_TILE_BYTES` on a CPU and :data:`GPU_TILE_BYTES` (at most an eighth of
+    the device's total memory) on an accelerator. A property of the device, never of the
+    moment's free memory, so that the tiles, and with them the rounding, repeat from run to
+    run."""
     fixed = settings.tile_bytes.get()
     if fixed is not None:
         return fixed
     if device.type == "cpu":
         return CPU_TILE_BYTES
     if device.type == "cuda":
-        free, _ = torch.cuda.mem_get_info(device)
-        return max(1, min(GPU_TILE_BYTES, free // 4))
+        total = torch.cuda.get_device_properties(device).total_memory
+        return max(1, min(GPU_TILE_BYTES, total // 8))
     return GPU_TILE_BYTES
 
 
@@ -72,19 +73,21 @@ def per_tile(entries: int, dtype: torch.dtype, device: torch.device) -> int:
 CPU_STREAM_CHUNK = 32
 
 
-def stream_chunk(workspace: int, dtype: torch.dtype, device: torch.device) -> int:
+def stream_chunk(n: int, workspace: int, dtype: torch.dtype, device: torch.device) -> int:
     """Default number of streams updated together (``OnlineIntentionFilter(chunk_size=None)``).
 
     Args:
-        workspace: entries of the psi2 tile work space one stream needs (e.g. ``3 N^2``).
+        n: N, the transition GP's training (or pseudo-) inputs.
+        workspace: entries of the psi2 tile work space one stream needs (the transition's
+            ``workspace()``, else ``3 N^2``).
 
-    On the materialised path the earlier default, ``2^19 / N^2`` with ``N^2 = workspace / 3``
-    (its ``[chunk, N, N]`` temporaries in cache); on the fused path :data:`CPU_STREAM_CHUNK` on
-    a CPU, and on an accelerator as many streams as one tile holds (:func:`per_tile`), so that
-    one launch per operation updates them all.
+    On the materialised path the earlier default, ``2^19 / N^2`` (its ``[chunk, N, N]``
+    temporaries in cache); on the fused path :data:`CPU_STREAM_CHUNK` on a CPU, and on an
+    accelerator as many streams as one tile holds (:func:`per_tile`), so that one launch per
+    operation updates them all.
     """
     if settings.moment_path.get() == "materialised":
-        return max(1, 2**19 * 3 // max(1, workspace))
+        return max(1, 2**19 // (n * n))
     if device.type == "cpu":
         return CPU_STREAM_CHUNK
     return per_tile(workspace, dtype, device)

@@ -14,13 +14,15 @@ posterior (tests/conftest.py), which also bounds the shared against the generic 
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 import hgpdm_torch.gp_shared as gp_shared
 from benchmarks._common import peak_bytes
-from hgpdm_torch import settings
+from hgpdm_torch import settings, tiling
 from hgpdm_torch.expectations import kernel_leaves, split_terms
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.gp_shared import SharedTransition
@@ -66,12 +68,14 @@ def _gaussians(b: int, d: int, gen: torch.Generator, scale: float = 0.1):
     return mu, scale * A @ A.mT + 1e-3 * torch.eye(d)
 
 
-def test_exp_matches_torch():
-    """NumPy's exponential where it is the faster one, torch's otherwise: either within two
-    ulps of torch's (each is within about one of the exact value), inf on overflow, 0 on
-    underflow, no warning (below the smallest normal number, subnormal results may be rounded
-    or flushed differently: an absolute ``tiny``); a tensor that needs a gradient keeps
-    torch's."""
+@pytest.mark.parametrize("numpy_exp", [True, False])
+def test_exp_matches_torch(numpy_exp, monkeypatch):
+    """NumPy's exponential where it is the faster one, torch's otherwise (both branches, whatever
+    this machine picks): within two ulps of torch's (each is within about one of the exact
+    value), inf on overflow, 0 on underflow, no warning (below the smallest normal number,
+    subnormal results may be rounded or flushed differently: an absolute ``tiny``); a tensor
+    that needs a gradient keeps torch's."""
+    monkeypatch.setattr(tiling, "_numpy_is_faster", lambda dtype: numpy_exp)
     for dtype in (torch.float64, torch.float32):
         x = torch.linspace(-800.0, 800.0, 100_001, dtype=dtype)
         want = torch.exp(x)
@@ -198,9 +202,9 @@ def test_filter_agrees_across_paths(continuous_iddm, gp_rounding):
 def test_stream_chunk_per_path_and_device():
     cpu = torch.device("cpu")
     n = 500
-    assert stream_chunk(3 * n * n, torch.float64, cpu) == CPU_STREAM_CHUNK
+    assert stream_chunk(n, 3 * n * n, torch.float64, cpu) == CPU_STREAM_CHUNK
     with settings.moment_path("materialised"):
-        assert stream_chunk(3 * n * n, torch.float64, cpu) == 2**19 // (n * n)
+        assert stream_chunk(n, 3 * n * n, torch.float64, cpu) == 2**19 // (n * n)
     with settings.tile_bytes(10 * 8 * n * n):
         assert per_tile(n * n, torch.float64, cpu) == 10
         assert per_tile(n * n, torch.float32, cpu) == 20
@@ -231,8 +235,17 @@ def test_operation_counts_cover_the_work(generator, monkeypatch):
     assert sum(taken) == 4 * n * n == 4 * (count.exps - n)
     products = counter.get_total_flops() / 2 / 4  # multiply-adds per stream
     assert 0.8 * count.madds < products < count.madds
-    pair = pair_operations(n, DX, DX, sets=len(values))
-    assert pair.exps == n * n and pair.madds > n * n * (DX + 2 + len(values) * DX)
+    # the generic path (predict_gaussian, K values sharing each input): the RBF pair's count
+    # against the matrix products it runs (its exponent, the weights, the trace's)
+    k, generic = len(values), make_posterior("continuous", torch.Generator().manual_seed(0))
+    g = torch.linspace(-1, 1, k)[None, :, None]
+    mu2, S2 = _gaussians(4, 2, generator)
+    with FlopCounterMode(display=False) as counter:
+        generic.predict_gaussian(mu2[:, None], S2[:, None], g=g, include_noise=True)
+    N = generic.train_inputs.shape[0]
+    pair = pair_operations(N, 2, 2, sets=k)
+    assert pair.exps == N * N
+    assert 0.5 * pair.madds < counter.get_total_flops() / 2 / 4 < 1.5 * pair.madds
     assert (OpCount(1.0, 2.0) * 3 + OpCount(1.0, 0.0)).seconds(4.0, 2.0) == 1.0 + 3.0
 
 
@@ -250,3 +263,73 @@ def test_tile_rounding_is_independent_of_neighbours(generator):
             together = fast.moments(mu, S)
         n = fast.inputs.shape[0]
         _close(together, alone, 4 * n * EPS * float(torch.linalg.cond(post.kinv)))
+
+
+def test_gradients_through_a_posterior_that_keeps_its_graph(generator, gp_rounding):
+    """A posterior with ``detach=False`` whose kernel is trained (its weights and ``K^-1`` need
+    gradients, the inputs do not): the fused shared transition takes its differentiable tiles,
+    and the gradient of the kernel's parameters is the materialised path's, to the rounding of
+    the gradient's sums through ``K^-1`` (``gp_rounding`` of its scale)."""
+    post, values = _iddm_posterior("iddm_continuous", generator)
+    kernel = copy.deepcopy(post.kernel).requires_grad_(True)
+    live = GPPosterior(kernel, post.train_inputs, post.train_targets, post.noise, detach=False)
+    mu, S = _gaussians(3, DX, generator)
+    grads = []
+    for path in ("materialised", "fused"):
+        with settings.moment_path(path):
+            fast = SharedTransition(live, values)
+            assert fast.beta_rows.requires_grad  # the case: only the GP's side needs gradients
+            mean, cov, _ = fast.moments(mu, S)
+            grads.append(torch.autograd.grad(mean.sum() + cov.sum(), list(kernel.parameters())))
+    rel = gp_rounding(post)
+    for a, b in zip(grads[1], grads[0], strict=True):
+        torch.testing.assert_close(a, b, rtol=rel, atol=rel * float(b.abs().max()))
+
+
+def test_phase_path_has_gradients(generator):
+    """gradcheck of a phase-aware shared transition (its phase factor in the exponent) in tiles
+    of one stream."""
+    kernel = transition_kernel("iddm_continuous", DX, alpha=(0.9, 0.4, 0.1, 1e-2),
+                               phase_width=1.5)  # fmt: skip
+    X = torch.randn(24, DX, generator=generator)
+    G = torch.linspace(-1, 1, 6).repeat_interleave(4)[:, None]
+    p = torch.arange(4.0).repeat(6)[:, None]
+    post = GPPosterior(kernel, torch.cat([X, G, p], 1), torch.tanh(X), 1e-2)
+    fast = SharedTransition(post, torch.linspace(-1, 1, 3)[:, None], phase=True)
+    mu0, S0 = _gaussians(2, DX, generator)
+    phase = torch.tensor([0.0, 2.0])
+
+    def f(mu, A):
+        return fast.moments(mu, A @ A.mT, phase)
+
+    A = torch.linalg.cholesky(S0).requires_grad_(True)
+    with settings.tile_bytes(1):
+        assert torch.autograd.gradcheck(f, (mu0.clone().requires_grad_(True), A))
+
+
+def test_tiles_stay_in_budget_with_two_batch_dims(generator, gp_rounding):
+    """Input Gaussians that differ along two batch dims (streams x intentions, as in a GP-ADF
+    step over all K): tiles of one input each, the moments of the materialised path, and a peak
+    allocation under a fifth of the materialised one."""
+    gp = make_posterior("continuous", generator, N=150)
+    mu = torch.randn(6, 5, 2, generator=generator)
+    A = 0.3 * torch.randn(6, 5, 2, 2, generator=generator)
+    S = A @ A.mT + 0.01 * torch.eye(2)
+    g = torch.randn(1, 5, 1, generator=generator)
+    with settings.moment_path("materialised"):
+        want = gp.predict_gaussian(mu, S, g=g)
+        big = peak_bytes(lambda: gp.predict_gaussian(mu, S, g=g), torch.device("cpu"))
+    n = gp.train_inputs.shape[0]
+    with settings.tile_bytes(n * n * 8):
+        got = gp.predict_gaussian(mu, S, g=g)
+        small = peak_bytes(lambda: gp.predict_gaussian(mu, S, g=g), torch.device("cpu"))
+    _close(got, want, gp_rounding(gp))
+    # what is left is O(N D) per input (psi1, the exponent's factors), not 30 N^2
+    assert small < big / 5
+
+
+def test_no_streams(generator):
+    post, values = _iddm_posterior("iddm_continuous", generator)
+    mu, S = _gaussians(0, DX, generator)
+    mean, cov, cross = SharedTransition(post, values).moments(mu, S)
+    assert mean.shape == (0, len(values), DX) and cov.shape == (0, len(values), DX, DX)

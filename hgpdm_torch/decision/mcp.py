@@ -62,7 +62,7 @@ from .. import settings
 from ..expectations import kernel_leaves, split_terms
 from ..gaussian import conditional, log_density_terms, mixture_moments
 from ..inference.intention import OnlineIntentionFilter
-from ..inference.intention.measurement import LinearMeasurement
+from ..inference.intention.measurement import linear_measurement
 from ..linalg import cholesky_logdet, psd_cholesky, symmetrize
 from ..models import GPDM
 from ..moments import input_operations
@@ -367,8 +367,8 @@ class ParticleProjector:
         phase = None if belief.phase is None else m.new_full((1,), float(belief.phase))
         mean, cov, _ = f.transition.moments(m, P, phase)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
-        linear = getattr(f.measure, "__self__", None)
-        if isinstance(linear, LinearMeasurement):  # the filter's own, precomputed: O(Dx Dz^2)
+        linear = linear_measurement(f.measure)
+        if linear is not None:  # the filter's own, precomputed: O(Dx Dz^2)
             mz, Sz, Cxz = linear.moments(mean, cov)
         else:
             gp_dtype = self.measurement.train_inputs.dtype
@@ -564,7 +564,7 @@ class MonteCarloPlanner(ParticleProjector):
         f, meas = self.filter, self.measurement
         K, dx, dz = f.num_values, f.mu0.shape[0], meas.output_dim
         shared = f.transition.operations(1)
-        if isinstance(getattr(f.measure, "__self__", None), LinearMeasurement):
+        if linear_measurement(f.measure) is not None:
             shared = shared + OpCount(madds=K * (2 * dx * dx + dx * dx * dz + dz * dz * dx))
         else:
             leaves = kernel_leaves(meas.kernel, meas.input_dim)

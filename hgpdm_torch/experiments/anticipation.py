@@ -44,6 +44,7 @@ from typing import Any
 
 import torch
 
+from .. import settings
 from ..crossval import held_out
 from ..decision.beliefs import Beliefs, decision_indices, fit_beliefs
 from ..decision.lspi import lspi
@@ -65,7 +66,6 @@ from ..decision.stopping import ACTIONS, Episodes, StoppingProblem
 from ..models import supervised_init
 from ..parallel import Executor
 from ..results import ResultTable
-from ..settings import default_dtype
 from ..validation import as_tensor, check_choice
 from .arguments import (
     add_executor_arguments,
@@ -294,7 +294,7 @@ def run_protocol(
     start = time.perf_counter()
     job = partial(
         _fold, obs, targets, rewards, fold_of, steps_at, step_of, candidates, config,
-        torch.get_default_dtype(),
+        settings.snapshot(),
     )  # fmt: skip
     folds = held_out(
         [() for _ in range(config.folds)], job, executor=executor, progress=progress,
@@ -356,14 +356,14 @@ def _fold(
     step_of: dict[float, int],
     candidates: tuple[str, ...],
     config: AnticipationConfig,
-    dtype: torch.dtype,
+    snap: settings.Snapshot,
     k: int,
 ) -> dict[str, Any]:
-    """Fold ``k`` of :func:`run_protocol` with all its repetitions, in the caller's default
-    ``dtype`` (module-level, so that it pickles to an executor; its randomness is seeded by
+    """Fold ``k`` of :func:`run_protocol` with all its repetitions, in the caller's settings
+    ``snap`` (module-level, so that it pickles to an executor; its randomness is seeded by
     ``config.seed``, the repetition and ``k``): the beliefs' fits, the source chosen with its
     CV return rate, and per method the ``[repetitions]`` successes on the fold's test trials."""
-    with default_dtype(dtype):
+    with snap.applied():
         return _fold_counts(obs, targets, rewards, fold_of, steps_at, step_of, candidates,
                             config, k)  # fmt: skip
 

@@ -48,6 +48,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from .. import settings
 from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
 from ..calibration import calibration
 from ..crossval import held_out
@@ -58,7 +59,6 @@ from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
 from ..parallel import Executor
 from ..results import ResultTable
-from ..settings import default_dtype
 from .arguments import add_executor_arguments, connect, int_at_least, output_file, positive_int
 from .intervals import mean_sem
 from .style_recognition import chunked_windows, forecast_windows, window_entries
@@ -485,7 +485,7 @@ def walkers(
         folds, untestable = loto_folds(data.labels)
         folds = spread_folds(folds, data, max_folds)
         meta["not testable by leave-one-trial-out"] = [data.trials[j] for j in untestable]
-        job = partial(_score_fold, data.sequences, data.labels, kwargs, torch.get_default_dtype())
+        job = partial(_score_fold, data.sequences, data.labels, kwargs, settings.snapshot())
         done = held_out(folds, job, executor=executor, progress=progress, desc=spec.name)
         for (_, held), (rows, fits) in zip(folds, done, strict=True):
             fits["held out"] = data.trials[held[0]]
@@ -499,15 +499,15 @@ def _score_fold(
     sequences: list[torch.Tensor],
     labels: torch.Tensor,
     kwargs: dict[str, Any],
-    dtype: torch.dtype,
+    snap: settings.Snapshot,
     k: int,
     train: list[int],
     held: list[int],
 ) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
     """Fold ``k`` of the leave-one-trial-out CV: :func:`_score_split` on the trials ``train``
-    and ``held`` in the caller's default ``dtype`` (an executor's job: module-level, and its
-    worker does not inherit the caller's default dtype)."""
-    with default_dtype(dtype):
+    and ``held`` in the caller's settings ``snap`` (an executor's job: module-level, and its
+    worker inherits none of the caller's settings)."""
+    with snap.applied():
         parts = [([sequences[i] for i in idx], labels[idx]) for idx in (train, held)]
         return _score_split(*parts[0], *parts[1], **kwargs)
 
@@ -768,7 +768,7 @@ def main(argv: list[str]) -> int:
         if path is not None and not path.is_dir():
             parser.error(f"{name} {path} is not a folder (it needs the CMU files; docs, Walking)")
     torch.set_default_dtype(torch.float64)
-    if args.test_data is not None and (args.workers or args.ray_address) is not None:
+    if args.test_data is not None and ((args.workers or 1) > 1 or args.ray_address is not None):
         parser.error("--workers and --ray-address run the CV folds; --test-data has none")
     executor = connect(parser, args.workers, args.ray_address, local=True)
     try:

@@ -22,7 +22,7 @@ from ...moments import input_operations
 from ...tiling import OpCount
 from ..filtering import gp_adf_update
 
-__all__ = ["LinearMeasurement", "measurement_operations"]
+__all__ = ["LinearMeasurement", "linear_measurement", "measurement_operations"]
 
 
 class LinearMeasurement:
@@ -146,6 +146,13 @@ def measurement_update(posterior: GPPosterior, dtype: torch.dtype):
         return functools.partial(gp_adf_update, post)  # picklable, unlike a lambda
 
 
+def linear_measurement(update: Callable[..., object]) -> LinearMeasurement | None:
+    """The :class:`LinearMeasurement` behind a :func:`measurement_update` result, or ``None``
+    (the generic GP-ADF update)."""
+    owner = getattr(update, "__self__", None)
+    return owner if isinstance(owner, LinearMeasurement) else None
+
+
 def measurement_operations(update: Callable[..., object], dx: int, inputs: int = 1) -> OpCount:
     """Work of one measurement update (:func:`measurement_update`'s result) per Gaussian of
     ``Dx`` dims: :meth:`LinearMeasurement.operations`, or for
@@ -153,9 +160,9 @@ def measurement_operations(update: Callable[..., object], dx: int, inputs: int =
     measurement GP (:func:`~hgpdm_torch.moments.input_operations`) and the conditioning on
     ``z`` (``Dz^3 / 3`` for the Cholesky factor, ``Dz^2 (Dx + 1)`` for the solves, ``Dx^2 Dz``
     for the posterior covariance), ``inputs`` Gaussians sharing a call."""
-    owner = getattr(update, "__self__", None)
-    if isinstance(owner, LinearMeasurement):
-        return owner.operations()
+    linear = linear_measurement(update)
+    if linear is not None:
+        return linear.operations()
     post = update.args[0]
     leaves = kernel_leaves(post.kernel, post.input_dim)
     terms = split_terms(leaves, post.train_inputs, None, post.input_dim)

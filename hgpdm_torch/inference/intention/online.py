@@ -310,7 +310,9 @@ class OnlineIntentionFilter(IsolatedStreams):
         self.batch_size = int(batch_size)
         self.obs_dim = model.obs_dim
         n = self.transition.inputs.shape[0]
-        self.chunk_size = chunk_size or stream_chunk(3 * n * n, self.dtype, self.mu0.device)
+        # a chunk of streams on an accelerator is what one tile of the transition holds
+        workspace = getattr(self.transition, "workspace", lambda: 3 * n * n)()
+        self.chunk_size = chunk_size or stream_chunk(n, workspace, self.dtype, self.mu0.device)
         self.reset()
 
     # the flat view of the option groups, as the keywords name them
