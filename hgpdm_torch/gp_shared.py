@@ -41,7 +41,7 @@ from .expectations import (
     term_psi2,
 )
 from .linalg import symmetrize
-from .tiling import OpCount, exp_, per_tile
+from .tiling import OpCount, exp_, keeps_tiles, per_tile
 
 if TYPE_CHECKING:  # gp.py imports this module: GPPosterior only annotates here
     from .gp import GPPosterior
@@ -445,8 +445,9 @@ class SharedTransition:
         ``T``. The covariance is centred afterwards, ``- mean_k mean_k^T`` (``mean_k = beta_k^T
         psi1``): in float32 this errs about twice as much as centring ``psi2`` itself (0.06
         against 0.03 of the smallest predictive variance on the benchmark's IDDM, limit 10) and
-        saves a pass over every tile. Under autograd each tile is recomputed in the backward
-        pass instead of kept.
+        saves a pass over every tile. Under autograd the tiles are kept for the backward pass
+        while they are small in all (:func:`~hgpdm_torch.tiling.keeps_tiles`), else each is
+        recomputed there.
         """
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         n, K = U * L, self.num_values
@@ -459,9 +460,14 @@ class SharedTransition:
         # the inputs' gradient, or the GP's (a posterior with detach=False): differentiable tiles
         needs = (left, right, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
         grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
-        if grad:
+        if grad:  # kept for backward while small, else recomputed there (tiling)
+            keep = keeps_tiles(b * n * n, mu.dtype)
             parts = [
-                checkpoint(self._tile, left[i : i + size], right[i : i + size], use_reentrant=False)
+                self._tile(left[i : i + size], right[i : i + size])
+                if keep
+                else checkpoint(
+                    self._tile, left[i : i + size], right[i : i + size], use_reentrant=False
+                )
                 for i in range(0, b, size)
             ]
             T, second = (torch.cat([p[j] for p in parts]) for j in (0, 1))

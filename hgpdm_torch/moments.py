@@ -11,8 +11,9 @@ per input Gaussian, which is reduced on one of two paths
 - ``"fused"`` (default, :func:`_fused_pair`): ``psi2 = exp(left @ right)``
   (:func:`~hgpdm_torch.expectations.rbf_psi2_exponent`) is evaluated for one tile of input
   Gaussians at a time (:mod:`hgpdm_torch.tiling`: a few on a CPU, hundreds on a GPU) and reduced
-  before the next; under autograd each tile is recomputed in the backward pass
-  (``torch.utils.checkpoint``), so neither pass holds ``psi2`` for more than one tile;
+  before the next; under autograd the tiles are kept for the backward pass up to
+  :data:`~hgpdm_torch.tiling.KEEP_FOR_BACKWARD_BYTES` in all, and beyond it each is recomputed
+  there (``torch.utils.checkpoint``), so neither pass holds more than that;
 - ``"materialised"`` (:func:`_materialised_pair`): the earlier path, kept for comparison.
 
 Both compute the same sums in the same order within an input Gaussian; they differ by the
@@ -39,7 +40,7 @@ from .expectations import (
     term_psi2_factors,
 )
 from .linalg import shared_matmul
-from .tiling import OpCount, exp_, tile_budget
+from .tiling import OpCount, exp_, keeps_tiles, tile_budget
 
 __all__ = ["input_moments", "input_operations", "pair_operations"]
 
@@ -190,6 +191,7 @@ def _fused_pair(
     parts = [p.reshape((1,) * (nb + 2 - p.dim()) + p.shape) for p in parts]
     grad = torch.is_grad_enabled() and any(p.requires_grad for p in parts)
     budget = tile_budget(left.device) // left.element_size()  # psi2 entries per tile
+    keep = not grad or keeps_tiles(n * n * math.prod(left.shape[:-2]), left.dtype)
 
     def reduce(left_t, right_t, fa_t, fba_t, fb_t, fbb_t, *k):
         q = left_t @ right_t
@@ -201,7 +203,7 @@ def _fused_pair(
         return m, (fa_t[..., 0] * shared_matmul(qk, fb_t)[..., 0]).sum(-1)
 
     def tile(*t: torch.Tensor):
-        if grad:  # recomputed in the backward pass: its psi2 is not kept alive for it
+        if not keep:  # recomputed in the backward pass: its psi2 is not kept alive for it
             return checkpoint(reduce, *t, use_reentrant=False)
         return reduce(*t)
 

@@ -138,9 +138,12 @@ def test_generic_moments_fused_equal_materialised(kind, generator, gp_rounding):
     _close(diag[1], diag[0], gp_rounding(gp))
 
 
-def test_fused_paths_have_gradients(generator):
+@pytest.mark.parametrize("recompute", [True, False])
+def test_fused_paths_have_gradients(generator, monkeypatch, recompute):
     """gradcheck through tiles of one input Gaussian, each recomputed in the backward pass
-    (torch.utils.checkpoint): the shared transition and the generic moments."""
+    (torch.utils.checkpoint) or kept for it: the shared transition and the generic moments."""
+    if recompute:
+        monkeypatch.setattr(tiling, "KEEP_FOR_BACKWARD_BYTES", 0)
     post, values = _iddm_posterior("iddm_continuous", generator)
     fast = SharedTransition(post, values)
     mu0, S0 = _gaussians(2, DX, generator)
@@ -286,9 +289,10 @@ def test_gradients_through_a_posterior_that_keeps_its_graph(generator, gp_roundi
         torch.testing.assert_close(a, b, rtol=rel, atol=rel * float(b.abs().max()))
 
 
-def test_phase_path_has_gradients(generator):
+def test_phase_path_has_gradients(generator, monkeypatch):
     """gradcheck of a phase-aware shared transition (its phase factor in the exponent) in tiles
-    of one stream."""
+    of one stream, recomputed in the backward pass."""
+    monkeypatch.setattr(tiling, "KEEP_FOR_BACKWARD_BYTES", 0)
     kernel = transition_kernel("iddm_continuous", DX, alpha=(0.9, 0.4, 0.1, 1e-2),
                                phase_width=1.5)  # fmt: skip
     X = torch.randn(24, DX, generator=generator)
