@@ -53,10 +53,9 @@ from pathlib import Path
 import torch
 
 from benchmarks.target_sweep import STEPS, abs_errors
-from hgpdm_torch import settings
 from hgpdm_torch.baselines import WindowGPR
 from hgpdm_torch.calibration import credible_set, fit_temperature, grid_index
-from hgpdm_torch.crossval import contiguous_folds
+from hgpdm_torch.crossval import contiguous_folds, held_out
 from hgpdm_torch.experiments.arguments import add_executor_arguments, connect, positive_int
 from hgpdm_torch.experiments.target_prediction import (
     HORIZONS_MS,
@@ -168,14 +167,11 @@ def _ratio_interval(
     return float(lo), float(hi)
 
 
-def _timed_replicate(
-    seed: int, n_train: int, n_test: int, grid_size: int, steps: int, snap: settings.Snapshot
-):
-    """:func:`_replicate` in the caller's settings ``snap`` (default dtype included: a worker
-    inherits none) and its wall time [s] (one executor job)."""
+def _timed_replicate(k: int, seed: int, n_train: int, n_test: int, grid_size: int, steps: int):
+    """Replicate ``k`` (its draw seeded by ``seed``): :func:`_replicate` and its wall time [s]
+    (one executor job)."""
     start = time.time()
-    with snap.applied():
-        out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
+    out, choices = _replicate(seed, n_train, n_test, grid_size, steps)
     return out, choices, time.time() - start
 
 
@@ -186,7 +182,8 @@ def run(
     executor: Executor | None = None,
 ) -> ResultTable:
     """The table; ``executor`` (:func:`~hgpdm_torch.parallel.get_executor`) runs the replicates
-    at once (each is seeded by its own seed: the same table as one after the other)."""
+    at once, in this process's settings and default dtype (each is seeded by its own seed: the
+    same table as one after the other)."""
     if quick:
         replicates, n_train, n_test, grid_size, steps = 2, 20, 10, 13, 5
     else:
@@ -212,8 +209,8 @@ def run(
         },  # fmt: skip
     )
     job = partial(_timed_replicate, n_train=n_train, n_test=n_test, grid_size=grid_size,
-                  steps=steps, snap=settings.snapshot())  # fmt: skip
-    results = map(job, seeds) if executor is None else executor.map(job, seeds)
+                  steps=steps)  # fmt: skip
+    results = held_out([(seed,) for seed in seeds], job, executor=executor, item="replicate")
     for seed, (out, choices, seconds) in zip(seeds, results, strict=True):
         ref = out[METHODS[0]][0][:, -1].sum()
         table.meta["replicates"][seed] = {

@@ -28,6 +28,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from . import settings
 from .parallel import Executor
 from .progress import tqdm
 
@@ -144,14 +145,16 @@ def held_out(
             processes or a Ray cluster), the results still in fold order: the same as here for a
             ``fit_predict`` whose randomness is its own (e.g. seeded per fold). ``fit_predict``
             and the splits must then pickle (a module-level function or a ``functools.partial``
-            of one; Ray also takes closures), and must not read this process's settings (see
+            of one; Ray also takes closures). Every fold runs in this process's toolkit settings
+            and default dtype (:func:`~hgpdm_torch.settings.snapshot`), which a worker does not
+            inherit; any other process-wide state it must not read (see
             :mod:`hgpdm_torch.parallel`). ``None``: one after the other in this process.
         progress: show a progress bar over the folds.
         desc: the bar's label.
         context: what the error note names besides the fold.
         item: what the note calls the ``k``-th split (default ``"fold"``).
     """
-    jobs, fold = list(enumerate(splits)), _Fold(fit_predict)
+    jobs, fold = list(enumerate(splits)), _Fold(fit_predict, settings.snapshot())
     results: Iterator[Out] = map(fold, jobs) if executor is None else executor.map(fold, jobs)
     out = []
     for k in tqdm(range(len(jobs)), disable=not progress, desc=desc, leave=False):
@@ -164,15 +167,16 @@ def held_out(
 
 
 class _Fold:
-    """``(k, split) -> fit_predict(k, *split)``: one fold as an executor's job (picklable
-    whenever ``fit_predict`` is)."""
+    """``(k, split) -> fit_predict(k, *split)`` in the caller's settings: one fold as an
+    executor's job (picklable whenever ``fit_predict`` is)."""
 
-    def __init__(self, fit_predict: Callable[..., Any]) -> None:
-        self.fit_predict = fit_predict
+    def __init__(self, fit_predict: Callable[..., Any], snap: settings.Snapshot) -> None:
+        self.fit_predict, self.snap = fit_predict, snap
 
     def __call__(self, job: tuple[int, tuple[Any, ...]]) -> Any:
         k, split = job
-        return self.fit_predict(k, *split)
+        with self.snap.applied():
+            return self.fit_predict(k, *split)
 
 
 def best_index(scores: Sequence[float], greater_is_better: bool = False) -> int:

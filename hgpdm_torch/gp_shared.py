@@ -28,7 +28,6 @@ from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import torch
-from torch.utils.checkpoint import checkpoint
 
 from . import settings
 from .expectations import (
@@ -41,7 +40,7 @@ from .expectations import (
     term_psi2,
 )
 from .linalg import symmetrize
-from .tiling import OpCount, exp_, keeps_tiles, per_tile
+from .tiling import OpCount, differentiable_tile, exp_, keeps_tiles, per_tile
 
 if TYPE_CHECKING:  # gp.py imports this module: GPPosterior only annotates here
     from .gp import GPPosterior
@@ -463,11 +462,7 @@ class SharedTransition:
         if grad:  # kept for backward while small, else recomputed there (tiling)
             keep = keeps_tiles(b * n * n, mu.dtype)
             parts = [
-                self._tile(left[i : i + size], right[i : i + size])
-                if keep
-                else checkpoint(
-                    self._tile, left[i : i + size], right[i : i + size], use_reentrant=False
-                )
+                differentiable_tile(self._tile, left[i : i + size], right[i : i + size], keep=keep)
                 for i in range(0, b, size)
             ]
             T, second = (torch.cat([p[j] for p in parts]) for j in (0, 1))

@@ -33,7 +33,6 @@ import numpy as np
 import torch
 from sklearn.model_selection import LeaveOneGroupOut, ParameterGrid
 
-from . import settings
 from .crossval import best_index, checked_splits, held_out
 from .fitting import ConvergenceWarning
 from .inference.variational import VariationalInference
@@ -300,7 +299,7 @@ def cross_validate(
 
     job = partial(
         _fit_and_score, model_class, sequences, labels, label_array, takes_labels, fixed, score,
-        fit_steps, fit_kwargs, seed, settings.snapshot(),
+        fit_steps, fit_kwargs, seed,
     )  # fmt: skip
     pairs = [(options, k, *split) for options in option_sets for k, split in enumerate(splits)]
     with torch.random.fork_rng(devices=[]):
@@ -362,7 +361,6 @@ def _fit_and_score(
     fit_steps: int,
     fit_kwargs: Mapping[str, Any],
     seed: int,
-    snap: settings.Snapshot,
     pair: int,
     options: dict[str, Any],
     k: int,
@@ -370,13 +368,13 @@ def _fit_and_score(
     test: list[int],
 ) -> tuple[float, dict[str, Any]]:
     """One fit of :func:`cross_validate`: fold ``k`` of one option set, fitted on ``train`` after
-    ``torch.manual_seed(seed)`` and scored on ``test``, in the caller's settings ``snap``
-    (module-level, so that it pickles to an executor; ``pair`` is its index among all fits)."""
+    ``torch.manual_seed(seed)`` and scored on ``test`` (module-level, so that it pickles to an
+    executor; ``pair`` is its index among all fits)."""
     context = f"options {options}, fold {k}"
     try:
         data = {"intentions": _subset(labels, label_array, train)} if takes_labels else {}
         torch.manual_seed(seed)
-        with snap.applied(), warnings.catch_warnings():
+        with warnings.catch_warnings():
             model = model_class([sequences[i] for i in train], **data, **fixed, **options)
             warnings.simplefilter("ignore", ConvergenceWarning)
             fit = model.fit(steps=fit_steps, **fit_kwargs)

@@ -16,8 +16,9 @@ per input Gaussian, which is reduced on one of two paths
   there (``torch.utils.checkpoint``), so neither pass holds more than that;
 - ``"materialised"`` (:func:`_materialised_pair`): the earlier path, kept for comparison.
 
-Both compute the same sums in the same order within an input Gaussian; they differ by the
-exponential's last bits where the fused path takes NumPy's (:func:`~hgpdm_torch.tiling.exp_`).
+Both reduce each block with the same :func:`_contract`; they differ by rounding only: the
+exponential's last bits where the fused path takes NumPy's (:func:`~hgpdm_torch.tiling.exp_`),
+and the BLAS kernels that other batch shapes take.
 
 Shapes: ``N`` training points, ``D`` Gaussian input dims, ``Dout`` outputs; ``...`` batch.
 """
@@ -28,7 +29,6 @@ import math
 from collections.abc import Callable
 
 import torch
-from torch.utils.checkpoint import checkpoint
 
 from . import settings
 from .expectations import (
@@ -40,7 +40,7 @@ from .expectations import (
     term_psi2_factors,
 )
 from .linalg import shared_matmul
-from .tiling import OpCount, exp_, keeps_tiles, tile_budget
+from .tiling import OpCount, differentiable_tile, exp_, keeps_tiles, tile_budget
 
 __all__ = ["input_moments", "input_operations", "pair_operations"]
 
@@ -135,11 +135,7 @@ def _materialised_pair(
     def reduce(mu_c: torch.Tensor, Sigma_c: torch.Tensor, X_c: torch.Tensor, *w: torch.Tensor):
         fa_c, fba_c, fb_c, fbb_c, *k = w
         q = term_psi2(a, b, mu_c, Sigma_c, X_c)
-        m = pair(fba_c, shared_matmul(q, fbb_c))
-        if not k:
-            return m, None
-        qk = q * k[0] if q.requires_grad else q.mul_(k[0])  # reuse q's memory
-        return m, (fa_c * shared_matmul(qk, fb_c[..., None])[..., 0]).sum(-1)
+        return _contract(q, pair, fa_c, fba_c, fb_c, fbb_c, k[0] if k else None)
 
     n, d = X.shape[-2:]
     rows = [X, fba, fbb] + ([] if kinv is None else [kinv])  # [..., N, .]
@@ -160,6 +156,25 @@ def _materialised_pair(
     return m, tr
 
 
+def _contract(
+    q: torch.Tensor,
+    pair: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    fa: torch.Tensor,
+    fba: torch.Tensor,
+    fb: torch.Tensor,
+    fbb: torch.Tensor,
+    kinv: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``pair(fa beta, psi2 fb beta)`` and ``fa^T (psi2 * K^-1) fb`` (``None`` without ``kinv``)
+    of a ``psi2`` block ``q [..., N, N]``, which is overwritten by ``psi2 * K^-1`` unless it
+    needs gradients (both paths' reduction of an RBF x RBF pair)."""
+    m = pair(fba, shared_matmul(q, fbb))
+    if kinv is None:
+        return m, None
+    qk = q * kinv if q.requires_grad else q.mul_(kinv)
+    return m, (fa * shared_matmul(qk, fb[..., None])[..., 0]).sum(-1)
+
+
 def _fused_pair(
     a: Term,
     b: Term,
@@ -175,9 +190,9 @@ def _fused_pair(
     Gaussians at a time.
 
     The tiles run along the batch dims in which the input Gaussians differ (streams, windows,
-    intentions with their own inputs), outermost first: as many along the first as
-    :func:`~hgpdm_torch.tiling.per_tile` allows with the inner dims whole, and where even one
-    slice of it is over the budget, one at a time and tiled along the next dim, and so on. Dims
+    intentions with their own inputs), outermost first: as many along the first as the tile
+    budget (:func:`~hgpdm_torch.tiling.tile_budget`) allows with the inner dims whole, and where
+    even one slice of it is over the budget, one at a time and tiled along the next dim. Dims
     along which only the weights differ (K intentions sharing an input, whose factors rescale
     the weights) stay whole inside a tile. ``left`` and ``right`` (``O(N D)`` per input) are
     computed once for all.
@@ -190,37 +205,29 @@ def _fused_pair(
     nb = max(p.dim() - 2 for p in parts)
     parts = [p.reshape((1,) * (nb + 2 - p.dim()) + p.shape) for p in parts]
     grad = torch.is_grad_enabled() and any(p.requires_grad for p in parts)
-    budget = tile_budget(left.device) // left.element_size()  # psi2 entries per tile
-    keep = not grad or keeps_tiles(n * n * math.prod(left.shape[:-2]), left.dtype)
+    budget = tile_budget(left.device) // left.dtype.itemsize  # psi2 entries per tile
+    keep = keeps_tiles(n * n * math.prod(left.shape[:-2]), left.dtype)
 
     def reduce(left_t, right_t, fa_t, fba_t, fb_t, fbb_t, *k):
         q = left_t @ right_t
         q = q.exp() if grad else exp_(q)
-        m = pair(fba_t, shared_matmul(q, fbb_t))
-        if not k:
-            return m, None
-        qk = q * k[0] if grad else q.mul_(k[0])
-        return m, (fa_t[..., 0] * shared_matmul(qk, fb_t)[..., 0]).sum(-1)
+        return _contract(q, pair, fa_t[..., 0], fba_t, fb_t[..., 0], fbb_t, k[0] if k else None)
 
-    def tile(*t: torch.Tensor):
-        if not keep:  # recomputed in the backward pass: its psi2 is not kept alive for it
-            return checkpoint(reduce, *t, use_reentrant=False)
-        return reduce(*t)
+    def tile(*t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        return differentiable_tile(reduce, *t, keep=keep) if grad else reduce(*t)
 
     def tiled(t: list[torch.Tensor], start: int) -> tuple[torch.Tensor, torch.Tensor | None]:
-        inputs = t[0].shape[:-2]  # the input Gaussians' batch (left's), from dim start on
+        inputs = t[0].shape[:-2]  # the input Gaussians' batch (left's)
         along = next((i for i in range(start, nb) if inputs[i] > 1), None)
-        inner = n * n * math.prod(inputs[along + 1 :]) if along is not None else 0
         if along is None or n * n * math.prod(inputs) <= budget:
             return tile(*t)
+        inner = n * n * math.prod(inputs[along + 1 :])  # psi2 entries of one slice
         size = max(1, budget // inner)
-        out = [
-            (tile if inner <= budget else lambda *x: tiled(list(x), along + 1))(
-                *(p if p.shape[along] == 1 else p.narrow(along, i, min(size, p.shape[along] - i))
-                  for p in t)
-            )
-            for i in range(0, inputs[along], size)
-        ]  # fmt: skip
+        out = []
+        for i in range(0, inputs[along], size):
+            part = [p if p.shape[along] == 1 else p.narrow(along, i, min(size, p.shape[along] - i))
+                    for p in t]  # fmt: skip
+            out.append(tile(*part) if inner <= budget else tiled(part, along + 1))
         m = torch.cat([o[0] for o in out], along)
         return m, None if kinv is None else torch.cat([o[1] for o in out], along)
 

@@ -23,17 +23,23 @@ times.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import torch
+from torch.utils.checkpoint import checkpoint
 
 from . import settings
+
+T = TypeVar("T")
 
 __all__ = [
     "CPU_STREAM_CHUNK",
     "KEEP_FOR_BACKWARD_BYTES",
     "OpCount",
+    "differentiable_tile",
     "exp_",
     "keeps_tiles",
     "per_tile",
@@ -78,14 +84,18 @@ KEEP_FOR_BACKWARD_BYTES = 2**28
 def keeps_tiles(entries: int, dtype: torch.dtype) -> bool:
     """Whether ``entries`` of ``psi2`` (all tiles of a call) are kept for the backward pass
     (:data:`KEEP_FOR_BACKWARD_BYTES`) instead of recomputed."""
-    item = torch.empty((), dtype=dtype).element_size()
-    return entries * item <= KEEP_FOR_BACKWARD_BYTES
+    return entries * dtype.itemsize <= KEEP_FOR_BACKWARD_BYTES
+
+
+def differentiable_tile(fn: Callable[..., T], *args: torch.Tensor, keep: bool) -> T:
+    """``fn(*args)`` for one tile under autograd: its intermediates kept for the backward pass
+    (``keep``, :func:`keeps_tiles`) or recomputed there (``torch.utils.checkpoint``)."""
+    return fn(*args) if keep else checkpoint(fn, *args, use_reentrant=False)
 
 
 def per_tile(entries: int, dtype: torch.dtype, device: torch.device) -> int:
     """How many input Gaussians, each with ``entries`` psi2 entries, one tile holds (>= 1)."""
-    item = torch.empty((), dtype=dtype).element_size()
-    return max(1, tile_budget(device) // max(1, entries * item))
+    return max(1, tile_budget(device) // max(1, entries * dtype.itemsize))
 
 
 #: Streams an online filter updates together on a CPU on the fused path. The psi2 work is tiled
@@ -102,7 +112,7 @@ def stream_chunk(n: int, workspace: int, dtype: torch.dtype, device: torch.devic
     Args:
         n: N, the transition GP's training (or pseudo-) inputs.
         workspace: entries of the psi2 tile work space one stream needs (the transition's
-            ``workspace()``, else ``3 N^2``).
+            ``workspace()``).
 
     On the materialised path the earlier default, ``2^19 / N^2`` (its ``[chunk, N, N]``
     temporaries in cache); on the fused path :data:`CPU_STREAM_CHUNK` on a CPU, and on an

@@ -28,7 +28,7 @@ from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.gp_shared import SharedTransition
 from hgpdm_torch.inference.intention import OnlineIntentionFilter
 from hgpdm_torch.kernels import transition_kernel
-from hgpdm_torch.moments import input_moments, pair_operations
+from hgpdm_torch.moments import input_moments, input_operations, pair_operations
 from hgpdm_torch.tiling import CPU_STREAM_CHUNK, OpCount, exp_, per_tile, stream_chunk
 
 from .conftest import EPS
@@ -238,17 +238,18 @@ def test_operation_counts_cover_the_work(generator, monkeypatch):
     assert sum(taken) == 4 * n * n == 4 * (count.exps - n)
     products = counter.get_total_flops() / 2 / 4  # multiply-adds per stream
     assert 0.8 * count.madds < products < count.madds
-    # the generic path (predict_gaussian, K values sharing each input): the RBF pair's count
-    # against the matrix products it runs (its exponent, the weights, the trace's)
-    k, generic = len(values), make_posterior("continuous", torch.Generator().manual_seed(0))
+    # the generic path (predict_gaussian, K values sharing each input, the IDDM's one RBF
+    # term): the call's count against the matrix products it runs, most of its work
+    k, generic = len(values), make_posterior("iddm_continuous", torch.Generator().manual_seed(0))
     g = torch.linspace(-1, 1, k)[None, :, None]
     mu2, S2 = _gaussians(4, 2, generator)
     with FlopCounterMode(display=False) as counter:
         generic.predict_gaussian(mu2[:, None], S2[:, None], g=g, include_noise=True)
-    N = generic.train_inputs.shape[0]
-    pair = pair_operations(N, 2, 2, sets=k)
-    assert pair.exps == N * N
-    assert 0.5 * pair.madds < counter.get_total_flops() / 2 / 4 < 1.5 * pair.madds
+    N, X = generic.train_inputs.shape[0], generic.train_inputs
+    terms = split_terms(kernel_leaves(generic.kernel, 3), X, g[0], 2)
+    count = input_operations(terms, N, 2, sets=k, inputs=4)
+    assert count.exps == N * N + N and pair_operations(N, 2, 2, sets=k).exps == N * N
+    assert 0.8 * count.madds < counter.get_total_flops() / 2 / 4 < count.madds
     assert (OpCount(1.0, 2.0) * 3 + OpCount(1.0, 0.0)).seconds(4.0, 2.0) == 1.0 + 3.0
 
 

@@ -44,7 +44,6 @@ from typing import Any
 
 import torch
 
-from .. import settings
 from ..crossval import held_out
 from ..decision.beliefs import Beliefs, decision_indices, fit_beliefs
 from ..decision.lspi import lspi
@@ -294,7 +293,6 @@ def run_protocol(
     start = time.perf_counter()
     job = partial(
         _fold, obs, targets, rewards, fold_of, steps_at, step_of, candidates, config,
-        settings.snapshot(),
     )  # fmt: skip
     folds = held_out(
         [() for _ in range(config.folds)], job, executor=executor, progress=progress,
@@ -356,20 +354,12 @@ def _fold(
     step_of: dict[float, int],
     candidates: tuple[str, ...],
     config: AnticipationConfig,
-    snap: settings.Snapshot,
     k: int,
 ) -> dict[str, Any]:
-    """Fold ``k`` of :func:`run_protocol` with all its repetitions, in the caller's settings
-    ``snap`` (module-level, so that it pickles to an executor; its randomness is seeded by
-    ``config.seed``, the repetition and ``k``): the beliefs' fits, the source chosen with its
-    CV return rate, and per method the ``[repetitions]`` successes on the fold's test trials."""
-    with snap.applied():
-        return _fold_counts(obs, targets, rewards, fold_of, steps_at, step_of, candidates,
-                            config, k)  # fmt: skip
-
-
-def _fold_counts(obs, targets, rewards, fold_of, steps_at, step_of, candidates, config, k):
-    """:func:`_fold` in the default dtype it set."""
+    """Fold ``k`` of :func:`run_protocol` with all its repetitions (module-level, so that it
+    pickles to an executor; its randomness is seeded by ``config.seed``, the repetition and
+    ``k``): the beliefs' fits, the source chosen with its CV return rate, and per method the
+    ``[repetitions]`` successes on the fold's test trials."""
     counts = {m: torch.zeros(config.repetitions) for m in _methods(candidates)}
     sample_counts = {
         (a, e): torch.zeros(config.repetitions) for a in ("LSPI", "MCP") for e in config.episodes

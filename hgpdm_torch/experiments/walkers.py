@@ -48,7 +48,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from .. import settings
 from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
 from ..calibration import calibration
 from ..crossval import held_out
@@ -485,7 +484,7 @@ def walkers(
         folds, untestable = loto_folds(data.labels)
         folds = spread_folds(folds, data, max_folds)
         meta["not testable by leave-one-trial-out"] = [data.trials[j] for j in untestable]
-        job = partial(_score_fold, data.sequences, data.labels, kwargs, settings.snapshot())
+        job = partial(_score_fold, data.sequences, data.labels, kwargs)
         done = held_out(folds, job, executor=executor, progress=progress, desc=spec.name)
         for (_, held), (rows, fits) in zip(folds, done, strict=True):
             fits["held out"] = data.trials[held[0]]
@@ -499,17 +498,14 @@ def _score_fold(
     sequences: list[torch.Tensor],
     labels: torch.Tensor,
     kwargs: dict[str, Any],
-    snap: settings.Snapshot,
     k: int,
     train: list[int],
     held: list[int],
 ) -> tuple[dict[int, list[dict[str, Any]]], dict[str, Any]]:
     """Fold ``k`` of the leave-one-trial-out CV: :func:`_score_split` on the trials ``train``
-    and ``held`` in the caller's settings ``snap`` (an executor's job: module-level, and its
-    worker inherits none of the caller's settings)."""
-    with snap.applied():
-        parts = [([sequences[i] for i in idx], labels[idx]) for idx in (train, held)]
-        return _score_split(*parts[0], *parts[1], **kwargs)
+    and ``held`` (module-level, so that it pickles to an executor)."""
+    parts = [([sequences[i] for i in idx], labels[idx]) for idx in (train, held)]
+    return _score_split(*parts[0], *parts[1], **kwargs)
 
 
 def spread_folds(

@@ -309,9 +309,8 @@ class OnlineIntentionFilter(IsolatedStreams):
         self.mu0, self.Sigma0 = marginal_state_prior(model, mu0, Sigma0, self.dtype)
         self.batch_size = int(batch_size)
         self.obs_dim = model.obs_dim
-        n = self.transition.inputs.shape[0]
-        # a chunk of streams on an accelerator is what one tile of the transition holds
-        workspace = getattr(self.transition, "workspace", lambda: 3 * n * n)()
+        n, workspace = self.transition.inputs.shape[0], self.transition.workspace()
+        # on an accelerator a chunk of streams is what one tile of the transition holds
         self.chunk_size = chunk_size or stream_chunk(n, workspace, self.dtype, self.mu0.device)
         self.reset()
 

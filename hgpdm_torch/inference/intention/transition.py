@@ -77,6 +77,8 @@ class TransitionMoments(Protocol):
 
     def operations(self, streams: int = 1) -> OpCount: ...
 
+    def workspace(self) -> int: ...
+
 
 class GenericTransition:
     r"""Transition moments for every K grid value by moment matching of the transition GP.
@@ -163,6 +165,12 @@ class GenericTransition:
             return self.posterior.predict_gaussian(
                 mu[:, None], Sigma[:, None], g=self._g, include_noise=True
             )
+
+    def workspace(self) -> int:
+        """Entries of the fused path's work space per stream: one input's ``psi2`` (``N^2``)
+        and its products with the K grid values' weights (``N K Dx``)."""
+        n = self.inputs.shape[0]
+        return n * n + n * self.num_values * self.posterior.output_dim
 
     def operations(self, streams: int = 1) -> OpCount:
         """Work of :meth:`moments` per stream when ``streams`` share a call (the floor's
