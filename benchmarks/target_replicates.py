@@ -31,7 +31,10 @@ experiment makes by cross-validation is not repeated):
   (:class:`~hgpdm_torch.inference.FilterBeliefs`) with the two linear ones, and its beliefs at
   the evidence temperature fitted on the held-out beliefs of 3-fold cross-validation on the
   training strokes (the experiment's calibration of its selected IDDM; ``meta.replicates``
-  holds each replicate's ``T``).
+  holds each replicate's ``T``);
+- the ProMP baseline (:class:`~hgpdm_torch.baselines.ProMPRegressor`: the observations jointly
+  with the target, conditioned on the prefix with its phase estimated; its options by 5-fold
+  cross-validation on the replicate's training strokes, recorded in ``meta.replicates``).
 
 Per method: the MAE [cm] pooled over the ``126 R`` test strokes at each horizon, the ratio to
 GPR at 80 ms with a 95% interval from a two-stage bootstrap (replicates, then strokes within
@@ -53,7 +56,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.target_sweep import STEPS, abs_errors
-from hgpdm_torch.baselines import WindowGPR
+from hgpdm_torch.baselines import ProMPRegressor, WindowGPR
 from hgpdm_torch.calibration import credible_set, fit_temperature, grid_index
 from hgpdm_torch.crossval import contiguous_folds, held_out
 from hgpdm_torch.experiments.arguments import add_executor_arguments, connect, positive_int
@@ -86,11 +89,12 @@ METHODS = (
     "GP IDDM online, per phase, transition scales (phase width 0.25, noise 0.3, g width x2: CV)",
     "BeliefMixture of the per-phase GP IDDM and the two linear ones (equal weights)",
     "GP IDDM online, per phase, transition scales, T by 3-fold CV",
+    "ProMP, phase estimated (basis, phase grid and ridge by 5-fold CV)",
 )
 
 
 def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int):
-    """Absolute errors ``[n_test, 4]`` and 90%-set hits ``[n_test, 4]`` (None for GPR) of
+    """Absolute errors ``[n_test, 4]`` and 90%-set hits ``[n_test, 4]`` (None for GPR, ProMP) of
     every method on one draw of the protocol, and what each LinearIDDM variant chose (noise
     kind, prior, T, eps and the warnings of its fit)."""
     gen = torch.Generator().manual_seed(seed)
@@ -148,6 +152,9 @@ def _replicate(seed: int, n_train: int, n_test: int, grid_size: int, steps: int)
     choices[METHODS[12]] = {"temperature": temperature}
     belief = FilterBeliefs(phased, forgetting=0.2, temperature=temperature).beliefs(test, grid)
     out[METHODS[12]] = (abs_errors(belief.mean[..., 0], y_test), hits(belief.prob))
+    promp = ProMPRegressor(folds=5, seed=seed).fit(list(obs), y)
+    choices[METHODS[13]] = {k: str(v) for k, v in promp.options.items()}
+    out[METHODS[13]] = (abs_errors(promp.predict(test)[0], y_test), None)
     return out, choices
 
 

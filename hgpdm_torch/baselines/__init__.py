@@ -17,13 +17,17 @@ names (``from hgpdm_torch.baselines import WindowGPR``):
   :class:`HMMClassifier`);
 * :mod:`~hgpdm_torch.baselines.forecasting`: the next frame (:class:`LastFrameForecaster`,
   :class:`RidgeAR`);
-* :mod:`~hgpdm_torch.baselines.recurrent`: the next frame by a GRU (:class:`GRUForecaster`).
+* :mod:`~hgpdm_torch.baselines.recurrent`: the next frame by a GRU (:class:`GRUForecaster`);
+* :mod:`~hgpdm_torch.baselines.promp`: a probabilistic movement primitive conditioned on a
+  movement's prefix, its phase estimated (:class:`ProMP`); a continuous target from it
+  (:class:`ProMPRegressor`).
 """
 
 from __future__ import annotations
 
 from .classification import HMMClassifier, WindowGPC, WindowSVM
 from .forecasting import LastFrameForecaster, RidgeAR
+from .promp import PrefixPosterior, ProMP, ProMPRegressor
 from .recurrent import GRUForecaster
 from .regression import MedianPredictor, WindowGPR, WindowRidge
 from .windows import window_features
@@ -33,6 +37,9 @@ __all__ = [
     "HMMClassifier",
     "LastFrameForecaster",
     "MedianPredictor",
+    "PrefixPosterior",
+    "ProMP",
+    "ProMPRegressor",
     "RidgeAR",
     "WindowGPC",
     "WindowGPR",

@@ -16,7 +16,11 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
 - for the selected model: batch IDDM (Algorithm 3.1, window 4), online IDDM (Algorithm 3.2,
   ``eps = 0.2``), GP regression with ARD on a window chosen by validation, and the median
   (Fig. 3.7), plus ridge regression on a window (not in the thesis; a linear read-out of the
-  raw observations): MAE +- SEM in cm and the CPU time per observation;
+  raw observations) and a probabilistic movement primitive over the observations jointly with
+  the target, conditioned on the observed prefix with its phase estimated
+  (:class:`~hgpdm_torch.baselines.ProMPRegressor`, not in the thesis: the interaction-primitive
+  baseline; its basis, phase grid and ridge chosen by the same ``cv_folds``-fold
+  cross-validation of the training plays): MAE +- SEM in cm and the CPU time per observation;
 - the linear-Gaussian intention-driven dynamics (:class:`~hgpdm_torch.models.LinearIDDM`, not in
   the thesis): a transition per frame index over the observations, its noise kind (full,
   diagonal, isotropic) and prior (coefficient precision, noise scale) chosen by the evidence of
@@ -46,7 +50,7 @@ from typing import Any
 
 import torch
 
-from ..baselines import MedianPredictor, WindowGPR, WindowRidge
+from ..baselines import MedianPredictor, ProMPRegressor, WindowGPR, WindowRidge
 from ..calibration import calibration, fit_temperature, grid_index
 from ..crossval import contiguous_folds, held_out
 from ..decision.beliefs import PHASE_IDDM
@@ -197,8 +201,9 @@ def target_prediction(
     the training plays over all horizons (online IDDM) and
     the test MAE at every horizon (Table 3.2 reads the 80 ms column). Rows ``comparison``: the
     selected model's batch and online IDDM (also with a sparse transition GP on each number of
-    pseudo-inputs in ``inducing``, Sec. 3.3.3), GPR, ridge and the median (Fig. 3.7). MAE +- SEM
-    in cm; ``meta`` holds the raw numbers, the targets' spread and the selected configuration.
+    pseudo-inputs in ``inducing``, Sec. 3.3.3), GPR, ridge, the ProMP and the median (Fig.
+    3.7). MAE +- SEM in cm; ``meta`` holds the raw numbers, the targets' spread and the
+    selected configuration.
     ``init`` is the latent initialisation: ``"pls"``
     (:func:`~hgpdm_torch.models.supervised_init`) or ``"pca"``.
     """
@@ -343,6 +348,7 @@ def target_prediction(
     for key, label, baseline in (
         ("gpr", "GPR (ARD, window {})", WindowGPR(windows=(1, 2, 3), seed=seed)),
         ("ridge", "ridge (window {})", WindowRidge(windows=(1, 2, 3), seed=seed)),
+        ("promp", "ProMP ({} basis, phase {})", ProMPRegressor(folds=cv_folds, seed=seed)),
     ):
         baseline.fit(list(obs[train]), y[train])
         start = time.process_time()
@@ -351,8 +357,15 @@ def target_prediction(
         ms = 1e3 * (time.process_time() - start) / (obs_test.shape[0] * obs_test.shape[1])
         scores = [_mae_sem(pred[:, s], y_test) for s in _STEPS]
         table.meta["mae"][key] = scores
-        table.meta[f"{key}_window"] = baseline.window
-        name = label.format(baseline.window)
+        if isinstance(baseline, ProMPRegressor):  # options chosen by cross-validation
+            table.meta["promp_options"] = {k: str(v) for k, v in baseline.options.items()}
+            speeds = baseline.options["speeds"]
+            name = label.format(
+                baseline.options["num_basis"], "estimated" if len(speeds) > 1 else "known"
+            )
+        else:
+            table.meta[f"{key}_window"] = baseline.window
+            name = label.format(baseline.window)
         table.add(**_row("comparison", name, None, None, None, scores, ms))
     med = MedianPredictor().fit(None, y[train]).predict(obs_test)
     scores = [_mae_sem(med[:, s], y_test) for s in _STEPS]

@@ -36,9 +36,12 @@ def test_smoke_run_reports_every_method_and_horizon():
     assert table.meta["selected"] == {"kernel": "linear", "Dx": 3}
     assert any("sparse M=30" in m for m in methods)
     assert any(m.startswith("ridge") for m in methods)
+    assert any(m.startswith("ProMP (") for m in methods)
+    assert set(table.meta["promp_options"]) == {"num_basis", "speeds", "reg"}
     assert len(table.meta["train_mae_online"]) == len(HORIZONS_MS)
     for name in (
-        "online", "online calibrated", "online sparse M=30", "batch", "gpr", "ridge", "median",
+        "online", "online calibrated", "online sparse M=30", "batch", "gpr", "ridge", "promp",
+        "median",
         "linear iddm", "linear iddm calibrated", "linear iddm interaction calibrated",
         "linear iddm selected", "linear iddm interaction selected", "linear iddm mixture",
         "phase iddm", "phase iddm + linear mixture",

@@ -1,0 +1,340 @@
+"""Probabilistic movement primitives (ProMP) conditioned on a movement's prefix, with its phase
+estimated: the baseline of the interaction-primitive literature.
+
+A ProMP represents each training movement ``y [T_i, D]`` by the weights of normalised radial
+basis functions over its phase ``s = j / (T_i - 1)`` (``y_j = (I_D kron phi(s_j))^T w + eps``),
+and the movements by a Gaussian over those weights, joint with any per-movement quantities
+``e`` (a table-tennis target; interaction primitives augment the weights with the partner's
+variables the same way): ``[w, e] ~ N(m, S)``. A prefix of ``t`` frames of a new movement is
+conditioned on for every candidate duration ``T_c`` (the phase is unknown: how fast the
+movement runs is estimated from the prefix, as in phase estimation for action recognition):
+
+- evidence ``p(Y | T_c) = N(Y | H_c m_w, H_c S_ww H_c^T + R)``, ``H_c`` the basis at the
+  prefix's phases ``j / (T_c - 1)`` (clipped to 1: past its end a movement holds its last
+  posture), ``R`` the per-channel noise of the training fits;
+- the posterior ``[w, e] | Y, T_c`` in information form, ``P_c = S^-1 + H_c^T R^-1 H_c``, whose
+  size ``D B + E`` does not grow with the prefix, and ``P_c`` is shared by all streams of a
+  batch at the same prefix length;
+- the candidates mixed by their evidence (a uniform prior over them), the mixture of the
+  ``e`` posteriors matched by its mean and covariance.
+
+Library: the basis functions are mp_pytorch's (``NormalizedRBFBasisGenerator`` over a
+``LinearPhaseGenerator``): torch-native, so the baseline runs in the toolkit's dtype and device
+and batches over candidates and streams; ALR's ``fancy_gym`` table-tennis environments build on
+it. Conditioning on a multi-frame prefix, the phase estimation and the augmented weights are
+this module's: mp_pytorch has none of them, and ``movement_primitives``' ProMP (NumPy)
+conditions on one via-point at a time and has no phase estimation either.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import torch
+
+from ..validation import as_tensor
+from .windows import as_sequences
+
+__all__ = ["PROMP_GRID", "PrefixPosterior", "ProMP", "ProMPRegressor"]
+
+
+class PrefixPosterior(NamedTuple):
+    """What a prefix tells, per stream ``[B]``.
+
+    Attributes:
+        log_evidence: ``log p(Y) [B]``, the prefix's log likelihood, mixed over the durations.
+        mean: ``E[e | Y] [B, E]`` of the per-movement quantities fitted jointly.
+        cov: ``Cov[e | Y] [B, E, E]`` (the mixture over durations, matched by its moments).
+        duration_weights: ``p(T_c | Y) [B, C]`` over :attr:`ProMP.durations`.
+    """
+
+    log_evidence: torch.Tensor
+    mean: torch.Tensor
+    cov: torch.Tensor
+    duration_weights: torch.Tensor
+
+
+def _basis(num_basis: int, bandwidth: float, phases: torch.Tensor) -> torch.Tensor:
+    """mp_pytorch's normalised RBF basis ``[..., t, num_basis]`` at ``phases [..., t]`` (in
+    ``[0, 1]``; larger values are clipped to 1)."""
+    from mp_pytorch.basis_gn import NormalizedRBFBasisGenerator  # heavy: imports matplotlib
+    from mp_pytorch.phase_gn import LinearPhaseGenerator
+
+    kw = {"dtype": phases.dtype, "device": phases.device}
+    gen = NormalizedRBFBasisGenerator(
+        LinearPhaseGenerator(tau=1.0, **kw), num_basis=num_basis,
+        basis_bandwidth_factor=bandwidth, **kw,
+    )  # fmt: skip
+    return gen.basis(phases)
+
+
+def _positive_int(value: object, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return value
+
+
+class ProMP:
+    """A ProMP over ``D`` channels, optionally joint with ``E`` per-movement quantities.
+
+    Args:
+        num_basis: basis functions per channel ``B``.
+        speeds: relative speeds tried for a prefix: the candidate durations are the training
+            durations' quantiles (``durations`` of them) over each speed (``(1.0,)``: the
+            training durations only).
+        durations: number of quantiles of the training durations among the candidates
+            (fewer where the training durations take fewer values).
+        bandwidth: mp_pytorch's ``basis_bandwidth_factor`` (width of the basis functions
+            against their spacing).
+        reg: ridge of each movement's weight fit, relative to the basis's Gram matrix scale.
+
+    Attributes (after :meth:`fit`):
+        mean ``[D B + E]``, cov ``[D B + E, D B + E]``: the Gaussian over weights and extras
+        (Ledoit-Wolf shrinkage of the standardised training weights: well conditioned with
+        fewer movements than weights);
+        noise ``[D]``: each channel's residual variance of the weight fits;
+        durations ``[C]``: the candidate durations [frames].
+    """
+
+    def __init__(
+        self,
+        num_basis: int = 6,
+        *,
+        speeds: Sequence[float] = (1.0,),
+        durations: int = 5,
+        bandwidth: float = 3.0,
+        reg: float = 1e-6,
+    ) -> None:
+        self.num_basis = _positive_int(num_basis, "num_basis")
+        self.num_durations = _positive_int(durations, "durations")
+        speeds = tuple(float(s) for s in speeds)
+        if not speeds or not all(math.isfinite(s) and s > 0 for s in speeds):
+            raise ValueError(f"speeds must be positive finite numbers, got {speeds!r}")
+        if not (math.isfinite(bandwidth) and bandwidth > 0):
+            raise ValueError(f"bandwidth must be a positive number, got {bandwidth!r}")
+        if not (math.isfinite(reg) and reg >= 0):
+            raise ValueError(f"reg must be a non-negative number, got {reg!r}")
+        self.speeds, self.bandwidth, self.reg = speeds, float(bandwidth), float(reg)
+
+    # -- fitting ---------------------------------------------------------------------------
+    def basis(self, frames: int, duration: torch.Tensor) -> torch.Tensor:
+        """The basis ``[C, frames, B]`` at frames ``0..frames-1`` of movements lasting
+        ``duration [C]`` frames (phase ``j / (T_c - 1)``)."""
+        j = torch.arange(frames, dtype=duration.dtype, device=duration.device)
+        return _basis(self.num_basis, self.bandwidth, j / (duration[:, None] - 1).clamp_min(1))
+
+    def _weights(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Ridge weights ``[D B]`` of one movement ``y [T, D]`` and its squared residuals
+        ``[D]`` summed over frames."""
+        phi = self.basis(y.shape[0], y.new_tensor([y.shape[0]]))[0]  # [T, B]
+        gram = phi.T @ phi
+        gram = gram + self.reg * gram.diagonal().mean() * torch.eye(self.num_basis).to(gram)
+        w = torch.linalg.solve(gram, phi.T @ y)  # [B, D]
+        return w.T.reshape(-1), (y - phi @ w).pow(2).sum(0)
+
+    def fit(self, sequences: Any, extras: Any = None) -> ProMP:
+        """Fit to movements ``[T_i, D]`` (``T_i >= 2``), with their ``extras [n, E]`` if any.
+
+        Raises:
+            ValueError: fewer than 2 movements, a movement of one frame, non-finite values or
+                ``extras`` with another number of rows.
+        """
+        from sklearn.covariance import LedoitWolf
+
+        seqs = as_sequences(sequences)
+        if len(seqs) < 2:
+            raise ValueError(f"sequences: a ProMP needs at least 2 movements, got {len(seqs)}")
+        short = [i for i, s in enumerate(seqs) if s.shape[0] < 2]
+        if short:
+            raise ValueError(f"sequences: movements {short} have fewer than 2 frames")
+        seqs = [s.to(torch.float64) for s in seqs]
+        if extras is None:
+            e = seqs[0].new_zeros(len(seqs), 0)
+        else:
+            e = as_tensor(extras, "extras", dtype=torch.float64, min_ndim=1)
+            e = e[:, None] if e.dim() == 1 else e
+            if e.dim() != 2 or e.shape[0] != len(seqs):
+                raise ValueError(
+                    f"extras must be [n, E] with one row per movement (n = {len(seqs)}), "
+                    f"got {tuple(e.shape)}"
+                )
+        self.dim, self.num_extras = seqs[0].shape[1], e.shape[1]
+        fits = [self._weights(s) for s in seqs]
+        z = torch.cat([torch.stack([w for w, _ in fits]), e], 1)  # [n, D B + E]
+        frames = sum(s.shape[0] for s in seqs)
+        variance = torch.cat(seqs).var(0)
+        # residual variance per channel, floored at 1e-6 of the channel's variance so that a
+        # channel the basis fits exactly does not make every other candidate impossible
+        self.noise = (sum(r for _, r in fits) / frames).clamp_min(1e-6 * variance.clamp_min(1e-12))
+        loc, scale = z.mean(0), z.std(0).clamp_min(1e-12)
+        shrunk = LedoitWolf().fit(((z - loc) / scale).numpy()).covariance_
+        self.mean = loc
+        self.cov = torch.as_tensor(shrunk) * scale[:, None] * scale[None, :]
+        self.cov_chol = torch.linalg.cholesky(self.cov)
+        self.precision = torch.cholesky_inverse(self.cov_chol)
+        length = torch.tensor([float(s.shape[0]) for s in seqs], dtype=torch.float64)
+        q = torch.linspace(0, 1, self.num_durations + 2, dtype=torch.float64)[1:-1]
+        base = torch.unique(torch.quantile(length, q).round())
+        speeds = torch.tensor(self.speeds, dtype=torch.float64)
+        self.durations = torch.unique((base[:, None] / speeds[None, :]).round().clamp_min(2))
+        return self
+
+    # -- conditioning ----------------------------------------------------------------------
+    def condition(self, prefix: Any) -> PrefixPosterior:
+        """Condition on the first ``t`` frames of ``B`` movements, ``prefix [B, t, D]``
+        (``t = 0``: the prior), mixing the candidate durations by their evidence.
+
+        Raises:
+            RuntimeError: before :meth:`fit`.
+            ValueError: a prefix that is not ``[B, t, D]`` or not finite.
+        """
+        if not hasattr(self, "mean"):
+            raise RuntimeError("ProMP.condition: call fit(sequences) first")
+        y = as_tensor(prefix, "prefix", dtype=torch.float64)
+        if y.dim() != 3 or y.shape[2] != self.dim:
+            raise ValueError(f"prefix must be [B, t, D = {self.dim}], got {tuple(y.shape)}")
+        b, t, d = y.shape
+        n_w, nb = d * self.num_basis, self.num_basis
+        C = len(self.durations)
+        e_mean, e_cov = self.mean[n_w:], self.cov[n_w:, n_w:]
+        if t == 0:
+            weights = y.new_full((b, C), 1.0 / C)
+            return PrefixPosterior(
+                y.new_zeros(b), e_mean.expand(b, -1), e_cov.expand(b, -1, -1), weights
+            )
+        phi = self.basis(t, self.durations)  # [C, t, B]
+        # P_c = S^-1 + H_c^T R^-1 H_c: H_c is block diagonal (one block phi_c per channel)
+        gram = phi.mT @ phi  # [C, B, B]
+        info = y.new_zeros(C, n_w + self.num_extras, n_w + self.num_extras)
+        for k in range(d):
+            block = slice(k * nb, (k + 1) * nb)
+            info[:, block, block] = gram / self.noise[k]
+        chol = torch.linalg.cholesky(self.precision + info)  # [C, M, M]
+        # residuals r = Y - H_c m_w and u = H_c^T R^-1 r (zero for the extras)
+        m_w = self.mean[:n_w].view(d, nb)
+        r = y[:, None] - torch.einsum("ctj,dj->ctd", phi, m_w)  # [B, C, t, D]
+        r = r / self.noise
+        u = torch.einsum("ctj,bctd->bcdj", phi, r).reshape(b, C, n_w)
+        u = torch.cat([u, u.new_zeros(b, C, self.num_extras)], -1)
+        sol = torch.cholesky_solve(u[..., None], chol)[..., 0]  # P_c^-1 u: [B, C, M]
+        quad = (r * r * self.noise).sum((2, 3)) - (u * sol).sum(-1)  # r^T R^-1 r - u^T P^-1 u
+        # |H S H^T + R| = |R| |S| |P_c| (matrix determinant lemma)
+        logdet = (
+            2
+            * (chol.diagonal(dim1=-2, dim2=-1).log().sum(-1) + self.cov_chol.diagonal().log().sum())
+            + t * self.noise.log().sum()
+        )
+        log_ev = -0.5 * (quad + logdet + t * d * math.log(2 * math.pi))  # [B, C]
+        log_ev = log_ev - math.log(C)  # a uniform prior over the candidates
+        total = torch.logsumexp(log_ev, 1)
+        weights = (log_ev - total[:, None]).exp()
+        # e | Y, T_c: mean m_e + (P_c^-1 u)_e, covariance (P_c^-1)_ee
+        means = e_mean + sol[..., n_w:]  # [B, C, E]
+        eye = torch.eye(n_w + self.num_extras, dtype=y.dtype)[:, n_w:]
+        covs = torch.cholesky_solve(eye.expand(C, -1, -1), chol)[:, n_w:]  # [C, E, E]
+        mean = (weights[..., None] * means).sum(1)
+        spread = means - mean[:, None]
+        cov = torch.einsum("bc,cef->bef", weights, covs) + torch.einsum(
+            "bc,bce,bcf->bef", weights, spread, spread
+        )
+        return PrefixPosterior(total, mean, cov, weights)
+
+    def log_likelihood(self, prefix: Any) -> torch.Tensor:
+        """``log p(prefix) [B]`` of ``prefix [B, t, D]``, mixed over the durations."""
+        return self.condition(prefix).log_evidence
+
+
+#: the options :class:`ProMPRegressor` chooses among by cross-validation
+PROMP_GRID: dict[str, tuple] = {
+    "num_basis": (3, 4, 6, 8),
+    "speeds": ((1.0,), (0.8, 0.9, 1.0, 1.12, 1.25)),
+    "reg": (1e-6, 1e-2),
+}
+
+
+def _prefix_means(model: ProMP, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The extras' mean and variance ``[M, T, E]`` after each frame of ``z [M, T, D]``."""
+    posts = [model.condition(z[:, : t + 1]) for t in range(z.shape[1])]
+    mean = torch.stack([p.mean for p in posts], 1)
+    var = torch.stack([p.cov.diagonal(dim1=-2, dim2=-1) for p in posts], 1)
+    return mean, var
+
+
+class ProMPRegressor:
+    """A continuous target from a movement's prefix: a :class:`ProMP` over the channels joint
+    with the target, conditioned on frames ``0..t`` at every step ``t``.
+
+    The options (``num_basis``, the speeds of the phase estimation, the weight ridge) are
+    chosen from ``grid`` by ``folds``-fold cross-validation over the training movements (held
+    out whole; the folds of a seeded permutation): the lowest MAE over all steps of the
+    held-out movements.
+
+    Args:
+        grid: option name -> candidates (:data:`PROMP_GRID`); options not in it take
+            :class:`ProMP`'s defaults.
+        folds: cross-validation folds (at most the number of movements).
+        seed: seed of the permutation.
+    """
+
+    def __init__(
+        self, grid: dict[str, Sequence] | None = None, *, folds: int = 5, seed: int = 0
+    ) -> None:
+        grid = dict(PROMP_GRID if grid is None else grid)
+        unknown = set(grid) - {"num_basis", "speeds", "reg", "durations", "bandwidth"}
+        if unknown or not all(len(v) for v in grid.values()):
+            raise ValueError(
+                f"grid must map ProMP options to non-empty candidate lists, got {grid!r}"
+            )
+        self.grid, self.folds, self.seed = grid, _positive_int(folds, "folds"), int(seed)
+
+    def _configs(self) -> list[dict[str, Any]]:
+        configs: list[dict[str, Any]] = [{}]
+        for name, values in self.grid.items():
+            configs = [c | {name: v} for c in configs for v in values]
+        return configs
+
+    def fit(self, sequences: Any, targets: Any) -> ProMPRegressor:
+        """Fit on movements ``[T_i, D]`` with one target each ``[n]``.
+
+        Raises:
+            ValueError: fewer movements than folds, or a target per movement missing.
+        """
+        from ..crossval import contiguous_folds
+
+        seqs = as_sequences(sequences)
+        y = as_tensor(targets, "targets", dtype=torch.float64, ndim=1)
+        if y.shape[0] != len(seqs):
+            raise ValueError(f"need one target per sequence: {y.shape[0]} for {len(seqs)}")
+        configs = self._configs()
+        if len(configs) > 1:
+            gen = torch.Generator().manual_seed(self.seed)
+            perm = torch.randperm(len(seqs), generator=gen).tolist()
+            errors = []
+            for options in configs:
+                err = []
+                for train, held in contiguous_folds(len(seqs), min(self.folds, len(seqs))):
+                    model = ProMP(**options).fit([seqs[perm[i]] for i in train], y[perm][train])
+                    for i in held:
+                        mean, _ = _prefix_means(model, seqs[perm[i]][None].double())
+                        err.append((mean[0, :, 0] - y[perm[i]]).abs())
+                errors.append(float(torch.cat(err).mean()))
+            self.validation_mae = errors
+            self.options = configs[min(range(len(configs)), key=errors.__getitem__)]
+        else:
+            self.options = configs[0]
+        self.model = ProMP(**self.options).fit(seqs, y)
+        return self
+
+    def predict(self, z: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predictive mean and std of the target at every step: ``[M, T, D]`` -> ``[M, T]``.
+
+        Raises:
+            RuntimeError: before :meth:`fit`.
+        """
+        if not hasattr(self, "model"):
+            raise RuntimeError("ProMPRegressor.predict: call fit(sequences, targets) first")
+        z = as_tensor(z, "z", dtype=torch.float64, ndim=3)
+        mean, var = _prefix_means(self.model, z)
+        return mean[..., 0], var[..., 0].sqrt()

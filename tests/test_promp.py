@@ -1,0 +1,144 @@
+"""The ProMP baseline: its conditioning against a dense Gaussian oracle, its weight fit against
+mp_pytorch's own, and what it recovers from prefixes (target, speed, class)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import multivariate_normal
+
+from hgpdm_torch.baselines import ProMP
+
+
+def _movements(n: int, frames, seed: int = 0, noise: float = 0.02):
+    """``n`` two-channel movements whose shape is set by a target ``g`` each, lasting
+    ``frames`` (an int or a list), and the targets."""
+    gen = torch.Generator().manual_seed(seed)
+    g = torch.rand(n, generator=gen, dtype=torch.float64) * 2 - 1
+    lengths = [frames] * n if isinstance(frames, int) else frames
+    seqs = []
+    for i, T in enumerate(lengths):
+        s = torch.linspace(0, 1, T, dtype=torch.float64)
+        y = torch.stack([g[i] * torch.sin(math.pi * s), s + 0.3 * g[i] * s**2], 1)
+        seqs.append(y + noise * torch.randn(T, 2, generator=gen, dtype=torch.float64))
+    return seqs, g
+
+
+def _dense_oracle(model: ProMP, prefix: torch.Tensor, duration: float):
+    """log p(Y | T_c) and p(e | Y, T_c) from the dense joint Gaussian of [Y, e]."""
+    t, d = prefix.shape
+    nb, n_w = model.num_basis, model.dim * model.num_basis
+    phi = model.basis(t, torch.tensor([duration], dtype=torch.float64))[0].numpy()
+    H = np.kron(np.eye(d), phi)  # rows (channel, frame), columns (channel, basis)
+    A = np.zeros((t * d + model.num_extras, n_w + model.num_extras))
+    A[: t * d, :n_w] = H
+    A[t * d :, n_w:] = np.eye(model.num_extras)
+    m, S = model.mean.numpy(), model.cov.numpy()
+    R = np.diag(np.repeat(model.noise.numpy(), t))
+    joint_mean = A @ m
+    joint_cov = A @ S @ A.T
+    joint_cov[: t * d, : t * d] += R
+    y = prefix.T.reshape(-1).numpy()  # (channel, frame) order
+    Syy, Sye = joint_cov[: t * d, : t * d], joint_cov[: t * d, t * d :]
+    log_ev = multivariate_normal(joint_mean[: t * d], Syy).logpdf(y)
+    gain = np.linalg.solve(Syy, Sye).T
+    mean_e = joint_mean[t * d :] + gain @ (y - joint_mean[: t * d])
+    cov_e = joint_cov[t * d :, t * d :] - gain @ Sye
+    assert nb == model.num_basis
+    return log_ev, mean_e, cov_e
+
+
+def test_conditioning_matches_the_dense_gaussian():
+    seqs, g = _movements(30, [9, 10, 11, 12] * 7 + [10, 10])
+    model = ProMP(num_basis=5, speeds=(0.8, 1.0, 1.25), durations=3).fit(seqs, g)
+    prefix = torch.stack([s[:6] for s in seqs[:4]])
+    post = model.condition(prefix)
+    for b in range(4):
+        oracle = [_dense_oracle(model, prefix[b], float(T)) for T in model.durations]
+        log_c = np.array([o[0] for o in oracle]) - math.log(len(oracle))
+        total = np.logaddexp.reduce(log_c)
+        w = np.exp(log_c - total)
+        mean = sum(wc * o[1] for wc, o in zip(w, oracle, strict=True))
+        second = sum(wc * (o[2] + np.outer(o[1], o[1])) for wc, o in zip(w, oracle, strict=True))
+        # float64 with condition numbers ~1e6 (the basis Gram, the shrunk covariance): errors
+        # ~1e-10 relative; the log evidence is O(10), the target O(1)
+        assert post.log_evidence[b].item() == pytest.approx(total, rel=1e-8, abs=1e-7)
+        np.testing.assert_allclose(post.duration_weights[b].numpy(), w, atol=1e-8)
+        np.testing.assert_allclose(post.mean[b].numpy(), mean, rtol=1e-8, atol=1e-9)
+        np.testing.assert_allclose(
+            post.cov[b].numpy(), second - np.outer(mean, mean), rtol=1e-7, atol=1e-10
+        )
+
+
+def test_weights_match_mp_pytorch_learning():
+    from mp_pytorch.basis_gn import NormalizedRBFBasisGenerator
+    from mp_pytorch.mp import ProMP as LibraryProMP
+    from mp_pytorch.phase_gn import LinearPhaseGenerator
+
+    seqs, g = _movements(4, 12)
+    model = ProMP(num_basis=6, reg=0.0).fit(seqs, g)
+    kw = {"dtype": torch.float64}
+    basis = NormalizedRBFBasisGenerator(LinearPhaseGenerator(**kw), num_basis=6, **kw)
+    lib = LibraryProMP(basis, num_dof=2, **kw)
+    times = torch.linspace(0, 1, 12, dtype=torch.float64).expand(4, -1)
+    params = lib.learn_mp_params_from_trajs(times, torch.stack(seqs), reg=1e-12)["params"]
+    ours = torch.stack([model._weights(s)[0] for s in seqs])
+    # both solve the same 6 x 6 normal equations (reg 1e-12 against a Gram of O(1))
+    torch.testing.assert_close(ours, params, rtol=1e-8, atol=1e-9)
+
+
+def test_prefix_predicts_the_target_and_the_speed():
+    seqs, g = _movements(60, 20, seed=1)
+    model = ProMP(num_basis=8, speeds=(0.5, 1.0, 2.0)).fit(seqs, g)
+    test, g_test = _movements(20, 20, seed=2)
+    post = model.condition(torch.stack([s[:10] for s in test]))
+    mae = (post.mean[:, 0] - g_test).abs().mean()
+    assert mae < 0.1 * (g_test - g.median()).abs().mean()
+    z = (post.mean[:, 0] - g_test) / post.cov[:, 0, 0].sqrt()
+    assert z.abs().max() < 5  # calibrated, not overconfident
+    # movements twice as fast (10 frames for the same path): the half-duration candidate wins
+    fast, _ = _movements(5, 10, seed=3)
+    post_fast = model.condition(torch.stack([s[:6] for s in fast]))
+    assert model.durations[post_fast.duration_weights.argmax(1)].eq(10).all()
+    assert model.durations[post.duration_weights.argmax(1)].eq(20).all()
+
+
+def test_empty_prefix_is_the_prior():
+    seqs, g = _movements(10, 8)
+    model = ProMP(num_basis=4).fit(seqs, g)
+    post = model.condition(torch.zeros(3, 0, 2, dtype=torch.float64))
+    torch.testing.assert_close(post.mean, model.mean[-1:].expand(3, 1))
+    assert post.log_evidence.eq(0).all()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"num_basis": 0}, "num_basis"),
+        ({"speeds": ()}, "speeds"),
+        ({"speeds": (1.0, -1.0)}, "speeds"),
+        ({"bandwidth": float("nan")}, "bandwidth"),
+        ({"reg": -1.0}, "reg"),
+    ],
+)
+def test_bad_options(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ProMP(**kwargs)
+
+
+def test_bad_inputs():
+    seqs, g = _movements(5, 8)
+    with pytest.raises(RuntimeError, match="fit"):
+        ProMP().condition(torch.zeros(1, 2, 2))
+    with pytest.raises(ValueError, match="at least 2 movements"):
+        ProMP().fit(seqs[:1])
+    with pytest.raises(ValueError, match="extras"):
+        ProMP().fit(seqs, g[:3])
+    model = ProMP(num_basis=4).fit(seqs, g)
+    with pytest.raises(ValueError, match="prefix"):
+        model.condition(torch.zeros(1, 2, 3))
+    with pytest.raises(ValueError, match="prefix"):
+        model.condition(torch.full((1, 2, 2), float("nan")))
