@@ -142,3 +142,67 @@ def test_bad_inputs():
         model.condition(torch.zeros(1, 2, 3))
     with pytest.raises(ValueError, match="prefix"):
         model.condition(torch.full((1, 2, 2), float("nan")))
+
+
+def _classes(per_class: int, seed: int, frames=(18, 22)):
+    """Three one-channel gestures (a rise, a dip, a wave) at random durations and amplitudes."""
+    gen = torch.Generator().manual_seed(seed)
+    seqs, labels = [], []
+    for c in range(3):
+        for _ in range(per_class):
+            T = int(torch.randint(frames[0], frames[1] + 1, (1,), generator=gen))
+            s = torch.linspace(0, 1, T, dtype=torch.float64)
+            a = 1 + 0.2 * torch.randn(1, generator=gen, dtype=torch.float64)
+            path = (s, -torch.sin(math.pi * s), torch.sin(2 * math.pi * s))[c]
+            y = a * path + 0.05 * torch.randn(T, generator=gen, dtype=torch.float64)
+            seqs.append(torch.stack([y, s * a], 1))
+            labels.append(c)
+    return seqs, torch.tensor(labels)
+
+
+def test_classifier_recognises_gestures_from_prefixes():
+    from hgpdm_torch.baselines import ProMPClassifier
+
+    seqs, y = _classes(8, seed=0)
+    clf = ProMPClassifier(grid={"num_basis": (3, 6)}, folds=3).fit(seqs, y)
+    assert len(clf.scores) == 2 and clf.options["num_basis"] in (3, 6)
+    test, y_test = _classes(5, seed=1, frames=(20, 20))
+    z = torch.stack(test)
+    log_p = clf.predict_log_proba(z)
+    torch.testing.assert_close(log_p.exp().sum(-1), torch.ones(z.shape[:2], dtype=torch.float64))
+    pred = clf.predict(z)
+    assert pred[:, -1].eq(y_test).all()  # the whole gesture: no doubt
+    assert pred[:, 10].eq(y_test).double().mean() > 0.8  # half of it
+    # the posterior is each class's prefix likelihood under the training frequencies
+    direct = torch.stack([m.log_likelihood(z[:, :7]) for m in clf.models], -1)
+    torch.testing.assert_close(log_p[:, 6], direct.log_softmax(-1))
+
+
+def test_classifier_cv_survives_a_class_too_small_for_a_fold():
+    from hgpdm_torch.baselines import ProMPClassifier
+
+    seqs, y = _classes(4, seed=2)
+    seqs, y = seqs[:10], y[:10]  # class 2 keeps 2 movements: one fold trains on 1 of them
+    clf = ProMPClassifier(grid={"num_basis": (3, 4)}, folds=2).fit(seqs, y)
+    assert len(clf.models) == 3 and all(m is not None for m in clf.models)
+    with pytest.raises(ValueError, match="fewer than 2"):
+        ProMPClassifier().fit(seqs[:9], y[:9])
+    with pytest.raises(ValueError, match="labels"):
+        ProMPClassifier().fit(seqs, y.double())
+    with pytest.raises(RuntimeError, match="fit"):
+        ProMPClassifier().predict(torch.zeros(1, 3, 2))
+
+
+def test_regressor_chooses_by_cross_validation():
+    from hgpdm_torch.baselines import ProMPRegressor
+
+    seqs, g = _movements(20, 12, seed=4)
+    reg = ProMPRegressor(grid={"num_basis": (1, 6)}, folds=4).fit(seqs, g)
+    # one basis function (a constant) misses the shape of the movement: the CV error says so
+    assert reg.options == {"num_basis": 6} and reg.scores[0] > reg.scores[1]
+    mean, std = reg.predict(torch.stack(seqs[:3]))
+    assert mean.shape == std.shape == (3, 12) and bool((std > 0).all())
+    with pytest.raises(ValueError, match="grid"):
+        ProMPRegressor(grid={"windows": (1,)})
+    with pytest.raises(RuntimeError, match="fit"):
+        ProMPRegressor().predict(torch.zeros(1, 3, 2))

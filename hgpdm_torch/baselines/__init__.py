@@ -20,14 +20,14 @@ names (``from hgpdm_torch.baselines import WindowGPR``):
 * :mod:`~hgpdm_torch.baselines.recurrent`: the next frame by a GRU (:class:`GRUForecaster`);
 * :mod:`~hgpdm_torch.baselines.promp`: a probabilistic movement primitive conditioned on a
   movement's prefix, its phase estimated (:class:`ProMP`); a continuous target from it
-  (:class:`ProMPRegressor`).
+  (:class:`ProMPRegressor`), a class by each class's prefix likelihood (:class:`ProMPClassifier`).
 """
 
 from __future__ import annotations
 
 from .classification import HMMClassifier, WindowGPC, WindowSVM
 from .forecasting import LastFrameForecaster, RidgeAR
-from .promp import PrefixPosterior, ProMP, ProMPRegressor
+from .promp import PrefixPosterior, ProMP, ProMPClassifier, ProMPRegressor
 from .recurrent import GRUForecaster
 from .regression import MedianPredictor, WindowGPR, WindowRidge
 from .windows import window_features
@@ -39,6 +39,7 @@ __all__ = [
     "MedianPredictor",
     "PrefixPosterior",
     "ProMP",
+    "ProMPClassifier",
     "ProMPRegressor",
     "RidgeAR",
     "WindowGPC",

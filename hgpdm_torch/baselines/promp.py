@@ -37,7 +37,14 @@ import torch
 from ..validation import as_tensor
 from .windows import as_sequences
 
-__all__ = ["PROMP_GRID", "PrefixPosterior", "ProMP", "ProMPRegressor"]
+__all__ = [
+    "PROMP_CLASS_GRID",
+    "PROMP_GRID",
+    "PrefixPosterior",
+    "ProMP",
+    "ProMPClassifier",
+    "ProMPRegressor",
+]
 
 
 class PrefixPosterior(NamedTuple):
@@ -92,8 +99,8 @@ class ProMP:
 
     Attributes (after :meth:`fit`):
         mean ``[D B + E]``, cov ``[D B + E, D B + E]``: the Gaussian over weights and extras
-        (Ledoit-Wolf shrinkage of the standardised training weights: well conditioned with
-        fewer movements than weights);
+        (scikit-learn's Ledoit-Wolf shrinkage of the standardised training weights, plus 1e-6
+        of their unit variance: well conditioned with fewer movements than weights);
         noise ``[D]``: each channel's residual variance of the weight fits;
         durations ``[C]``: the candidate durations [frames].
     """
@@ -168,10 +175,14 @@ class ProMP:
         # residual variance per channel, floored at 1e-6 of the channel's variance so that a
         # channel the basis fits exactly does not make every other candidate impossible
         self.noise = (sum(r for _, r in fits) / frames).clamp_min(1e-6 * variance.clamp_min(1e-12))
-        loc, scale = z.mean(0), z.std(0).clamp_min(1e-12)
-        shrunk = LedoitWolf().fit(((z - loc) / scale).numpy()).covariance_
+        loc, scale = z.mean(0), z.std(0)
+        scale = scale.clamp_min(1e-9 * float(scale.max()) + 1e-300)  # a constant coordinate
+        shrunk = torch.as_tensor(LedoitWolf().fit(((z - loc) / scale).numpy()).covariance_)
+        # Ledoit-Wolf may not shrink at all (two movements: a rank-1 estimate); 1e-6 of the
+        # unit variances keeps the condition number below ~1e6 (D B + E)
+        shrunk = shrunk + 1e-6 * torch.eye(len(loc), dtype=shrunk.dtype)
         self.mean = loc
-        self.cov = torch.as_tensor(shrunk) * scale[:, None] * scale[None, :]
+        self.cov = shrunk * scale[:, None] * scale[None, :]
         self.cov_chol = torch.linalg.cholesky(self.cov)
         self.precision = torch.cholesky_inverse(self.cov_chol)
         length = torch.tensor([float(s.shape[0]) for s in seqs], dtype=torch.float64)
@@ -218,7 +229,8 @@ class ProMP:
         r = r / self.noise
         u = torch.einsum("ctj,bctd->bcdj", phi, r).reshape(b, C, n_w)
         u = torch.cat([u, u.new_zeros(b, C, self.num_extras)], -1)
-        sol = torch.cholesky_solve(u[..., None], chol)[..., 0]  # P_c^-1 u: [B, C, M]
+        # P_c^-1 u: [B, C, M], the streams as right-hand sides of one solve per candidate
+        sol = torch.cholesky_solve(u.permute(1, 2, 0), chol).permute(2, 0, 1)
         quad = (r * r * self.noise).sum((2, 3)) - (u * sol).sum(-1)  # r^T R^-1 r - u^T P^-1 u
         # |H S H^T + R| = |R| |S| |P_c| (matrix determinant lemma)
         logdet = (
@@ -253,77 +265,106 @@ PROMP_GRID: dict[str, tuple] = {
     "reg": (1e-6, 1e-2),
 }
 
+#: the options :class:`ProMPClassifier` chooses among (one ProMP per class: a smaller grid)
+PROMP_CLASS_GRID: dict[str, tuple] = {
+    "num_basis": (4, 8),
+    "speeds": ((1.0,), (0.67, 0.8, 1.0, 1.25, 1.5)),
+}
 
-def _prefix_means(model: ProMP, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The extras' mean and variance ``[M, T, E]`` after each frame of ``z [M, T, D]``."""
-    posts = [model.condition(z[:, : t + 1]) for t in range(z.shape[1])]
-    mean = torch.stack([p.mean for p in posts], 1)
-    var = torch.stack([p.cov.diagonal(dim1=-2, dim2=-1) for p in posts], 1)
-    return mean, var
+_OPTIONS = {"num_basis", "speeds", "reg", "durations", "bandwidth"}
 
 
-class ProMPRegressor:
+def _prefix_posteriors(model: ProMP, z: torch.Tensor) -> list[PrefixPosterior]:
+    """The posterior after each frame of ``z [M, T, D]``: ``T`` of them."""
+    return [model.condition(z[:, : t + 1]) for t in range(z.shape[1])]
+
+
+class _Selected:
+    """Options chosen from a grid by ``folds``-fold cross-validation over whole training
+    movements (the folds of a seeded permutation): the lowest mean held-out score."""
+
+    def __init__(self, grid: dict[str, Sequence] | None, folds: int, seed: int) -> None:
+        grid = dict(self.GRID if grid is None else grid)
+        if set(grid) - _OPTIONS or not all(len(v) for v in grid.values()):
+            raise ValueError(
+                f"grid must map ProMP options ({sorted(_OPTIONS)}) to non-empty candidate "
+                f"lists, got {grid!r}"
+            )
+        self.grid, self.folds, self.seed = grid, _positive_int(folds, "folds"), int(seed)
+
+    GRID: dict[str, tuple] = {}
+
+    def _select(self, num: int, score, labels: torch.Tensor | None = None) -> dict[str, Any]:
+        """The options minimising ``score(options, train, held) -> [items]`` over the folds
+        (``self.scores``: each configuration's mean); with ``labels [num]``, folds stratified
+        by class (every ``folds``-th movement of each class held out together)."""
+        from ..crossval import contiguous_folds, interleaved_folds
+
+        configs: list[dict[str, Any]] = [{}]
+        for name, values in self.grid.items():
+            configs = [c | {name: v} for c in configs for v in values]
+        if len(configs) == 1:
+            return configs[0]
+        gen = torch.Generator().manual_seed(self.seed)
+        perm = torch.randperm(num, generator=gen)
+        folds = min(self.folds, num)
+        if labels is None:
+            splits = contiguous_folds(num, folds)
+        else:
+            perm = perm[torch.argsort(labels[perm], stable=True)]
+            splits = interleaved_folds(num, folds)
+        order = perm.tolist()
+        self.scores = []
+        for options in configs:
+            parts = [
+                score(options, [order[i] for i in train], [order[i] for i in held])
+                for train, held in splits
+            ]
+            self.scores.append(float(torch.cat(parts).mean()))
+        return configs[min(range(len(configs)), key=self.scores.__getitem__)]
+
+
+class ProMPRegressor(_Selected):
     """A continuous target from a movement's prefix: a :class:`ProMP` over the channels joint
     with the target, conditioned on frames ``0..t`` at every step ``t``.
 
     The options (``num_basis``, the speeds of the phase estimation, the weight ridge) are
-    chosen from ``grid`` by ``folds``-fold cross-validation over the training movements (held
-    out whole; the folds of a seeded permutation): the lowest MAE over all steps of the
-    held-out movements.
+    chosen from ``grid`` (:data:`PROMP_GRID`) by ``folds``-fold cross-validation: the lowest
+    MAE over all steps of the held-out movements (``scores``: each configuration's).
 
     Args:
-        grid: option name -> candidates (:data:`PROMP_GRID`); options not in it take
-            :class:`ProMP`'s defaults.
+        grid: option name -> candidates; options not in it take :class:`ProMP`'s defaults.
         folds: cross-validation folds (at most the number of movements).
-        seed: seed of the permutation.
+        seed: seed of the folds' permutation.
     """
+
+    GRID = PROMP_GRID
 
     def __init__(
         self, grid: dict[str, Sequence] | None = None, *, folds: int = 5, seed: int = 0
     ) -> None:
-        grid = dict(PROMP_GRID if grid is None else grid)
-        unknown = set(grid) - {"num_basis", "speeds", "reg", "durations", "bandwidth"}
-        if unknown or not all(len(v) for v in grid.values()):
-            raise ValueError(
-                f"grid must map ProMP options to non-empty candidate lists, got {grid!r}"
-            )
-        self.grid, self.folds, self.seed = grid, _positive_int(folds, "folds"), int(seed)
-
-    def _configs(self) -> list[dict[str, Any]]:
-        configs: list[dict[str, Any]] = [{}]
-        for name, values in self.grid.items():
-            configs = [c | {name: v} for c in configs for v in values]
-        return configs
+        super().__init__(grid, folds, seed)
 
     def fit(self, sequences: Any, targets: Any) -> ProMPRegressor:
         """Fit on movements ``[T_i, D]`` with one target each ``[n]``.
 
         Raises:
-            ValueError: fewer movements than folds, or a target per movement missing.
+            ValueError: not one finite target per movement.
         """
-        from ..crossval import contiguous_folds
-
         seqs = as_sequences(sequences)
         y = as_tensor(targets, "targets", dtype=torch.float64, ndim=1)
         if y.shape[0] != len(seqs):
             raise ValueError(f"need one target per sequence: {y.shape[0]} for {len(seqs)}")
-        configs = self._configs()
-        if len(configs) > 1:
-            gen = torch.Generator().manual_seed(self.seed)
-            perm = torch.randperm(len(seqs), generator=gen).tolist()
-            errors = []
-            for options in configs:
-                err = []
-                for train, held in contiguous_folds(len(seqs), min(self.folds, len(seqs))):
-                    model = ProMP(**options).fit([seqs[perm[i]] for i in train], y[perm][train])
-                    for i in held:
-                        mean, _ = _prefix_means(model, seqs[perm[i]][None].double())
-                        err.append((mean[0, :, 0] - y[perm[i]]).abs())
-                errors.append(float(torch.cat(err).mean()))
-            self.validation_mae = errors
-            self.options = configs[min(range(len(configs)), key=errors.__getitem__)]
-        else:
-            self.options = configs[0]
+
+        def mae(options: dict, train: list[int], held: list[int]) -> torch.Tensor:
+            model = ProMP(**options).fit([seqs[i] for i in train], y[train])
+            return torch.cat([
+                torch.stack([p.mean[0, 0] for p in _prefix_posteriors(model, seqs[i][None])])
+                .sub(y[i]).abs()
+                for i in held
+            ])  # fmt: skip
+
+        self.options = self._select(len(seqs), mae)
         self.model = ProMP(**self.options).fit(seqs, y)
         return self
 
@@ -336,5 +377,100 @@ class ProMPRegressor:
         if not hasattr(self, "model"):
             raise RuntimeError("ProMPRegressor.predict: call fit(sequences, targets) first")
         z = as_tensor(z, "z", dtype=torch.float64, ndim=3)
-        mean, var = _prefix_means(self.model, z)
-        return mean[..., 0], var[..., 0].sqrt()
+        posts = _prefix_posteriors(self.model, z)
+        mean = torch.stack([p.mean[:, 0] for p in posts], 1)
+        return mean, torch.stack([p.cov[:, 0, 0] for p in posts], 1).sqrt()
+
+
+class ProMPClassifier(_Selected):
+    """A class from a movement's prefix: one :class:`ProMP` per class, the class posterior
+    ``p(c | y_0..t) ~ p(y_0..t | c) p(c)`` from each class's prefix likelihood (its phase
+    estimated) and the training frequencies, at every step ``t``.
+
+    The options are chosen from ``grid`` (:data:`PROMP_CLASS_GRID`) by ``folds``-fold
+    cross-validation: the lowest error rate over all steps of the held-out movements.
+
+    Args:
+        grid: option name -> candidates; options not in it take :class:`ProMP`'s defaults.
+        folds: cross-validation folds (at most the number of movements).
+        seed: seed of the folds' permutation.
+    """
+
+    GRID = PROMP_CLASS_GRID
+
+    def __init__(
+        self, grid: dict[str, Sequence] | None = None, *, folds: int = 3, seed: int = 0
+    ) -> None:
+        super().__init__(grid, folds, seed)
+
+    @staticmethod
+    def _fit_classes(options, seqs, y, classes: int) -> tuple[list[ProMP | None], torch.Tensor]:
+        """One ProMP per class and the log class frequencies; a class with fewer than 2
+        movements here (a cross-validation fold of a small class) gets neither."""
+        counts = torch.bincount(y, minlength=classes)
+        models = [
+            ProMP(**options).fit([s for s, c in zip(seqs, y, strict=True) if c == k])
+            if counts[k] >= 2 else None
+            for k in range(classes)
+        ]  # fmt: skip
+        usable = (counts * torch.tensor([m is not None for m in models])).double()
+        if usable.sum() == 0:  # no class fits in this fold: every class equally likely
+            return models, usable
+        return models, (usable / usable.sum()).log()
+
+    @staticmethod
+    def _log_proba(models, log_prior, z: torch.Tensor) -> torch.Tensor:
+        steps = [
+            torch.stack([p.log_evidence for p in _prefix_posteriors(m, z)], 1)
+            if m is not None else z.new_zeros(z.shape[:2])  # its prior is 0
+            for m in models
+        ]  # fmt: skip
+        joint = torch.stack(steps, -1) + log_prior  # [M, T, C]
+        return joint - torch.logsumexp(joint, -1, keepdim=True)
+
+    def fit(self, sequences: Any, labels: Any) -> ProMPClassifier:
+        """Fit on movements ``[T_i, D]`` with one class code each ``[n]`` (codes ``0..C-1``,
+        each class with at least 2 movements).
+
+        Raises:
+            ValueError: labels that are not one non-negative integer code per movement, or a
+                class with fewer than 2 movements.
+        """
+        seqs = as_sequences(sequences)
+        y = torch.as_tensor(labels)
+        if y.dim() != 1 or y.shape[0] != len(seqs) or y.is_floating_point() or (y < 0).any():
+            raise ValueError(
+                f"labels must be [n] non-negative integer codes, one per movement (n = "
+                f"{len(seqs)}), got {tuple(y.shape)} {y.dtype}"
+            )
+        y = y.long()
+        C = int(y.max()) + 1
+        small = [k for k, n in enumerate(torch.bincount(y).tolist()) if n < 2]
+        if small:
+            raise ValueError(f"labels: classes {small} have fewer than 2 movements")
+
+        def errors(options: dict, train: list[int], held: list[int]) -> torch.Tensor:
+            models, prior = self._fit_classes(options, [seqs[i] for i in train], y[train], C)
+            return torch.cat([
+                self._log_proba(models, prior, seqs[i][None]).argmax(-1)[0].ne(y[i]).double()
+                for i in held
+            ])  # fmt: skip
+
+        self.options = self._select(len(seqs), errors, labels=y)
+        self.models, self.log_prior = self._fit_classes(self.options, seqs, y, C)
+        return self
+
+    def predict_log_proba(self, z: Any) -> torch.Tensor:
+        """Log class posteriors at every step: ``[M, T, D]`` -> ``[M, T, C]``.
+
+        Raises:
+            RuntimeError: before :meth:`fit`.
+        """
+        if not hasattr(self, "models"):
+            raise RuntimeError("ProMPClassifier.predict_log_proba: call fit(sequences, labels)")
+        z = as_tensor(z, "z", dtype=torch.float64, ndim=3)
+        return self._log_proba(self.models, self.log_prior, z)
+
+    def predict(self, z: Any) -> torch.Tensor:
+        """Most probable class at every step: ``[M, T]`` (long)."""
+        return self.predict_log_proba(z).argmax(-1)

@@ -45,7 +45,7 @@ def test_table_is_consistent_with_its_confusion_matrices():
     )  # fmt: skip
     methods = table.column("method")
     assert methods[:2] == ["IDDM batch n=4", "IDDM online eps=0.2"]
-    assert {"SVM n=5", "GPC n=5"} <= set(methods)
+    assert {"SVM n=5", "GPC n=5", "ProMP (phase estimated)"} <= set(methods)
     decisions = table.meta["n_test"] * table.meta["frames"]
     for row in table.rows:
         m = np.asarray(table.meta["confusion"][row["method"]])
@@ -69,10 +69,11 @@ def test_table_is_consistent_with_its_confusion_matrices():
 
 
 def check_coverage(row: dict) -> None:
-    """The IDDM's 90% credible sets always hold its decision (the most probable class), so
-    they cover the truth at least as often as it is right; baselines give no probabilities."""
+    """The 90% credible sets of the IDDM and the ProMP always hold their decision (the most
+    probable class), so they cover the truth at least as often as it is right; the window
+    baselines give no probabilities."""
     cover = row["90% set coverage [%]"]
-    if row["method"].startswith("IDDM"):
+    if row["method"].startswith(("IDDM", "ProMP")):
         assert row["accuracy [%]"] - 0.1 <= cover <= 100.0
     else:
         assert cover is None
@@ -146,7 +147,7 @@ def test_msrc12_baselines_separate_a_trivially_separable_set(tmp_path):
     assert table.meta["classes"] == ["crouch", "bow", "kick"] and table.meta["frames"] == 12
     check_decisions_and_folds(table, len(PERSONS))
     rows = {row["method"]: row for row in table.rows}
-    for name in ("SVM n=5", "GPC n=5", "HMM n=5"):
+    for name in ("SVM n=5", "GPC n=5", "HMM n=5", "ProMP (phase estimated)"):
         assert rows[name]["accuracy [%]"] >= 95.0 and rows[name]["end accuracy [%]"] == 100.0
     assert all(f["n_train"] == 3 * 4 and f["Dz"] == 4 for f in table.meta["folds"])
 
@@ -190,7 +191,8 @@ def test_msrc12_smoke_on_the_development_archive():
     )
     assert table.meta["persons"] == 4 and table.meta["frames"] == 6
     assert [row["method"] for row in table.rows] == [
-        "IDDM batch n=4", "IDDM online eps=0.2", "SVM n=5", "GPC n=5", "HMM n=5",
+        "IDDM batch n=4", "IDDM online eps=0.2", "SVM n=5", "GPC n=5",
+        "ProMP (phase estimated)", "HMM n=5",
     ]  # fmt: skip
     check_decisions_and_folds(table, 4)
     assert all(f["n_test"] == 6 for f in table.meta["folds"])
