@@ -71,6 +71,51 @@ class ResultTable:
 
     @classmethod
     def from_json(cls, path: str | Path) -> ResultTable:
-        """Read a table written by :meth:`to_json`."""
-        d = json.loads(Path(path).read_text())
+        """Read a table written by :meth:`to_json`.
+
+        Raises:
+            ValueError: the file is not UTF-8 JSON text (the message names the file and, for bad
+                JSON, the line and column), or its JSON is not a table: an object with
+                ``"title"`` (text), ``"columns"`` (a list of names), ``"rows"`` (a list of
+                objects keyed by those names) and optionally ``"meta"`` (an object).
+            OSError: the file cannot be read.
+        """
+        try:
+            d = json.loads(Path(path).read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a results table (not UTF-8 JSON text)") from None
+        except json.JSONDecodeError as err:
+            raise ValueError(
+                f"{path}: not a results table, its JSON is invalid or cut short at line "
+                f"{err.lineno} column {err.colno} ({err.msg})"
+            ) from None
+        problem = _table_problem(d)
+        if problem:
+            raise ValueError(
+                f"{path}: not a results table ({problem}); expected a JSON object with "
+                '"title" (text), "columns" (a list of names), "rows" (a list of objects keyed by '
+                'those names) and optionally "meta" (an object), as ResultTable.to_json writes'
+            )
         return cls(d["title"], d["columns"], d["rows"], d.get("meta", {}))
+
+
+def _table_problem(d: Any) -> str:
+    """What keeps the parsed JSON ``d`` from being a :class:`ResultTable` ("" if nothing)."""
+    if not isinstance(d, dict):
+        return f"the JSON is a {type(d).__name__}, not an object"
+    missing = [key for key in ("title", "columns", "rows") if key not in d]
+    if missing:
+        return f"no {', '.join(map(repr, missing))}"
+    columns, rows = d["columns"], d["rows"]
+    if not isinstance(d["title"], str):
+        return '"title" is not text'
+    if not isinstance(columns, list) or not all(isinstance(c, str) for c in columns):
+        return '"columns" is not a list of names'
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        return '"rows" is not a list of objects'
+    unknown = sorted({k for r in rows for k in r} - set(columns))
+    if unknown:
+        return f"rows have cells {unknown} outside the columns"
+    if not isinstance(d.get("meta", {}), dict):
+        return '"meta" is not an object'
+    return ""

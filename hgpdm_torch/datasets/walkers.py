@@ -9,6 +9,11 @@ and protocols themselves are in :mod:`hgpdm_torch.datasets.cmu`.
 - :func:`frame_features`: each frame alone, beside its change from the previous frame, or beside
   the previous frame: what a model observes to tell apart phases of a movement that pass through
   the same pose.
+- :func:`find_trials` / :class:`FoundTrials`: which of a protocol's trials a folder holds, per
+  label, from the file names alone, so that a run says what it found (and stops with
+  :class:`MissingTrialsError` when it lacks what it needs) before any work
+  (:func:`protocol_trials`: what a forecasting run needs);
+  :func:`loto_folds` / :func:`spread_folds`: leave-one-trial-out folds over the trials.
 
 Conventions of the CMU (VICON) data, checked on the files: ``y`` is up; the root's ``rx ry rz``
 are rotations about the fixed global axes in the sequence of the ASF ``order`` line (``RX RY RZ``:
@@ -23,7 +28,9 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -31,7 +38,21 @@ import torch
 from ..validation import as_tensor
 from .mocap import Skeleton
 
-__all__ = ["FRAME_FEATURES", "Standardizer", "frame_features", "motion_features"]
+if TYPE_CHECKING:  # cmu imports this module
+    from .cmu import MotionTrials, Protocol
+
+__all__ = [
+    "FRAME_FEATURES",
+    "FoundTrials",
+    "MissingTrialsError",
+    "Standardizer",
+    "find_trials",
+    "frame_features",
+    "loto_folds",
+    "motion_features",
+    "protocol_trials",
+    "spread_folds",
+]
 
 ROOT_FEATURES = (
     "root.vx_heading",
@@ -327,3 +348,242 @@ def frame_features(z: Any, kind: str) -> torch.Tensor:
         )
     later, earlier = z[..., 1:, :], z[..., :-1, :]
     return torch.cat([later, later - earlier if kind == "velocity" else earlier], dim=-1)
+
+
+# ------------------------------------------------------------------------------------------
+# Which of a protocol's trials are there, and leave-one-trial-out folds over them
+# ------------------------------------------------------------------------------------------
+
+
+class MissingTrialsError(FileNotFoundError, ValueError):
+    """A protocol run lacks the trials it needs (both a ``FileNotFoundError``, as the loaders
+    raise for absent files, and a ``ValueError``); the message names the folder and the files
+    expected there."""
+
+
+@dataclass(frozen=True)
+class FoundTrials:
+    """Which of a protocol's trials of one split lie in a folder, by file names alone (nothing
+    is read, so a run can say what it found, and stop, before any work).
+
+    A trial ``SS_TT`` is found when ``SS_TT.amc`` is in the folder and its subject's skeleton
+    ``SS.asf`` is in the folder or a skeleton folder: exactly the trials that
+    :func:`~hgpdm_torch.datasets.cmu.load_trials` would read from ``[folder, *skeletons]``.
+
+    Attributes:
+        protocol: the protocol's name, e.g. ``"walkers"``.
+        split: ``"training"`` or ``"test"``.
+        source: how messages name the folder, e.g. ``"--data ../shared/data/cmu"``.
+        label_kind: what a label is (``"subject"`` or ``"style"``).
+        label_names: the protocol's labels, in code order.
+        found: ``(trial, label)`` pairs found, in the protocol's order.
+        missing: ``(trial, label, file)`` of the others, ``file`` the absent one (the trial's
+            ``.amc``, or its subject's ``.asf``).
+    """
+
+    protocol: str
+    split: str
+    source: str
+    label_kind: str
+    label_names: tuple[str, ...]
+    found: tuple[tuple[str, str], ...]
+    missing: tuple[tuple[str, str, str], ...]
+
+    @property
+    def trials(self) -> list[str]:
+        """The trials found."""
+        return [t for t, _ in self.found]
+
+    @property
+    def missing_trials(self) -> list[str]:
+        """The protocol's trials of this split that were not found."""
+        return [t for t, _, _ in self.missing]
+
+    def describe(self) -> str:
+        """One line: per label the trials found and those missing (and the absent skeletons
+        of trials whose motion file is there)."""
+        parts = []
+        for label in self.label_names:
+            have = [t for t, lab in self.found if lab == label]
+            lack = [(t, absent) for t, lab, absent in self.missing if lab == label]
+            if not (have or lack):  # the protocol has no trial of this label in this split
+                continue
+            text = f"{self.label_kind} {label}: {', '.join(have) or 'none'}"
+            if lack:
+                asf = [a for _, a in dict.fromkeys(lack) if a.endswith(".asf")]
+                why = f": no {', '.join(dict.fromkeys(asf))}" if asf else ""
+                text += f" ({', '.join(t for t, _ in lack)} missing{why})"
+            parts.append(text)
+        return f"{self.split} trials from {self.source}: " + "; ".join(parts)
+
+    def _expected(self, labels: Sequence[str]) -> str:
+        """The files of ``labels``, which have no trial found (so all theirs are missing)."""
+        trials = [t for t, lab, _ in self.missing if lab in labels]
+        subjects = dict.fromkeys(t.split("_")[0] for t in trials)
+        files = ", ".join(f"{t}.amc" for t in trials)
+        one = "" if len(trials) == 1 else "one of "
+        return f"{one}{files} with {', '.join(f'{s}.asf' for s in subjects)}"
+
+    def require(self, need: str) -> None:
+        """Stop unless the trials found meet ``need``: ``"any"`` (at least one trial),
+        ``"every label"`` (a trial of every label) or ``"all"`` (every trial).
+
+        Raises:
+            MissingTrialsError: naming the folder, the labels without a trial and the files
+                expected for them (or the missing trials, for ``"all"``).
+            ValueError: an unknown ``need``.
+        """
+        if need not in ("any", "every label", "all"):
+            raise ValueError(f"need must be 'any', 'every label' or 'all', got {need!r}")
+        if need == "all" and self.missing:
+            lack = ", ".join(dict.fromkeys(absent for _, _, absent in self.missing))
+            raise MissingTrialsError(
+                f"{self.source}: the {self.protocol} {self.split} trials must all be there; "
+                f"absent: {lack}"
+            )
+        if not self.found:
+            raise MissingTrialsError(
+                f"{self.source}: no {self.protocol} {self.split} trial (expected "
+                f"{self._expected(self.label_names)})"
+            )
+        have = {lab for _, lab in self.found}
+        empty = [lab for lab in self.label_names if lab not in have]
+        if need == "every label" and empty:
+            each = "; ".join(
+                f"{self.label_kind} {lab} (expected {self._expected([lab])})" for lab in empty
+            )
+            raise MissingTrialsError(
+                f"{self.source}: no {self.split} trial for {each}; the {self.protocol} protocol "
+                f"needs one of every {self.label_kind}"
+            )
+
+
+def find_trials(
+    protocol: Protocol,
+    split: str,
+    folder: str | Path,
+    *,
+    skeletons: Sequence[str | Path] = (),
+    source: str | None = None,
+) -> FoundTrials:
+    """Which of ``protocol``'s ``split`` trials are in ``folder`` (see :class:`FoundTrials`).
+
+    Args:
+        protocol: a :class:`~hgpdm_torch.datasets.cmu.Protocol`.
+        split: ``"train"`` or ``"test"``.
+        folder: where the trials' ``.amc`` files must be.
+        skeletons: further folders for the subjects' ``.asf`` skeletons (after ``folder``).
+        source: how messages name ``folder`` (default: its path).
+
+    Raises:
+        FileNotFoundError: ``folder`` or a skeleton folder is not a folder.
+    """
+    folders = [Path(folder), *map(Path, skeletons)]
+    for f in folders:
+        if not f.is_dir():
+            raise FileNotFoundError(f"CMU data folder not found: {f}")
+    found, missing = [], []
+    for trial, label in protocol.trials(split):
+        asf = f"{trial.split('_')[0]}.asf"
+        if not (folders[0] / f"{trial}.amc").is_file():
+            missing.append((trial, label, f"{trial}.amc"))
+        elif not any((f / asf).is_file() for f in folders):
+            missing.append((trial, label, asf))
+        else:
+            found.append((trial, label))
+    return FoundTrials(
+        protocol.name,
+        "training" if split == "train" else "test",
+        str(folder) if source is None else source,
+        protocol.label_kind,
+        protocol.label_names,
+        tuple(found),
+        tuple(missing),
+    )
+
+
+def protocol_trials(
+    spec: Protocol,
+    folder: str | Path,
+    test_folder: str | Path | None = None,
+    names: tuple[str, str] = ("folder", "test_folder"),
+) -> tuple[FoundTrials, FoundTrials | None]:
+    """Which of ``spec``'s training trials ``folder`` holds and, if ``test_folder`` is given,
+    which test trials it holds (their skeletons may lie in ``folder``; their motions are never
+    taken from it), checked against what a forecasting run
+    (:func:`~hgpdm_torch.experiments.walkers.walkers`) needs: a training trial of every label;
+    with ``test_folder``, a test trial there and two training trials; without, for
+    leave-one-trial-out CV, a label with two training trials and three trials in all (every
+    fit's baselines choose their settings by cross-validation over at least two trials).
+
+    Args:
+        spec: the protocol (a :class:`~hgpdm_torch.datasets.cmu.Protocol`).
+        folder: the training trials' folder.
+        test_folder: the test trials' folder; ``None``: leave-one-trial-out CV.
+        names: how messages name the two folders (``("--data", "--test-data")`` on the
+            command line).
+
+    Returns:
+        The training trials found and the test trials found (``None`` without ``test_folder``).
+
+    Raises:
+        MissingTrialsError: a label without a training trial, no test trial in ``test_folder``,
+            or (CV) no label with two training trials to hold one out.
+        FileNotFoundError: a folder that does not exist.
+    """
+    train = find_trials(spec, "train", folder, source=f"{names[0]} {folder}")
+    train.require("every label")
+    labels = [lab for _, lab in train.found]
+    if test_folder is None and all(labels.count(lab) < 2 for lab in labels):
+        raise MissingTrialsError(
+            f"{train.source}: leave-one-trial-out CV needs a {spec.label_kind} with two training "
+            f"trials (one held out, one to train), found one each: {train.trials}"
+        )
+    # every fit's baselines choose their settings by cross-validation over >= 2 training trials
+    need = 3 if test_folder is None else 2
+    if len(train.found) < need:
+        raise MissingTrialsError(
+            f"{train.source}: found the training trials {train.trials} only; "
+            f"{'leave-one-trial-out CV' if need == 3 else 'scoring test trials'} needs at least "
+            f"{need} (ridge AR and the GRU choose their settings by cross-validation by trial)"
+        )
+    if test_folder is None:
+        return train, None
+    source = f"{names[1]} {test_folder}"
+    test = find_trials(spec, "test", test_folder, skeletons=[folder], source=source)
+    test.require("any")
+    return train, test
+
+
+def loto_folds(labels: Any) -> tuple[list[tuple[list[int], list[int]]], list[int]]:
+    """Leave-one-trial-out folds over the trials whose label has at least one other trial.
+
+    Args:
+        labels: ``[J]`` label code per trial.
+
+    Returns:
+        ``(train, [held-out trial])`` per testable trial, in trial order, and the trials that
+        cannot be held out (their label's only trial; they always train).
+    """
+    codes = np.asarray(labels).reshape(-1)
+    folds, untestable = [], []
+    for j, code in enumerate(codes.tolist()):
+        if int((codes == code).sum()) < 2:
+            untestable.append(j)
+            continue
+        folds.append(([i for i in range(len(codes)) if i != j], [j]))
+    return folds, untestable
+
+
+def spread_folds(
+    folds: list[tuple[list[int], list[int]]], data: MotionTrials, max_folds: int | None
+) -> list[tuple[list[int], list[int]]]:
+    """At most ``max_folds`` of :func:`loto_folds`' folds (all for ``None``), taking the labels'
+    held-out trials in turn, in the trials' order."""
+    if max_folds is None or max_folds >= len(folds):
+        return folds
+    by_label: dict[int, list[tuple[list[int], list[int]]]] = {}
+    for fold in folds:
+        by_label.setdefault(int(data.labels[fold[1][0]]), []).append(fold)
+    order = [f for i in range(len(folds)) for group in by_label.values() for f in group[i : i + 1]]
+    return sorted(order[:max_folds], key=lambda f: f[1][0])

@@ -18,14 +18,18 @@ statistics. From each test trial (35_03, 12_02, 12_03, 16_21) the first 50 frame
 
 RMSE is over the missing frames and all standardised channels of a trial's 12 placements; a
 subject with no training trial here can be tested (VB picks among the known subjects) but has no
-oracle rows. The test trials found in ``test_folder`` are scored (absent ones listed); 35_03 is
-among the training data of ``../shared/data/cmu``, so the default finds one.
+oracle rows. The test trials found in ``test_folder`` are scored (absent ones listed), and none
+from elsewhere; without ``test_folder`` they are looked for in ``folder``: 35_03 is among the
+training data of ``../shared/data/cmu``, so the default finds one. Before any work the command
+says which trials it found where, per subject, and stops, naming the files, when it has no
+training trial or no test trial.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -33,8 +37,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..datasets.cmu import PROTOCOLS, load_protocol
-from ..datasets.walkers import Standardizer
+from ..datasets.cmu import PROTOCOLS, load_protocol, load_trials
+from ..datasets.walkers import FoundTrials, MissingTrialsError, Standardizer, find_trials
 from ..inference.map import MAPInference
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_predictions
@@ -44,7 +48,14 @@ from .arguments import output_file, positive_int
 from .intervals import mean_sem
 from .walkers import DEFAULT_OPTIONS, MODEL_METHODS, report
 
-__all__ = ["METHODS", "gap_recovery", "linear_interpolation", "main", "template_copy"]
+__all__ = [
+    "METHODS",
+    "four_walkers_trials",
+    "gap_recovery",
+    "linear_interpolation",
+    "main",
+    "template_copy",
+]
 
 SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 METHODS = (*MODEL_METHODS, "linear interpolation", "template copy")
@@ -81,6 +92,32 @@ def template_copy(z: torch.Tensor, train: list[torch.Tensor]) -> torch.Tensor:
     return torch.where(observed[..., None], z, best)
 
 
+def four_walkers_trials(
+    folder: str | Path,
+    test_folder: str | Path | None = None,
+    names: tuple[str, str] = ("folder", "test_folder"),
+) -> tuple[FoundTrials, FoundTrials]:
+    """Which Four Walkers training trials ``folder`` holds and which test trials
+    ``test_folder`` holds (their skeletons may lie in ``folder``), or ``folder`` when no
+    ``test_folder`` is given; messages name the folders by ``names``.
+
+    Raises:
+        MissingTrialsError: no training trial, or no test trial where they are looked for
+            (a subject without a training trial is allowed: it has no oracle rows).
+        FileNotFoundError: a folder that does not exist.
+    """
+    spec = PROTOCOLS["four-walkers"]
+    train = find_trials(spec, "train", folder, source=f"{names[0]} {folder}")
+    train.require("any")
+    where = test_folder if test_folder is not None else folder
+    source = f"{names[1]} {test_folder}"
+    if test_folder is None:
+        source = f"{names[0]} {folder} (no {names[1]} given)"
+    test = find_trials(spec, "test", where, skeletons=[folder], source=source)
+    test.require("any")
+    return train, test
+
+
 def gap_recovery(
     *,
     folder: str | Path = "../shared/data/cmu",
@@ -94,7 +131,8 @@ def gap_recovery(
 
     Args:
         folder: the training trials' folder.
-        test_folder: where to look for the test trials (default ``folder``).
+        test_folder: the test trials' folder, the only place they are taken from (their
+            skeletons may come from ``folder``); ``None``: ``folder``.
         latent_dim: Dx of both models.
         fit_steps: maximum MAP steps per fit.
         gaps: first missing frame of each placement (0-based; the thesis's 4 ... 15).
@@ -106,17 +144,22 @@ def gap_recovery(
         A :class:`ResultTable`: one row per test trial, an ``average`` row (mean over trials)
         and, with several trials, a ``SEM`` row; ``meta`` lists the trials used and missing,
         and the fits.
+
+    Raises:
+        MissingTrialsError: no training trial or no test trial (:func:`four_walkers_trials`),
+            before any file is read.
+        ValueError: bad ``gaps``, or a test trial shorter than 50 frames.
     """
-    spec = PROTOCOLS["four-walkers"]
-    data = load_protocol(spec, "train", folder)
-    test = load_protocol(spec, "test", [test_folder or folder, folder])
-    if len(data) == 0 or len(test) == 0:
-        raise FileNotFoundError(
-            f"four-walkers needs training and test trials: found {data.trials} and {test.trials} "
-            f"(missing {data.missing + test.missing})"
-        )
     if any(g < 0 or g + GAP > FRAMES for g in gaps):
         raise ValueError(f"gaps must lie in [0, {FRAMES - GAP}], got {gaps}")
+    spec = PROTOCOLS["four-walkers"]
+    _, found = four_walkers_trials(folder, test_folder)
+    data = load_protocol(spec, "train", folder)
+    # the test motions from where they were found only, their skeletons also from folder
+    where = test_folder if test_folder is not None else folder
+    test = load_trials(
+        found.found, [where, folder], downsample=spec.downsample, label_names=spec.label_names
+    )
     short = [t for t, s in zip(test.trials, test.sequences, strict=True) if s.shape[0] < FRAMES]
     if short:
         raise ValueError(f"test trials {short} have fewer than {FRAMES} frames")
@@ -141,7 +184,8 @@ def gap_recovery(
             "training trials": data.trials,
             "missing training trials": data.missing,
             "test trials": test.trials,
-            "missing test trials": test.missing,
+            "missing test trials": found.missing_trials,
+            "test trials from": found.source,
             "fps": data.fps,
             "latent_dim": latent_dim,
             "fit_steps": fit_steps,
@@ -212,7 +256,12 @@ def main(argv: list[str]) -> int:
     [--out table.json]``."""
     parser = argparse.ArgumentParser(prog="hgpdm gap-recovery", description=__doc__)
     parser.add_argument("--data", type=Path, default=Path("../shared/data/cmu"))
-    parser.add_argument("--test-data", type=Path, default=None, help="default: --data")
+    parser.add_argument(
+        "--test-data",
+        type=Path,
+        default=None,
+        help="the test trials' folder (default: --data); a folder given must hold one",
+    )
     parser.add_argument("--latent-dim", type=positive_int, default=3)
     parser.add_argument("--fit-steps", type=positive_int, default=40 if SMOKE else 300)
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON")
@@ -220,6 +269,12 @@ def main(argv: list[str]) -> int:
     for name, path in (("--data", args.data), ("--test-data", args.test_data)):
         if path is not None and not path.is_dir():
             parser.error(f"{name} {path} is not a folder (it needs the CMU files; docs, Walking)")
+    try:
+        found = four_walkers_trials(args.data, args.test_data, ("--data", "--test-data"))
+    except MissingTrialsError as err:
+        parser.error(str(err))
+    for part in found:
+        print(f"hgpdm gap-recovery: {part.describe()}", file=sys.stderr, flush=True)
     torch.set_default_dtype(torch.float64)
     table = gap_recovery(
         folder=args.data,

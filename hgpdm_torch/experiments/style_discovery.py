@@ -7,13 +7,15 @@ discovered by Algorithm 2.1, and as a baseline k-means on summaries of the GPDM'
 trajectories (mean position and RMS step, :func:`~hgpdm_torch.models.hgpdm.
 trajectory_summaries`); prints the style purity and adjusted Rand index against the true styles,
 log posterior and fit time of each, and saves a figure of the latent trajectories coloured by
-style.
+style. On Weird Walking the command first says which trials it found per style, and stops,
+naming the absent files, unless all 14 are there.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -22,8 +24,8 @@ from sklearn.cluster import KMeans
 from sklearn.metrics import adjusted_rand_score
 
 from ..datasets import styled_movements
-from ..datasets.cmu import load_protocol
-from ..datasets.walkers import Standardizer
+from ..datasets.cmu import PROTOCOLS, load_protocol
+from ..datasets.walkers import MissingTrialsError, Standardizer, find_trials
 from ..models import GPDM, HGPDM
 from ..models.hgpdm import trajectory_summaries
 from ..results import ResultTable
@@ -80,9 +82,16 @@ def run_style_discovery(
 
     Returns:
         The result table and the fitted models by name.
+
+    Raises:
+        MissingTrialsError: ``data="weird-walking"`` and some of its 14 training trials are
+            not in ``folder`` (all named, before any file is read).
+        ValueError: an unknown ``data``.
     """
     if data == "weird-walking":
-        walks = load_protocol("weird-walking", "train", folder, require_all=True)
+        spec = PROTOCOLS["weird-walking"]
+        find_trials(spec, "train", folder, source=f"folder {folder}").require("all")
+        walks = load_protocol(spec, "train", folder, require_all=True)
         std = Standardizer().fit(walks.sequences)
         sequences = [std.transform(s) for s in walks.sequences]
         labels, num_styles = walks.labels, len(walks.label_names)
@@ -205,8 +214,19 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--quick", action="store_true", help="smaller problem (also HGPDM_SMOKE=1)")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
-    if args.data == "weird-walking" and not args.cmu.is_dir():
-        parser.error(f"--cmu {args.cmu} is not a folder (it needs the CMU files; docs, Walking)")
+    if args.data == "weird-walking":
+        if not args.cmu.is_dir():
+            parser.error(
+                f"--cmu {args.cmu} is not a folder (it needs the CMU files; docs, Walking)"
+            )
+        found = find_trials(
+            PROTOCOLS["weird-walking"], "train", args.cmu, source=f"--cmu {args.cmu}"
+        )
+        try:
+            found.require("all")
+        except MissingTrialsError as err:
+            parser.error(str(err))
+        print(f"hgpdm style-discovery: {found.describe()}", file=sys.stderr, flush=True)
     quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
     sizes: dict[str, int] = {"steps": 20, "iterations": 3} if quick else {}
     if quick and args.data == "synthetic":

@@ -12,7 +12,13 @@ Two evaluations:
   the models are fitted on the rest; a trial that is its label's only one is listed as not
   testable (the models could not know its label);
 - **test trials** (``test_folder``): the models are fitted once on all training trials and score
-  the protocol's test trials found there (those absent are listed).
+  the protocol's test trials found there (those absent are listed; none is taken from the
+  training folder).
+
+Before any work a run checks which trials are there
+(:func:`~hgpdm_torch.datasets.walkers.protocol_trials`): the command says what it found per
+label and stops, naming the missing files, when a label has no training trial or the test
+folder no test trial.
 
 Every held-out trial is cut into windows of T frames (every ``stride`` frames) and each method
 forecasts the next frame. The GP models observe what the protocol's CV chose
@@ -40,19 +46,27 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
 import torch
 
 from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
 from ..calibration import calibration
 from ..crossval import held_out
-from ..datasets.cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol
-from ..datasets.walkers import FRAME_FEATURES, Standardizer, frame_features
+from ..datasets.cmu import PROTOCOLS, Protocol, load_protocol, load_trials
+from ..datasets.walkers import (
+    FRAME_FEATURES,
+    MissingTrialsError,
+    Standardizer,
+    frame_features,
+    loto_folds,
+    protocol_trials,
+    spread_folds,
+)
 from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
@@ -76,10 +90,8 @@ __all__ = [
     "METHODS",
     "MODEL_METHODS",
     "compare_runs",
-    "loto_folds",
     "main",
     "report",
-    "spread_folds",
     "walkers",
 ]
 
@@ -150,26 +162,6 @@ FALLBACK_FEATURES = "frames"
 # benchmarks map_solver`, its forecasts at 30 iterations erred 0.476 / 0.393 (oracle H-GPDM /
 # GPDM) against 0.477 / 0.419 at 50, in three quarters of the time)
 LAPLACE_STEPS = 30
-
-
-def loto_folds(labels: Any) -> tuple[list[tuple[list[int], list[int]]], list[int]]:
-    """Leave-one-trial-out folds over the trials whose label has at least one other trial.
-
-    Args:
-        labels: ``[J]`` label code per trial.
-
-    Returns:
-        ``(train, [held-out trial])`` per testable trial, in trial order, and the trials that
-        cannot be held out (their label's only trial; they always train).
-    """
-    codes = np.asarray(labels).reshape(-1)
-    folds, untestable = [], []
-    for j, code in enumerate(codes.tolist()):
-        if int((codes == code).sum()) < 2:
-            untestable.append(j)
-            continue
-        folds.append(([i for i in range(len(codes)) if i != j], [j]))
-    return folds, untestable
 
 
 def _rmse(pred: torch.Tensor, truth: torch.Tensor) -> float:
@@ -359,8 +351,9 @@ def walkers(
         protocol: ``"walkers"``, ``"weird-walking"`` or a :class:`~hgpdm_torch.datasets.cmu.
             Protocol` of one's own.
         folder: the training trials' folder.
-        test_folder: score the protocol's test trials found there (models fitted on all training
-            trials); ``None``: leave-one-trial-out CV within the training trials.
+        test_folder: score the protocol's test trials found there, and only there (their
+            skeletons may come from ``folder``; models fitted on all training trials);
+            ``None``: leave-one-trial-out CV within the training trials.
         lengths: window lengths T.
         latent_dim: Dx of both models; ``"protocol"`` (default): the protocol's CV choice,
             :data:`DEFAULT_LATENT_DIM` (3 on Walkers, 10 on Weird Walking; 3 for a protocol of
@@ -400,6 +393,11 @@ def walkers(
         ``average`` row (mean over trials) and a ``SEM`` row (its standard error); ``meta``
         holds per-label means,
         the fits' convergence, the ratios to GPDM VB and which trials were missing.
+
+    Raises:
+        MissingTrialsError: before any file is read, when the folders lack trials the run
+            needs (:func:`~hgpdm_torch.datasets.walkers.protocol_trials`), naming the files.
+        ValueError: bad settings.
     """
     if isinstance(protocol, Protocol):
         spec = protocol
@@ -424,6 +422,7 @@ def walkers(
             f"{features} features need windows of at least 2 frames, got lengths "
             f"{tuple(lengths)}; pass features='frames' for shorter ones"
         )
+    _, found_test = protocol_trials(spec, folder, test_folder)
     data = load_protocol(spec, "train", folder)
     options = DEFAULT_OPTIONS.get(spec.name, {}) | dict(model_options or {})
     meta: dict[str, Any] = {
@@ -458,21 +457,14 @@ def walkers(
         "measurement_points": measurement_points,
         "features": features,
     }
-    if test_folder is not None:
-        test = load_protocol(spec, "test", [test_folder, folder])
-        meta["test trials"], meta["missing test trials"] = test.trials, test.missing
-        if not len(test):
-            raise FileNotFoundError(
-                f"none of the {spec.name} test trials {[t for t, _ in spec.test]} is in "
-                f"{test_folder}"
-            )
-        known = set(data.labels.tolist())
-        keep = [j for j in range(len(test)) if int(test.labels[j]) in known]
-        meta["test trials without a training trial of their label"] = [
-            test.trials[j] for j in range(len(test)) if j not in keep
-        ]
-        test.sequences = [test.sequences[j] for j in keep]
-        test.trials, test.labels = [test.trials[j] for j in keep], test.labels[keep]
+    if found_test is not None:  # motions from test_folder only, skeletons also from folder
+        test = load_trials(
+            found_test.found,
+            [test_folder, folder],
+            downsample=spec.downsample,
+            label_names=spec.label_names,
+        )
+        meta["test trials"], meta["missing test trials"] = test.trials, found_test.missing_trials
         rows, fits = _score_split(
             data.sequences, data.labels, test.sequences, test.labels, **kwargs
         )
@@ -506,20 +498,6 @@ def _score_fold(
     and ``held`` (module-level, so that it pickles to an executor)."""
     parts = [([sequences[i] for i in idx], labels[idx]) for idx in (train, held)]
     return _score_split(*parts[0], *parts[1], **kwargs)
-
-
-def spread_folds(
-    folds: list[tuple[list[int], list[int]]], data: MotionTrials, max_folds: int | None
-) -> list[tuple[list[int], list[int]]]:
-    """At most ``max_folds`` of :func:`loto_folds`' folds (all for ``None``), taking the labels'
-    held-out trials in turn, in the trials' order."""
-    if max_folds is None or max_folds >= len(folds):
-        return folds
-    by_label: dict[int, list[tuple[list[int], list[int]]]] = {}
-    for fold in folds:
-        by_label.setdefault(int(data.labels[fold[1][0]]), []).append(fold)
-    order = [f for i in range(len(folds)) for group in by_label.values() for f in group[i : i + 1]]
-    return sorted(order[:max_folds], key=lambda f: f[1][0])
 
 
 def _table(
@@ -587,7 +565,9 @@ COMPARED = (
 PER_LABEL = ("VB H-GPDM + AR(1) residual", "ridge AR (CV)", "GRU (CV)")
 
 
-def compare_runs(tables: list[ResultTable]) -> ResultTable:
+def compare_runs(
+    tables: list[ResultTable], names: list[str] | list[Path] | None = None
+) -> ResultTable:
     """One row per run and window length: its options, the ratio VB H-GPDM / GPDM VB,
     recognition, the mean RMSE (``+- SEM``) of :data:`COMPARED` and, per label, of
     :data:`PER_LABEL`.
@@ -595,9 +575,21 @@ def compare_runs(tables: list[ResultTable]) -> ResultTable:
     Args:
         tables: tables :func:`walkers` wrote for one protocol and evaluation (e.g. CV runs with
             different options).
+        names: how errors name each table (e.g. its file; default ``tables[i]``).
+
+    Raises:
+        ValueError: no table, or a table that :func:`walkers` did not write (its ``meta``
+            lacks the run's settings or summary).
     """
     if not tables:
         raise ValueError("tables must hold at least one walkers table")
+    keys = ("protocol", "evaluation", "summary", "model_options")  # what a run wrote
+    for i, table in enumerate(tables):
+        if lacks := [k for k in keys if k not in table.meta]:
+            raise ValueError(
+                f"{names[i] if names else f'tables[{i}]'}: not a table of hgpdm walkers (its "
+                f"meta lacks {lacks}); compare the --out tables of hgpdm walkers runs"
+            )
     labels = sorted(
         {lab for t in tables for s in t.meta["summary"].values() for lab in s["per label"]}
     )
@@ -746,7 +738,10 @@ def main(argv: list[str]) -> int:
         missing = [str(p) for p in args.compare if not p.is_file()]
         if missing:
             parser.error(f"--compare: no such file {', '.join(missing)}")
-        table = compare_runs([ResultTable.from_json(p) for p in args.compare])
+        try:  # each file named, so a wrong or cut-short one is found at once
+            table = compare_runs([ResultTable.from_json(p) for p in args.compare], args.compare)
+        except ValueError as err:
+            parser.error(f"--compare: {err}")
         print(table.to_markdown(".3f"))
         if args.out is not None:
             table.to_json(args.out)
@@ -763,9 +758,17 @@ def main(argv: list[str]) -> int:
     for name, path in (("--data", args.data), ("--test-data", args.test_data)):
         if path is not None and not path.is_dir():
             parser.error(f"{name} {path} is not a folder (it needs the CMU files; docs, Walking)")
-    torch.set_default_dtype(torch.float64)
     if args.test_data is not None and ((args.workers or 1) > 1 or args.ray_address is not None):
         parser.error("--workers and --ray-address run the CV folds; --test-data has none")
+    spec = PROTOCOLS[args.protocol]
+    try:
+        found = protocol_trials(spec, args.data, args.test_data, ("--data", "--test-data"))
+    except MissingTrialsError as err:
+        parser.error(str(err))
+    for part in found:
+        if part is not None:
+            print(f"hgpdm walkers: {part.describe()}", file=sys.stderr, flush=True)
+    torch.set_default_dtype(torch.float64)
     executor = connect(parser, args.workers, args.ray_address, local=True)
     try:
         table = walkers(

@@ -1,9 +1,11 @@
 """Walkers preprocessing: synthetic trajectories with known answers, scipy's rotations as the
-oracle for the Euler split (the real trials: test_cmu.py)."""
+oracle for the Euler split (the real trials: test_cmu.py); which of a protocol's trials a folder
+holds, from file names alone (empty files: nothing may be read)."""
 
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -12,7 +14,15 @@ from scipy.spatial.transform import Rotation
 from sklearn.preprocessing import StandardScaler
 
 from hgpdm_torch.datasets import Standardizer, frame_features, motion_features
+from hgpdm_torch.datasets.cmu import PROTOCOLS, Protocol
 from hgpdm_torch.datasets.mocap import Bone, Skeleton
+from hgpdm_torch.datasets.walkers import (
+    MissingTrialsError,
+    find_trials,
+    loto_folds,
+    protocol_trials,
+    spread_folds,
+)
 
 
 def skeleton(root_order=("tx", "ty", "tz", "rx", "ry", "rz"), angle="deg") -> Skeleton:
@@ -243,3 +253,102 @@ def test_frame_features_bad_inputs():
         frame_features(torch.zeros(3), "lagged")
     with pytest.raises(ValueError, match="kind"):
         frame_features(torch.zeros(2, 3), "speed")
+
+
+def touch(folder, *names):
+    """Empty files: the trial search looks at names only (reading one would fail)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (folder / name).write_text("")
+    return folder
+
+
+def test_found_trials_per_label_with_the_absent_files_named(tmp_path):
+    walkers = PROTOCOLS["walkers"]
+    data = touch(tmp_path / "data", "07.asf", "07_01.amc", "07_02.amc", "16_15.amc", "16_16.amc")
+    found = find_trials(walkers, "train", data, source="--data D")
+    assert found.trials == ["07_01", "07_02"]
+    assert found.missing_trials == [t for t, _ in walkers.train if t not in ("07_01", "07_02")]
+    assert found.describe() == (
+        "training trials from --data D: subject 07: 07_01, 07_02 (07_03 missing); subject 08: "
+        "none (08_01, 08_02, 08_03 missing); subject 16: none (16_15, 16_16 missing: no 16.asf); "
+        "subject 35: none (35_01, 35_02, 35_03 missing)"
+    )
+    found.require("any")
+    want = (
+        "--data D: no training trial for subject 08 (expected one of 08_01.amc, 08_02.amc, "
+        "08_03.amc with 08.asf); subject 16 (expected one of 16_15.amc, 16_16.amc with 16.asf)"
+    )
+    with pytest.raises(MissingTrialsError, match=re.escape(want)) as err:
+        found.require("every label")
+    assert isinstance(err.value, FileNotFoundError) and isinstance(err.value, ValueError)
+    with pytest.raises(MissingTrialsError, match="absent: 07_03.amc, 08_01.amc.*16.asf, 35_01"):
+        found.require("all")
+    with pytest.raises(ValueError, match="need must be"):
+        found.require("most")
+    # an empty folder: every trial expected, nothing read
+    empty = find_trials(walkers, "train", touch(tmp_path / "empty"))
+    assert empty.trials == [] and empty.source == str(tmp_path / "empty")
+    with pytest.raises(MissingTrialsError, match=r"no walkers training trial \(expected one of "):
+        empty.require("any")
+    # the test split; a skeleton from a second folder; a missing folder
+    test = find_trials(walkers, "test", touch(tmp_path / "test", "16_22.amc"), skeletons=[data])
+    assert test.trials == [] and test.missing[-8] == ("16_22", "16", "16.asf")
+    touch(data, "16.asf")
+    test = find_trials(walkers, "test", tmp_path / "test", skeletons=[data])
+    assert test.trials == ["16_22"] and test.split == "test"
+    assert "subject 16: 16_22;" in test.describe()
+    with pytest.raises(FileNotFoundError, match="not found"):
+        find_trials(walkers, "train", tmp_path / "absent")
+
+
+MINE = Protocol(
+    "mine",
+    "subject",
+    ("01", "02"),
+    (("01_01", "01"), ("01_02", "01"), ("02_01", "02"), ("02_02", "02")),
+    (("01_09", "01"), ("02_09", "02")),
+    10,
+    "none",
+)
+
+
+def test_a_forecasting_run_needs_every_label_and_takes_test_trials_from_their_folder(tmp_path):
+    data = touch(tmp_path / "data", "01.asf", "02.asf", "01_01.amc", "01_02.amc", "02_01.amc")
+    train, test = protocol_trials(MINE, data)
+    assert train.trials == ["01_01", "01_02", "02_01"] and test is None
+    # the test trials lie in the training folder only: never taken from there
+    touch(data, "01_09.amc", "02_09.amc")
+    empty = touch(tmp_path / "empty")
+    names = ("--data", "--test-data")
+    want = f"--test-data {empty}: no mine test trial (expected one of 01_09.amc, 02_09.amc"
+    with pytest.raises(MissingTrialsError, match=re.escape(want)):
+        protocol_trials(MINE, data, empty, names)
+    touch(tmp_path / "test", "02_09.amc")  # its skeleton from the training folder
+    _, test = protocol_trials(MINE, data, tmp_path / "test", names)
+    assert test.trials == ["02_09"] and test.missing_trials == ["01_09"]
+    assert test.describe().startswith(f"test trials from --test-data {tmp_path / 'test'}: ")
+    # a label without a training trial
+    (data / "02_01.amc").unlink()
+    want = "no training trial for subject 02 (expected one of 02_01.amc, 02_02.amc with 02.asf)"
+    with pytest.raises(MissingTrialsError, match=re.escape(want)):
+        protocol_trials(MINE, data)
+    # CV with one trial per label holds nothing out; each fit's baselines need two trials
+    (data / "01_02.amc").unlink()
+    touch(data, "02_01.amc")
+    with pytest.raises(MissingTrialsError, match="needs a subject with two training trials"):
+        protocol_trials(MINE, data)
+    one = Protocol("one", "style", ("a",), (("01_01", "a"), ("01_02", "a")), (), 10, "none")
+    with pytest.raises(MissingTrialsError, match="CV needs at least 3"):
+        protocol_trials(one, touch(data, "01_02.amc"))
+
+
+def test_leave_one_trial_out_folds_spread_over_the_labels():
+    folds, untestable = loto_folds([0, 0, 1, 1, 1, 2])
+    assert untestable == [5]
+
+    class Data:
+        labels = torch.tensor([0, 0, 1, 1, 1, 2])
+
+    assert [held for _, held in spread_folds(folds, Data, 3)] == [[0], [1], [2]]
+    assert spread_folds(folds, Data, None) == folds

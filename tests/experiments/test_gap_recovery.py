@@ -1,4 +1,5 @@
-"""Four Walkers gap recovery: the two baselines against exact answers, and a small real run."""
+"""Four Walkers gap recovery: the two baselines against exact answers, a small real run, and the
+trials the command finds (said before any work; a test folder without test trials stops it)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from hgpdm_torch.experiments.gap_recovery import (
     main,
     template_copy,
 )
+from hgpdm_torch.results import ResultTable
 
 CMU = Path("../shared/data/cmu")
 
@@ -78,3 +80,49 @@ def test_cli_rejects_bad_values(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--fit-steps", "0"])
     assert "positive integer" in capsys.readouterr().err
+
+
+def touch(folder: Path, *names: str) -> Path:
+    """Empty CMU files: the run must say what it found, and stop, before reading any."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (folder / name).write_text("")
+    return folder
+
+
+def test_an_empty_test_folder_stops_the_run_instead_of_using_the_training_folder(tmp_path, capsys):
+    data = touch(tmp_path / "data", "35.asf", "35_02.amc", "35_03.amc")
+    empty = touch(tmp_path / "empty")
+    with pytest.raises(SystemExit):
+        main(["--data", str(data), "--test-data", str(empty)])
+    err = capsys.readouterr().err
+    assert f"--test-data {empty}: no four-walkers test trial (expected one of 35_03.amc, " in err
+    with pytest.raises(FileNotFoundError, match="test_folder .*no four-walkers test trial"):
+        gap_recovery(folder=data, test_folder=empty, fit_steps=1)
+    with pytest.raises(SystemExit):
+        main(["--data", str(empty)])
+    assert f"--data {empty}: no four-walkers training trial (expected" in capsys.readouterr().err
+
+
+def test_the_run_says_where_each_trial_came_from(tmp_path, capsys, monkeypatch):
+    data = touch(tmp_path / "data", "35.asf", "16.asf", "35_02.amc", "35_03.amc")
+    test = touch(tmp_path / "test", "16_21.amc")  # its skeleton from --data
+    said = []
+
+    def run(**kwargs):
+        said.append(capsys.readouterr().err.splitlines())
+        return ResultTable("t", ["trial"], meta={})
+
+    monkeypatch.setattr("hgpdm_torch.experiments.gap_recovery.gap_recovery", run)
+    assert main(["--data", str(data)]) == 0  # the documented default: test trials from --data
+    assert said[0] == [
+        f"hgpdm gap-recovery: training trials from --data {data}: subject 35: 35_02; subject 10: "
+        "none (10_04 missing); subject 12: none (12_01 missing); subject 16: none (16_05 missing)",
+        f"hgpdm gap-recovery: test trials from --data {data} (no --test-data given): subject 35: "
+        "35_03; subject 12: none (12_02, 12_03 missing); subject 16: none (16_21 missing)",
+    ]
+    assert main(["--data", str(data), "--test-data", str(test)]) == 0
+    assert said[1][1] == (
+        f"hgpdm gap-recovery: test trials from --test-data {test}: subject 35: none (35_03 "
+        "missing); subject 12: none (12_02, 12_03 missing); subject 16: 16_21"
+    )

@@ -1,5 +1,6 @@
 """The CMU forecasting experiment (Walkers / Weird Walking): folds, a small real run in both
-evaluations, and the command line."""
+evaluations, and the command line (which says what trials it found, or stops naming the missing
+ones, before any work)."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from hgpdm_torch.experiments.walkers import (
     main,
     walkers,
 )
+from hgpdm_torch.results import ResultTable
 
 #: the experiment at smoke sizes fits its models a few steps on purpose (each FitResult says it
 #: stopped at the step limit): their ConvergenceWarnings are expected here, and only here
@@ -237,3 +239,84 @@ def test_features_are_the_protocols_unless_given():
     for bad in (0, True, None, "speed"):
         with pytest.raises(ValueError, match="features"):
             features("walkers", bad)
+
+
+def touch(folder: Path, *names: str) -> Path:
+    """Empty CMU files: a run must say what it found, and stop, before reading any."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (folder / name).write_text("")
+    return folder
+
+
+def test_cli_stops_before_any_work_naming_the_missing_trials(tmp_path, capsys):
+    empty = touch(tmp_path / "empty")
+    with pytest.raises(SystemExit):
+        main(["--data", str(empty)])
+    err = capsys.readouterr().err
+    assert f"--data {empty}: no walkers training trial (expected one of 07_01.amc" in err
+    one = touch(tmp_path / "one", "35.asf", "35_01.amc", "35_02.amc", "35_03.amc")
+    with pytest.raises(SystemExit):  # one subject only: the others' trials named
+        main(["--data", str(one)])
+    err = capsys.readouterr().err
+    assert (
+        "no training trial for subject 07 (expected one of 07_01.amc, 07_02.amc, 07_03.amc" in err
+    )
+    assert "subject 16 (expected one of 16_15.amc, 16_16.amc with 16.asf)" in err
+    assert "subject 35" not in err
+    singles = touch(tmp_path / "singles", *(f"{s}.asf" for s in ("07", "08", "16", "35")))
+    touch(singles, "07_01.amc", "08_02.amc", "16_15.amc", "35_01.amc")
+    with pytest.raises(SystemExit):  # every subject once: CV holds nothing out
+        main(["--data", str(singles)])
+    assert "CV needs a subject with two training trials" in capsys.readouterr().err
+    # --test-data holding no test trial: never filled from --data, which holds one
+    touch(singles, "35_04.amc")
+    with pytest.raises(SystemExit):
+        main(["--data", str(singles), "--test-data", str(empty)])
+    assert f"--test-data {empty}: no walkers test trial (expected" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="test_folder .*no walkers test trial"):
+        walkers("walkers", folder=singles, test_folder=empty, fit_steps=1)
+    with pytest.raises(FileNotFoundError, match="folder .*no training trial for subject 07"):
+        walkers("walkers", folder=one, fit_steps=1)
+
+
+def test_cli_says_which_trials_it_found_per_label_before_the_run(tmp_path, capsys, monkeypatch):
+    data = touch(tmp_path / "data", "07.asf", "16.asf", "35.asf", "08.asf", "08_02.amc")
+    touch(data, "07_01.amc", "07_02.amc", "16_15.amc", "16_16.amc", "35_01.amc", "35_03.amc")
+    test = touch(tmp_path / "test", "16_22.amc", "35_04.amc")
+    calls = []
+
+    def run(*args, **kwargs):  # the found trials are said before the run starts
+        calls.append((kwargs["folder"], kwargs["test_folder"], capsys.readouterr().err))
+        return ResultTable("t", ["trial"], meta={})
+
+    monkeypatch.setattr("hgpdm_torch.experiments.walkers.walkers", run)
+    assert main(["--data", str(data), "--test-data", str(test)]) == 0
+    (folder, test_folder, err) = calls[0]
+    assert (folder, test_folder) == (data, test)
+    lines = err.splitlines()
+    assert lines[0] == (
+        f"hgpdm walkers: training trials from --data {data}: subject 07: 07_01, 07_02 (07_03 "
+        "missing); subject 08: 08_02 (08_01, 08_03 missing); subject 16: 16_15, 16_16; subject "
+        "35: 35_01, 35_03 (35_02 missing)"
+    )
+    assert lines[1].startswith(f"hgpdm walkers: test trials from --test-data {test}: subject 07: ")
+    assert "subject 16: 16_22; subject 35: 35_04 (35_05, 35_06" in lines[1]
+
+
+def test_compare_names_the_file_that_is_not_a_walkers_table(tmp_path, capsys):
+    good = ResultTable("t", ["a"])
+    good.to_json(tmp_path / "other.json")
+    (tmp_path / "cut.json").write_text('{"title": "walkers", "columns": ["T", "tri')
+    (tmp_path / "plain.json").write_text('{"columns": []}')
+    expect = {
+        "cut.json": "cut.json: not a results table, its JSON is invalid or cut short at line 1",
+        "plain.json": "plain.json: not a results table (no 'title', 'rows')",
+        "other.json": "other.json: not a table of hgpdm walkers (its meta lacks ['protocol'",
+    }
+    for name, want in expect.items():
+        with pytest.raises(SystemExit):
+            main(["--compare", str(tmp_path / name)])
+        assert f"error: --compare: {tmp_path / want}" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"tables\[0\]: not a table of hgpdm walkers"):
+        compare_runs([good])
