@@ -3,8 +3,9 @@
 from .basic_motions import load_basic_motions
 from .cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol, load_trials
 from .kinect_features import PosePCA, kinect_features
-from .mocap import load_mocap, read_amc, read_asf
+from .mocap import MAX_ANGLE_DEGREES, load_mocap, read_amc, read_asf
 from .msrc12 import (
+    MAX_POSITION_M,
     MSRC12,
     MissingTagstreamError,
     MSRC12Recording,
@@ -13,19 +14,33 @@ from .msrc12 import (
     read_msrc12_recording,
 )
 from .synthetic import MovementSet, styled_movements, targeted_movements
-from .walkers import FRAME_FEATURES, Standardizer, frame_features, motion_features
+from .walkers import (
+    FRAME_FEATURES,
+    FoundTrials,
+    MissingTrialsError,
+    Standardizer,
+    find_trials,
+    frame_features,
+    motion_features,
+    protocol_trials,
+)
 
 __all__ = [
     "FRAME_FEATURES",
+    "MAX_ANGLE_DEGREES",
+    "MAX_POSITION_M",
+    "FoundTrials",
     "MSRC12",
     "MSRC12Recording",
     "MotionTrials",
     "MissingTagstreamError",
+    "MissingTrialsError",
     "MovementSet",
     "PROTOCOLS",
     "PosePCA",
     "Protocol",
     "Standardizer",
+    "find_trials",
     "frame_features",
     "kinect_features",
     "load_basic_motions",
@@ -35,6 +50,7 @@ __all__ = [
     "load_protocol",
     "load_trials",
     "motion_features",
+    "protocol_trials",
     "read_amc",
     "read_asf",
     "read_msrc12_recording",

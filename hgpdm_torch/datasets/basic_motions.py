@@ -4,6 +4,8 @@ recordings of 100 frames at 10 Hz, with the data set's own train/test split."""
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 
 __all__ = ["load_basic_motions"]
@@ -13,7 +15,17 @@ def load_basic_motions(
     subsample: int = 3,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, list[str]]:
     """BasicMotions from ``aeon`` (offline): ``(z_train [J, T, 6], y_train [J], z_test, y_test,
-    class names)``, every ``subsample``-th frame."""
+    class names)``, every ``subsample``-th frame.
+
+    Raises:
+        ValueError: ``subsample`` not an int >= 1.
+        ImportError: ``aeon`` is not installed.
+    """
+    if isinstance(subsample, bool) or not isinstance(subsample, numbers.Integral) or subsample < 1:
+        raise ValueError(
+            f"subsample must be an int >= 1 (keep every n-th frame), got {subsample!r}"
+        )
+    subsample = int(subsample)
     try:
         from aeon.datasets import load_basic_motions as aeon_basic_motions
     except ImportError as err:  # optional extra

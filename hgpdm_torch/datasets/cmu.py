@@ -18,9 +18,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from .mocap import Skeleton, read_amc, read_asf
+from ..validation import check_choice
+from .mocap import MocapTrial, Skeleton, read_amc, read_asf
 from .walkers import motion_features
 
 __all__ = ["PROTOCOLS", "MotionTrials", "Protocol", "load_protocol", "load_trials"]
@@ -34,7 +36,8 @@ class MotionTrials:
     """Feature sequences of labelled CMU trials.
 
     Attributes:
-        sequences: J trials ``[T_j, F]`` (float64) of :func:`motion_features`.
+        sequences: J trials ``[T_j, F]`` (float64) of :func:`motion_features` (with rows of NaN
+            where frames are missing, only if read with ``gaps="missing"``).
         labels: ``[J]`` (long) index of each trial's label in ``label_names``.
         label_names: the labels (subjects ``"07"``, or style names), in code order.
         trials: CMU trial names, e.g. ``"07_01"``.
@@ -134,6 +137,29 @@ PROTOCOLS: dict[str, Protocol] = {
 }
 
 
+def _features(
+    motion: MocapTrial, skeleton: Skeleton, downsample: int
+) -> tuple[np.ndarray, list[str]]:
+    """:func:`motion_features` of a trial whose missing frames (NaN rows) become NaN rows.
+
+    A feature row describes a resampled frame from it and the one before, so it is missing when
+    either of the two is.
+    """
+    values = motion.values
+    missing = np.isnan(values).all(1)
+    if not missing.any():
+        return motion_features(values, motion.channels, skeleton, CMU_FPS, CMU_FPS / downsample)
+    # motion_features takes finite values: hold the last frame read through a gap (the first
+    # frame is always read), then blank every row that a missing frame enters
+    last = np.maximum.accumulate(np.where(missing, 0, np.arange(len(values))))
+    features, names = motion_features(
+        values[last], motion.channels, skeleton, CMU_FPS, CMU_FPS / downsample
+    )
+    gone = missing[::downsample]
+    features[gone[1:] | gone[:-1]] = np.nan
+    return features, names
+
+
 def _find(name: str, folders: Sequence[Path]) -> Path | None:
     for folder in folders:
         if (folder / name).is_file():
@@ -148,6 +174,7 @@ def load_trials(
     downsample: int,
     label_names: Sequence[str] | None = None,
     require_all: bool = False,
+    gaps: str = "error",
 ) -> MotionTrials:
     """Read labelled CMU trials from ASF/AMC files.
 
@@ -162,13 +189,20 @@ def load_trials(
         label_names: the labels in code order (default: the labels of ``trials`` in order of
             first appearance); every label must be among them.
         require_all: raise if a trial's files are absent instead of listing it in ``missing``.
+        gaps: frames missing from an AMC file (frame numbers that skip): ``"error"`` (default)
+            or ``"missing"``: the feature rows that a missing frame enters (its own and the
+            next one's, as features difference consecutive frames) are rows of NaN, missing
+            observations to the toolkit's inference (see :func:`~.mocap.read_amc`).
 
     Returns:
         :class:`MotionTrials` of the trials found, in the order given.
 
     Raises:
         FileNotFoundError: a folder does not exist, or (``require_all``) a trial is missing.
-        ValueError: a bad trial name, label, ``downsample``, or trials with different channels.
+        ValueError: a bad trial name, label, ``downsample`` or ``gaps``, trials with different
+            channels, or a malformed file (:func:`~.mocap.read_asf`, :func:`~.mocap.read_amc`:
+            a bone missing from a frame, an angle beyond the physical range, frame numbers that
+            do not count up by one, ...), naming the file.
     """
     if isinstance(folders, str | Path):
         folders = [folders]
@@ -178,6 +212,7 @@ def load_trials(
             raise FileNotFoundError(f"CMU data folder not found: {folder}")
     if isinstance(downsample, bool) or not isinstance(downsample, int) or downsample < 1:
         raise ValueError(f"downsample must be a positive int, got {downsample!r}")
+    check_choice(gaps, "gaps", ("error", "missing"))
     pairs = [(str(t), str(lab)) for t, lab in trials]
     names = (
         tuple(label_names) if label_names is not None else tuple(dict.fromkeys(l for _, l in pairs))
@@ -201,10 +236,8 @@ def load_trials(
             continue
         if subject not in skeletons:
             skeletons[subject] = read_asf(asf)
-        motion = read_amc(amc, skeletons[subject])
-        values, names_f = motion_features(
-            motion.values, motion.channels, skeletons[subject], CMU_FPS, CMU_FPS / downsample
-        )
+        motion = read_amc(amc, skeletons[subject], gaps=gaps)
+        values, names_f = _features(motion, skeletons[subject], downsample)
         if features is not None and names_f != features:
             raise ValueError(
                 f"{trial}: its skeleton gives other channels than the trials before it: "
@@ -231,12 +264,14 @@ def load_protocol(
     folder: str | Path | Sequence[str | Path] = "../shared/data/cmu",
     *,
     require_all: bool = False,
+    gaps: str = "error",
 ) -> MotionTrials:
     """The ``split`` trials of a protocol (:data:`PROTOCOLS` name or a :class:`Protocol`), at
     its frame rate, labelled with its ``label_names``; absent trials listed in ``missing``.
 
     ``folder`` may list several folders (e.g. a test folder, then the training folder for the
-    skeletons).
+    skeletons). ``require_all`` and ``gaps`` are those of :func:`load_trials`, which also says
+    what is refused.
     """
     if isinstance(protocol, str):
         if protocol not in PROTOCOLS:
@@ -248,4 +283,5 @@ def load_protocol(
         downsample=protocol.downsample,
         label_names=protocol.label_names,
         require_all=require_all,
+        gaps=gaps,
     )

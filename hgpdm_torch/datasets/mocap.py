@@ -10,6 +10,12 @@ skeleton in an ``.asf`` file and each trial's joint angles in an ``.amc`` file:
   its number on a line of its own followed by one ``bone v1 v2 ...`` line per moving bone, with
   as many values as the bone has degrees of freedom (the root: its ``order``).
 
+:func:`read_amc` refuses what it cannot represent rather than guess: a frame (or a whole file)
+without the line of a bone that moves in the skeleton is an error, never a zero angle or a value
+carried over from another frame; so are joint angles beyond +-:data:`MAX_ANGLE_DEGREES` and frame
+numbers that repeat, decrease or skip (skipped frames may instead be read as missing rows of NaN
+with ``gaps="missing"``).
+
 :func:`load_mocap` turns a trial into the ``[T, Dz]`` observation matrix the models take:
 channel selection, down-sampling (the thesis used factors 4 and 10) and per-channel
 normalisation. Channels are named ``"bone.dof"`` (e.g. ``"lfemur.rx"``, ``"root.tx"``).
@@ -23,7 +29,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["Bone", "MocapTrial", "Skeleton", "load_mocap", "read_amc", "read_asf"]
+from ..validation import check_choice
+
+__all__ = [
+    "MAX_ANGLE_DEGREES",
+    "MAX_LENGTH",
+    "Bone",
+    "MocapTrial",
+    "Skeleton",
+    "load_mocap",
+    "read_amc",
+    "read_asf",
+]
 
 
 @dataclass
@@ -125,6 +142,20 @@ def _value(tokens: list[str], what: str, where: str) -> str:
 
 
 _ROOT_CHANNELS = {"tx", "ty", "tz", "rx", "ry", "rz"}
+_ROTATIONS = ("rx", "ry", "rz")
+
+#: Largest joint angle :func:`read_amc` accepts, in degrees (ten full turns). Real angles stay
+#: well within it (the CMU walks reach about 440 degrees, in the root's heading), while a
+#: corrupted value (``1e6``, ``1e300``) would otherwise wrap to an arbitrary angle.
+MAX_ANGLE_DEGREES = 3600.0
+_MAX_ANGLE_RAD = MAX_ANGLE_DEGREES * np.pi / 180.0
+
+#: Largest translation or bone length (``tx ty tz l`` dofs) :func:`read_amc` accepts, in the
+#: skeleton's length units (a CMU unit is 1/0.45 inch, so about 56 km): a sanity bound that
+#: only corrupted values exceed.
+MAX_LENGTH = 1e6
+
+_MAX_SKIPPED = 432_000  # an hour at 120 frames/s: a longer jump is a corrupted frame number
 
 
 def read_asf(path: str | Path) -> Skeleton:
@@ -252,41 +283,98 @@ def _parse_asf(lines: list[str]) -> Skeleton:
     return Skeleton(name, units, root_order, bones, parent, root_axis, root_orientation)
 
 
-def read_amc(path: str | Path, skeleton: Skeleton) -> MocapTrial:
+def _check_range(
+    path: str | Path,
+    lines: list[str],
+    trial: MocapTrial,
+    starts: list[int],
+    skeleton: Skeleton,
+) -> None:
+    """Refuse angles beyond :data:`MAX_ANGLE_DEGREES` and lengths beyond :data:`MAX_LENGTH`,
+    naming the first such value's line (``starts``: the line index of each frame's number;
+    checked on the whole array at once, as a value at a time would slow the reader down)."""
+    degrees = skeleton.units.get("angle", "deg").lower().startswith("deg")
+    max_angle, unit = (MAX_ANGLE_DEGREES, "degrees") if degrees else (_MAX_ANGLE_RAD, "radians")
+    rotation = np.array([c.split(".")[1] in _ROTATIONS for c in trial.channels])
+    bound = np.where(rotation, max_angle, MAX_LENGTH)
+    with np.errstate(invalid="ignore"):  # NaN: missing frames, checked elsewhere
+        beyond = np.abs(trial.values) > bound
+    if not beyond.any():
+        return
+    row, col = np.argwhere(beyond)[0]
+    bone, dof = trial.channels[col].split(".")
+    # the frame's bone lines follow the line of its number
+    at = next(i for i in range(starts[row] + 1, len(lines)) if lines[i].split()[:1] == [bone])
+    where = f"AMC file {path}: line {at + 1} (frame {trial.frame_numbers[row]})"
+    value = trial.values[row, col]
+    if rotation[col]:
+        raise ValueError(
+            f"{where}: bone {bone!r} {dof} is {value:g} {unit}; a joint angle beyond "
+            f"+-{max_angle:g} {unit} (ten turns) is not a physical value"
+        )
+    raise ValueError(
+        f"{where}: bone {bone!r} {dof} is {value:g} length units; a translation or length "
+        f"beyond +-{MAX_LENGTH:g} is not a physical value"
+    )
+
+
+def read_amc(path: str | Path, skeleton: Skeleton, *, gaps: str = "error") -> MocapTrial:
     """Parse an AMC motion file against its skeleton.
 
-    Bones missing from a frame keep the value of the previous frame (0 in the first), unless the
-    file says ``:FULLY-SPECIFIED``: then every frame must list the bones of the first.
+    Every frame must give one line for the root and for every bone with degrees of freedom in
+    the skeleton (bones without any have no line); nothing is carried over from another frame
+    or read as zero. Frame numbers must count up by one.
+
+    Args:
+        path: the AMC file.
+        skeleton: its subject's skeleton (:func:`read_asf`).
+        gaps: ``"error"`` (default): frame numbers that skip (``1`` then ``7``) are an error;
+            ``"missing"``: the skipped frames become rows of NaN (missing observations, as the
+            toolkit's inference takes them), with their numbers in ``frame_numbers``. Repeated or
+            decreasing frame numbers are an error either way.
 
     Raises:
         FileNotFoundError: no such file.
         ValueError: naming the file and line (and frame): an empty or binary file, a bone
-            unknown to the skeleton, a wrong number of values, a non-number or non-finite value
-            (``nan``, ``inf``), data before the first frame number, no frames, or a frame that
-            lacks bones of a fully specified file (truncated).
+            unknown to the skeleton or given twice in a frame, a wrong number of values, a
+            non-number or non-finite value (``nan``, ``inf``), a joint angle beyond
+            +-:data:`MAX_ANGLE_DEGREES` or a translation beyond +-:data:`MAX_LENGTH`, data
+            before the first frame number, no frames, frame numbers that repeat, decrease or
+            (``gaps="error"``) skip, and a frame (or the whole file) without the line of a bone
+            that has degrees of freedom in the skeleton (a truncated file, or the wrong
+            skeleton); a bad ``gaps``.
     """
+    check_choice(gaps, "gaps", ("error", "missing"))
     lines = _open(path, "AMC")
     channels = skeleton.channels()
     index = {c: i for i, c in enumerate(channels)}
     dofs = {"root": skeleton.root_order} | {b.name: b.dof for b in skeleton.bones.values()}
     frames: list[np.ndarray] = []
     numbers: list[int] = []
-    listed: list[set[str]] = []  # bones given in each frame
-    fully_specified = False
+    starts: list[int] = []  # line index of each frame's number (of the next for skipped ones)
+    listed: list[set[str] | None] = []  # bones given in each frame (None: a skipped frame)
     current: np.ndarray | None = None
+    given: set[str] = set()  # bones given in the current frame
     for lineno, raw in enumerate(lines, 1):
         line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        if line.startswith(":"):
-            fully_specified |= line.split()[0].upper() == ":FULLY-SPECIFIED"
+        if not line or line.startswith("#") or line.startswith(":"):
             continue
         tokens = line.split()
         if len(tokens) == 1 and tokens[0].isdigit():
-            current = frames[-1].copy() if frames else np.zeros(len(channels))
+            number = int(tokens[0])
+            if numbers and number != numbers[-1] + 1:
+                _frame_gap(path, lineno, numbers[-1], number, gaps)
+                for skipped in range(numbers[-1] + 1, number):  # gaps="missing"
+                    frames.append(np.full(len(channels), np.nan))
+                    numbers.append(skipped)
+                    listed.append(None)
+                    starts.append(lineno - 1)
+            # NaN until the frame's lines fill it: a bone left out can never pass as zero
+            current, given = np.full(len(channels), np.nan), set()
             frames.append(current)
-            numbers.append(int(tokens[0]))
-            listed.append(set())
+            numbers.append(number)
+            listed.append(given)
+            starts.append(lineno - 1)
             continue
         where = f"AMC file {path}: line {lineno}"
         if current is None:
@@ -295,21 +383,68 @@ def read_amc(path: str | Path, skeleton: Skeleton) -> MocapTrial:
         bone = tokens[0]
         if bone not in dofs:
             raise ValueError(f"{where}: bone {bone!r} is not in the skeleton")
+        if bone in given:
+            raise ValueError(f"{where}: bone {bone!r} is given twice in this frame")
         values = _floats(tokens[1:], len(dofs[bone]), f"bone {bone!r}", where)
         for d, v in zip(dofs[bone], values, strict=True):
             current[index[f"{bone}.{d}"]] = v
-        listed[-1].add(bone)
+        given.add(bone)
     if not frames:
         raise ValueError(f"AMC file {path} contains no frames")
-    if fully_specified:
-        for number, bones in zip(numbers, listed, strict=True):
-            missing = listed[0] - bones
-            if missing:
-                raise ValueError(
-                    f"AMC file {path}: frame {number} lacks bones {sorted(missing)} of a fully "
-                    "specified file (truncated?)"
-                )
-    return MocapTrial(np.stack(frames), channels, np.array(numbers))
+    trial = MocapTrial(np.stack(frames), channels, np.array(numbers))
+    _check_range(path, lines, trial, starts, skeleton)
+    _check_complete(path, dofs, numbers, listed)
+    return trial
+
+
+def _frame_gap(path: str | Path, lineno: int, previous: int, number: int, gaps: str) -> None:
+    """Refuse frame ``number`` after ``previous`` unless it skips frames and gaps are allowed."""
+    where = f"AMC file {path}: line {lineno}"
+    if number <= previous:
+        what = "repeated" if number == previous else "decreasing"
+        raise ValueError(
+            f"{where}: frame number {number} follows frame {previous} (a {what} frame number); "
+            "frame numbers must count up by one"
+        )
+    if number - previous - 1 > _MAX_SKIPPED:  # not a gap but a corrupted number
+        raise ValueError(
+            f"{where}: frame {number} follows frame {previous}: a jump of more than "
+            f"{_MAX_SKIPPED} frames is not a gap in one recording"
+        )
+    if gaps == "error":
+        skipped = (
+            f"frame {previous + 1} is"
+            if number == previous + 2
+            else f"frames {previous + 1}-{number - 1} are"
+        )
+        raise ValueError(
+            f"{where}: frame {number} follows frame {previous}, so {skipped} missing; pass "
+            "gaps='missing' to read them as missing (NaN) frames"
+        )
+
+
+def _check_complete(
+    path: str | Path,
+    dofs: dict[str, tuple[str, ...]],
+    numbers: list[int],
+    listed: list[set[str] | None],
+) -> None:
+    """Every frame read (not a skipped one) must give every bone with degrees of freedom."""
+    needed = {bone for bone, d in dofs.items() if d}
+    never = needed - set().union(*(b for b in listed if b is not None))
+    if never:
+        raise ValueError(
+            f"AMC file {path}: bones {sorted(never)} of the skeleton have no line in any frame "
+            f"(frames {numbers[0]}-{numbers[-1]}); every frame must give every bone with "
+            "degrees of freedom (is this the subject's skeleton?)"
+        )
+    for number, bones in zip(numbers, listed, strict=True):
+        missing = set() if bones is None else needed - bones
+        if missing:
+            raise ValueError(
+                f"AMC file {path}: frame {number} lacks bones {sorted(missing)} of the skeleton; "
+                "every frame must give every bone with degrees of freedom (truncated file?)"
+            )
 
 
 def load_mocap(
@@ -320,6 +455,7 @@ def load_mocap(
     downsample: int = 1,
     normalize: bool | tuple[np.ndarray, np.ndarray] = True,
     dtype: torch.dtype = torch.float64,
+    gaps: str = "error",
 ) -> tuple[torch.Tensor, list[str], tuple[np.ndarray, np.ndarray]]:
     """Load a CMU trial as an observation matrix ``[T, Dz]``.
 
@@ -332,16 +468,24 @@ def load_mocap(
             of this trial; a ``(mean, std)`` pair: use those (e.g. of the training trials);
             ``False``: raw values.
         dtype: tensor dtype.
+        gaps: frames missing from the AMC file (frame numbers that skip): ``"error"`` or
+            ``"missing"`` (rows of NaN, left out of the statistics), as in :func:`read_amc`.
 
     Returns:
         ``z [T, Dz]``, the channel names, and the ``(mean, std)`` used (zeros/ones if none).
+
+    Raises:
+        FileNotFoundError, ValueError: unreadable files (see :func:`read_asf`, :func:`read_amc`),
+            an unknown channel, no channel that moves, a bad ``downsample``, or ``normalize``
+            statistics of the wrong shape, not finite, or with ``std <= 0``.
     """
-    if not isinstance(downsample, int) or downsample < 1:
+    if isinstance(downsample, bool) or not isinstance(downsample, int) or downsample < 1:
         raise ValueError(f"downsample must be an int >= 1, got {downsample!r}")
-    trial = read_amc(amc, read_asf(asf))
+    trial = read_amc(amc, read_asf(asf), gaps=gaps)
     values = trial.values[::downsample]
     if channels is None:
-        keep = [i for i in range(values.shape[1]) if np.ptp(trial.values[:, i]) > 0]
+        moves = np.nanmax(trial.values, 0) - np.nanmin(trial.values, 0) > 0  # NaN: missing rows
+        keep = np.flatnonzero(moves).tolist()
     else:
         keep = []
         for c in channels:
@@ -354,12 +498,18 @@ def load_mocap(
     values = values[:, keep]
     names = [trial.channels[i] for i in keep]
     if normalize is True:
-        mean, std = values.mean(0), values.std(0)
+        # NaN-aware only where frames are missing, so that complete files load as before
+        if np.isnan(values).any():
+            mean, std = np.nanmean(values, 0), np.nanstd(values, 0)
+        else:
+            mean, std = values.mean(0), values.std(0)
         std = np.where(std > 0, std, 1.0)
     elif normalize is False:
         mean, std = np.zeros(len(keep)), np.ones(len(keep))
     else:
         mean, std = (np.asarray(a, dtype=float) for a in normalize)
-        if mean.shape != (len(keep),) or std.shape != (len(keep),) or np.any(std <= 0):
+        if mean.shape != (len(keep),) or std.shape != (len(keep),) or not np.all(std > 0):
             raise ValueError(f"normalize must be (mean, std) of shape [{len(keep)}] with std > 0")
+        if not (np.isfinite(mean).all() and np.isfinite(std).all()):
+            raise ValueError("normalize must be finite (mean, std) statistics")
     return torch.as_tensor((values - mean) / std, dtype=dtype), names, (mean, std)

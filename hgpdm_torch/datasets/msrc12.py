@@ -16,7 +16,10 @@ The original release format, as this reader assumes it:
   :data:`JOINTS`, Kinect SDK v1) ``x y z w``, positions in metres and ``w`` the tracking value,
   kept as :attr:`MSRC12Recording.state` and otherwise unused. Frames whose 20 positions are all
   zero carry no skeleton (the Kinect had not yet found the person, as at the start of some
-  recordings) and are dropped.
+  recordings) and are dropped. A joint at ``(0, 0, 0)`` in a frame whose other joints are
+  tracked is a joint the Kinect lost: an error (or, with ``partial_frames="drop"``, the frame is
+  dropped too), never a position. Coordinates beyond +-:data:`MAX_POSITION_M` metres, non-finite
+  values and timestamps that do not increase are errors naming the file, line, frame and joint.
 - ``<name>.tagstream``: a header line (``XQPCTick;Tag``) and one line ``<tick>;<tag>`` per action
   point, the tag being the gesture id (``7``, or with a prefix such as ``G7``). Ticks count at
   :data:`TICKS_PER_SECOND` = 49875 Hz on the clock of the csv timestamps:
@@ -41,7 +44,7 @@ from __future__ import annotations
 import math
 import numbers
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,6 +58,7 @@ from ..validation import as_tensor, check_choice
 __all__ = [
     "GESTURES",
     "JOINTS",
+    "MAX_POSITION_M",
     "MSRC12",
     "MSRC12Recording",
     "MissingTagstreamError",
@@ -91,6 +95,10 @@ GESTURES: dict[int, str] = {
 
 TICKS_PER_SECOND = 49875
 """Rate of the tagstream's ``XQPCTick`` clock (see the module docstring)."""
+
+MAX_POSITION_M = 100.0
+"""Largest joint coordinate accepted, in metres. The Kinect sees a person up to a few metres
+away (the development archive stays within 4.1 m), so a larger value is a corrupted one."""
 
 _VALUES_PER_FRAME = 1 + 4 * len(JOINTS)
 _NAME = re.compile(r"^(P\d+_\d+)_(\d+)([A-Za-z]*)_(p\d+)$")
@@ -200,7 +208,9 @@ def load_msrc12_npz(
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        ValueError: a missing key, wrong shapes, non-finite positions, unknown gesture ids.
+        ValueError: a missing key, wrong shapes, unknown gesture ids, or positions that are not
+            finite, beyond +-:data:`MAX_POSITION_M` metres, or a joint at ``(0, 0, 0)`` (the
+            Kinect's mark of a joint it did not track), naming the instance, frame and joint.
     """
     path = Path(path)
     if not path.is_file():
@@ -220,6 +230,7 @@ def load_msrc12_npz(
     if not 0 <= action_frame < positions.shape[1]:
         raise ValueError(f"action_frame must index the {positions.shape[1]} frames")
     x = as_tensor(positions, f"{path}[positions]", dtype=torch.float64)
+    _check_positions(positions, str(path), lambda i: f"instance {i[0]}, frame {i[1]}")
     labels, ids = _code_gestures(gesture.astype(int), str(path))
     return MSRC12(
         positions=x,
@@ -253,7 +264,9 @@ class MSRC12Recording:
         gesture: gesture id from the file name (or ``None``).
         variant: letter after the gesture id in the file name (``""`` if none, or ``None``).
         person: person id from the file name, e.g. ``"p21"`` (or ``None``).
-        untracked: frames dropped because all their positions were zero.
+        untracked: frames dropped because all their positions were zero, or (with
+            ``partial_frames="drop"``) some joint was.
+        partial: of these, the frames dropped because some but not all joints were at zero.
     """
 
     name: str
@@ -267,6 +280,7 @@ class MSRC12Recording:
     variant: str | None
     person: str | None
     untracked: int = 0
+    partial: int = 0
 
 
 def _nonblank(path: Path) -> list[tuple[int, str]]:
@@ -278,46 +292,88 @@ def _nonblank(path: Path) -> list[tuple[int, str]]:
     return [(i, s) for i, line in enumerate(text.splitlines(), 1) if (s := line.strip())]
 
 
-def _read_csv(path: Path) -> np.ndarray:
-    """The ``[F, 81]`` numbers of a skeleton csv, every line checked."""
+def _column(col: int) -> str:
+    """The quantity in column ``col`` of a skeleton csv line, in words."""
+    if col == 0:
+        return "the timestamp"
+    joint, axis = divmod(col - 1, 4)
+    return f"joint {JOINTS[joint]!r} {'xyzw'[axis]}"
+
+
+def _check_positions(
+    positions: np.ndarray,
+    source: str,
+    where: Callable[[tuple[int, ...]], str],
+    *,
+    lost: bool = True,
+) -> None:
+    """Refuse joint coordinates beyond :data:`MAX_POSITION_M` and (``lost``) joints at
+    ``(0, 0, 0)``.
+
+    ``positions`` is ``[..., 20, 3]`` and finite; ``where(index)`` names the frame of the
+    leading ``index``. The Kinect puts a joint it did not track at the sensor's origin, where
+    no body part can be: such a joint is a missing one, never a position.
+    """
+    far = np.abs(positions) > MAX_POSITION_M
+    if far.any():
+        *at, joint, axis = np.argwhere(far)[0]
+        raise ValueError(
+            f"{source}, {where(tuple(at))}: joint {JOINTS[joint]!r} {'xyz'[axis]} is "
+            f"{positions[(*at, joint, axis)]:g} m; coordinates beyond +-{MAX_POSITION_M:g} m "
+            f"are not a person in front of a Kinect"
+        )
+    at_origin = (positions == 0).all(-1)
+    if lost and at_origin.any():
+        *at, joint = np.argwhere(at_origin)[0]
+        raise ValueError(
+            f"{source}, {where(tuple(at))}: joint {JOINTS[joint]!r} is at (0, 0, 0), the "
+            f"Kinect's mark of a joint it did not track; a missing joint is never read as a "
+            f"position"
+        )
+
+
+def _read_csv(path: Path) -> tuple[np.ndarray, list[int]]:
+    """The ``[F, 81]`` numbers of a skeleton csv and the line number of each frame, every line
+    checked."""
     lines = _nonblank(path)
     if not lines:
         raise ValueError(f"{path} is empty; expected one frame of {_VALUES_PER_FRAME} numbers "
                          f"per line")  # fmt: skip
     rows = [_SPLIT.split(text) for _, text in lines]
-    for (number, _), row in zip(lines, rows, strict=True):
+    for frame, ((number, _), row) in enumerate(zip(lines, rows, strict=True), 1):
         if len(row) != _VALUES_PER_FRAME:
             raise ValueError(
-                f"{path}, line {number}: expected {_VALUES_PER_FRAME} numbers (a timestamp and "
-                f"x y z w of 20 joints), got {len(row)}"
+                f"{path}, line {number} (frame {frame}): expected {_VALUES_PER_FRAME} numbers "
+                f"(a timestamp and x y z w of each of the 20 joints), got {len(row)}"
             )
     try:
         values = np.array(rows, dtype=np.float64)
     except ValueError:  # find the offending line
-        for (number, _), row in zip(lines, rows, strict=True):
+        for frame, ((number, _), row) in enumerate(zip(lines, rows, strict=True), 1):
             for col, item in enumerate(row):
                 try:
                     float(item)
                 except ValueError:
                     raise ValueError(
-                        f"{path}, line {number}: value {col + 1} ({item!r}) is not a number"
+                        f"{path}, line {number} (frame {frame}): value {col + 1} "
+                        f"({_column(col)}) is {item!r}, not a number"
                     ) from None
         raise
     bad = ~np.isfinite(values)
     if bad.any():
         row, col = np.argwhere(bad)[0]
         raise ValueError(
-            f"{path}, line {lines[row][0]}: value {col + 1} is {values[row, col]}; expected "
-            f"finite numbers"
+            f"{path}, line {lines[row][0]} (frame {row + 1}): value {col + 1} ({_column(col)}) "
+            f"is {values[row, col]}; expected finite numbers"
         )
     step = np.diff(values[:, 0])
     if (step <= 0).any():
         row = int(np.argmax(step <= 0)) + 1
         raise ValueError(
-            f"{path}, line {lines[row][0]}: timestamp {values[row, 0]:g} ms does not increase "
-            f"(previous {values[row - 1, 0]:g} ms)"
+            f"{path}, line {lines[row][0]} (frame {row + 1}): timestamp {values[row, 0]:g} ms "
+            f"does not increase (previous {values[row - 1, 0]:g} ms)"
         )
-    return values
+    return values, [number for number, _ in lines]
 
 
 def _read_tagstream(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -350,13 +406,20 @@ def _read_tagstream(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_msrc12_recording(
-    csv_path: str | Path, tagstream_path: str | Path | None = None
+    csv_path: str | Path,
+    tagstream_path: str | Path | None = None,
+    *,
+    partial_frames: str = "error",
 ) -> MSRC12Recording:
     """Read one recording of the original MSRC-12 release (format in the module docstring).
 
     Args:
         csv_path: the skeleton ``.csv`` file.
         tagstream_path: its action points (default: ``<csv stem>.tagstream`` beside it).
+        partial_frames: a frame in which some joints are tracked and another is at
+            ``(0, 0, 0)`` (the Kinect's mark of a joint it lost): ``"error"`` (default), or
+            ``"drop"``: drop the frame as an untracked one (counted in
+            :attr:`MSRC12Recording.partial`).
 
     Returns:
         :class:`MSRC12Recording` with the tracked frames and the action points in ms.
@@ -364,11 +427,14 @@ def read_msrc12_recording(
     Raises:
         FileNotFoundError: no csv file.
         MissingTagstreamError: no tagstream file.
-        ValueError: naming the file and line: a line without 81 numbers, a non-numeric or
-            non-finite value, timestamps that do not increase, a malformed tagstream line or
-            an unknown gesture id; an empty file (no frames, no action points, or no tracked
-            frame).
+        ValueError: naming the file, line and frame (and the joint or timestamp): a line
+            without 81 numbers, a non-numeric or non-finite value, a coordinate beyond
+            +-:data:`MAX_POSITION_M` metres, a lost joint in a tracked frame (with
+            ``partial_frames="error"``), timestamps that do not increase; a malformed tagstream
+            line or an unknown gesture id; an empty file (no frames, no action points, or no
+            tracked frame); a bad ``partial_frames``.
     """
+    check_choice(partial_frames, "partial_frames", ("error", "drop"))
     csv_path = Path(csv_path)
     if not csv_path.is_file():
         raise FileNotFoundError(f"MSRC-12 recording not found: {csv_path}")
@@ -377,11 +443,23 @@ def read_msrc12_recording(
         raise MissingTagstreamError(
             f"{csv_path} has no tagstream file {tag_path} (the action points are needed)"
         )
-    values = _read_csv(csv_path)
+    values, line_of = _read_csv(csv_path)
     joints = values[:, 1:].reshape(-1, len(JOINTS), 4)
     tracked = (joints[..., :3] != 0).any(axis=(1, 2))
+    partial = tracked & (joints[..., :3] == 0).all(-1).any(-1)
+    if partial_frames == "drop":
+        tracked &= ~partial
     if not tracked.any():
-        raise ValueError(f"{csv_path} has no tracked frame (all positions are zero)")
+        why = "all positions are zero" + (", or some joint's" if partial.any() else "")
+        raise ValueError(f"{csv_path} has no tracked frame ({why})")
+
+    def where(at: tuple[int, ...]) -> str:
+        return f"line {line_of[at[0]]} (frame {at[0] + 1})"
+
+    _check_positions(joints[..., :3], str(csv_path), where, lost=False)  # every frame
+    # lost joints only in the frames kept: untracked ones (all zero) and dropped ones aside
+    rows = np.flatnonzero(tracked)
+    _check_positions(joints[rows, :, :3], str(csv_path), lambda at: where((rows[at[0]],)))
     tag_ms, tag_gesture = _read_tagstream(tag_path)
     match = _NAME.match(csv_path.stem)
     instruction, gesture, variant, person = (
@@ -401,6 +479,7 @@ def read_msrc12_recording(
         variant=variant,
         person=person,
         untracked=int((~tracked).sum()),
+        partial=int(partial.sum()),  # 0 unless dropped: with "error" they were refused
     )
 
 
@@ -437,6 +516,7 @@ def load_msrc12_folder(
     method: str = "linear",
     max_gap: float = 0.2,
     progress: bool = False,
+    partial_frames: str = "error",
 ) -> MSRC12:
     """Cut windows around every action point of a folder of original MSRC-12 recordings.
 
@@ -461,6 +541,9 @@ def load_msrc12_folder(
         method: ``"linear"`` or ``"nearest"``.
         max_gap: longest gap (s) between tracked frames a window may span.
         progress: tqdm bar over the recordings.
+        partial_frames: frames with a lost joint (at ``(0, 0, 0)``): ``"error"`` or ``"drop"``
+            (then a window across them is interpolated, or dropped across a gap over
+            ``max_gap``), as in :func:`read_msrc12_recording`.
 
     Returns:
         :class:`MSRC12`, labels coded in increasing order of the gesture ids kept, instances in
@@ -482,6 +565,7 @@ def load_msrc12_folder(
     if not (isinstance(max_gap, numbers.Real) and 0 < max_gap <= math.inf):
         raise ValueError(f"max_gap must be a positive number of seconds, got {max_gap!r}")
     check_choice(method, "method", ("linear", "nearest"))
+    check_choice(partial_frames, "partial_frames", ("error", "drop"))
     n_before, n_after = _frames(before, fps, "before"), _frames(after, fps, "after")
     keep = None if gestures is None else {int(g) for g in gestures}
     files = sorted(folder.glob("*.csv"))
@@ -490,7 +574,7 @@ def load_msrc12_folder(
     offsets_ms = (np.arange(n_before + n_after + 1) - n_before) * 1000.0 / fps
     windows, gesture, person, sequence, dropped = [], [], [], [], []
     for path in tqdm(files, disable=not progress, desc="MSRC-12 recordings"):
-        rec = read_msrc12_recording(path)
+        rec = read_msrc12_recording(path, partial_frames=partial_frames)
         if rec.person is None:
             raise ValueError(
                 f"{path}: cannot read the person from the file name; expected "

@@ -44,20 +44,39 @@ class MovementSet:
         return len(self.sequences)
 
     def split(self, test_fraction: float = 0.25, seed: int = 0) -> tuple[MovementSet, MovementSet]:
-        """Random train/test split (stratified by style for discrete labels)."""
+        """Random train/test split (stratified by style for discrete labels).
+
+        Every style (or, for continuous labels, the whole set) puts ``round(test_fraction * n)``
+        of its ``n`` sequences into the test part, but at least one and at most ``n - 1``: both
+        parts hold every style.
+
+        Raises:
+            ValueError: ``test_fraction`` not in ``(0, 1)``, a bad ``seed``, or a style (or, for
+                continuous labels, the set) with fewer than 2 sequences, which cannot be in
+                both parts.
+        """
         if not 0 < _number("test_fraction", test_fraction) < 1:
             raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction}")
         seed = _check("seed", seed, 0, _MAX_SEED)
         gen = torch.Generator().manual_seed(seed)
         test: list[int] = []
-        groups = (
-            [torch.nonzero(self.labels == k).flatten() for k in self.labels.unique()]
-            if self.kind == "discrete"
-            else [torch.arange(len(self))]
-        )
+        if self.kind == "discrete":
+            styles = self.labels.unique().tolist()
+            groups = [torch.nonzero(self.labels == k).flatten() for k in styles]
+            for k, idx in zip(styles, groups, strict=True):
+                if len(idx) < 2:
+                    raise ValueError(
+                        f"split needs at least 2 sequences of every style (one to train on, one "
+                        f"to test), but style {k} has {len(idx)}"
+                    )
+        else:
+            groups = [torch.arange(len(self))]
+            if len(self) < 2:
+                raise ValueError(f"split needs at least 2 sequences, got {len(self)}")
         for idx in groups:
             perm = idx[torch.randperm(len(idx), generator=gen)]
-            test += perm[: max(1, round(test_fraction * len(idx)))].tolist()
+            take = min(max(1, round(test_fraction * len(idx))), len(idx) - 1)
+            test += perm[:take].tolist()
         train = [i for i in range(len(self)) if i not in set(test)]
 
         def take(ids: list[int]) -> MovementSet:

@@ -155,3 +155,52 @@ def test_real_walkers_advance_at_a_plausible_speed():
         assert abs(float(v[:, side].mean())) < 0.2 * float(v[:, fwd].mean())
     height = torch.cat(data.sequences)[:, data.features.index("root.ty")] * unit
     assert 0.8 < float(height.mean()) < 1.1
+
+
+# ------------------------------------------------------------------------------------------
+# Files with missing bones or frames (issue 54)
+# ------------------------------------------------------------------------------------------
+
+
+def _without(text: str, frames: set[int], prefix: str = "") -> str:
+    """``text`` (an AMC file) without the lines starting with ``prefix`` in ``frames`` (with
+    ``prefix=""``: without those frames at all, numbers included)."""
+    out, frame = [], 0
+    for line in text.splitlines():
+        if line.isdigit():
+            frame = int(line)
+        if not (frame in frames and line.startswith(prefix)):
+            out.append(line)
+    return "\n".join(out) + "\n"
+
+
+def test_a_trial_without_a_bone_is_refused_naming_file_frame_and_bone(cmu):
+    _write(cmu, "01_03.amc", _without(_amc(41), {17}, "lfemur "))
+    with pytest.raises(ValueError, match=r"01_03\.amc: frame 17 lacks bones \['lfemur'\]"):
+        load_trials([("01_03", "a")], cmu, downsample=10)
+    _write(cmu, "01_03.amc", _without(_amc(41), set(range(1, 42)), "lfemur "))
+    with pytest.raises(ValueError, match=r"01_03\.amc: bones \['lfemur'\] .* no line in any frame"):
+        load_trials([("01_03", "a")], cmu, downsample=10)
+
+
+def test_missing_frames_are_refused_or_become_missing_rows(cmu):
+    # 01_01 without frame 21: at stride 10 the resampled frames are 1, 11, 21, 31, 41, so
+    # feature rows 1 (frame 11 -> 21) and 2 (21 -> 31) lack it
+    _write(cmu, "01_04.amc", _without(_amc(41), {21}))
+    trials = [("01_01", "a"), ("01_04", "a")]
+    with pytest.raises(ValueError, match=r"01_04\.amc: line \d+: frame 22 follows frame 20, so "
+                       r"frame 21 is missing; pass gaps='missing'"):  # fmt: skip
+        load_trials(trials, cmu, downsample=10)
+    with pytest.raises(ValueError, match=r"01_04\.amc: .*frame 21 is missing"):
+        load_protocol(Protocol("p", "subject", ("a",), tuple(trials), (), 10, "none"), "train", cmu)
+    data = load_trials(trials, cmu, downsample=10, gaps="missing")
+    full, gappy = data.sequences
+    assert gappy.shape == full.shape == (4, len(data.features))
+    assert torch.isnan(gappy[1:3]).all() and not torch.isnan(gappy[[0, 3]]).any()
+    torch.testing.assert_close(gappy[[0, 3]], full[[0, 3]], rtol=0, atol=0)
+    # a missing frame between the resampled ones changes nothing
+    _write(cmu, "01_04.amc", _without(_amc(41), {25, 26}))
+    gappy = load_trials([("01_04", "a")], cmu, downsample=10, gaps="missing").sequences[0]
+    torch.testing.assert_close(gappy, full, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="gaps"):
+        load_trials(trials, cmu, downsample=10, gaps="skip")

@@ -161,6 +161,34 @@ def test_untracked_frames_are_dropped(tmp_path):
     assert rec.untracked == 10 and rec.time_ms[0] == 1200.0 and len(rec.time_ms) == 290
 
 
+def test_frames_with_a_lost_joint_are_refused_or_dropped(tmp_path):
+    """A joint at (0, 0, 0) while the others are tracked is never read as a position (issue 54):
+    an error naming the frame and joint, or, when asked, the frame is dropped like an untracked
+    one and the window interpolated across it."""
+    t = 1000.0 + 20.0 * np.arange(300)
+    pos = random_positions(len(t), 6)
+    pos[100:103, JOINTS.index("wrist_left")] = 0.0  # 3000-3040 ms
+    csv = write_recording(tmp_path, "P1_1_7_p11", t, pos, [f"{tick(4000)};7"])
+    with pytest.raises(ValueError, match=r"P1_1_7_p11\.csv, line 101 \(frame 101\): joint "
+                       r"'wrist_left' is at \(0, 0, 0\)"):  # fmt: skip
+        read_msrc12_recording(csv)
+    with pytest.raises(ValueError, match=r"line 101 \(frame 101\): joint 'wrist_left'"):
+        load_msrc12_folder(tmp_path)
+    rec = read_msrc12_recording(csv, partial_frames="drop")
+    assert rec.untracked == rec.partial == 3 and len(rec.time_ms) == 297
+    assert 3000.0 not in rec.time_ms and (rec.positions != 0).any(-1).all()
+    data = load_msrc12_folder(tmp_path, partial_frames="drop")
+    # the window's sample at 3000 ms lies between the frames at 2980 and 3060 ms
+    np.testing.assert_allclose(
+        data.positions[0, 20].numpy(), 0.75 * pos[99] + 0.25 * pos[103], atol=1e-12
+    )
+    for bad in ("skip", None):
+        with pytest.raises(ValueError, match="partial_frames"):
+            read_msrc12_recording(csv, partial_frames=bad)
+        with pytest.raises(ValueError, match="partial_frames"):
+            load_msrc12_folder(tmp_path, partial_frames=bad)
+
+
 def test_unparsed_file_name(tmp_path):
     t = 1000.0 + 20.0 * np.arange(300)
     write_recording(tmp_path, "session", t, random_positions(len(t)), [f"{tick(5000)};7"])
@@ -177,12 +205,31 @@ def good_lines(frames: int = 5) -> list[str]:
 @pytest.mark.parametrize(
     ("edit", "match"),
     [
-        (lambda ls: ls.__setitem__(2, ls[2] + " 1.0"), r"line 3: expected 81 numbers.*got 82"),
-        (lambda ls: ls.__setitem__(1, ls[1].rsplit(" ", 1)[0]), r"line 2: expected 81.*got 80"),
-        (lambda ls: ls.__setitem__(1, ls[1].replace("0.5", "abc", 1)), r"line 2: value 2 .*'abc'"),
-        (lambda ls: ls.__setitem__(3, ls[3].replace("0.5", "nan", 1)), r"line 4: value 2 is nan"),
-        (lambda ls: ls.__setitem__(4, ls[4].replace("0.5", "inf", 1)), r"line 5: value 2 is inf"),
-        (lambda ls: ls.__setitem__(3, ls[1]), r"line 4: timestamp 1033 ms does not increase"),
+        (lambda ls: ls.__setitem__(2, ls[2] + " 1.0"),
+         r"line 3 \(frame 3\): expected 81 numbers.*got 82"),
+        (lambda ls: ls.__setitem__(1, ls[1].rsplit(" ", 1)[0]),
+         r"line 2 \(frame 2\): expected 81.*got 80"),
+        (lambda ls: ls.__setitem__(1, ls[1].replace("0.5", "abc", 1)),
+         r"line 2 \(frame 2\): value 2 \(joint 'hip_centre' x\) is 'abc', not a number"),
+        (lambda ls: ls.__setitem__(3, ls[3].replace("0.5", "nan", 1)),
+         r"line 4 \(frame 4\): value 2 \(joint 'hip_centre' x\) is nan"),
+        (lambda ls: ls.__setitem__(4, ls[4].replace("0.5", "inf", 1)),
+         r"line 5 \(frame 5\): value 2 \(joint 'hip_centre' x\) is inf"),
+        (lambda ls: ls.__setitem__(4, " ".join(ls[4].split()[:42] + ["-inf"] + ["0.5"] * 38)),
+         r"line 5 \(frame 5\): value 43 \(joint 'wrist_right' y\) is -inf"),
+        (lambda ls: ls.__setitem__(2, ls[2].replace("1066", "nan", 1)),
+         r"line 3 \(frame 3\): value 1 \(the timestamp\) is nan"),
+        (lambda ls: ls.__setitem__(3, ls[1]),
+         r"line 4 \(frame 4\): timestamp 1033 ms does not increase"),
+        # a joint beyond any room (issue 54), and a joint the Kinect lost in a tracked frame
+        (lambda ls: ls.__setitem__(1, ls[1].replace("0.5", "-1e6", 3)),
+         r"line 2 \(frame 2\): joint 'hip_centre' x is -1e\+06 m; coordinates beyond \+-100 m"),
+        (lambda ls: ls.__setitem__(2, " ".join(ls[2].split()[:-4] + ["0.5", "0.5", "250.5", "2"])),
+         r"line 3 \(frame 3\): joint 'foot_right' z is 250.5 m"),
+        (lambda ls: ls.__setitem__(3, " ".join(ls[3].split()[:25] + ["0", "0", "0"]
+                                             + ls[3].split()[28:])),
+         r"line 4 \(frame 4\): joint 'wrist_left' is at \(0, 0, 0\), the Kinect's mark of a "
+         r"joint it did not track"),
         (lambda ls: ls.clear(), r"is empty"),
         (lambda ls: ls.__setitem__(slice(None), [ln.split(" ", 1)[0] + " 0" * 80 for ln in ls]),
          r"no tracked frame"),
@@ -335,11 +382,14 @@ def test_pose_pca_uses_training_frames_only():
 def test_npz_errors(tmp_path):
     path = tmp_path / "dev.npz"
     base = {
-        "positions": np.zeros((3, 36, 20, 3), np.float32),
+        "positions": np.full((3, 36, 20, 3), 0.5, np.float32),
         "gesture": np.array([2, 3, 2]),
         "person": np.array(["p01", "p02", "p01"]),
         "sequence": np.array(["a", "b", "c"]),
     }
+    far, lost = base["positions"].copy(), base["positions"].copy()
+    far[2, 7, JOINTS.index("head"), 1] = 1e6
+    lost[1, 35, JOINTS.index("foot_left")] = 0.0
     np.savez(path, **base)
     data = load_msrc12_npz(path)
     assert data.labels.tolist() == [0, 1, 0] and data.names == ("crouch", "push right")
@@ -348,6 +398,14 @@ def test_npz_errors(tmp_path):
         ({"positions": np.zeros((3, 36, 19, 3))}, r"\[n, T, 20, 3\]"),
         ({"person": np.array(["p01", "p02"])}, "person must be"),
         ({"positions": np.full((3, 36, 20, 3), np.nan)}, "NaN"),
+        # a joint beyond any room, one the Kinect lost (issue 54), and no skeleton at all
+        (
+            {"positions": far},
+            r"instance 2, frame 7: joint 'head' y is 1e\+06 m; coordinates "
+            r"beyond \+-100 m",
+        ),
+        ({"positions": lost}, r"instance 1, frame 35: joint 'foot_left' is at \(0, 0, 0\)"),
+        ({"positions": np.zeros((3, 36, 20, 3))}, r"instance 0, frame 0: joint 'hip_centre' is at"),
     ):
         np.savez(path, **{**base, **change})
         with pytest.raises(ValueError, match=match):
