@@ -68,6 +68,7 @@ from ..results import ResultTable
 from ..validation import as_tensor, check_choice
 from .arguments import (
     add_executor_arguments,
+    check_output_files,
     connect,
     int_at_least,
     output_folder,
@@ -78,8 +79,10 @@ from .dtype import float64_default
 
 __all__ = [
     "AnticipationConfig",
+    "check_reward_cache",
     "connect",
     "main",
+    "player_bars",
     "plot_results",
     "run_experiment",
     "run_protocol",
@@ -98,6 +101,9 @@ __all__ = [
 MOVEMENTS = ACTIONS[1:]
 ORACLE_TIMES = (-0.24, -0.16, -0.08)
 SINGLE_TIME = -0.24
+#: What ``hgpdm anticipation`` saves into ``--out``: the tables, then :func:`plot_results`'s.
+_TABLES = ("fig4_6.json", "fig4_7.json")
+_FIGURES = ("fig4_6_returns.png", "fig4_7_sample_efficiency.png")
 BLIND = "best blind (training folds)"
 """The row of the best blind strategy (one movement at one start time) chosen on the training
 folds."""
@@ -520,44 +526,99 @@ def run_experiment(
         )  # fmt: skip
 
 
+#: Bar colours by kind of player: the planners (LSPI, MCP) in colour, the same planners on
+#: another belief in lighter shades, NAC muted, the baselines and references in greys.
+_KINDS = (
+    ("LSPI", "tab:orange"),
+    ("MCP", "tab:green"),
+    ("LSPI on another belief", "#fdc48e"),
+    ("MCP on another belief", "#a6dba0"),
+    ("NAC", "#b9b3d8"),
+    ("baselines", "0.45"),
+    ("oracle and after-the-fact references", "0.8"),
+)
+
+
+def _kind(name: str) -> str:
+    """Which of :data:`_KINDS` a player of the Fig. 4.6 or demo table is."""
+    if name in ("LSPI", "MCP", "NAC"):
+        return name
+    if name.startswith(("LSPI (", "MCP (")):
+        return f"{name.split()[0]} on another belief"
+    if name.startswith("oracle") or name.endswith("(after the fact)"):
+        return "oracle and after-the-fact references"
+    return "baselines"
+
+
+def player_bars(
+    ax: Any, names: list[str], values: list[float], errors: Any, extra: tuple = ()
+) -> None:
+    """Horizontal bars, one per player from top to bottom in the table's order, each named in
+    full on its own line (15 names side by side could not be read), coloured by
+    :func:`_kind` so that the planners stand out, with a legend below the axes of the colours
+    used and the ``extra`` handles (none covers a bar)."""
+    from matplotlib.patches import Patch
+
+    colour = dict(_KINDS)
+    kinds = [_kind(n) for n in names]
+    ax.barh(range(len(names)), values, xerr=errors, color=[colour[k] for k in kinds],
+            capsize=3, error_kw={"lw": 1, "ecolor": "k"})  # fmt: skip
+    ax.set_yticks(range(len(names)), names, fontsize=8)
+    for label in ax.get_yticklabels():
+        if label.get_text() in ("LSPI", "MCP"):
+            label.set_fontweight("bold")
+    ax.invert_yaxis()  # the table's first row on top
+    used = [Patch(color=c, label=k) for k, c in _KINDS if k in kinds]
+    ax.figure.legend(handles=[*used, *extra], loc="outside lower center", ncols=3, fontsize=8)
+
+
 def plot_results(fig6: ResultTable, fig7: ResultTable, out: str | Path) -> list[Path]:
-    """Bar charts in the layout of Fig. 4.6 and Fig. 4.7 (PNG files in ``out``)."""
+    """Bar charts in the layout of Fig. 4.6 and Fig. 4.7 (PNG files in ``out``): Fig. 4.6 as
+    horizontal bars, the planners LSPI and MCP in colour and the references in greys."""
     from matplotlib.figure import Figure  # a bare Figure leaves the pyplot backend alone
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     n = fig6.meta.get("valid trials")
     paths = []
-    fig = Figure(figsize=(9, 4))
-    ax = fig.subplots()
     names = fig6.column("method")
-    colours = ["0.7"] * 3 + ["tab:blue"] * 3 + ["tab:purple", "tab:orange", "tab:green"]
-    ax.bar(range(len(names)), fig6.column("returns"), yerr=fig6.column("SEM"), color=colours)
-    ax.set_xticks(range(len(names)), [m.replace(" @", "\n@") for m in names], fontsize=8)
-    ax.set_ylabel("successful returns")
-    if n:
-        ax.axhline(n, color="k", lw=0.8, ls="--", label=f"{n} valid trials")
-        ax.legend(loc="lower right")
+    fig = Figure(figsize=(8, 1.6 + 0.3 * len(names)), layout="constrained")
+    ax = fig.subplots()
+    line = [ax.axvline(n, color="k", lw=0.8, ls="--", label=f"{n} valid trials")] if n else []
+    player_bars(ax, names, fig6.column("returns"), fig6.column("SEM"), tuple(line))
+    ax.set_xlabel("successful returns (mean and SEM over the repetitions)")
     ax.set_title("Fig. 4.6: anticipatory action selection")
-    fig.tight_layout()
-    paths.append(out / "fig4_6_returns.png")
+    paths.append(out / _FIGURES[0])
     fig.savefig(paths[-1], dpi=120)
-    fig = Figure(figsize=(6, 4))
+    fig = Figure(figsize=(6.5, 4), layout="constrained")
     ax = fig.subplots()
     episodes = fig7.column("episodes")
     x = torch.arange(len(episodes), dtype=torch.float64)
-    for shift, name, colour in ((-0.2, "LSPI", "tab:orange"), (0.2, "MCP", "tab:green")):
+    colour = dict(_KINDS)
+    for shift, name in ((-0.2, "LSPI"), (0.2, "MCP")):
         ax.bar(x + shift, fig7.column(name), 0.4, yerr=fig7.column(f"{name} SEM"), label=name,
-               color=colour)  # fmt: skip
+               color=colour[name], capsize=3)  # fmt: skip
     ax.set_xticks(x, [str(e) for e in episodes])
     ax.set_xlabel("sampled episodes per training trial")
     ax.set_ylabel("successful returns")
-    ax.legend()
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1))  # beside the bars, never over one
     ax.set_title("Fig. 4.7: sample efficiency")
-    fig.tight_layout()
-    paths.append(out / "fig4_7_sample_efficiency.png")
+    paths.append(out / _FIGURES[1])
     fig.savefig(paths[-1], dpi=120)
     return paths
+
+
+def check_reward_cache(parser: argparse.ArgumentParser, cache_dir: Path | None) -> None:
+    """End in a usage error naming the path when the reward cache (``--cache-dir``, or the
+    default) has a folder where a cache file belongs or a file where a folder belongs
+    (:func:`~hgpdm_torch.robots.table_tennis.trials.check_cache_dir`): before any simulation,
+    not after it."""
+    from ..robots.table_tennis.trials import check_cache_dir
+
+    try:
+        check_cache_dir(cache_dir)
+    except ValueError as err:
+        parser.error(f"argument --cache-dir: {err}" if cache_dir is not None else str(err))
 
 
 def main(argv: list[str]) -> int:
@@ -593,6 +654,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--cache-dir", type=output_folder, default=None)
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
+    check_output_files(parser, "--out", args.out, (*_TABLES, *_FIGURES))
+    check_reward_cache(parser, args.cache_dir)
     smoke = os.environ.get("HGPDM_SMOKE") == "1" or not args.full
     changes = {"seed": args.seed, "workers": args.workers or 1, "belief": args.belief,
                "features": args.features, "wait_value": args.wait_value}  # fmt: skip
@@ -615,8 +678,8 @@ def main(argv: list[str]) -> int:
     print()
     print(fig7.to_markdown(".4g"))
     out = Path(args.out)
-    fig6.to_json(out / "fig4_6.json")
-    fig7.to_json(out / "fig4_7.json")
+    fig6.to_json(out / _TABLES[0])
+    fig7.to_json(out / _TABLES[1])
     for path in plot_results(fig6, fig7, out):
         print(f"saved {path}")
     return 0

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from ..parallel import Executor, get_executor, ray_address_type
@@ -21,6 +21,7 @@ from ..parallel import Executor, get_executor, ray_address_type
 __all__ = [
     "MAX_SEED",
     "add_executor_arguments",
+    "check_output_files",
     "connect",
     "int_at_least",
     "non_negative_int",
@@ -113,6 +114,28 @@ def output_file(text: str) -> Path:
     if path.is_dir() or text.endswith(("/", "\\")):
         raise argparse.ArgumentTypeError(f"{text} is a folder, expected a file path")
     return path
+
+
+def check_output_files(
+    parser: argparse.ArgumentParser, option: str, folder: Path, names: Iterable[str]
+) -> None:
+    """End in a usage error unless each file ``names`` that a command will save into ``folder``
+    (the value of ``option``, e.g. ``--out``) can be written there: checked when the arguments
+    are parsed, so that a folder standing where a results file goes does not lose a long run's
+    results at its end.
+
+    Raises:
+        SystemExit: (``parser.error``, exit code 2) naming the path, e.g. ``argument --out:
+            DIR/demo.json is a folder, expected a file path``.
+    """
+    for name in names:
+        try:
+            output_file(str(Path(folder) / name))
+        except argparse.ArgumentTypeError as err:
+            parser.error(
+                f"argument {option}: {err} (the command saves {name} there; move it away or "
+                f"choose another {option})"
+            )
 
 
 def add_executor_arguments(parser: argparse.ArgumentParser, what: str) -> None:

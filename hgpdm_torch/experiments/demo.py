@@ -35,6 +35,7 @@ import argparse
 import math
 import os
 import sys
+import textwrap
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -62,6 +63,7 @@ from ..validation import check_choice
 from . import anticipation as ant
 from .anticipation import BELIEFS, BLIND, FIXED_TIME
 from .arguments import (
+    check_output_files,
     connect,
     int_at_least,
     output_folder,
@@ -89,6 +91,8 @@ DEFAULT_TRIALS = 380
 #: Further opponent strokes the belief models learn from by default (observed only, never
 #: played; watching is cheap, trying movements in SAPIEN is not).
 DEFAULT_WATCHED = 600
+#: What ``hgpdm demo`` saves into ``--out``: the table, then the figures of :func:`plot_demo`.
+_TABLE, _FIGURES = "demo.json", ("return_rates.png", "rally.png")
 
 
 @dataclass
@@ -534,8 +538,9 @@ def _learn_and_decide(
 
 
 def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
-    """Save the return rates with their 95% intervals, one played rally in 3-D and its belief
-    over the target (PNGs)."""
+    """Save the return rates with their 95% intervals (horizontal bars, the planners LSPI and
+    MCP in colour, the references in greys), one played rally in 3-D and its belief over the
+    target (PNGs)."""
     from matplotlib.figure import Figure  # a bare Figure leaves the pyplot backend alone
 
     from ..robots.table_tennis.draw import MOVEMENT_COLORS, draw_stroke, draw_table
@@ -549,15 +554,11 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
     lows, highs = table.column("95% low"), table.column("95% high")
     errors = [[r - lo for r, lo in zip(rates, lows, strict=True)],
               [hi - r for r, hi in zip(rates, highs, strict=True)]]  # fmt: skip
-    fig = Figure(figsize=(10.5, 4.4))
+    fig = Figure(figsize=(9, 2.4 + 0.32 * len(names)), layout="constrained")
     ax = fig.subplots()
-    colour_of = {BLIND: "0.7", FIXED_TIME: "tab:blue", "LSPI": "tab:orange", "MCP": "tab:green"}
-    colours = [colour_of.get(p, "0.85") for p in names]
-    ax.bar(range(len(names)), rates, color=colours, yerr=errors, capsize=4,
-           error_kw={"lw": 1, "ecolor": "k"})  # fmt: skip
-    ax.set_xticks(range(len(names)), [_wrap(p) for p in names], fontsize=7)
-    ax.set_ylabel("return rate on the test rallies\n(exact 95% interval)")
-    ax.set_ylim(0, 1.05)
+    ant.player_bars(ax, names, rates, errors)
+    ax.set_xlabel("return rate on the test rallies (exact 95% interval)")
+    ax.set_xlim(0, 1.05)
     m = result.meta
     title = table.title
     for other in (BLIND, FIXED_TIME):
@@ -566,9 +567,9 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
                 f"\nMCP - {other}, paired: {m[f'MCP - {other}']:+.3f} "
                 f"[{m[f'MCP - {other} 95% low']:+.3f}, {m[f'MCP - {other} 95% high']:+.3f}]"
             )
-    ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    paths.append(out / "return_rates.png")
+    # over the whole figure, not the axes (shifted right by the long names), and wrapped
+    fig.suptitle("\n".join(textwrap.fill(line, 110) for line in title.split("\n")), fontsize=9)
+    paths.append(out / _FIGURES[0])
     fig.savefig(paths[-1], dpi=120)
 
     # the first returned rally (else the first one) and the belief that led to it
@@ -596,14 +597,9 @@ def plot_demo(result: DemoResult, out: str | Path) -> list[Path]:
         ax.set(xlabel="target x on the hitting plane [m]", ylabel=label)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    paths.append(out / "rally.png")
+    paths.append(out / _FIGURES[1])
     fig.savefig(paths[-1], dpi=120)
     return paths
-
-
-def _wrap(name: str) -> str:
-    """A player's name on two or three lines for the bar chart."""
-    return name.replace(" (", "\n(").replace(" @", "\n@")
 
 
 def summary(result: DemoResult) -> str:
@@ -690,6 +686,9 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.full and (args.trials is not None or args.watched is not None):
         parser.error("--trials and --watched set the demo's sizes; --full uses the thesis's")
+    if not args.full:  # --full: anticipation's parser checks its own outputs
+        check_output_files(parser, "--out", args.out, (_TABLE, *_FIGURES))
+    ant.check_reward_cache(parser, args.cache_dir)
     bars = not args.quiet and (args.progress or sys.stderr.isatty())
     if args.full:
         extra = [
@@ -741,7 +740,7 @@ def main(argv: list[str]) -> int:
     print(", ".join(f"{k}: {v:.3g}" if isinstance(v, float) else f"{k}: {v}"
                     for k, v in result.meta.items() if k not in skip))  # fmt: skip
     out = Path(args.out)
-    result.table.to_json(out / "demo.json")
+    result.table.to_json(out / _TABLE)
     for path in plot_demo(result, out):
         print(f"saved {path}")
     if not args.quiet:

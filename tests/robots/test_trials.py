@@ -94,11 +94,21 @@ def test_evaluate_reward_table_and_regions_agree_and_cache_every_cell(
     )  # fmt: skip
     assert rec.cells() == [(("middle", -0.24),)] * 2
     assert torch.equal(both[:, :1], table[[2, 2, 0]]) and torch.equal(both[0], both[1])
-    # A later call reads the cache (a flipped entry shows it is the file that is returned).
+    # A later call reads the cache (a flipped entry, written with its checksum, shows it is the
+    # file that is returned).
     first = files[trials.fingerprints()[0]]
-    first.write_text(json.dumps({"forehand@-0.24": -1}))
+    stamp = T._Stamp(T._simulation_fingerprint(), first.parent.name)
+    T._write_cells(first, {"forehand@-0.24": -1}, stamp)
     cached = reward_table(trials, ("forehand",), (-0.24,), cache_dir=tmp_path, progress=False)
     assert cached.flatten().tolist() == [-1, *table.flatten().tolist()[1:]]
+    # A flip by hand fails the checksum: that trial is simulated again, with one warning.
+    second = files[trials.fingerprints()[1]]
+    data = json.loads(second.read_text())
+    data["cells"]["forehand@-0.24"] *= -1
+    second.write_text(json.dumps(data))
+    with pytest.warns(UserWarning, match="rejected 1 of 3 files"):
+        honest = reward_table(trials, ("forehand",), (-0.24,), cache_dir=tmp_path, progress=False)
+    assert torch.equal(honest, cached)
     # A changed simulation (its source hash) does not read the old cells.
     monkeypatch.setattr(T, "_simulation_fingerprint", lambda: "changed")
     fresh = reward_table(trials, ("forehand",), (-0.24,), cache_dir=tmp_path, progress=False)

@@ -5,7 +5,8 @@ before the opponent's hit, the true target and the ball leaving the opponent's r
 trial runs the SAPIEN scene with one of the robot's movements initiated at one time; the reward is
 +1 for a legal return and -1 otherwise, as in the thesis. :func:`reward_table` enumerates every
 (trial, movement, start time) combination on an executor of :mod:`hgpdm_torch.parallel` (this
-process, local processes or a Ray cluster) and caches every cell on disk.
+process, local processes or a Ray cluster) and caches every cell on disk, each file with a
+checksum of its rewards and of the simulation they came from.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ __all__ = [
     "DEFAULT_START_TIMES",
     "Trial",
     "Trials",
+    "check_cache_dir",
     "default_cache_dir",
     "evaluate",
     "hitting_regions",
@@ -200,31 +202,115 @@ def _cell_name(action: str, start_time: float) -> str:
     return f"{action}@{start_time!r}"
 
 
-def _read_cells(path: Path) -> dict[str, int]:
-    """The cached rewards of one trial, ``{"action@start_time": +-1}`` (empty if none)."""
+_CACHE_FORMAT = 2
+"""Version of a reward cache file's layout; files without it (format 1: a bare ``{cell:
+reward}``) carry no checksum and are simulated again."""
+
+
+@dataclass(frozen=True)
+class _Stamp:
+    """What a cache file's checksum binds its cells to besides the ball: the simulation's source
+    (:func:`_simulation_fingerprint`) and the settings folder it lies in."""
+
+    simulation: str
+    settings: str
+
+    def checksum(self, ball: str, cells: dict[str, int]) -> str:
+        # canonical: sorted keys, no whitespace, so that equal content hashes equally
+        text = json.dumps(
+            {"ball": ball, "cells": cells, "settings": self.settings,
+             "simulation": self.simulation},
+            sort_keys=True, separators=(",", ":"),
+        )  # fmt: skip
+        return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _read_cells(path: Path, stamp: _Stamp) -> tuple[dict[str, int], str | None]:
+    """The verified rewards of one trial's cache file, ``{"action@start_time": +-1}``, and why
+    the file was rejected (``None`` when it was not, or when there is no file).
+
+    A rejected file gives no cell: its rewards are simulated again and the file rewritten.
+    """
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
-        return {}
-    except (OSError, ValueError) as err:
-        warnings.warn(f"ignoring the unreadable reward cache {path}: {err}", stacklevel=3)
-        return {}
+        return {}, None
+    except (OSError, ValueError):
+        return {}, "unreadable"
     if not isinstance(data, dict):
-        warnings.warn(f"ignoring the malformed reward cache {path}", stacklevel=3)
-        return {}
-    return {k: v for k, v in data.items() if v in (-1, 1) and not isinstance(v, bool)}
+        return {}, "not reward cache files"
+    if "sha256" not in data and "format" not in data:
+        return {}, "written by an older version, without a checksum"
+    cells = data.get("cells")
+    if (
+        data.get("format") != _CACHE_FORMAT
+        or not isinstance(cells, dict)
+        or not all(v in (-1, 1) and not isinstance(v, bool) for v in cells.values())
+    ):
+        return {}, "not reward cache files"
+    if data.get("simulation") != stamp.simulation or data.get("settings") != stamp.settings:
+        return {}, "from another version of the simulation"
+    if data.get("sha256") != stamp.checksum(path.stem, cells):
+        return {}, "with a checksum that does not match their content"
+    return cells, None
 
 
-def _write_cells(path: Path, cells: dict[str, int]) -> None:
-    """Add ``cells`` to the cache file of one trial, keeping the cells already there. Only the
-    calling process writes (workers return their rewards), and the file is replaced atomically:
-    a reader never sees half a file."""
+def _write_cells(path: Path, cells: dict[str, int], stamp: _Stamp) -> None:
+    """Add ``cells`` to the cache file of one trial, keeping the verified cells already there,
+    with the checksum of the result. Only the calling process writes (workers return their
+    rewards), and the file is replaced atomically: a reader never sees half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    merged = {**_read_cells(path), **cells}
+    merged = {**_read_cells(path, stamp)[0], **cells}
+    data = {"format": _CACHE_FORMAT, "simulation": stamp.simulation,
+            "settings": stamp.settings, "cells": merged,
+            "sha256": stamp.checksum(path.stem, merged)}  # fmt: skip
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(merged, f, sort_keys=True)
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, sort_keys=True)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def check_cache_dir(
+    cache_dir: str | Path | None = None,
+    *,
+    scene_config: SceneConfig | None = None,
+    stroke_config: StrokeConfig | None = None,
+) -> Path:
+    """The folder of :func:`reward_table`'s cache for these settings, checked before anything
+    is simulated (it need not exist yet).
+
+    Args:
+        cache_dir: the cache folder (default :func:`default_cache_dir`).
+        scene_config: scene settings; stroke_config: stroke settings (they name the folder).
+
+    Returns:
+        ``cache_dir/table_tennis/rewards/<settings>``.
+
+    Raises:
+        ValueError: a file where one of the cache's folders belongs, or a folder where a cache
+            file belongs (both named by their path): the rewards could not be saved.
+    """
+    root = Path(cache_dir if cache_dir is not None else default_cache_dir())
+    folder = root / "table_tennis" / "rewards" / _settings_key(scene_config, stroke_config)
+    for p in (root, root / "table_tennis", folder.parent, folder):
+        if p.exists() and not p.is_dir():
+            raise ValueError(
+                f"reward cache: {p} is a file where the cache keeps a folder; move it away or "
+                "choose another cache folder"
+            )
+    if folder.is_dir():
+        with os.scandir(folder) as entries:
+            for entry in entries:
+                if entry.name.endswith(".json") and entry.is_dir():
+                    raise ValueError(
+                        f"reward cache: {folder / entry.name} is a folder where a cache file "
+                        "belongs; move it away or choose another cache folder"
+                    )
+    return folder
 
 
 def _rewards_for(job: tuple) -> np.ndarray:
@@ -271,6 +357,12 @@ def reward_table(
     trials) simulates only the new ones, and the executor that filled a cell does not matter:
     the simulation is deterministic and gives the same table on every executor.
 
+    Each file carries the simulation's source hash and a SHA-256 checksum of its rewards, its
+    ball and its settings. A file that fails the check (edited by hand, corrupted, written by an
+    older version without a checksum, unreadable) is never used: its rewards are simulated
+    again and the file rewritten, with one warning per table naming the folder and how many
+    files were rejected.
+
     Args:
         trials: the trials.
         actions: movement names.
@@ -289,8 +381,13 @@ def reward_table(
 
     Raises:
         ValueError: unknown action, bad ``workers`` (or ``workers`` together with
-            ``executor``), or a start time at or after the moment some trial's ball reaches the
-            hitting plane.
+            ``executor``), a start time at or after the moment some trial's ball reaches the
+            hitting plane, or a cache path taken by something else (a folder where a cache file
+            belongs, a file where a folder belongs; :func:`check_cache_dir`), all before any
+            simulation.
+
+    Warns:
+        UserWarning: once per table, when cache files were rejected and are simulated again.
     """
     if not isinstance(trials, Trials):
         raise TypeError(f"trials must be Trials, got {type(trials).__name__}")
@@ -313,15 +410,26 @@ def reward_table(
             f"start_times must come before every ball reaches the hitting plane (earliest "
             f"{float(t_cross.min()):.3f} s after the opponent's hit), got {max(start_times)}"
         )
-    folder = Path(cache_dir if cache_dir is not None else default_cache_dir())
-    folder = folder / "table_tennis" / "rewards" / _settings_key(scene_config, stroke_config)
+    folder = check_cache_dir(cache_dir, scene_config=scene_config, stroke_config=stroke_config)
+    stamp = _Stamp(_simulation_fingerprint(), folder.name)
     cells = [(a, t) for a in actions for t in start_times]
     names = [_cell_name(a, t) for a, t in cells]
     keys = trials.fingerprints()
     first = {}  # ball -> its first trial (equal balls are simulated once)
     for i, key in enumerate(keys):
         first.setdefault(key, i)
-    known = {key: _read_cells(folder / f"{key}.json") for key in first}
+    known, rejected = {}, {}
+    for key in first:
+        known[key], why = _read_cells(folder / f"{key}.json", stamp)
+        if why is not None:
+            rejected[why] = rejected.get(why, 0) + 1
+    if rejected:  # one warning for the table, however many files
+        reasons = "; ".join(f"{k} {why}" for why, k in rejected.items())
+        warnings.warn(
+            f"reward cache {folder}: rejected {sum(rejected.values())} of {len(first)} files "
+            f"({reasons}); their rewards are simulated again and the files rewritten",
+            stacklevel=2,
+        )
     balls = [f.detach().cpu().numpy() for f in trials.ball_after_hit]
     jobs, job_keys, dtype = [], [], torch.get_default_dtype()
     for key, i in first.items():
@@ -336,7 +444,7 @@ def reward_table(
             for key, job, rewards in zip(job_keys, jobs, pool.map(_rewards_for, jobs), strict=True):
                 new = {_cell_name(a, t): int(r) for (a, t), r in zip(job[3], rewards, strict=True)}
                 known[key].update(new)
-                _write_cells(folder / f"{key}.json", new)
+                _write_cells(folder / f"{key}.json", new, stamp)
                 bar.update()
         finally:
             bar.close()
