@@ -27,10 +27,12 @@ class IntentionBelief:
         values: ``[K, Dg]`` the intention values (codes for a discrete g).
         mean: ``[..., Dg]`` posterior mean of a continuous g (``None`` for a discrete g).
         std: ``[..., Dg]`` posterior standard deviation of a continuous g (or ``None``).
-        rejected: (:meth:`OnlineIntentionFilter.update` only, else ``None``) ``[B]`` bool
+        rejected: (online updates only: :meth:`OnlineIntentionFilter.update`,
+            :meth:`LinearIDDMStream.update`, a mixture's stream; else ``None``) ``[B]`` bool
             (``[]`` for one ``[Dz]`` observation): the stream's observation of this update was
             bad (:class:`~hgpdm_torch.observations.ObservationCheck`) and was treated as
-            missing.
+            missing. :func:`~hgpdm_torch.decision.sources.track_beliefs` gathers them per
+            decision time (``BeliefTrack.rejected``).
         reset_streams: (:meth:`OnlineIntentionFilter.update` only) ``[B]`` bool: the stream
             failed numerically in this update (or held a non-finite state) and was restarted
             at the prior.

@@ -9,6 +9,8 @@ trial's latent state and target histogram after the observations available at ea
 
 from __future__ import annotations
 
+import numbers
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -24,6 +26,7 @@ __all__ = [
     "PHASE_IDDM",
     "BeliefConfig",
     "Beliefs",
+    "check_decision_steps",
     "decision_indices",
     "filter_beliefs",
     "fit_beliefs",
@@ -55,6 +58,47 @@ def decision_indices(obs_times: torch.Tensor, start_times: tuple[float, ...]) ->
     return out
 
 
+def check_decision_steps(
+    steps_at: object, num_frames: int | None = None, *, consecutive: bool = False
+) -> list[int]:
+    """``steps_at`` (the observation index of each decision time) as a list of ints.
+
+    Args:
+        steps_at: a non-empty sequence (or 1-D tensor) of observation indices >= 0.
+        num_frames: the strokes' observations; the indices must lie below it (``None``: any).
+        consecutive: whether the indices must be consecutive (Monte-Carlo planning projects
+            one observation ahead).
+
+    Raises:
+        TypeError: not a sequence of ints.
+        ValueError: empty, an index < 0 or ``>= num_frames``, or (``consecutive``) a gap.
+    """
+    if isinstance(steps_at, torch.Tensor) and steps_at.dim() == 1:
+        steps_at = steps_at.tolist()
+    if not isinstance(steps_at, Sequence) or isinstance(steps_at, str) or any(
+        isinstance(s, bool) or not isinstance(s, numbers.Integral) for s in steps_at
+    ):  # fmt: skip
+        raise TypeError(f"steps_at must be a list of observation indices (ints), got {steps_at!r}")
+    steps = [int(s) for s in steps_at]
+    if not steps:
+        raise ValueError(
+            "steps_at must hold the observation index of at least one decision time, got []"
+        )
+    if min(steps) < 0:
+        raise ValueError(f"steps_at must be observation indices >= 0, got {steps}")
+    if num_frames is not None and max(steps) >= num_frames:
+        raise ValueError(
+            f"steps_at must be observation indices of the strokes' {num_frames} frames "
+            f"(0 .. {num_frames - 1}), got {steps}"
+        )
+    if consecutive and any(b != a + 1 for a, b in zip(steps, steps[1:], strict=False)):
+        raise ValueError(
+            f"steps_at must be consecutive observation indices (a particle projects one "
+            f"observation ahead), got {steps}"
+        )
+    return steps
+
+
 @dataclass
 class Beliefs:
     """Beliefs of every trial under one fold's IDDM and the fold's split.
@@ -62,7 +106,9 @@ class Beliefs:
     ``mean [n, T, Dx]``, ``cov [n, T, Dx, Dx]`` and ``log_prob [n, T, K]`` are the online
     filter's latent state and target histogram after the observations available at each of the
     ``T`` decision times; ``train``/``test`` index the trials. ``phases`` (a phase-aware IDDM
-    only) is the frame index of the state at each decision time.
+    only) is the frame index of the state at each decision time. ``rejected [n, T_seen]`` (bool,
+    ``None`` where not recorded) flags the observations ``0 .. max(steps_at)`` the filter
+    rejected as implausible and took as missing (its ``belief.rejected``).
     """
 
     model: IDDM
@@ -73,6 +119,7 @@ class Beliefs:
     train: torch.Tensor
     test: torch.Tensor
     phases: list[int] | None = None
+    rejected: torch.Tensor | None = None
 
     def vectors(self) -> torch.Tensor:
         """``[n, T, F]`` belief vectors (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
@@ -171,14 +218,25 @@ def filter_beliefs(
     test: torch.Tensor | None = None,
 ) -> Beliefs:
     """The online filter (Algorithm 3.2) of ``model`` over all strokes ``obs [n, T_obs, Dz]``,
-    its beliefs kept at the decision steps ``steps_at`` (grid and forgetting from ``config``);
-    ``train``/``test`` are recorded in the result (default: none / all)."""
+    its beliefs kept at the decision steps ``steps_at`` (grid and forgetting from ``config``)
+    and the observations it rejected (``Beliefs.rejected``); ``train``/``test`` are recorded in
+    the result (default: none / all).
+
+    Raises:
+        ValueError: ``obs`` not a ``[n, T_obs, Dz]`` tensor with ``n >= 1`` strokes;
+            ``steps_at`` empty or outside ``0 .. T_obs - 1`` (:func:`check_decision_steps`).
+    """
+    # NaN (missing) and implausible rows are the filter's to take or reject: no finiteness check
+    if not isinstance(obs, torch.Tensor) or obs.dim() != 3 or obs.shape[0] == 0:
+        got = tuple(obs.shape) if isinstance(obs, torch.Tensor) else type(obs).__name__
+        raise ValueError(f"obs must be a [n, T_obs, Dz] tensor with n >= 1 strokes, got {got}")
+    steps_at = check_decision_steps(steps_at, obs.shape[1])
     grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
     f = OnlineIntentionFilter(model, grid, forgetting=config.forgetting, batch_size=obs.shape[0])
-    means, covs, logs = [], [], []
+    means, covs, logs, flags = [], [], [], []
     with torch.no_grad():
         for t in range(max(steps_at) + 1):
-            f.update(obs[:, t])
+            flags.append(f.update(obs[:, t]).rejected)
             if t in steps_at:
                 means.append(f.mean.clone())
                 covs.append(f.cov.clone())
@@ -187,4 +245,4 @@ def filter_beliefs(
     train = torch.zeros(0, dtype=torch.long) if train is None else train
     test = torch.arange(obs.shape[0]) if test is None else test
     phases = list(steps_at) if f.phase else None  # x_t after observation t is frame t
-    return Beliefs(model, f, *stack, train, test, phases)
+    return Beliefs(model, f, *stack, train, test, phases, torch.stack(flags, 1))

@@ -311,3 +311,157 @@ def test_cv_return_rate_prefers_the_informative_source(problem):
     assert cv_return_rate(blind.vectors()[60:], rewards[60:], "moments") <= 0.65
     with pytest.raises(ValueError, match="at least"):
         cv_return_rate(blind.vectors()[:4], rewards[:4], "moments")
+
+
+# ------------------------------------------------------------------ argument checks (issue 54)
+GRID = torch.linspace(-1.2, 1.2, 13, dtype=torch.float64)
+
+
+def _flat(n: int = 4, t: int = 3) -> torch.Tensor:
+    return torch.full((n, t, 13), 1 / 13, dtype=torch.float64)
+
+
+def test_belief_track_refuses_beliefs_that_are_not_beliefs():
+    nan = _flat()
+    nan[0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="prob contains NaN"):
+        BeliefTrack("oracle", nan, GRID, [1, 2, 3])
+    with pytest.raises(ValueError, match=r"prob\[0, 0\] sums to 2 .* must sum to 1"):
+        BeliefTrack("oracle", 2 * _flat(), GRID, [1, 2, 3])
+    negative = _flat()
+    negative[1, 2, :2] = torch.tensor([-0.1, 0.1 + 1 / 13])
+    with pytest.raises(ValueError, match=r"prob\[1, 2, 0\] = -0.1 is negative"):
+        BeliefTrack("oracle", negative, GRID, [1, 2, 3])
+    with pytest.raises(ValueError, match="K = 5"):  # a grid of another size
+        BeliefTrack("oracle", _flat(), GRID[:5], [1, 2, 3])
+    with pytest.raises(ValueError, match="n >= 1 strokes"):
+        BeliefTrack("oracle", _flat(0), GRID, [1, 2, 3])
+    with pytest.raises(ValueError, match="one observation index per decision time"):
+        BeliefTrack("oracle", _flat(), GRID, [1, 2])
+    with pytest.raises(ValueError, match="steps_at must be observation indices >= 0"):
+        BeliefTrack("oracle", _flat(), GRID, [-3, -2, -1])
+    with pytest.raises(ValueError, match="rejected must be a"):
+        BeliefTrack("oracle", _flat(), GRID, [1, 2, 3], rejected=torch.zeros(4, 2, dtype=bool))
+    # a normalised belief's rounding passes: float64 within 1e-6, a float32 softmax too
+    near = _flat()
+    near[:, :, 0] += 1e-9
+    track = BeliefTrack("oracle", near, GRID, [1, 2, 3])
+    assert track.rejected.shape == (4, 3) and not bool(track.rejected.any())
+    logits = torch.randn(4, 3, 13, generator=torch.Generator().manual_seed(0)) * 30
+    BeliefTrack("oracle", logits.softmax(-1), GRID.float(), [1, 2, 3])
+
+
+def test_moment_vector_checks_its_arguments():
+    grid = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)
+    prob = torch.tensor([0.25, 0.5, 0.25], dtype=torch.float64)
+    with pytest.raises(ValueError, match="prob contains NaN"):
+        moment_vector(torch.tensor([float("nan"), 0.5, 0.5]), grid, 0, 3)
+    with pytest.raises(ValueError, match="prob sums to 3 .* must sum to 1"):
+        moment_vector(3 * prob, grid, 0, 3)
+    for step in (-1, 3):
+        with pytest.raises(ValueError, match=r"step must be a decision step in \[0, 2\]"):
+            moment_vector(prob, grid, step, 3)
+    with pytest.raises(TypeError, match="step must be an int"):
+        moment_vector(prob, grid, 1.0, 3)
+    with pytest.raises(ValueError, match="grid's 2 values"):
+        moment_vector(prob, grid[:2], 0, 3)
+    with pytest.raises(ValueError, match="num_steps must be at least 1"):
+        moment_vector(prob, grid, 0, 0)
+
+
+def test_track_beliefs_checks_strokes_and_steps():
+    obs, g, _ = _strokes(12, seed=5)
+    config = _Config()
+    for source in ("oracle", "linear-iddm"):  # refused before any model is fitted
+        with pytest.raises(ValueError, match="at least one stroke to track"):
+            track_beliefs(source, obs, g, obs[:0], g[:0], STEPS_AT, config)
+        with pytest.raises(ValueError, match="at least one decision time, got \\[\\]"):
+            track_beliefs(source, obs, g, obs, g, [], config)
+        with pytest.raises(ValueError, match="indices >= 0, got \\[-2, -1\\]"):
+            track_beliefs(source, obs, g, obs, g, [-2, -1], config)
+        with pytest.raises(ValueError, match="strokes' 5 frames \\(0 .. 4\\), got \\[4, 5\\]"):
+            track_beliefs(source, obs, g, obs, g, [4, 5], config)
+    with pytest.raises(TypeError, match="steps_at must be a list of observation indices"):
+        track_beliefs("oracle", obs, g, obs, g, [1.5, 2.5], config)
+    from hgpdm_torch.decision.beliefs import filter_beliefs
+
+    with pytest.raises(ValueError, match="obs must be a \\[n, T_obs, Dz\\] tensor with n >= 1"):
+        filter_beliefs(None, obs[:0], STEPS_AT, config)
+    with pytest.raises(ValueError, match="at least one decision time"):
+        filter_beliefs(None, obs, [], config)
+
+
+def test_oracle_refuses_targets_beyond_the_grid_unless_clipped():
+    obs, g, _ = _strokes(12, seed=5)
+    far = g.clone()
+    far[3] = 50.0
+    with pytest.raises(ValueError, match=r"targets\[3\] = 50 lies outside the belief grid "
+                                         r"\[-1.2, 1.2\].*clip=True"):  # fmt: skip
+        track_beliefs("oracle", obs, g, obs, far, STEPS_AT, _Config())
+    clipped = track_beliefs("oracle", obs, g, obs, far, STEPS_AT, _Config(), clip=True)
+    assert torch.allclose(clipped.mean()[3], torch.full((4,), 1.2, dtype=torch.float64))
+    # within half a grid step of the edge: the edge is its nearest value, as inside the grid
+    near = g.clone()
+    near[3] = -1.29
+    edge = track_beliefs("oracle", obs, g, obs, near, STEPS_AT, _Config())
+    assert torch.allclose(edge.mean()[3], torch.full((4,), -1.2, dtype=torch.float64))
+
+
+def test_targets_spread_below_the_grid_step_warns():
+    obs, g, _ = _strokes(12, seed=5)
+    with pytest.warns(UserWarning, match=r"targets have a spread .* of 0.00\d+, below the belief "
+                                         r"grid's step 0.2 .*standardise"):  # fmt: skip
+        track_beliefs("oracle", obs, g, obs, 0.01 * g, STEPS_AT, _Config())
+
+
+class _FixedLinearIDDM(LinearIDDM):
+    """The linear source's model without its cross-validated search (fast), for the flags."""
+
+    def __init__(self, **options):
+        super().__init__(interaction_rank=options["interaction_rank"], noise="diagonal",
+                         coef_precision=1.0, noise_prior=0.1)  # fmt: skip
+
+
+def test_linear_source_passes_on_the_warning_of_targets_in_small_units(monkeypatch):
+    """Targets of sd 0.007 on a grid that fits them: the linear model's prior, set for unit
+    scale, still hides them; its warning is not swallowed with the fit's others."""
+    from dataclasses import replace
+
+    monkeypatch.setattr("hgpdm_torch.models.LinearIDDM", _FixedLinearIDDM)
+    obs, g, _ = _strokes(24, seed=7)
+    config = replace(_Config(), grid_max=0.012)
+    with pytest.warns(UserWarning, match="LinearIDDM: the intentions have a standard deviation"):
+        track_beliefs("linear-iddm", obs[:20], 0.01 * g[:20], obs[20:], 0.01 * g[20:], STEPS_AT,
+                      config)  # fmt: skip
+
+
+def test_rejected_frames_are_flagged_on_the_track_and_warned_once(monkeypatch, problem):
+    monkeypatch.setattr("hgpdm_torch.models.LinearIDDM", _FixedLinearIDDM)
+    obs, g, _ = _strokes(30, seed=6)
+    bad = obs[20:].clone()
+    bad[3, 2, 1] = 1e200  # decision 1 (frame 2): rejected as missing
+    bad[5, 0, 0] = -1e200  # frame 0, before the first decision (frame 1): flags decision 0
+    with pytest.warns(UserWarning, match="observations of 2 stroke\\(s\\) \\(first: stroke 3\\) "
+                                         "were rejected") as caught:  # fmt: skip
+        track = track_beliefs("linear-iddm", obs[:20], g[:20], bad, g[20:], STEPS_AT, _Config())
+    assert sum("were rejected" in str(w.message) for w in caught) == 1  # once per track
+    expected = torch.zeros(10, 4, dtype=torch.bool)
+    expected[3, 1] = expected[5, 0] = True
+    assert torch.equal(track.rejected, expected)
+    assert bool(torch.isfinite(track.prob).all())
+    # the GP IDDM's online filter: its rejected observations are kept with its beliefs
+    from hgpdm_torch.decision.beliefs import filter_beliefs
+
+    full, _, _, tracks = problem
+    bad = full[:6].clone()
+    bad[2, 3, 0] = 1e200
+    beliefs = filter_beliefs(tracks["gp-iddm"].latent.model, bad, STEPS_AT, _Config())
+    assert beliefs.rejected.shape == (6, 5) and beliefs.rejected.nonzero().tolist() == [[2, 3]]
+
+
+def test_draw_next_checks_the_stroke(problem):
+    _, _, _, tracks = problem
+    with pytest.raises(ValueError, match=r"trial must be a stroke index in \[0, 119\]"):
+        tracks["oracle"].draw_next(120, 0, 5)
+    with pytest.raises(ValueError, match="num must be at least 1"):
+        tracks["oracle"].draw_next(0, 0, 0)

@@ -880,3 +880,23 @@ def test_fit_needs_two_distinct_intention_values(generator):
     two = (torch.arange(20) % 2).double()
     assert LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, two).grid().shape == (25, 1)
     LinearIDDM(coef_precision=1.0, noise_prior=0.1).fit(obs, torch.stack([two, 0 * two], 1))
+
+
+def test_fit_warns_of_a_continuous_intention_far_below_unit_scale(generator):
+    """g in small units: the coefficient prior, set for unit-scale inputs, hides its effect and
+    the belief is near uniform (issue 54). The warning names g's spread and the scale."""
+    obs, g = _phase_system(60, generator)  # g uniform on +-1: standard deviation about 0.58
+    options = {"coef_precision": 1.0, "noise_prior": 0.1}
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="LinearIDDM: the intentions")
+        sharp = LinearIDDM(**options).fit(obs, g).beliefs(obs[:10]).prob[:, -1]
+    match = (r"standard deviation of [\d.e-]+, below 0.1, while the coefficient prior "
+             r"\(coef_precision\) is set for inputs of unit scale.*standardise g")  # fmt: skip
+    for scale in (0.01, 1e-12):
+        with pytest.warns(UserWarning, match=match):
+            model = LinearIDDM(**options).fit(obs, scale * g)
+        flat = model.beliefs(obs[:10]).prob[:, -1]
+        assert float(flat.max()) < 2 / 25 < float(sharp.max(-1).values.min())  # near uniform
+    two = torch.stack([g, 0.01 * g, torch.zeros_like(g)], 1)  # a constant dimension: nothing
+    with pytest.warns(UserWarning, match="in dimension 1, below 0.1"):
+        LinearIDDM(**options).fit(obs, two)
