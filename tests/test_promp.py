@@ -206,3 +206,33 @@ def test_regressor_chooses_by_cross_validation():
         ProMPRegressor(grid={"windows": (1,)})
     with pytest.raises(RuntimeError, match="fit"):
         ProMPRegressor().predict(torch.zeros(1, 3, 2))
+
+
+def test_next_frame_draws_match_the_dense_predictive():
+    seqs, g = _movements(25, 10, seed=5)
+    model = ProMP(num_basis=5).fit(seqs, g)
+    assert len(model.durations) == 1
+    prefix = seqs[0][:4]
+    # the dense joint of the prefix and frame 4 (rows (channel, frame)), conditioned
+    d, nb, T = 2, 5, float(model.durations[0])
+    phi = model.basis(5, torch.tensor([T], dtype=torch.float64))[0].numpy()
+    H = np.kron(np.eye(d), phi)  # [(d, 5 frames), d nb]
+    m, S = model.mean[: d * nb].numpy(), model.cov[: d * nb, : d * nb].numpy()
+    cov = H @ S @ H.T + np.diag(np.repeat(model.noise.numpy(), 5))
+    mean = H @ m
+    seen = [k * 5 + j for k in range(d) for j in range(4)]
+    nxt = [k * 5 + 4 for k in range(d)]
+    gain = np.linalg.solve(cov[np.ix_(seen, seen)], cov[np.ix_(seen, nxt)]).T
+    y = prefix.T.reshape(-1).numpy()
+    want_mean = mean[nxt] + gain @ (y - mean[seen])
+    want_cov = cov[np.ix_(nxt, nxt)] - gain @ cov[np.ix_(seen, nxt)]
+    n = 40_000
+    draws = model.sample_next(prefix[None], n, torch.Generator().manual_seed(0))[0].numpy()
+    sd = np.sqrt(np.diag(want_cov))
+    # Monte Carlo: the sample mean errs ~sd / sqrt(n), the sample covariance ~sd^2 sqrt(2 / n)
+    np.testing.assert_array_less(np.abs(draws.mean(0) - want_mean), 5 * sd / np.sqrt(n))
+    np.testing.assert_array_less(
+        np.abs(np.cov(draws.T) - want_cov), 5 * np.outer(sd, sd) * np.sqrt(2 / n)
+    )
+    with pytest.raises(ValueError, match="at least one frame"):
+        model.sample_next(prefix[None, :0], 3)

@@ -193,28 +193,20 @@ class ProMP:
         return self
 
     # -- conditioning ----------------------------------------------------------------------
-    def condition(self, prefix: Any) -> PrefixPosterior:
-        """Condition on the first ``t`` frames of ``B`` movements, ``prefix [B, t, D]``
-        (``t = 0``: the prior), mixing the candidate durations by their evidence.
-
-        Raises:
-            RuntimeError: before :meth:`fit`.
-            ValueError: a prefix that is not ``[B, t, D]`` or not finite.
-        """
+    def _checked(self, prefix: Any) -> torch.Tensor:
         if not hasattr(self, "mean"):
-            raise RuntimeError("ProMP.condition: call fit(sequences) first")
+            raise RuntimeError(f"this {type(self).__name__} is not fitted: call fit(sequences)")
         y = as_tensor(prefix, "prefix", dtype=torch.float64)
         if y.dim() != 3 or y.shape[2] != self.dim:
             raise ValueError(f"prefix must be [B, t, D = {self.dim}], got {tuple(y.shape)}")
+        return y
+
+    def _per_duration(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For each candidate duration: the log evidence with the prior over candidates ``[B,
+        C]``, the posterior mean of ``[w, e]`` ``[B, C, M]`` and the Cholesky factor of its
+        precision ``P_c`` ``[C, M, M]`` given ``y [B, t >= 1, D]``."""
         b, t, d = y.shape
-        n_w, nb = d * self.num_basis, self.num_basis
-        C = len(self.durations)
-        e_mean, e_cov = self.mean[n_w:], self.cov[n_w:, n_w:]
-        if t == 0:
-            weights = y.new_full((b, C), 1.0 / C)
-            return PrefixPosterior(
-                y.new_zeros(b), e_mean.expand(b, -1), e_cov.expand(b, -1, -1), weights
-            )
+        n_w, nb, C = d * self.num_basis, self.num_basis, len(self.durations)
         phi = self.basis(t, self.durations)  # [C, t, B]
         # P_c = S^-1 + H_c^T R^-1 H_c: H_c is block diagonal (one block phi_c per channel)
         gram = phi.mT @ phi  # [C, B, B]
@@ -233,17 +225,33 @@ class ProMP:
         sol = torch.cholesky_solve(u.permute(1, 2, 0), chol).permute(2, 0, 1)
         quad = (r * r * self.noise).sum((2, 3)) - (u * sol).sum(-1)  # r^T R^-1 r - u^T P^-1 u
         # |H S H^T + R| = |R| |S| |P_c| (matrix determinant lemma)
-        logdet = (
-            2
-            * (chol.diagonal(dim1=-2, dim2=-1).log().sum(-1) + self.cov_chol.diagonal().log().sum())
-            + t * self.noise.log().sum()
-        )
+        logdet = 2 * (
+            chol.diagonal(dim1=-2, dim2=-1).log().sum(-1) + self.cov_chol.diagonal().log().sum()
+        ) + t * self.noise.log().sum()  # fmt: skip
         log_ev = -0.5 * (quad + logdet + t * d * math.log(2 * math.pi))  # [B, C]
-        log_ev = log_ev - math.log(C)  # a uniform prior over the candidates
+        return log_ev - math.log(C), self.mean + sol, chol  # a uniform prior over candidates
+
+    def condition(self, prefix: Any) -> PrefixPosterior:
+        """Condition on the first ``t`` frames of ``B`` movements, ``prefix [B, t, D]``
+        (``t = 0``: the prior), mixing the candidate durations by their evidence.
+
+        Raises:
+            RuntimeError: before :meth:`fit`.
+            ValueError: a prefix that is not ``[B, t, D]`` or not finite.
+        """
+        y = self._checked(prefix)
+        b, n_w, C = y.shape[0], self.dim * self.num_basis, len(self.durations)
+        if y.shape[1] == 0:
+            e_mean, e_cov = self.mean[n_w:], self.cov[n_w:, n_w:]
+            weights = y.new_full((b, C), 1.0 / C)
+            return PrefixPosterior(
+                y.new_zeros(b), e_mean.expand(b, -1), e_cov.expand(b, -1, -1), weights
+            )
+        log_ev, z_mean, chol = self._per_duration(y)
         total = torch.logsumexp(log_ev, 1)
         weights = (log_ev - total[:, None]).exp()
-        # e | Y, T_c: mean m_e + (P_c^-1 u)_e, covariance (P_c^-1)_ee
-        means = e_mean + sol[..., n_w:]  # [B, C, E]
+        # e | Y, T_c: the extras' part of the posterior mean, covariance (P_c^-1)_ee
+        means = z_mean[..., n_w:]  # [B, C, E]
         eye = torch.eye(n_w + self.num_extras, dtype=y.dtype)[:, n_w:]
         covs = torch.cholesky_solve(eye.expand(C, -1, -1), chol)[:, n_w:]  # [C, E, E]
         mean = (weights[..., None] * means).sum(1)
@@ -252,6 +260,33 @@ class ProMP:
             "bc,bce,bcf->bef", weights, spread, spread
         )
         return PrefixPosterior(total, mean, cov, weights)
+
+    def sample_next(
+        self, prefix: Any, num: int, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """Draws of the frame after the prefix ``[B, t >= 1, D]``: ``[B, num, D]`` from the
+        predictive mixture over the durations, ``y_t | Y, T_c ~ N(H_c(t) E[w], H_c(t)
+        P_c^-1 H_c(t)^T + R)``.
+
+        Raises:
+            RuntimeError: before :meth:`fit`.
+            ValueError: an empty or malformed prefix, ``num < 1``.
+        """
+        y = self._checked(prefix)
+        num = _positive_int(num, "num")
+        b, t, d = y.shape
+        if t == 0:
+            raise ValueError("prefix must hold at least one frame to predict the next from")
+        log_ev, z_mean, chol = self._per_duration(y)
+        phi = self.basis(t + 1, self.durations)[:, -1]  # [C, B]: frame t of each candidate
+        H = torch.kron(torch.eye(d, dtype=y.dtype), phi[:, None, :])  # [C, D, D B]
+        H = torch.nn.functional.pad(H, (0, self.num_extras))  # [C, D, M]
+        mean = torch.einsum("cdm,bcm->bcd", H, z_mean)  # [B, C, D]
+        cov = H @ torch.cholesky_solve(H.mT, chol) + torch.diag(self.noise)  # [C, D, D]
+        pick = torch.multinomial(log_ev.softmax(1), num, replacement=True, generator=generator)
+        eps = torch.randn(b, num, d, dtype=y.dtype, generator=generator)
+        scale = torch.linalg.cholesky(cov)[pick]  # [B, num, D, D]
+        return mean.gather(1, pick[..., None].expand(-1, -1, d)) + (scale @ eps[..., None])[..., 0]
 
     def log_likelihood(self, prefix: Any) -> torch.Tensor:
         """``log p(prefix) [B]`` of ``prefix [B, t, D]``, mixed over the durations."""

@@ -18,6 +18,11 @@ decision time for Monte-Carlo planning (Algorithm 4.2, :meth:`BeliefTrack.draw_n
   prior, temperature and forgetting by cross-validation), the best target predictor of the
   target-prediction experiment; particles draw ``g`` from the belief and the next frame from the
   model's Student-t predictive, then update a copy of the stream.
+- ``"promp"``: a probabilistic movement primitive over the observations jointly with the
+  target, conditioned on the stroke so far with its phase estimated
+  (:class:`~hgpdm_torch.baselines.ProMPRegressor`, options by cross-validation; the
+  interaction-primitive baseline, not in the thesis); the belief is its Gaussian over the target
+  on the grid; particles draw the next observation from its predictive and condition again.
 - ``"oracle"``: the true target as a point belief (a reference row: what a perfect belief would
   give the same planner; waiting teaches it nothing).
 
@@ -66,10 +71,10 @@ __all__ = [
     "track_beliefs",
 ]
 
-BELIEF_SOURCES = ("gp-iddm", "phase-gp-iddm", "linear-iddm", "oracle")
+BELIEF_SOURCES = ("gp-iddm", "phase-gp-iddm", "linear-iddm", "promp", "oracle")
 """Every belief source :func:`track_beliefs` builds."""
 
-SELECTABLE_SOURCES = ("linear-iddm", "gp-iddm")
+SELECTABLE_SOURCES = ("linear-iddm", "gp-iddm", "promp")
 """The candidates of a player's cross-validated choice of source (``belief="auto"``); the order
 breaks ties."""
 
@@ -385,6 +390,8 @@ def track_beliefs(
         track = _gp_track(source, train_obs, train_targets, obs, steps_at, config, grid, options)
     elif source == "linear-iddm":
         track = _linear_track(train_obs, train_targets, obs, steps_at, grid)
+    elif source == "promp":
+        track = _promp_track(train_obs, train_targets, obs, steps_at, grid)
     else:
         track = _oracle_track(targets, steps_at, grid, clip)
     if bool(track.rejected.any()):
@@ -520,6 +527,36 @@ def _linear_track(
     prob = torch.stack(probs, 1).to(obs.dtype)
     rejected = _per_decision(torch.stack(flags, 1), steps_at)
     return BeliefTrack("linear-iddm", prob, grid, steps_at, None, fits, rejected, _sampler=sample)
+
+
+def _promp_track(
+    train_obs: torch.Tensor, train_targets: torch.Tensor, obs: torch.Tensor, steps_at: list[int],
+    grid: torch.Tensor,
+) -> BeliefTrack:  # fmt: skip
+    from ..baselines import ProMPRegressor
+
+    regressor = ProMPRegressor().fit(list(train_obs.double()), train_targets.double())
+    model = regressor.model
+
+    def on_grid(prefix: torch.Tensor) -> torch.Tensor:
+        """The ProMP's Gaussian over the target, normalised over the grid values ``[B, K]``."""
+        post = model.condition(prefix)
+        mean, var = post.mean[:, 0], post.cov[:, 0, 0]
+        log_p = -0.5 * (grid.double() - mean[:, None]).pow(2) / var[:, None]
+        return log_p.softmax(-1)  # in logs: a sure belief puts all mass on one value, no 0 / 0
+
+    prob = torch.stack([on_grid(obs[:, : s + 1].double()) for s in steps_at], 1)
+
+    def sample(trial: int, step: int, num: int, generator: torch.Generator | None) -> tuple:
+        prefix = obs[trial, : steps_at[step] + 1].double()
+        nxt = model.sample_next(prefix[None], num, generator)[0]  # [num, Dz]
+        grown = torch.cat([prefix.expand(num, -1, -1), nxt[:, None]], 1)
+        return on_grid(grown).to(obs.dtype), None, None
+
+    fits = [{"options": {k: str(v) for k, v in regressor.options.items()}}]
+    rejected = torch.zeros(prob.shape[:2], dtype=torch.bool)  # the ProMP reads every frame
+    return BeliefTrack("promp", prob.to(obs.dtype), grid, steps_at, None, fits, rejected,
+                       _sampler=sample)  # fmt: skip
 
 
 def _copy_stream(stream: Any) -> Any:
