@@ -6,6 +6,7 @@ Every public function that takes user data calls these helpers so that bad input
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Sequence
 
@@ -18,10 +19,13 @@ __all__ = [
     "as_tensor",
     "bad_observation",
     "check_choice",
+    "check_dtype",
     "check_finite",
+    "check_magnitude",
     "check_outlier_sd",
     "check_probability",
     "check_shape",
+    "positive_reals",
     "real_scalar",
 ]
 
@@ -140,6 +144,81 @@ def real_scalar(value: object, name: str) -> float:
     if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
     return float(value)
+
+
+def positive_reals(value: object, name: str, size: int) -> tuple[float, ...]:
+    """``value`` as ``size`` positive finite floats: a sequence, array or 1-D tensor of reals.
+
+    Raises:
+        TypeError: not a sequence of real numbers (a lone number, a str, a bool entry).
+        ValueError: not ``size`` entries, or an entry that is not positive and finite.
+    """
+    what = f"a sequence of {size} positive finite numbers"
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().reshape(-1).tolist() if value.dim() == 1 else value
+    elif isinstance(value, np.ndarray) and value.ndim == 1:
+        value = value.tolist()
+    if not isinstance(value, Sequence) or isinstance(value, str | bytes):
+        raise TypeError(f"{name} must be {what}, got {value!r}")
+    entries = []
+    for i, v in enumerate(value):
+        try:
+            entries.append(real_scalar(v, f"{name}[{i}]"))
+        except TypeError as err:
+            raise TypeError(f"{name} must be {what}: {err}") from None
+    if len(entries) != size:
+        raise ValueError(f"{name} must be {what}, got {len(entries)}: {list(value)!r}")
+    bad = [v for v in entries if not (v > 0 and math.isfinite(v))]
+    if bad:
+        raise ValueError(f"{name} must be {what}, got {list(value)!r}")
+    return tuple(entries)
+
+
+#: The floating dtypes of the models (GP algebra needs at least float32; float16 and bfloat16
+#: have no Cholesky factor on the CPU and far too little precision).
+MODEL_DTYPES = (torch.float32, torch.float64)
+
+
+def check_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
+    """``dtype`` if it is one of :data:`MODEL_DTYPES`.
+
+    A string such as ``"float64"`` is refused, as torch itself does, with a hint: accepting it
+    here only would make ``dtype`` mean different things in different calls.
+
+    Raises:
+        TypeError: anything else, naming ``name`` and the accepted values.
+    """
+    if isinstance(dtype, torch.dtype) and dtype in MODEL_DTYPES:
+        return dtype
+    hint = f" (a str; pass torch.{dtype} instead)" if isinstance(dtype, str) else ""
+    raise TypeError(f"{name} must be torch.float32 or torch.float64, got {dtype!r}{hint}")
+
+
+def check_magnitude(t: torch.Tensor, name: str) -> None:
+    """Refuse data whose magnitude the model's arithmetic in ``t.dtype`` cannot carry.
+
+    A GP model squares its data (channel variances, output scales ``1 / std``, predictive
+    variances ``std^2``): the largest magnitude must lie between ``sqrt(finfo.tiny) 1e4`` and
+    ``sqrt(finfo.max) 1e-4`` (about 1e-150 and 1e150 in float64, 1e-15 and 1e15 in float32),
+    so that a sum of squares over up to 1e8 frames neither overflows nor underflows. Zero data
+    are left to the caller's checks (a constant channel).
+
+    Raises:
+        ValueError: naming ``name``, the largest magnitude found, the bound and what to do.
+    """
+    if t.numel() == 0:
+        return
+    info = torch.finfo(t.dtype)
+    high, low = math.sqrt(info.max) * 1e-4, math.sqrt(info.tiny) * 1e4
+    biggest = float(t.detach().abs().max())
+    if biggest > high or 0 < biggest < low:
+        where = f"above {high:.1e}" if biggest > high else f"below {low:.1e}"
+        raise ValueError(
+            f"{name} hold values up to {biggest:.3g} in magnitude, {where}, where the model's "
+            f"{str(t.dtype).removeprefix('torch.')} arithmetic (squares for variances and "
+            "output scales) overflows or underflows; rescale the data, e.g. standardise each "
+            "channel (hgpdm_torch.datasets.Standardizer) or change its units"
+        )
 
 
 def check_outlier_sd(outlier_sd: object) -> float | None:

@@ -138,6 +138,57 @@ def test_bad_inputs_raise(styles):
         WindowSVM().fit([], [])
 
 
+@pytest.mark.parametrize(
+    "build,match",
+    [
+        (lambda: HMMClassifier(0), r"states .* int >= 1, got 0"),
+        (lambda: HMMClassifier(-2), r"states .* int >= 1, got -2"),
+        (lambda: HMMClassifier(2.5), r"states"),
+        (lambda: HMMClassifier(2, window=0), r"window must be an int >= 1"),
+        (lambda: HMMClassifier(2, iterations=0), r"iterations"),
+        (lambda: WindowSVM(window=0), r"window"),
+        (lambda: WindowGPC(samples=0), r"samples"),
+        (lambda: WindowGPR(windows=2), r"windows must be a non-empty sequence"),
+        (lambda: WindowRidge(windows=(1, True)), r"windows"),
+    ],
+)
+def test_bad_settings_are_refused_when_built(build, match):
+    """Issue 54: HMMClassifier(0) and (-2) failed only in fit, with ZeroDivisionError and a
+    NumPy error; WindowGPR(windows=2) with "object of type 'int' has no len()"."""
+    with pytest.raises(ValueError, match=match):
+        build()
+
+
+@pytest.mark.parametrize(
+    "make,call",
+    [
+        (WindowGPR, "fit(sequences, targets)"),
+        (WindowRidge, "fit(sequences, targets)"),
+        (MedianPredictor, "fit(sequences, targets)"),
+        (WindowSVM, "fit(sequences, labels)"),
+        (WindowGPC, "fit(sequences, labels)"),
+        (lambda: pytest.importorskip("hmmlearn") and HMMClassifier(), "fit(sequences, labels)"),
+    ],
+)
+def test_predict_before_fit_says_so(make, call):
+    """Issue 54: a window baseline used before fit raised AttributeError."""
+    model = make()
+    with pytest.raises(RuntimeError, match=rf"{type(model).__name__} is not fitted yet") as err:
+        model.predict(torch.zeros(5, 2))
+    assert f"call {call}" in str(err.value)
+    for name in ("predict_proba", "log_likelihood"):
+        if hasattr(model, name):
+            with pytest.raises(RuntimeError, match="not fitted yet"):
+                getattr(model, name)(torch.zeros(5, 2))
+
+
+def test_hmm_classifier_names_a_class_without_sequences():
+    pytest.importorskip("hmmlearn")
+    seqs = [torch.randn(12, 2, generator=torch.Generator().manual_seed(j)) for j in range(4)]
+    with pytest.raises(ValueError, match="class 1 has no training sequence"):
+        HMMClassifier(2, iterations=2).fit(seqs, [0, 0, 2, 2])
+
+
 # ------------------------------------------------------------------------------------------
 # Next-frame forecasters
 # ------------------------------------------------------------------------------------------

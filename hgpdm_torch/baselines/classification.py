@@ -19,9 +19,17 @@ from sklearn.svm import SVC
 
 from ..validation import as_tensor
 from .exact_gp import ExactGPModel, fit_marginal_likelihood
-from .windows import as_sequences, labelled_windows, prediction_windows
+from .windows import (
+    as_sequences,
+    check_fitted,
+    labelled_windows,
+    positive_int,
+    prediction_windows,
+)
 
 __all__ = ["HMMClassifier", "WindowGPC", "WindowSVM"]
+
+_FIT_CALL = "fit(sequences, labels)"
 
 
 def _class_labels(labels: Any, num: int) -> torch.Tensor:
@@ -40,10 +48,14 @@ class WindowSVM:
         window: window size w.
         C: the ``SVC`` regularisation parameter.
         gamma: the ``SVC`` RBF kernel width (``"scale"``, ``"auto"`` or a float).
+
+    Raises:
+        ValueError: ``window`` is not a positive int.
+        RuntimeError: ``predict`` before ``fit``.
     """
 
     def __init__(self, window: int = 5, *, C: float = 10.0, gamma: str | float = "scale") -> None:
-        self.window, self.C, self.gamma = int(window), C, gamma
+        self.window, self.C, self.gamma = positive_int(window, "window"), C, gamma
 
     def fit(self, sequences: Any, labels: Any) -> WindowSVM:
         seqs = as_sequences(sequences)
@@ -56,6 +68,7 @@ class WindowSVM:
 
     def predict(self, z: Any) -> torch.Tensor:
         """Class at every step: ``[..., T, Dz]`` -> ``[..., T]`` (long)."""
+        check_fitted(self, "svc", _FIT_CALL)
         x = prediction_windows(z, self.window, self.obs_dim)
         flat = self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy())
         return torch.as_tensor(self.svc.predict(flat)).reshape(x.shape[:-1]).long()
@@ -74,14 +87,21 @@ class WindowGPC:
         lr: Adam learning rate.
         samples: posterior samples for the class probabilities.
         seed: seed of the posterior samples.
+
+    Raises:
+        ValueError: ``window`` or ``samples`` is not a positive int, ``steps`` or ``seed`` not
+            a non-negative int.
+        RuntimeError: ``predict`` or ``predict_proba`` before ``fit``.
     """
 
     def __init__(
         self, window: int = 5, *, steps: int = 100, lr: float = 0.1, samples: int = 256,
         seed: int = 0,
     ) -> None:  # fmt: skip
-        self.window, self.steps, self.lr = int(window), int(steps), float(lr)
-        self.samples, self.seed = int(samples), int(seed)
+        self.window, self.lr = positive_int(window, "window"), float(lr)
+        self.steps = positive_int(steps, "steps", low=0)
+        self.samples = positive_int(samples, "samples")
+        self.seed = positive_int(seed, "seed", low=0)
 
     def fit(self, sequences: Any, labels: Any) -> WindowGPC:
         seqs = as_sequences(sequences)
@@ -103,6 +123,7 @@ class WindowGPC:
     @torch.no_grad()
     def predict_proba(self, z: Any) -> torch.Tensor:
         """Class probabilities at every step: ``[..., T, Dz]`` -> ``[..., T, C]``."""
+        check_fitted(self, "model", _FIT_CALL)
         x = prediction_windows(z, self.window, self.obs_dim)
         flat = torch.as_tensor(self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy()))
         f = self.model(flat)  # batch of C GPs over the M points
@@ -127,36 +148,49 @@ class HMMClassifier:
 
     Raises:
         ImportError: when the optional ``hmmlearn`` package is missing.
+        ValueError: ``states``, ``iterations`` or ``window`` (unless ``None``) is not a
+            positive int, or ``seed`` not a non-negative int.
+        RuntimeError: ``predict``, ``predict_proba`` or ``log_likelihood`` before ``fit``.
     """
 
     def __init__(
         self, states: int = 4, *, window: int | None = 5, iterations: int = 50, seed: int = 0
     ) -> None:
+        # checked before the import, so that a bad argument is named with or without hmmlearn
+        self.states = positive_int(states, "states (hidden states per class)")
+        self.window = None if window is None else positive_int(window, "window")
+        self.iterations = positive_int(iterations, "iterations")
+        self.seed = positive_int(seed, "seed", low=0)
         try:
             from hmmlearn.hmm import GaussianHMM
         except ImportError as err:  # optional extra
             raise ImportError("HMMClassifier needs the optional package hmmlearn") from err
         self._hmm = GaussianHMM
-        self.states, self.window = int(states), window
-        self.iterations, self.seed = int(iterations), int(seed)
 
     def fit(self, sequences: Any, labels: Any) -> HMMClassifier:
         seqs = as_sequences(sequences)
         y = _class_labels(labels, len(seqs))
         self.obs_dim, self.num_classes = seqs[0].shape[1], int(y.max()) + 1
-        self.hmms = []
+        hmms = []
         for c in range(self.num_classes):
             data = [seqs[j].numpy() for j in range(len(seqs)) if int(y[j]) == c]
+            if not data:
+                raise ValueError(
+                    f"labels must use every class code 0..{self.num_classes - 1}: class {c} "
+                    "has no training sequence, so it has no HMM"
+                )
             hmm = self._hmm(
                 self.states, covariance_type="diag", n_iter=self.iterations,
                 random_state=self.seed,
             )  # fmt: skip
             hmm.fit(np.concatenate(data), [len(d) for d in data])
-            self.hmms.append(hmm)
+            hmms.append(hmm)
+        self.hmms = hmms  # only a completed fit marks the classifier fitted
         return self
 
     def log_likelihood(self, z: Any) -> torch.Tensor:
         """Window log-likelihood under each class: ``[..., T, Dz]`` -> ``[..., T, C]``."""
+        check_fitted(self, "hmms", _FIT_CALL)
         z = as_tensor(z, "z", min_ndim=2)
         if z.shape[-1] != self.obs_dim:
             raise ValueError(f"z must have Dz = {self.obs_dim} columns, got {z.shape}")

@@ -21,7 +21,13 @@ from sklearn.preprocessing import StandardScaler
 
 from ..validation import as_tensor
 from .exact_gp import ExactGPModel, fit_marginal_likelihood
-from .windows import as_sequences, labelled_windows, prediction_windows
+from .windows import (
+    as_sequences,
+    check_fitted,
+    labelled_windows,
+    positive_int,
+    prediction_windows,
+)
 
 __all__ = ["MedianPredictor", "WindowGPR", "WindowRidge"]
 
@@ -34,8 +40,16 @@ class _WindowRegressor:
     """
 
     def __init__(self, windows: Sequence[int], val_fraction: float, seed: int) -> None:
-        if len(windows) == 0 or any(not isinstance(w, int) or w < 1 for w in windows):
-            raise ValueError(f"windows must be positive ints, got {windows!r}")
+        if (
+            not isinstance(windows, Sequence)
+            or isinstance(windows, str)
+            or len(windows) == 0
+            or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in windows)
+        ):
+            raise ValueError(
+                f"windows must be a non-empty sequence of positive ints (candidate window "
+                f"sizes, e.g. (1, 2, 3)), got {windows!r}"
+            )
         if not 0 < val_fraction < 1:
             raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
         self.windows, self.val_fraction, self.seed = tuple(windows), float(val_fraction), int(seed)
@@ -72,6 +86,7 @@ class _WindowRegressor:
         return self
 
     def _predict(self, z: Any) -> tuple[torch.Tensor, torch.Tensor | None]:
+        check_fitted(self, "model", "fit(sequences, targets)")
         x = prediction_windows(z, self.window, self.obs_dim)
         flat = torch.as_tensor(self.scaler.transform(x.reshape(-1, x.shape[-1]).numpy()))
         mean, std = self._predict_flat(flat)
@@ -87,6 +102,11 @@ class WindowGPR(_WindowRegressor):
         val_fraction: fraction of training sequences held out to choose the window.
         steps: Adam steps on the marginal likelihood; lr: its learning rate.
         seed: seed of the validation split.
+
+    Raises:
+        ValueError: ``windows`` not positive ints, ``val_fraction`` outside ``(0, 1)``,
+            ``steps`` not a non-negative int.
+        RuntimeError: ``predict`` before ``fit``.
     """
 
     def __init__(
@@ -99,7 +119,7 @@ class WindowGPR(_WindowRegressor):
         seed: int = 0,
     ) -> None:
         super().__init__(windows, val_fraction, seed)
-        self.steps, self.lr = int(steps), float(lr)
+        self.steps, self.lr = positive_int(steps, "steps", low=0), float(lr)
 
     def _train(self, sequences, targets, window) -> None:
         x, y = labelled_windows(sequences, targets, window)
@@ -132,6 +152,11 @@ class WindowRidge(_WindowRegressor):
         alphas: candidate ridge penalties.
         val_fraction: fraction of training sequences held out to choose the window.
         seed: seed of the validation split.
+
+    Raises:
+        ValueError: ``windows`` not positive ints, ``alphas`` not positive, ``val_fraction``
+            outside ``(0, 1)``.
+        RuntimeError: ``predict`` before ``fit``.
     """
 
     def __init__(
@@ -161,13 +186,22 @@ class WindowRidge(_WindowRegressor):
 
 
 class MedianPredictor:
-    """The model-free baseline: the median of the training targets, at every step."""
+    """The model-free baseline: the median of the training targets, at every step.
+
+    Raises:
+        ValueError: ``fit`` with no target.
+        RuntimeError: ``predict`` before ``fit``.
+    """
 
     def fit(self, sequences: Any, targets: Any) -> MedianPredictor:
-        self.median = float(as_tensor(targets, "targets", ndim=1).median())
+        y = as_tensor(targets, "targets", ndim=1)
+        if y.numel() == 0:
+            raise ValueError("targets must hold at least one value, got none")
+        self.median = float(y.median())
         return self
 
     def predict(self, z: Any) -> torch.Tensor:
         """``[..., T, Dz]`` -> ``[..., T]``."""
+        check_fitted(self, "median", "fit(sequences, targets)")
         z = as_tensor(z, "z", min_ndim=2, allow_nan=True)
         return torch.full(z.shape[:-1], self.median, dtype=z.dtype)

@@ -8,6 +8,7 @@ target or class; the helpers here check those inputs and build the rows.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from typing import Any
 
@@ -36,6 +37,30 @@ def window_features(z: torch.Tensor, window: int) -> torch.Tensor:
     padded = torch.cat([first, z], dim=-2)
     frames = [padded[..., i : i + z.shape[-2], :] for i in range(window)]
     return torch.cat(frames, dim=-1)
+
+
+def positive_int(value: object, name: str, *, low: int = 1) -> int:
+    """``value`` as an int ``>= low`` (a Python or NumPy integer, not a bool).
+
+    Raises:
+        ValueError: anything else, naming ``name``.
+    """
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+    if value < low:
+        raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+    return int(value)
+
+
+def check_fitted(model: object, attribute: str, fit_call: str) -> None:
+    """Raise ``RuntimeError`` unless ``fit`` has set ``attribute`` on ``model``.
+
+    ``fit_call`` is the call to show, e.g. ``"fit(sequences, labels)"``.
+    """
+    if not hasattr(model, attribute):
+        raise RuntimeError(
+            f"this {type(model).__name__} is not fitted yet: call {fit_call} before predicting"
+        )
 
 
 def as_sequences(sequences: Any, name: str = "sequences") -> list[torch.Tensor]:

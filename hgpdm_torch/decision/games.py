@@ -190,10 +190,21 @@ def minimax_equilibrium(reward: object) -> tuple[np.ndarray, np.ndarray]:
     which sum to one). Each bounds the game value independently of the LP's accuracy:
     ``min(R^T pi_i) <= value <= max(R pi_j)``.
 
+    The LP sees ``R / max|R|``: both strategies are invariant to a positive scaling of ``R``,
+    and HiGHS works in absolute tolerances, so rewards of any magnitude (1e-300 to 1e300) get
+    the accuracy of rewards of order one (unscaled, entries near 1e300 are a "Model error" and
+    entries near 1e-300 all look alike).
+
     Returns:
         ``([Ai] pi_i, [Aj] pi_j)``.
+
+    Raises:
+        ValueError: ``reward`` is not a finite 2-D array with at least one row and column.
     """
     r = check_reward_matrix(reward)
+    biggest = float(np.abs(r).max())
+    if biggest > 0:
+        r = r / biggest
     n_i, n_j = r.shape
     cost = np.r_[np.zeros(n_i), -1.0]  # minimise -v
     a_ub = np.c_[-r.T, np.ones(n_j)]  # v - (R^T pi)_k <= 0

@@ -35,7 +35,14 @@ from ..gaussian import LOG_2PI
 from ..gp import GPPosterior
 from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
 from ..linalg import gaussian_nll
-from ..validation import as_tensor, check_choice, check_sequences
+from ..validation import (
+    as_tensor,
+    check_choice,
+    check_dtype,
+    check_magnitude,
+    check_sequences,
+    positive_reals,
+)
 from .back_constraints import make_back_constraint
 from .persistence import SavedModel, save_model
 
@@ -140,7 +147,16 @@ class GPDM(gpytorch.Module, SavedModel):
             ``initialise(inputs, latent)``.
         init: ``"pca"`` (default) or a ``[M, Dx]`` tensor of initial latent states, M the total
             number of frames.
-        dtype: floating dtype of data and parameters (float64 recommended for GP algebra).
+        dtype: ``torch.float64`` (recommended for GP algebra) or ``torch.float32``, the dtype
+            of data and parameters.
+
+    Raises:
+        TypeError: ``dtype`` is not torch.float32/float64, ``alpha`` is not a sequence of
+            numbers, or another argument has the wrong type.
+        ValueError: ``alpha`` is not 4 positive finite numbers; ``sequences`` are malformed
+            (:func:`~hgpdm_torch.validation.check_sequences`), constant, or of a magnitude the
+            dtype cannot carry (:func:`~hgpdm_torch.validation.check_magnitude`: beyond about
+            1e150 or below 1e-150 in float64); or another argument is out of range.
 
     Attributes:
         latent: ``[M, Dx]`` latent states of all frames, sequences concatenated: a parameter, or
@@ -186,9 +202,8 @@ class GPDM(gpytorch.Module, SavedModel):
             )
         if not isinstance(scale_transitions, bool | np.bool_):
             raise TypeError(f"scale_transitions must be a bool, got {scale_transitions!r}")
-        alpha = tuple(float(a) for a in alpha)
-        if len(alpha) != 4 or not all(a > 0 for a in alpha):
-            raise ValueError(f"alpha must be 4 positive numbers [a1, a2, a3, a4], got {alpha}")
+        dtype = check_dtype(dtype)
+        alpha = positive_reals(alpha, "alpha", 4)
         given_priors = _check_priors(priors)
         if given_priors.get("beta1") is not None and name != "rbf":
             raise ValueError(
@@ -220,6 +235,7 @@ class GPDM(gpytorch.Module, SavedModel):
         }
 
         z = torch.cat(seqs, dim=0)
+        check_magnitude(z, "sequences")
         device = z.device  # the model is built where its data are (and moves with .to)
         lengths = torch.tensor([s.shape[0] for s in seqs], device=device)
         starts = torch.cumsum(lengths, 0) - lengths
@@ -739,7 +755,11 @@ class GPDM(gpytorch.Module, SavedModel):
         :func:`~hgpdm_torch.models.load_model` or :meth:`load`.
 
         Raises:
-            TypeError: the model's class is not registered.
+            TypeError: the model's class is not registered, or loading could not rebuild it
+                as saved (a subclass's constructor argument that is not in its configuration:
+                see :func:`~hgpdm_torch.models.register_model`).
+            FileNotFoundError: the folder of ``path`` does not exist (``NotADirectoryError``:
+                it is a file; ``IsADirectoryError``: ``path`` is a folder).
             ValueError: the model uses a custom back-constraint module, measurement kernel or
                 priors, which the configuration cannot hold.
         """

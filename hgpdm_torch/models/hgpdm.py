@@ -23,7 +23,7 @@ from ..gp import GPPosterior
 from ..kernels import transition_kernel
 from ..linalg import gaussian_nll
 from ..progress import trange
-from ..validation import as_tensor, check_choice, check_sequences
+from ..validation import as_tensor, check_choice, check_dtype, check_sequences, positive_reals
 from .gpdm import GPDM, NOISE_FLOOR, SequencesLike
 
 __all__ = ["HGPDM", "IDDM", "trajectory_summaries"]
@@ -56,11 +56,24 @@ def _check_intentions(
         if g.is_complex() or g.dtype == torch.bool:
             raise TypeError(f"discrete intentions must be integers, got dtype {g.dtype}")
         g = g.long()
+        if g.numel() == 0:
+            raise ValueError("discrete intentions must not be empty: one code per sequence")
         k = int(g.max()) + 1 if num_values is None else int(num_values)
         if k < 1:
             raise ValueError(f"num_values must be >= 1, got {k}")
         if bool((g < 0).any()) or bool((g >= k).any()):
             raise ValueError(f"discrete intentions must lie in [0, {k - 1}], got {g.tolist()}")
+        used = torch.unique(g)
+        if num_values is None and 2 * used.numel() < k:
+            # Every code 0..K-1 is a value of g that inference scores; labels such as
+            # subject numbers would make most of them values without a training sequence.
+            shown = ", ".join(map(str, used[:8].tolist())) + (", ..." if len(used) > 8 else "")
+            raise ValueError(
+                f"discrete intentions are codes 0..K-1, K = max + 1 = {k} here, but only "
+                f"{used.numel()} of them are used ([{shown}]); recode the labels to "
+                f"0..{used.numel() - 1} (e.g. numpy.unique(labels, return_inverse=True)[1]) "
+                f"or pass num_values={k} to keep the unused codes"
+            )
         values = g.to(dtype).unsqueeze(-1)
     else:
         values = as_tensor(intentions, "intentions", dtype=dtype)
@@ -98,9 +111,12 @@ class HGPDM(GPDM):
             "discrete"``) or ``[J]`` / ``[J, Dg]`` reals (``intention="continuous"``).
         latent_dim: ``Dx``.
         intention: ``"discrete"`` or ``"continuous"``.
-        num_values: K for a discrete g (default ``max(intentions) + 1``).
+        num_values: K for a discrete g (default ``max(intentions) + 1``). Every code
+            ``0 .. K-1`` is a value of g that inference scores, also one without a training
+            sequence; codes that leave more than half of ``0 .. max`` unused (labels such as
+            subject numbers) are refused unless ``num_values`` is given.
         alpha_g: ``[alpha_2^g, alpha_3^g]`` of the continuous kernel (inverse squared width and
-            linear variance of g).
+            linear variance of g), two positive finite numbers.
         sharing: for a discrete g, the share ``rho`` in ``[0, 1)`` of the transition kernel common
             to all values of g: ``rho k(x, x') + (1 - rho) delta(g, g') k(x, x')`` (see
             :func:`~hgpdm_torch.kernels.transition_kernel`). ``0`` (default) is the thesis's
@@ -117,6 +133,13 @@ class HGPDM(GPDM):
             transition evidence towards the loud values. Not with ``learn_noise``/``learn_alpha``.
         **kwargs: see :class:`GPDM` (``measurement``, ``alpha``, ``priors``, ``learn_alpha``,
             ``init``, ``dtype``).
+
+    Raises:
+        TypeError: intentions that are not numbers (or not integers for a discrete g), or
+            a bad type of another argument (see :class:`GPDM`).
+        ValueError: not one intention per sequence; discrete codes that are negative, at or
+            above ``num_values``, or sparse (see ``num_values``); ``alpha_g`` not two positive
+            finite numbers; or another argument out of range (see :class:`GPDM`).
 
     The transition kernel is ``delta(g, g') [alpha_1 RBF(x) + alpha_3 x^T x']`` for a discrete g and
     ``alpha_1 RBF([x, g]) + alpha_3 x^T x' + alpha_3^g g g'`` for a continuous g (Sec. 2.2.1);
@@ -165,13 +188,14 @@ class HGPDM(GPDM):
         if sharing and intention != "discrete":
             raise ValueError("sharing applies to a discrete intention only")
         self.sharing = float(sharing)
-        dtype = kwargs.get("dtype", torch.float64)
+        dtype = check_dtype(kwargs.get("dtype", torch.float64))
+        alpha_g = positive_reals(alpha_g, "alpha_g", 2)
         num_seq = len(check_sequences(sequences, dtype))
         values, k = _check_intentions(intentions, num_seq, intention, num_values, dtype)
         self.intention = intention
         self.num_values = k
         self.intention_dim = values.shape[1]
-        self.alpha_g = tuple(float(a) for a in alpha_g)
+        self.alpha_g = alpha_g
         super().__init__(sequences, latent_dim, **kwargs)
         self.register_buffer("intentions", values.to(self.observations.device))
         self._config.update(

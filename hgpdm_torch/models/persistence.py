@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import inspect
 import io
 import os
 import secrets
@@ -159,7 +160,16 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
 
     The class is rebuilt as ``cls(**model._data_arguments(), **model.config(), dtype=dtype)``
     followed by ``load_state_dict``: a subclass whose constructor takes more arguments adds them
-    to ``self._config`` (constructor options) or overrides ``_data_arguments`` (data).
+    to ``self._config`` (constructor options) or overrides ``_data_arguments`` (data);
+    ``save`` refuses (``TypeError``) a class whose constructor takes an argument of its own
+    that neither holds, since loading would silently give it its default::
+
+        @register_model
+        class MyGPDM(GPDM):
+            def __init__(self, sequences, latent_dim=3, *, extra=5, **kwargs):
+                super().__init__(sequences, latent_dim, **kwargs)
+                self.extra = extra
+                self._config["extra"] = extra  # saved, and passed back on load
 
     Args:
         cls: a subclass of :class:`~hgpdm_torch.models.GPDM` or
@@ -227,13 +237,33 @@ def save_model(model: SavedModel, path: str | os.PathLike[str]) -> None:
     interrupted save never leaves a half-written file in place of a good one.
 
     Raises:
-        TypeError: the model's class is not registered (see :func:`register_model`).
+        TypeError: the model's class is not registered (see :func:`register_model`), or
+            loading could not rebuild it as saved: its constructor refuses the saved
+            arguments, or takes one of its own that is not saved (add it to the configuration,
+            see :func:`register_model`).
+        FileNotFoundError: the folder of ``path`` does not exist.
+        NotADirectoryError: the folder of ``path`` is a file.
+        IsADirectoryError: ``path`` is a folder.
     """
     name = _registered_name(type(model))
+    config, data = copy.deepcopy(model.config()), model._data_arguments()
+    _check_rebuild(type(model), config, data)
+    path = Path(path)
+    if not path.parent.exists():
+        raise FileNotFoundError(
+            f"cannot save the model to {path}: the folder {path.parent} does not exist; "
+            "create it first"
+        )
+    if not path.parent.is_dir():
+        raise NotADirectoryError(
+            f"cannot save the model to {path}: {path.parent} is a file, not a folder"
+        )
+    if path.is_dir():
+        raise IsADirectoryError(f"cannot save the model to {path}: it is a folder, not a file")
     blob = {
         "class": name,
-        "config": copy.deepcopy(model.config()),
-        "data": model._data_arguments(),
+        "config": config,
+        "data": data,
         "state_dict": model.state_dict(),
         "dtype": str(model._saved_dtype()).removeprefix("torch."),
     }
@@ -242,7 +272,6 @@ def save_model(model: SavedModel, path: str | os.PathLike[str]) -> None:
     payload = buffer.getvalue()
     head = MAGIC + _HEADER.pack(FORMAT_VERSION, len(payload))
     digest = hashlib.sha256(head + payload).digest()
-    path = Path(path)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
     try:
         with open(tmp, "xb") as f:
@@ -250,6 +279,56 @@ def save_model(model: SavedModel, path: str | os.PathLike[str]) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _check_rebuild(cls: type[SavedModel], config: dict[str, Any], data: dict[str, Any]) -> None:
+    """Refuse to save a model that :func:`load_model` would rebuild differently.
+
+    A class rebuilt the default way, ``cls(**data, **config, dtype=dtype)`` (one that does not
+    override :meth:`SavedModel._from_saved`), must take every saved argument, and every
+    argument its own constructor adds to those of the hgpdm_torch classes it derives from must
+    be saved: otherwise loading would fail, or silently rebuild the model with that argument's
+    default.
+
+    Raises:
+        TypeError: naming the class, the arguments and what to do.
+    """
+    if getattr(cls._from_saved, "__func__", None) is not SavedModel._from_saved.__func__:
+        return  # the class rebuilds itself; it knows what it saved
+    fix = (
+        "store each in the configuration in __init__ (self._config[name] = value, or override "
+        "config()) or, for training data, in _data_arguments(); or override _from_saved"
+    )
+    try:
+        inspect.signature(cls).bind(**data, **config, dtype=None)
+    except TypeError as err:
+        raise TypeError(
+            f"cannot save a {cls.__qualname__}: load_model rebuilds it as "
+            f"{cls.__qualname__}(**data, **config, dtype=...) with the saved arguments "
+            f"{sorted(data) + sorted(config)}, which its constructor refuses ({err}); let "
+            "__init__ take them (e.g. **kwargs passed on to super().__init__) or override "
+            "_from_saved"
+        ) from None
+    library, own = set(), {}
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None or klass is SavedModel:
+            continue
+        names = [
+            p.name
+            for p in list(inspect.signature(init).parameters.values())[1:]
+            if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        ]
+        if klass.__module__.split(".")[0] == "hgpdm_torch":
+            library.update(names)
+        else:
+            own.update(dict.fromkeys(names))
+    unsaved = [n for n in own if n not in library and n not in config and n not in data]
+    if unsaved:
+        raise TypeError(
+            f"cannot save a {cls.__qualname__}: its constructor takes {unsaved}, which "
+            f"save() does not store, so load_model would rebuild it with their defaults; {fix}"
+        )
 
 
 # --------------------------------------------------------------------------------- reading

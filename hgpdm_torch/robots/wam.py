@@ -163,6 +163,22 @@ class WAM:
         check_shape(t, name, (DOF,))
         return t
 
+    @staticmethod
+    def _batch(**tensors: torch.Tensor) -> torch.Size:
+        """The broadcast of the arguments' batch shapes (every dim but the last).
+
+        Raises:
+            ValueError: they do not broadcast, naming each argument with its shape.
+        """
+        try:
+            return torch.broadcast_shapes(*(t.shape[:-1] for t in tensors.values()))
+        except RuntimeError:
+            shapes = ", ".join(f"{name} {list(t.shape)}" for name, t in tensors.items())
+            raise ValueError(
+                f"the batch shapes (all dims but the last) of {shapes} do not broadcast; "
+                "give each a matching batch, or none for one shared value"
+            ) from None
+
     def _to_world(self, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rotation and translation of base-frame homogeneous matrices ``[..., 4, 4]``."""
         rot = self.base_rotation @ m[..., :3, :3]
@@ -206,8 +222,10 @@ class WAM:
         return jac.reshape(*batch, 6, DOF)
 
     def racket_velocity(self, q: object, qd: object) -> torch.Tensor:
-        """Linear velocity of the racket centre ``J_v(q) qd``. ``[..., 7]`` x2 -> ``[..., 3]``."""
-        qd = self._q(qd, "qd")
+        """Linear velocity of the racket centre ``J_v(q) qd``. ``[..., 7]`` x2 -> ``[..., 3]``
+        (batch shapes broadcast; ``ValueError`` if they do not)."""
+        q, qd = self._q(q), self._q(qd, "qd")
+        self._batch(q=q, qd=qd)
         return (self.jacobian(q)[..., :3, :] @ qd.unsqueeze(-1)).squeeze(-1)
 
     def ik(
@@ -238,11 +256,18 @@ class WAM:
             normal: ``[..., 3]`` target blade normal (normalised here).
             q0: ``[..., 7]`` or ``[7]`` initial joint angles.
             q_rest: ``[..., 7]`` or ``[7]`` posture preferred in the null space (default q0).
+
+        The batch shapes (``...``) of ``position``, ``normal``, ``q0`` and ``q_rest``
+        broadcast, e.g. several initial guesses ``q0 [n, 7]`` for one target.
             damping: damping factor of the least squares (m).
             rest_gain: gain of the null-space pull towards ``q_rest``.
             max_iter: number of iterations at most.
             position_tol: success tolerance on the position error (m).
             normal_tol: success tolerance on the normal error (rad).
+
+        Raises:
+            ValueError: a wrong trailing size, batch shapes that do not broadcast, a zero
+                normal, ``damping <= 0`` or ``max_iter < 1``.
         """
         p_t = as_tensor(position, "position", dtype=self.dtype, device=self.device, min_ndim=1)
         check_shape(p_t, "position", (3,))
@@ -254,9 +279,9 @@ class WAM:
         n_t = n_t / norm
         if not damping > 0 or not max_iter >= 1:
             raise ValueError("damping must be positive and max_iter at least 1")
-        batch = torch.broadcast_shapes(p_t.shape[:-1], n_t.shape[:-1])
         q0_t = self._q(q0, "q0")
         rest_t = q0_t if q_rest is None else self._q(q_rest, "q_rest")
+        batch = self._batch(position=p_t, normal=n_t, q0=q0_t, q_rest=rest_t)
         one = self._single(p_t, n_t, q0_t, rest_t)
         if one is not None:
             res = one.ik(
@@ -315,11 +340,13 @@ class WAM:
 
         Damped least squares on the linear Jacobian: ``qd = J_v^T (J_v J_v^T + damping^2 I)^-1 v``
         (the racket may turn meanwhile; a ball contact is too short for that to matter).
-        ``q``: ``[..., 7]``, ``racket_velocity``: ``[..., 3]`` -> ``[..., 7]``.
+        ``q``: ``[..., 7]``, ``racket_velocity``: ``[..., 3]`` -> ``[..., 7]`` (batch shapes
+        broadcast; ``ValueError`` if they do not).
         """
         v = as_tensor(racket_velocity, "racket_velocity", dtype=self.dtype, device=self.device)
         check_shape(v, "racket_velocity", (3,))
         q = self._q(q)
+        self._batch(q=q, racket_velocity=v)
         one = self._single(q, v)
         if one is not None:
             jv1 = one.jacobian(q.numpy())[:3]

@@ -71,6 +71,24 @@ def test_minimax_equilibrium_brackets_the_value() -> None:
         assert (reward @ minimax_strategy(-reward.T)[0]).max() == pytest.approx(upper, abs=1e-9)
 
 
+@pytest.mark.parametrize("scale", [1e300, 1e-300, 1e-12, 1e12])
+def test_minimax_at_any_scale(scale: float) -> None:
+    """Issue 54: rewards near 1e300 made HiGHS fail ("Model error") and rewards near 1e-300
+    all looked alike (RPS gave a pure strategy). Oracle: the 2x2 closed form without a saddle
+    point, ``p = (d - c) / (a - b - c + d)``, value ``(a d - b c) / (a - b - c + d)``, and RPS
+    (uniform, value 0); the strategy is invariant to the scale and the value scales with it."""
+    a, b, c, d = 3.0, -1.0, -2.0, 4.0
+    pi, value = minimax_strategy(scale * np.array([[a, b], [c, d]]))
+    p = (d - c) / (a - b - c + d)
+    np.testing.assert_allclose(pi, [p, 1 - p], atol=1e-9)
+    assert value == pytest.approx(scale * (a * d - b * c) / (a - b - c + d), rel=1e-9)
+    pi, q = minimax_equilibrium(scale * RPS_REWARD)
+    np.testing.assert_allclose(pi, np.full(3, 1 / 3), atol=1e-9)
+    np.testing.assert_allclose(q, np.full(3, 1 / 3), atol=1e-9)
+    pi, value = minimax_strategy(scale * RPS_REWARD)
+    assert abs(value) <= 1e-9 * scale
+
+
 def test_thesis_minimax_numbers() -> None:
     pi, value = minimax_strategy(RPS_REWARD)
     np.testing.assert_allclose(pi, np.full(3, 1 / 3), atol=1e-8)

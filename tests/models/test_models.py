@@ -169,11 +169,44 @@ SEQS = [torch.randn(5, 3), torch.randn(6, 3)]
             ValueError,
             "constant",
         ),
+        # issue 54: the arguments are named, with what is expected
+        (lambda: GPDM(SEQS, 2, alpha=1.0), TypeError, "alpha must be a sequence of 4 positive"),
+        (lambda: GPDM(SEQS, 2, alpha=(1, 1, float("inf"), 1)), ValueError, "alpha .*finite"),
+        (lambda: GPDM(SEQS, 2, alpha=(1, 1, 0, 1)), ValueError, "alpha .*positive"),
+        (
+            lambda: HGPDM(SEQS, [0.1, 0.2], 2, intention="continuous", alpha_g=(1.0, -1.0)),
+            ValueError,
+            "alpha_g must be a sequence of 2 positive",
+        ),
+        (lambda: HGPDM(SEQS, [0, 1], 2, alpha_g=0.5), TypeError, "alpha_g"),
+        (lambda: GPDM(SEQS, 2, dtype=torch.int64), TypeError, "dtype must be torch.float32 or"),
+        (lambda: GPDM(SEQS, 2, dtype=torch.float16), TypeError, "dtype must be torch.float32"),
+        (lambda: GPDM(SEQS, 2, dtype="float64"), TypeError, r"dtype .*pass torch.float64"),
+        (lambda: HGPDM(SEQS, [0, 1], 2, dtype=torch.int64), TypeError, "dtype must be torch"),
+        (
+            lambda: HGPDM(SEQS, [0, 100_000], 2),
+            ValueError,
+            r"only 2 of them are used \(\[0, 100000\]\); recode .* num_values=100001",
+        ),
+        (lambda: GPDM([s * 1e200 for s in SEQS], 2), ValueError, r"sequences hold .*e\+200"),
+        (lambda: GPDM([s * 1e-200 for s in SEQS], 2), ValueError, r"sequences hold .*e-200"),
+        (lambda: GPDM([s * 1e20 for s in SEQS], 2, dtype=torch.float32), ValueError, "float32"),
     ],
 )
 def test_bad_input_raises(build, error, match):
     with pytest.raises(error, match=match):
         build()
+
+
+def test_codes_and_magnitudes_at_the_limits_are_accepted():
+    # a few unused codes (a subject without training trials) stay codes of the belief
+    assert HGPDM(SEQS, [1, 2], 2).num_values == 3
+    # sparse codes are kept when K is given: the caller asked for them
+    assert HGPDM(SEQS, [0, 100_000], 2, num_values=100_001).num_values == 100_001
+    # data in large or small units within the dtype's range fit as before
+    for scale in (1e100, 1e-100):
+        assert np.isfinite(float(GPDM([s.double() * scale for s in SEQS], 2).loss().detach()))
+    assert GPDM(SEQS, 2, dtype=torch.float32).latent.dtype == torch.float32
 
 
 def test_every_model_takes_sequences_as_a_list_a_tensor_or_an_array():

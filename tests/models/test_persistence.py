@@ -299,6 +299,51 @@ def test_unregistered_subclasses_and_name_clashes(tmp_path):
     assert register_model(GPDM) is GPDM  # registering again under its own name is harmless
 
 
+@register_model(name="test_persistence.ForgetfulGPDM")
+class ForgetfulGPDM(GPDM):
+    """A subclass whose extra constructor option is not in its configuration."""
+
+    def __init__(self, sequences, latent_dim: int = 3, *, extra: int = 5, **kwargs):
+        super().__init__(sequences, latent_dim, **kwargs)
+        self.extra = extra
+
+
+@register_model(name="test_persistence.FixedSignatureGPDM")
+class FixedSignatureGPDM(GPDM):
+    """A subclass whose constructor does not take the saved options back."""
+
+    def __init__(self, sequences, latent_dim: int = 3, dtype: torch.dtype = torch.float64):
+        super().__init__(sequences, latent_dim, dtype=dtype)
+
+
+def test_subclass_arguments_save_does_not_store_are_refused(tmp_path):
+    """Issue 54: a subclass built with extra=9 saved, and loaded with extra=5. Now save refuses
+    it, naming the argument and the fix; a subclass that puts it in its configuration (as
+    DampedGPDM above) round-trips it."""
+    with pytest.raises(TypeError, match=r"takes \['extra'\], which save\(\) does not store"):
+        ForgetfulGPDM(_sequences(), 2, extra=9).save(tmp_path / "f.pt")
+    with pytest.raises(
+        TypeError, match=r"saved arguments .*'alpha'.*constructor refuses.*\*\*kwargs"
+    ):
+        FixedSignatureGPDM(_sequences(), 2).save(tmp_path / "g.pt")
+    assert not list(tmp_path.iterdir())
+
+
+def test_save_names_a_missing_folder(tmp_path):
+    """Issue 54: saving into a missing folder named a hidden temporary file."""
+    model = GPDM(_sequences(), 2)
+    with pytest.raises(FileNotFoundError, match="the folder .*nowhere.* does not exist") as err:
+        model.save(tmp_path / "nowhere" / "m.pt")
+    assert ".tmp" not in str(err.value)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(NotADirectoryError, match="is a file, not a folder"):
+        model.save(tmp_path / "file" / "m.pt")
+    (tmp_path / "dir.pt").mkdir()
+    with pytest.raises(IsADirectoryError, match="it is a folder"):
+        model.save(tmp_path / "dir.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.pt", "file"]
+
+
 # ------------------------------------------------------------------------------ consistency
 def test_training_data_and_saved_state_must_agree(saved, tmp_path):
     _, blob = _unpack(saved[1])

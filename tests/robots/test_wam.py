@@ -191,3 +191,34 @@ def test_bad_input(wam: WAM) -> None:
         wam.fk(torch.full((DOF,), float("nan")))
     with pytest.raises(TypeError, match="q"):
         wam.fk("abc")
+
+
+def test_mismatched_batches_are_named(wam: WAM) -> None:
+    """Issue 54: batch shapes that do not broadcast are a ValueError naming the arguments and
+    their shapes, not a torch broadcast error."""
+    q0 = torch.zeros(DOF)
+    with pytest.raises(ValueError, match=r"position \[2, 3\], normal \[3, 3\].*do not broadcast"):
+        wam.ik(torch.zeros(2, 3), torch.ones(3, 3), q0)
+    with pytest.raises(ValueError, match=r"q0 \[4, 7\]"):
+        wam.ik(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(4, DOF))
+    with pytest.raises(ValueError, match=r"q_rest \[3, 7\]"):
+        wam.ik(torch.zeros(2, 3), torch.ones(2, 3), q0, q_rest=torch.zeros(3, DOF))
+    with pytest.raises(ValueError, match=r"q \[2, 7\], qd \[3, 7\]"):
+        wam.racket_velocity(torch.zeros(2, DOF), torch.zeros(3, DOF))
+    with pytest.raises(ValueError, match=r"q \[2, 7\], racket_velocity \[3, 3\]"):
+        wam.joint_velocity(torch.zeros(2, DOF), torch.zeros(3, 3))
+
+
+def test_ik_broadcasts_initial_guesses_over_one_target(
+    wam: WAM, generator: torch.Generator
+) -> None:
+    # several initial guesses [n, 7] for one target [3]: the batch of q0 joins the broadcast,
+    # and each row is the IK from that guess alone
+    q_true = random_q(wam, 1, generator, margin=0.4)[0].double()
+    target = wam.fk(q_true)
+    seeds = torch.stack([q_true + 0.2, q_true - 0.2]).clamp(wam.lower, wam.upper)
+    res = wam.ik(target.position, target.normal, seeds, max_iter=30)
+    assert res.q.shape == (2, DOF) and res.position_error.shape == (2,)
+    for i in range(2):
+        one = wam.ik(target.position[None], target.normal[None], seeds[i], max_iter=30)
+        torch.testing.assert_close(res.q[i], one.q[0])

@@ -31,10 +31,23 @@ def intention_grid(model: GPDM, intentions: Any = None, num: int = 25) -> torch.
         intentions: ``[K]`` or ``[K, Dg]`` values (continuous g) or integer codes (discrete g);
             default: all codes, or ``num`` evenly spaced values over the training range
             (``Dg = 1`` only).
-        num: default grid size for a continuous g.
+        num: default grid size for a continuous g, at least 2 (a grid spans the training
+            range from its smallest to its largest value).
+
+    Raises:
+        TypeError: ``model`` is not a GPDM, or ``num`` not an int.
+        ValueError: ``num < 2``; ``intentions`` given for a plain GPDM, empty, with the wrong
+            number of columns, or not codes ``0 .. K-1`` of a discrete g.
     """
     if not isinstance(model, GPDM):
         raise TypeError(f"model must be a GPDM/HGPDM/IDDM, got {type(model).__name__}")
+    if isinstance(num, bool) or not isinstance(num, numbers.Integral):
+        raise TypeError(f"num must be an int >= 2 (the grid size), got {num!r}")
+    if num < 2:
+        raise ValueError(
+            f"num must be at least 2: the grid runs from the smallest to the largest training "
+            f"intention, got {num}"
+        )
     dtype, device = model.latent.dtype, model.latent.device
     if not isinstance(model, HGPDM):  # no exogenous variable: one value, no columns
         if intentions is not None:
