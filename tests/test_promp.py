@@ -176,6 +176,13 @@ def test_classifier_recognises_gestures_from_prefixes():
     # the posterior is each class's prefix likelihood under the training frequencies
     direct = torch.stack([m.log_likelihood(z[:, :7]) for m in clf.models], -1)
     torch.testing.assert_close(log_p[:, 6], direct.log_softmax(-1))
+    torch.testing.assert_close(clf.window_log_proba(z), log_p[:, -1])
+    # scored on whole movements, the CV counts the end decisions alone: the early frames,
+    # where the gestures look alike, no longer count against any option
+    grid = {"num_basis": (1, 6)}
+    whole = ProMPClassifier(grid=grid, folds=3, online=False).fit(seqs, y)
+    every = ProMPClassifier(grid=grid, folds=3).fit(seqs, y)
+    assert all(w < e for w, e in zip(whole.scores, every.scores, strict=True))
 
 
 def test_classifier_cv_survives_a_class_too_small_for_a_fold():

@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import torch
 
 from ..validation import as_tensor
-from .windows import as_sequences
+from .windows import as_sequences, check_fitted, positive_int
 
 __all__ = [
     "PROMP_CLASS_GRID",
@@ -77,12 +77,6 @@ def _basis(num_basis: int, bandwidth: float, phases: torch.Tensor) -> torch.Tens
     return gen.basis(phases)
 
 
-def _positive_int(value: object, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
-    return value
-
-
 class ProMP:
     """A ProMP over ``D`` channels, optionally joint with ``E`` per-movement quantities.
 
@@ -114,8 +108,8 @@ class ProMP:
         bandwidth: float = 3.0,
         reg: float = 1e-6,
     ) -> None:
-        self.num_basis = _positive_int(num_basis, "num_basis")
-        self.num_durations = _positive_int(durations, "durations")
+        self.num_basis = positive_int(num_basis, "num_basis")
+        self.num_durations = positive_int(durations, "durations")
         speeds = tuple(float(s) for s in speeds)
         if not speeds or not all(math.isfinite(s) and s > 0 for s in speeds):
             raise ValueError(f"speeds must be positive finite numbers, got {speeds!r}")
@@ -194,8 +188,7 @@ class ProMP:
 
     # -- conditioning ----------------------------------------------------------------------
     def _checked(self, prefix: Any) -> torch.Tensor:
-        if not hasattr(self, "mean"):
-            raise RuntimeError(f"this {type(self).__name__} is not fitted: call fit(sequences)")
+        check_fitted(self, "mean", "fit(sequences)")
         y = as_tensor(prefix, "prefix", dtype=torch.float64)
         if y.dim() != 3 or y.shape[2] != self.dim:
             raise ValueError(f"prefix must be [B, t, D = {self.dim}], got {tuple(y.shape)}")
@@ -273,7 +266,7 @@ class ProMP:
             ValueError: an empty or malformed prefix, ``num < 1``.
         """
         y = self._checked(prefix)
-        num = _positive_int(num, "num")
+        num = positive_int(num, "num")
         b, t, d = y.shape
         if t == 0:
             raise ValueError("prefix must hold at least one frame to predict the next from")
@@ -325,7 +318,7 @@ class _Selected:
                 f"grid must map ProMP options ({sorted(_OPTIONS)}) to non-empty candidate "
                 f"lists, got {grid!r}"
             )
-        self.grid, self.folds, self.seed = grid, _positive_int(folds, "folds"), int(seed)
+        self.grid, self.folds, self.seed = grid, positive_int(folds, "folds"), int(seed)
 
     GRID: dict[str, tuple] = {}
 
@@ -409,8 +402,7 @@ class ProMPRegressor(_Selected):
         Raises:
             RuntimeError: before :meth:`fit`.
         """
-        if not hasattr(self, "model"):
-            raise RuntimeError("ProMPRegressor.predict: call fit(sequences, targets) first")
+        check_fitted(self, "model", "fit(sequences, targets)")
         z = as_tensor(z, "z", dtype=torch.float64, ndim=3)
         posts = _prefix_posteriors(self.model, z)
         mean = torch.stack([p.mean[:, 0] for p in posts], 1)
@@ -423,20 +415,31 @@ class ProMPClassifier(_Selected):
     estimated) and the training frequencies, at every step ``t``.
 
     The options are chosen from ``grid`` (:data:`PROMP_CLASS_GRID`) by ``folds``-fold
-    cross-validation: the lowest error rate over all steps of the held-out movements.
+    cross-validation: the lowest error rate over all steps of the held-out movements (with
+    ``online=False``, of their decisions at the end: :meth:`window_log_proba`).
 
     Args:
         grid: option name -> candidates; options not in it take :class:`ProMP`'s defaults.
         folds: cross-validation folds (at most the number of movements).
         seed: seed of the folds' permutation.
+        online: whether the decisions that count are those after every frame
+            (:meth:`predict_log_proba`) or one per whole movement or window.
     """
 
     GRID = PROMP_CLASS_GRID
 
     def __init__(
-        self, grid: dict[str, Sequence] | None = None, *, folds: int = 3, seed: int = 0
+        self,
+        grid: dict[str, Sequence] | None = None,
+        *,
+        folds: int = 3,
+        seed: int = 0,
+        online: bool = True,
     ) -> None:
         super().__init__(grid, folds, seed)
+        if not isinstance(online, bool):
+            raise TypeError(f"online must be a bool, got {online!r}")
+        self.online = online
 
     @staticmethod
     def _fit_classes(options, seqs, y, classes: int) -> tuple[list[ProMP | None], torch.Tensor]:
@@ -454,10 +457,13 @@ class ProMPClassifier(_Selected):
         return models, (usable / usable.sum()).log()
 
     @staticmethod
-    def _log_proba(models, log_prior, z: torch.Tensor) -> torch.Tensor:
+    def _log_proba(models, log_prior, z: torch.Tensor, every_step: bool = True) -> torch.Tensor:
+        """``[M, T, C]`` log posteriors after every frame of ``z [M, T, D]`` (``[M, 1, C]`` of
+        the whole ``z`` unless ``every_step``)."""
         steps = [
-            torch.stack([p.log_evidence for p in _prefix_posteriors(m, z)], 1)
-            if m is not None else z.new_zeros(z.shape[:2])  # its prior is 0
+            z.new_zeros(len(z), z.shape[1] if every_step else 1) if m is None  # its prior is 0
+            else torch.stack([p.log_evidence for p in _prefix_posteriors(m, z)], 1) if every_step
+            else m.log_likelihood(z)[:, None]
             for m in models
         ]  # fmt: skip
         joint = torch.stack(steps, -1) + log_prior  # [M, T, C]
@@ -486,10 +492,13 @@ class ProMPClassifier(_Selected):
 
         def errors(options: dict, train: list[int], held: list[int]) -> torch.Tensor:
             models, prior = self._fit_classes(options, [seqs[i] for i in train], y[train], C)
-            return torch.cat([
-                self._log_proba(models, prior, seqs[i][None]).argmax(-1)[0].ne(y[i]).double()
-                for i in held
-            ])  # fmt: skip
+            out = []
+            for length in sorted({seqs[i].shape[0] for i in held}):  # equal lengths at once
+                same = [i for i in held if seqs[i].shape[0] == length]
+                z = torch.stack([seqs[i] for i in same]).double()
+                pred = self._log_proba(models, prior, z, every_step=self.online).argmax(-1)
+                out.append(pred.ne(y[same, None]).double().flatten())
+            return torch.cat(out)
 
         self.options = self._select(len(seqs), errors, labels=y)
         self.models, self.log_prior = self._fit_classes(self.options, seqs, y, C)
@@ -501,10 +510,19 @@ class ProMPClassifier(_Selected):
         Raises:
             RuntimeError: before :meth:`fit`.
         """
-        if not hasattr(self, "models"):
-            raise RuntimeError("ProMPClassifier.predict_log_proba: call fit(sequences, labels)")
+        check_fitted(self, "models", "fit(sequences, labels)")
         z = as_tensor(z, "z", dtype=torch.float64, ndim=3)
         return self._log_proba(self.models, self.log_prior, z)
+
+    def window_log_proba(self, z: Any) -> torch.Tensor:
+        """Log class posteriors of whole movements or windows: ``[M, T, D]`` -> ``[M, C]``.
+
+        Raises:
+            RuntimeError: before :meth:`fit`.
+        """
+        check_fitted(self, "models", "fit(sequences, labels)")
+        z = as_tensor(z, "z", dtype=torch.float64, ndim=3)
+        return self._log_proba(self.models, self.log_prior, z, every_step=False)[:, 0]
 
     def predict(self, z: Any) -> torch.Tensor:
         """Most probable class at every step: ``[M, T]`` (long)."""

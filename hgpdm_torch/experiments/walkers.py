@@ -28,7 +28,10 @@ forecast the frame part; the baselines always see the frames. From one VB poster
 window over all g (every candidate refined):
 
 - ``VB H-GPDM``: the ML g's forecast (Algorithm 2.2, the thesis's column), its recognition
-  accuracy and the 90%-set coverage of the posterior over g;
+  accuracy and the 90%-set coverage of the posterior over g; beside it, ``ProMP accuracy``: the
+  label whose ProMP (:class:`~hgpdm_torch.baselines.ProMPClassifier`, one per label over the
+  training trials' windows, options by class-stratified CV over those windows) gives the window
+  the highest likelihood;
 - ``VB H-GPDM (BMA)``: the forecasts of all g averaged under the posterior over g;
 - ``oracle VB``: the true g's forecast; with ``+ AR(1) residual``: the window's deviation from
   the model's reconstruction carried on as an AR(1) process (not in the thesis);
@@ -54,7 +57,7 @@ from typing import Any, Literal
 
 import torch
 
-from ..baselines import GRUForecaster, LastFrameForecaster, RidgeAR
+from ..baselines import GRUForecaster, LastFrameForecaster, ProMPClassifier, RidgeAR
 from ..calibration import calibration
 from ..crossval import held_out
 from ..datasets.cmu import PROTOCOLS, Protocol, load_protocol, load_trials
@@ -75,6 +78,7 @@ from ..results import ResultTable
 from .arguments import add_executor_arguments, connect, int_at_least, output_file, positive_int
 from .intervals import mean_sem
 from .style_recognition import chunked_windows, forecast_windows, window_entries
+from .walkers_compare import compare_runs
 
 __all__ = [
     "DEFAULT_FEATURES",
@@ -261,6 +265,10 @@ def _score_split(
     for T in lengths:
         gru = GRUForecaster().fit(tr, T)
         fits[f"gru T={T}"] = {"hidden": gru.hidden_, "epochs": gru.epochs_}
+        # one ProMP per label over the training trials' windows: the window's likelihood
+        z_tr, _, y_tr = forecast_windows(tr, train_labels, T, stride)
+        promp = ProMPClassifier(online=False).fit(list(z_tr), y_tr)
+        fits[f"promp T={T}"] = {k: str(v) for k, v in promp.options.items()}
         start = time.perf_counter()
         z, nxt, y = forecast_windows(te, test_labels, T, stride)
         trial = torch.cat(
@@ -293,6 +301,8 @@ def _score_split(
             row: dict[str, Any] = {"windows": int(keep.sum())}
             row |= {name: _rmse(p[keep], nxt[keep]) for name, p in preds.items()}
             row["accuracy"] = float((g_ml[keep] == y[keep]).double().mean())
+            promp_ml = promp.window_log_proba(z[keep]).argmax(-1)
+            row["ProMP accuracy"] = float((promp_ml == y[keep]).double().mean())
             row["coverage"] = calibration(post[keep], y[keep])["coverage"]
             rows[T].append(row)
         fits[f"forecast seconds T={T}"] = time.perf_counter() - start
@@ -507,7 +517,8 @@ def _table(
     lengths: tuple[int, ...],
     meta: dict[str, Any],
 ) -> ResultTable:
-    columns = ["T", "trial", "label", "windows", *METHODS, "accuracy", "90% set coverage"]
+    columns = ["T", "trial", "label", "windows", *METHODS, "accuracy", "90% set coverage",
+               "ProMP accuracy"]  # fmt: skip
     table = ResultTable(
         f"{protocol} ({thesis_table}): next-pose RMSE (standardised) per "
         f"{'test' if meta['evaluation'] == 'test trials' else 'held-out'} trial",
@@ -524,7 +535,7 @@ def _table(
                 label=label,
                 windows=row["windows"],
                 accuracy=row["accuracy"],
-                **{"90% set coverage": row["coverage"]},
+                **{"90% set coverage": row["coverage"], "ProMP accuracy": row["ProMP accuracy"]},
                 **{m: row[m] for m in METHODS},
             )
         cells: dict[str, Any] = {"T": T, "trial": "average", "label": "all"}
@@ -534,6 +545,7 @@ def _table(
             cells[m], sem[m] = mean_sem([r[T][m] for _, _, r in scored])
         cells["accuracy"] = mean_sem([r[T]["accuracy"] for _, _, r in scored])[0]
         cells["90% set coverage"] = mean_sem([r[T]["coverage"] for _, _, r in scored])[0]
+        cells["ProMP accuracy"] = mean_sem([r[T]["ProMP accuracy"] for _, _, r in scored])[0]
         table.add(**cells)
         table.add(**sem)
         labels = sorted({lab for _, lab, _ in scored})
@@ -542,96 +554,13 @@ def _table(
             "per label": {
                 lab: {
                     m: mean_sem([r[T][m] for _, lb, r in scored if lb == lab])[0]
-                    for m in (*METHODS, "accuracy")
+                    for m in (*METHODS, "accuracy", "ProMP accuracy")
                 }
                 for lab in labels
             },
         }
     meta["summary"] = summary
     return table
-
-
-#: the rows of :func:`compare_runs`: the best H-GPDM forecast and the baselines it must beat
-COMPARED = (
-    "VB H-GPDM",
-    "GPDM VB",
-    "VB H-GPDM + AR(1) residual",
-    "GPDM VB + AR(1) residual",
-    "ridge AR (CV)",
-    "GRU (CV)",
-    "repeat last frame",
-)
-#: the per-label columns of :func:`compare_runs`
-PER_LABEL = ("VB H-GPDM + AR(1) residual", "ridge AR (CV)", "GRU (CV)")
-
-
-def compare_runs(
-    tables: list[ResultTable], names: list[str] | list[Path] | None = None
-) -> ResultTable:
-    """One row per run and window length: its options, the ratio VB H-GPDM / GPDM VB,
-    recognition, the mean RMSE (``+- SEM``) of :data:`COMPARED` and, per label, of
-    :data:`PER_LABEL`.
-
-    Args:
-        tables: tables :func:`walkers` wrote for one protocol and evaluation (e.g. CV runs with
-            different options).
-        names: how errors name each table (e.g. its file; default ``tables[i]``).
-
-    Raises:
-        ValueError: no table, or a table that :func:`walkers` did not write (its ``meta``
-            lacks the run's settings or summary).
-    """
-    if not tables:
-        raise ValueError("tables must hold at least one walkers table")
-    keys = ("protocol", "evaluation", "summary", "model_options")  # what a run wrote
-    for i, table in enumerate(tables):
-        if lacks := [k for k in keys if k not in table.meta]:
-            raise ValueError(
-                f"{names[i] if names else f'tables[{i}]'}: not a table of hgpdm walkers (its "
-                f"meta lacks {lacks}); compare the --out tables of hgpdm walkers runs"
-            )
-    labels = sorted(
-        {lab for t in tables for s in t.meta["summary"].values() for lab in s["per label"]}
-    )
-    columns = ["options", "T", "VB H-GPDM / GPDM VB", "accuracy", "90% set coverage"]
-    columns += [*COMPARED, *(f"{m} ({lab})" for m in PER_LABEL for lab in labels)]
-    first = tables[0].meta
-    out = ResultTable(
-        f"{first['protocol']} ({first['evaluation']}): runs compared, mean RMSE over trials",
-        columns,
-        meta={"protocol": first["protocol"], "evaluation": first["evaluation"]},
-    )
-    for table in tables:
-        meta = table.meta
-        opts = meta["model_options"]
-        parts = [f"Dx {meta['latent_dim']}", f"{meta['fit_steps']} MAP steps"]
-        parts.append(f"sharing {meta['sharing']}")
-        if "back_constraint" in opts:
-            parts.append(f"{opts['back_constraint']} back-constraint")
-        learned = opts.get("learn_measurement_width", "True") == "True"
-        parts.append("learned measurement width" if learned else "fixed measurement width")
-        if opts.get("learn_noise") == "True":
-            parts.append("learned alpha_4")
-        if meta.get("noise_per_label"):
-            parts.append("alpha_4 per label")
-        if meta.get("features", "frames") != "frames":
-            parts.append(f"{meta['features']} features")
-        name = ", ".join(parts)
-        if meta.get("measurement_points"):
-            name += f", measurement_points {meta['measurement_points']}"
-        for T, summary in meta["summary"].items():
-            rows = {r["trial"]: r for r in table.rows if str(r["T"]) == T}
-            cells: dict[str, Any] = {"options": name, "T": int(T)}
-            cells["VB H-GPDM / GPDM VB"] = summary["VB H-GPDM / GPDM VB"]
-            cells["accuracy"] = rows["average"]["accuracy"]
-            cells["90% set coverage"] = rows["average"]["90% set coverage"]
-            for m in COMPARED:
-                cells[m] = f"{rows['average'][m]:.3f} +- {rows['SEM'][m]:.3f}"
-            for m in PER_LABEL:
-                for lab in labels:
-                    cells[f"{m} ({lab})"] = summary["per label"].get(lab, {}).get(m)
-            out.add(**cells)
-    return out
 
 
 def report(table: ResultTable, out: Path | None) -> None:
