@@ -9,6 +9,7 @@ enters the transition GP as extra input columns: ``f([x_t, g]) -> x_{t+1}``. A d
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -100,6 +101,33 @@ def trajectory_summaries(latents: Sequence[torch.Tensor]) -> np.ndarray:
         step = lat[1:] - lat[:-1]
         feats.append(torch.cat([lat.mean(0), step.pow(2).mean(0).sqrt()]).cpu().numpy())
     return np.stack(feats)
+
+
+#: A continuous g whose spread (in a dimension) is below this share of the g kernel's width
+#: ``1 / sqrt(alpha_g[0])`` warns: every training g then looks alike to the transition kernel
+#: (``exp(-alpha_g[0] (g - g')^2 / 2) > 0.99`` for g one spread apart) and the beliefs over g
+#: stay near uniform (with g scaled by 0.01, sd 0.0066, the belief sources' GP IDDM gave a
+#: belief whose spread was 1.1 of g's: uniform; at unit scale 0.06).
+NARROW_INTENTION_SHARE = 0.1
+
+
+def _warn_narrow_intentions(values: torch.Tensor, inverse_width2: float) -> None:
+    """Warn where a continuous g's standard deviation ``[J, Dg]`` is below
+    :data:`NARROW_INTENTION_SHARE` of the kernel's g width (a constant dim is left alone)."""
+    if values.shape[0] < 2:
+        return
+    width = 1.0 / math.sqrt(inverse_width2)
+    for d, sd in enumerate(values.std(0).tolist()):
+        if 0 < sd < NARROW_INTENTION_SHARE * width:
+            dim = f" (dim {d})" if values.shape[1] > 1 else ""
+            warnings.warn(
+                f"the intentions{dim} have a standard deviation of {sd:.3g}, below "
+                f"{NARROW_INTENTION_SHARE} of the transition kernel's g width 1 / sqrt(alpha_g[0])"
+                f" = {width:.3g}: every g looks alike to the dynamics and the beliefs over g stay "
+                "near uniform; standardise g (subtract its mean, divide by its standard "
+                "deviation) and map the belief's values back, or pass a larger alpha_g[0]",
+                stacklevel=3,
+            )
 
 
 class HGPDM(GPDM):
@@ -196,6 +224,8 @@ class HGPDM(GPDM):
         self.num_values = k
         self.intention_dim = values.shape[1]
         self.alpha_g = alpha_g
+        if intention == "continuous":
+            _warn_narrow_intentions(values, alpha_g[0])
         super().__init__(sequences, latent_dim, **kwargs)
         self.register_buffer("intentions", values.to(self.observations.device))
         self._config.update(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -220,3 +222,17 @@ def test_every_model_takes_sequences_as_a_list_a_tensor_or_an_array():
     a = linear.fit(seqs.numpy(), [0.0, 1.0]).coef.clone()
     b = linear.fit(list(seqs), [0.0, 1.0]).coef
     torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_continuous_intentions_far_narrower_than_the_g_kernel_warn():
+    from hgpdm_torch.datasets import targeted_movements
+    from hgpdm_torch.models import IDDM
+
+    data = targeted_movements(6, 8, 5, seed=0)
+    g = torch.as_tensor(data.labels, dtype=torch.float64)
+    with pytest.warns(UserWarning, match="standard deviation of .* below 0.1 of the transition"):
+        IDDM(data.sequences, 0.001 * g, 2, intention="continuous")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        IDDM(data.sequences, g, 2, intention="continuous")  # unit scale: quiet
+        IDDM(data.sequences, 0.001 * g, 2, intention="continuous", alpha_g=(1e8, 0.1))
