@@ -1,6 +1,8 @@
 """Datasets: seeded synthetic generators and loaders for real movement data."""
 
 from .basic_motions import load_basic_motions
+from .bvh import BvhMotion, BvhSkeleton, load_bvh, read_bvh
+from .c3d import C3D_GAPS, C3dMarkers, MarkerTrials, load_c3d, read_c3d
 from .cmu import PROTOCOLS, MotionTrials, Protocol, load_protocol, load_trials
 from .kinect_features import PosePCA, kinect_features
 from .mocap import MAX_ANGLE_DEGREES, load_mocap, read_amc, read_asf
@@ -26,10 +28,15 @@ from .walkers import (
 )
 
 __all__ = [
+    "C3D_GAPS",
     "FRAME_FEATURES",
     "MAX_ANGLE_DEGREES",
     "MAX_POSITION_M",
+    "BvhMotion",
+    "BvhSkeleton",
+    "C3dMarkers",
     "FoundTrials",
+    "MarkerTrials",
     "MSRC12",
     "MSRC12Recording",
     "MotionTrials",
@@ -44,6 +51,8 @@ __all__ = [
     "frame_features",
     "kinect_features",
     "load_basic_motions",
+    "load_bvh",
+    "load_c3d",
     "load_mocap",
     "load_msrc12_folder",
     "load_msrc12_npz",
@@ -53,6 +62,8 @@ __all__ = [
     "protocol_trials",
     "read_amc",
     "read_asf",
+    "read_bvh",
+    "read_c3d",
     "read_msrc12_recording",
     "styled_movements",
     "targeted_movements",

@@ -251,22 +251,32 @@ class Standardizer:
         self.rtol = float(rtol)
 
     def fit(self, sequences: Sequence[Any] | torch.Tensor) -> Standardizer:
-        """Training statistics of ``J`` sequences ``[T_j, F]`` (or one array ``[..., F]``)."""
+        """Training statistics of ``J`` sequences ``[T_j, F]`` (or one array ``[..., F]``).
+        Missing values (NaN: a gap of a C3D marker, a frame ``gaps="missing"`` read) are left
+        out of each channel's statistics.
+
+        Raises:
+            ValueError: no frame, an inf, or a channel missing in every frame.
+        """
         if isinstance(sequences, torch.Tensor | np.ndarray):
-            x = as_tensor(sequences, "sequences", min_ndim=1)
+            x = as_tensor(sequences, "sequences", min_ndim=1, allow_nan=True)
             x = x.reshape(-1, x.shape[-1])
         else:
             if len(sequences) == 0:
                 raise ValueError("sequences must be a non-empty list of [T_j, F] arrays")
-            parts = [as_tensor(s, f"sequences[{j}]", ndim=2) for j, s in enumerate(sequences)]
+            parts = [as_tensor(s, f"sequences[{j}]", ndim=2, allow_nan=True)
+                     for j, s in enumerate(sequences)]  # fmt: skip
             if any(p.shape[1] != parts[0].shape[1] for p in parts):
                 raise ValueError("all sequences must have the same number of channels F")
             x = torch.cat([p.to(parts[0]) for p in parts])
         if x.shape[0] == 0:
             raise ValueError("sequences must contain at least one frame")
-        self.mean_ = x.mean(0)
-        std = x.std(0, correction=0)
-        self.keep_ = std > self.rtol * (1 + x.abs().amax(0))
+        seen = ~x.isnan()
+        if empty := torch.nonzero(~seen.any(0)).flatten().tolist():
+            raise ValueError(f"channels {empty} are missing (NaN) in every training frame")
+        self.mean_ = x.nanmean(0)
+        std = (x - self.mean_).pow(2).nanmean(0).sqrt()
+        self.keep_ = std > self.rtol * (1 + x.nan_to_num(0.0).abs().amax(0))
         self.scale_ = torch.where(self.keep_, std, torch.ones_like(std))
         return self
 
@@ -274,7 +284,7 @@ class Standardizer:
         if not hasattr(self, "keep_"):
             raise RuntimeError("call fit before transform or inverse_transform")
         width = int(self.keep_.sum()) if kept else self.keep_.numel()
-        z = as_tensor(z, name, min_ndim=1)
+        z = as_tensor(z, name, min_ndim=1, allow_nan=True)  # missing values stay missing
         if z.shape[-1] != width:
             raise ValueError(f"{name} must have {width} channels in its last dim, got {z.shape}")
         return z

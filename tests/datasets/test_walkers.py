@@ -218,6 +218,23 @@ def test_standardizer_bad_inputs():
         st.kept(["a"])
     with pytest.raises(RuntimeError, match="fit"):
         Standardizer().transform(torch.zeros(2, 3))
+    with pytest.raises(ValueError, match=r"channels \[1\] are missing"):
+        Standardizer().fit([torch.tensor([[1.0, float("nan")], [2.0, float("nan")]])])
+
+
+def test_standardizer_leaves_missing_values_out_and_keeps_them_missing(generator):
+    x = torch.randn(20, 3, generator=generator, dtype=torch.float64)
+    gappy = x.clone()
+    gappy[4:7] = float("nan")  # missing frames
+    gappy[10, 1] = float("nan")  # one missing marker coordinate
+    st = Standardizer().fit([gappy])
+    for c, rows in ((0, [r for r in range(20) if r not in (4, 5, 6)]),
+                    (1, [r for r in range(20) if r not in (4, 5, 6, 10)])):  # fmt: skip
+        ref = Standardizer().fit([x[rows, c : c + 1]])
+        torch.testing.assert_close(st.mean_[c : c + 1], ref.mean_)
+        torch.testing.assert_close(st.scale_[c : c + 1], ref.scale_)
+    out = st.transform(gappy)
+    assert out[4:7].isnan().all() and out[10, 1].isnan() and out[10, [0, 2]].isfinite().all()
 
 
 # ------------------------------------------------------------------------------------------
