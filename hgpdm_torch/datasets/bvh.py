@@ -45,8 +45,8 @@ import torch
 
 from ..validation import check_choice
 from .cmu import MotionTrials
-from .mocap import MAX_ANGLE_DEGREES, MAX_LENGTH, Bone, Skeleton
-from .walkers import motion_features
+from .mocap import MAX_ANGLE_DEGREES, MAX_LENGTH, Bone, Skeleton, _open
+from .walkers import _wrap, motion_features
 
 __all__ = ["BvhMotion", "BvhSkeleton", "load_bvh", "read_bvh"]
 
@@ -147,20 +147,6 @@ class BvhMotion:
         return 1.0 / self.frame_time
 
 
-def _lines(path: Path) -> list[str]:
-    if not path.is_file():
-        raise FileNotFoundError(f"BVH file not found: {path}")
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError as err:
-        raise ValueError(f"BVH file {path} is not a text file ({err.reason})") from None
-    if "\x00" in text:
-        raise ValueError(f"BVH file {path} is not a text file (it holds NUL bytes)")
-    if not text.strip():
-        raise ValueError(f"BVH file {path} is empty")
-    return text.splitlines()
-
-
 def _motion_header(path: Path, lines: list[str]) -> int:
     """The index of the ``Frame Time:`` line, after ``MOTION`` and ``Frames:`` lines.
 
@@ -245,7 +231,7 @@ def read_bvh(path: str | Path) -> BvhMotion:
             module docstring.
     """
     path = Path(path)
-    lines = _lines(path)
+    lines = _open(path, "BVH")
     header = _motion_header(path, lines)
     container = _hierarchy(path)
     skeleton = _skeleton(path, container.Root)
@@ -561,8 +547,7 @@ def load_bvh(
         else:
             x = motion.values[::downsample][:, keep]
             rotation = np.array([c.rsplit(".", 1)[1] in _ROTATIONS for c in chosen], dtype=bool)
-            wrapped = np.mod(np.deg2rad(x) + np.pi, 2 * np.pi) - np.pi
-            wrapped = np.where(wrapped >= np.pi, wrapped - 2 * np.pi, wrapped)
+            wrapped = _wrap(np.deg2rad(x))
             values, kept = np.where(rotation, wrapped, x), chosen
         sequences.append(torch.as_tensor(values, dtype=torch.float64))
     assert first is not None and kept is not None  # recording_files gives at least one file
