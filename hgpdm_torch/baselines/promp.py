@@ -22,8 +22,15 @@ Library: the basis functions are mp_pytorch's (``NormalizedRBFBasisGenerator`` o
 ``LinearPhaseGenerator``): torch-native, so the baseline runs in the toolkit's dtype and device
 and batches over candidates and streams; ALR's ``fancy_gym`` table-tennis environments build on
 it. Conditioning on a multi-frame prefix, the phase estimation and the augmented weights are
-this module's: mp_pytorch has none of them, and ``movement_primitives``' ProMP (NumPy)
-conditions on one via-point at a time and has no phase estimation either.
+this module's: mp_pytorch has none of them. ``movement_primitives``' ProMP (NumPy) conditions on
+one via-point at a time, has no phase estimation and no per-movement quantities (a target must
+ride along as a constant channel). Measured on the target-prediction strokes (``python -m
+benchmarks promp_libraries``, 4 basis functions per channel, 126 test strokes): this module
+errs 50.9 / 51.0 / 43.6 / 34.2 cm at 320 / 240 / 160 / 80 ms before the hit, against 44.7 /
+47.0 / 40.1 / 39.8 for ``movement_primitives`` (SEM 2.5-3.1: it is ahead 320-160 ms before the
+hit, this module at 80 ms), and
+with 6 basis functions 51.1 / 46.9 / 46.8 / 34.0 against 48.0 / 51.9 / 56.9 / 51.6; it fits 16-32x
+and decides 9-18x faster (0.01 against 0.11-0.16 ms per decision).
 """
 
 from __future__ import annotations
