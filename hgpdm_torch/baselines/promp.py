@@ -393,11 +393,13 @@ class ProMPRegressor(_Selected):
 
         def mae(options: dict, train: list[int], held: list[int]) -> torch.Tensor:
             model = ProMP(**options).fit([seqs[i] for i in train], y[train])
-            return torch.cat([
-                torch.stack([p.mean[0, 0] for p in _prefix_posteriors(model, seqs[i][None])])
-                .sub(y[i]).abs()
-                for i in held
-            ])  # fmt: skip
+            out = []
+            for length in sorted({seqs[i].shape[0] for i in held}):  # equal lengths at once
+                same = [i for i in held if seqs[i].shape[0] == length]
+                z = torch.stack([seqs[i] for i in same]).double()
+                mean = torch.stack([p.mean[:, 0] for p in _prefix_posteriors(model, z)], 1)
+                out.append((mean - y[same, None]).abs().flatten())
+            return torch.cat(out)
 
         self.options = self._select(len(seqs), mae)
         self.model = ProMP(**self.options).fit(seqs, y)

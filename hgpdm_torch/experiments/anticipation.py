@@ -374,10 +374,11 @@ def _fold(
     fits: dict[str, list] = {}
     train = torch.nonzero(fold_of != k).flatten()
     test = torch.nonzero(fold_of == k).flatten()
-    tracks = {
-        src: track_beliefs(src, obs[train], targets[train], obs, targets, steps_at, config)
+    tracks = {  # clip: the oracle's reference belief of a return just beyond the grid
+        src: track_beliefs(src, obs[train], targets[train], obs, targets, steps_at, config,
+                           clip=True)
         for src in (*candidates, "oracle")
-    }
+    }  # fmt: skip
     for src, track in tracks.items():
         fits.setdefault(src, []).extend(track.fits)
     # the training strokes' beliefs for choosing the source and learning the players come

@@ -355,9 +355,11 @@ def _track(
         raise RuntimeError("watched strokes must share the trials' observation times")
     steps_at = decision_indices(trials.obs_times, start_times)
     last = max(steps_at) + 1
+    # clip: a simulated return may land a little beyond the grid (the hitting region); the
+    # oracle's reference belief then sits on the grid's edge, as the models' beliefs can
     tracks = {
         src: track_beliefs(src, seen.obs[:, :last], seen.targets, trials.obs[:, :last],
-                           trials.targets, steps_at, config)
+                           trials.targets, steps_at, config, clip=True)
         for src in (*candidates, "oracle")
     }  # fmt: skip
     t_fit = time.perf_counter() - clock
