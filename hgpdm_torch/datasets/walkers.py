@@ -274,8 +274,11 @@ class Standardizer:
         seen = ~x.isnan()
         if empty := torch.nonzero(~seen.any(0)).flatten().tolist():
             raise ValueError(f"channels {empty} are missing (NaN) in every training frame")
-        self.mean_ = x.nanmean(0)
-        std = (x - self.mean_).pow(2).nanmean(0).sqrt()
+        if bool(seen.all()):  # complete data: torch's own reductions, as before gaps existed
+            self.mean_, std = x.mean(0), x.std(0, correction=0)
+        else:
+            self.mean_ = x.nanmean(0)
+            std = (x - self.mean_).pow(2).nanmean(0).sqrt()
         self.keep_ = std > self.rtol * (1 + x.nan_to_num(0.0).abs().amax(0))
         self.scale_ = torch.where(self.keep_, std, torch.ones_like(std))
         return self
