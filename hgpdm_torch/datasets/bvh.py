@@ -45,8 +45,8 @@ import torch
 
 from ..validation import check_choice
 from .cmu import MotionTrials
-from .mocap import MAX_ANGLE_DEGREES, MAX_LENGTH, Bone, Skeleton, _open
-from .walkers import _wrap, motion_features
+from .mocap import MAX_ANGLE_DEGREES, MAX_LENGTH, Bone, Skeleton, text_lines
+from .walkers import motion_features, wrap_angles
 
 __all__ = ["BvhMotion", "BvhSkeleton", "load_bvh", "read_bvh"]
 
@@ -231,7 +231,7 @@ def read_bvh(path: str | Path) -> BvhMotion:
             module docstring.
     """
     path = Path(path)
-    lines = _open(path, "BVH")
+    lines = text_lines(path, "BVH")
     header = _motion_header(path, lines)
     container = _hierarchy(path)
     skeleton = _skeleton(path, container.Root)
@@ -547,7 +547,7 @@ def load_bvh(
         else:
             x = motion.values[::downsample][:, keep]
             rotation = np.array([c.rsplit(".", 1)[1] in _ROTATIONS for c in chosen], dtype=bool)
-            wrapped = _wrap(np.deg2rad(x))
+            wrapped = wrap_angles(np.deg2rad(x))
             values, kept = np.where(rotation, wrapped, x), chosen
         sequences.append(torch.as_tensor(values, dtype=torch.float64))
     assert first is not None and kept is not None  # recording_files gives at least one file

@@ -102,7 +102,7 @@ class MocapTrial:
     frame_numbers: np.ndarray
 
 
-def _open(path: str | Path, kind: str) -> list[str]:
+def text_lines(path: str | Path, kind: str) -> list[str]:
     """The lines of a text file; ``FileNotFoundError`` if missing, ``ValueError`` if it is empty
     or not text."""
     path = Path(path)
@@ -170,7 +170,7 @@ def read_asf(path: str | Path) -> Skeleton:
             the hierarchy.
     """
     try:
-        return _parse_asf(_open(path, "ASF"))
+        return _parse_asf(text_lines(path, "ASF"))
     except ValueError as err:
         if str(err).startswith("ASF file "):
             raise
@@ -345,7 +345,7 @@ def read_amc(path: str | Path, skeleton: Skeleton, *, gaps: str = "error") -> Mo
             skeleton); a bad ``gaps``.
     """
     check_choice(gaps, "gaps", ("error", "missing"))
-    lines = _open(path, "AMC")
+    lines = text_lines(path, "AMC")
     channels = skeleton.channels()
     index = {c: i for i, c in enumerate(channels)}
     dofs = {"root": skeleton.root_order} | {b.name: b.dof for b in skeleton.bones.values()}

@@ -66,7 +66,7 @@ _ROOT_CHANNELS = ("tx", "ty", "tz", "rx", "ry", "rz")
 _ROTATIONS = ("rx", "ry", "rz")
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
+def wrap_angles(angle: np.ndarray) -> np.ndarray:
     """Angles in radians wrapped to ``[-pi, pi)``."""
     out = np.mod(angle + np.pi, 2 * np.pi) - np.pi
     return np.where(out >= np.pi, out - 2 * np.pi, out)  # mod may round up to 2 pi
@@ -210,16 +210,16 @@ def motion_features(
         c * dx - s * dz,  # towards the body's left, Ry(yaw) e_x
         s * dx + c * dz,  # forward, Ry(yaw) e_z
         x[1:, col["root.ty"]],
-        _wrap(np.diff(yaw)),
-        _wrap(pitch[1:]),
-        _wrap(roll[1:]),
+        wrap_angles(np.diff(yaw)),
+        wrap_angles(pitch[1:]),
+        wrap_angles(roll[1:]),
     ]
     names = list(ROOT_FEATURES)
     for name in channels:
         if name.startswith("root."):
             continue
         v = x[1:, col[name]]
-        columns.append(_wrap(to_rad * v) if name.split(".")[1] in _ROTATIONS else v)
+        columns.append(wrap_angles(to_rad * v) if name.split(".")[1] in _ROTATIONS else v)
         names.append(name)
     return np.stack(columns, axis=1), names
 

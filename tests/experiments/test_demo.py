@@ -59,10 +59,12 @@ def test_the_main_job_warns_of_nothing_and_reports_its_fit(played):
     assert [str(w.message) for w in PLAYED_WARNINGS] == []
     assert "Warning" not in stderr
     fits = json.loads((out / "demo.json").read_text())["meta"]["belief fits"]
-    assert sorted(fits) == ["gp-iddm", "linear-iddm"]  # the candidates of --belief auto
+    assert sorted(fits) == ["gp-iddm", "linear-iddm", "promp"]  # the candidates of auto
     (gp,) = fits["gp-iddm"]  # the one GP IDDM of the watched strokes
     assert gp["steps"] >= 1 and isinstance(gp["converged"], bool) and gp["reason"]
     assert [f["interaction_rank"] for f in fits["linear-iddm"]] == [0, 1]
+    (promp,) = fits["promp"]  # the ProMP's options, chosen by cross-validation
+    assert set(promp["options"]) == {"num_basis", "speeds", "reg"}
 
 
 def test_demo_plays_rallies_in_sapien(played):
@@ -71,7 +73,7 @@ def test_demo_plays_rallies_in_sapien(played):
     players = [r["player"] for r in table["rows"]]
     assert players == [
         demo.BLIND, demo.FIXED_TIME, "LSPI", "MCP", "LSPI (linear-iddm belief)",
-        "LSPI (gp-iddm belief)", "MCP (oracle belief)",
+        "LSPI (gp-iddm belief)", "LSPI (promp belief)", "MCP (oracle belief)",
         "oracle (best movement and time per stroke)", "best blind (after the fact)",
     ]  # fmt: skip
     assert table["columns"] == ["player", "returns", "rate", "95% low", "95% high", "played in"]
