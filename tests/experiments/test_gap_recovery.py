@@ -22,6 +22,8 @@ from hgpdm_torch.experiments.gap_recovery import (
 )
 from hgpdm_torch.results import ResultTable
 
+from .test_walkers import touch
+
 CMU = Path("../shared/data/cmu")
 
 
@@ -80,14 +82,6 @@ def test_cli_rejects_bad_values(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--fit-steps", "0"])
     assert "positive integer" in capsys.readouterr().err
-
-
-def touch(folder: Path, *names: str) -> Path:
-    """Empty CMU files: the run must say what it found, and stop, before reading any."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for name in names:
-        (folder / name).write_text("")
-    return folder
 
 
 def test_an_empty_test_folder_stops_the_run_instead_of_using_the_training_folder(tmp_path, capsys):
