@@ -9,7 +9,8 @@ float64, one thread. For each (N, B, K):
 
 - ``shared``: one :meth:`GPPosterior.predict_gaussian` call for B input Gaussians and all K
   intentions (``mu [B, 1, Dx]``, ``g [1, K, Dg]``): the N x N expectation over x is computed once
-  per stream and shared by the K intentions (DESIGN.md sec. 8);
+  per stream and shared by the K intentions
+  (docs/design/speed.md#intentions-share-the-input-expectation);
 - ``loop``: the naive alternative measured in the same process, one call per intention
   (B streams batched, K calls), each redoing the N x N work; ``x faster`` = loop / shared;
 - ``filter step``: one :func:`gp_adf_predict` + :func:`gp_adf_update` (linear measurement,

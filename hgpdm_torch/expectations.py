@@ -28,7 +28,7 @@ How it is organised (GPflow-style dispatch, on a normal form):
    point factor from the known columns (:class:`Term`): e.g. the tensor-product kernel
    ``exp(-|x - x_i|^2/2l_x^2) exp(-|g - g_i|^2/2l_g^2)`` becomes an RBF over ``x`` times the factor
    ``exp(-|g - g_i|^2/2l_g^2)``. The ``x`` part is therefore shared by all values of ``g``
-   (DESIGN sec. 8), and the discrete kernel's delta is a 0/1 factor.
+   (docs/design/math.md#shared-work-across-intentions); a discrete kernel's delta is a 0/1 factor.
 3. One function per quantity (:func:`term_psi1`, :func:`term_grad`, :func:`term_psi2`) dispatches
    on the term kinds ``"rbf"``, ``"linear"``, ``"const"`` (and pairs of kinds for psi2).
 

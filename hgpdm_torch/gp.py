@@ -365,7 +365,7 @@ class GPPosterior:
                    + diag(scale^2 (psi0 - tr(K^-1 psi2) [+ noise]))
             Cov[x, f] = Sigma E[d k(x~, X)/dx] beta               (Stein's lemma)
 
-        Cost (DESIGN.md sec. 8). The outputs share one kernel, so one ``N x N`` ``psi2`` serves
+        Cost (docs/design/speed.md#one-psi2-for-all-outputs). One shared ``N x N`` ``psi2`` serves
         all output pairs, and only RBF x RBF term pairs need one at all (pairs with a linear term
         have rank ``<= D``). Each kernel term splits into an ``x`` part and a per-training-point
         factor of ``g``, so the ``N x N`` work over ``x`` is done once for all ``g`` that share an
@@ -416,7 +416,8 @@ class GPPosterior:
 
         leaves = self._leaves()
         if g is not None and self.blocks() is not None:
-            # discrete g: each code touches only its own training points (DESIGN.md sec. 8)
+            # discrete g: each code touches only its own training points
+            # (docs/design/speed.md#a-discrete-intentions-own-block)
             X, beta, kinv, mask = self._gather_blocks(g)
             leaves = [replace(lf, weight=lf.weight[:D], codes=()) for lf in leaves]
             terms = [replace(t, factor=mask) for t in split_terms(leaves, X, None, D)]

@@ -6,7 +6,8 @@ its held-out sequences and returns a :class:`CVResult`: a :class:`ResultTable` w
 option set (mean score, its standard error across folds, fits that did not converge), the
 per-fold scores and the best option set. Splits come from any scikit-learn group splitter
 (``LeaveOneGroupOut``, ``GroupKFold``, ``LeavePGroupsOut``, ``StratifiedGroupKFold``), so that no
-trial or person contributes to both the training and the test part of a fold (DESIGN Sec. 10).
+trial or person contributes to both the training and the test part of a fold
+(docs/design/evaluation.md#cross-validation-grouped-by-trial-or-person).
 
 :func:`forecast_rmse` builds the score of the thesis's forecasting protocol (Tables 2.1-2.4):
 the RMSE of VB next-frame forecasts over sliding windows of the test sequences.

@@ -17,7 +17,7 @@ SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 # different BLAS kernels (another batch shape, thread count, CPU or MKL_CBWR path) agree only to
 # a few eps times the quantity's scale and the reduction length, amplified by the condition
 # number of any solve on the way: tolerances between them are derived from it, never "to the
-# last bit" (DESIGN.md sec. 6).
+# last bit" (docs/design/testing.md#tolerances-that-hold-on-any-ieee-754-machine).
 EPS = torch.finfo(torch.float64).eps
 
 

@@ -4,7 +4,8 @@ Window baselines map a sliding window of observations to the intention, for the 
 thesis Sec. 3.5-3.6: every model is fitted on whole training sequences (each step labelled with
 its sequence's intention) and predicts at every step of ``[M, T, Dz]`` test sequences from the
 window ending there (the first steps use the frames available, padded by repeating the first one).
-Next-frame forecasters are the baselines of a dynamics model's one-step predictions (DESIGN 10).
+Next-frame forecasters are the baselines of a dynamics model's one-step predictions
+(docs/design/evaluation.md#baselines-on-the-same-features).
 
 The baselines are split by concept into the modules below; this package re-exports their public
 names (``from hgpdm_torch.baselines import WindowGPR``):

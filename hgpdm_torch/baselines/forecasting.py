@@ -1,4 +1,6 @@
-"""Next-frame forecasters, the baselines of a dynamics model's one-step predictions (DESIGN 10).
+"""Next-frame forecasters, the baselines of a dynamics model's one-step predictions.
+
+Why these baselines: docs/design/evaluation.md#baselines-on-the-same-features.
 
 Fitted on whole sequences, they predict the frame after each of ``[W, T, Dz]`` windows:
 

@@ -1,4 +1,6 @@
-"""A small recurrent forecaster: what a user would try after ridge regression (DESIGN 10).
+"""A small recurrent forecaster: what a user would try after ridge regression.
+
+Why this baseline: docs/design/evaluation.md#baselines-on-the-same-features.
 
 :class:`GRUForecaster` reads a window ``z_{t-T+1:t}`` with a one-layer GRU (``torch.nn.GRU``)
 and predicts the change ``z_{t+1} - z_t`` from its last hidden state through a linear layer, so

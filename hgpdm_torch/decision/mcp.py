@@ -22,12 +22,13 @@ on top of LSPI's policy (a rollout with LSPI's values at the leaves). Algorithm 
 sampling as soon as a Student-t confidence interval of the mean sampled reward lies entirely
 above (wait) or below (stop) the best stopping value.
 
-Where the speed comes from (DESIGN.md sec. 8): every particle starts from the same belief, so the
-K per-intention predictions ``q(x_{t+1} | g)`` and their moment-matched joints with
-``z_{t+1}`` are computed once per decision. A particle differs only by its observation, and
-conditioning a Gaussian on it is linear: ``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)`` with a
-shared covariance ``P_g - C_g S_g^-1 C_g^T`` and the evidence ``log N(z^i | m^z_g, S_g)``. All
-particles of a chunk are advanced in one batched update of ``[I, K]`` small matrices.
+Where the speed comes from (docs/design/speed.md#particles-share-the-beliefs-predictions): every
+particle starts from the same belief, so the K per-intention predictions ``q(x_{t+1} | g)`` and
+their moment-matched joints with ``z_{t+1}`` are computed once per decision. A particle differs
+only by its observation, and conditioning a Gaussian on it is linear:
+``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)`` with a shared covariance ``P_g - C_g S_g^-1 C_g^T``
+and the evidence ``log N(z^i | m^z_g, S_g)``. All particles of a chunk are advanced in one
+batched update of ``[I, K]`` small matrices.
 
 Particles draw ``z^i`` either from the moment-matched ``N(m^z_g, S_g)`` (``sampling="moments"``,
 the fast default, consistent with the filter's own approximation) or literally as Algorithm 4.2

@@ -7,7 +7,8 @@ first two moments (:meth:`~hgpdm_torch.gp.GPPosterior.predict_gaussian`):
 
 - prediction, Eq. 28: ``p(x_{t-1}, x_t | z_{1:t-1})``;
 - measurement update, Eq. 25 and 32: ``p(x_t, z_t | z_{1:t-1})`` conditioned on ``z_t``;
-- RTS smoothing, Eq. 26-27 (with the corrected left side of Eq. 26, DESIGN.md sec. 7)::
+- RTS smoothing, Eq. 26-27 (with the corrected left side of Eq. 26,
+  docs/design/math.md#rts-smoothing-the-corrected-eq-26)::
 
       J_{t-1} = Sigma_{t-1,t|t-1} Sigma_{t|t-1}^-1
       mu_{t-1|T} = mu_{t-1|t-1} + J_{t-1} (mu_{t|T} - mu_{t|t-1})

@@ -189,7 +189,8 @@ def test_measurement_update_is_accurate_in_float32_and_for_singular_predictions(
     assert float((got32[2].double() - want[2]).abs().max()) < 1e-2
 
 
-# ----- Q_t(g): statistical linearisation against DESIGN.md's KL form and Monte Carlo ----------
+# ----- Q_t(g): statistical linearisation against its KL form and Monte Carlo -----------------
+# (docs/design/math.md#the-transition-term-in-kl-form)
 
 
 def _joint(mx, Sx, my, Sy, Cxy):

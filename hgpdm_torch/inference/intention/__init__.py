@@ -14,8 +14,9 @@ values) with a variational bound built from Gaussian (moment-matched) smoothing 
   through the fast :class:`SharedTransition`, any other kernel (H-GPDM, user kernels) through
   :class:`GenericTransition`, a plain GPDM as one value (GP-ADF).
 
-``Q_t(g) = E_q[log p(x_{t+1} | x_t, g)]`` (Sec. 3.3.2 and DESIGN.md sec. 7) is evaluated by
-statistical linearisation (:func:`expected_log_conditional`).
+``Q_t(g) = E_q[log p(x_{t+1} | x_t, g)]`` (Sec. 3.3.2 and
+docs/design/math.md#the-transition-term-in-kl-form) is evaluated by statistical linearisation
+(:func:`expected_log_conditional`).
 
 Observations: a row of NaN is a missing observation everywhere. Other rows that the filter
 cannot use (+-inf, partly NaN, or more than ``outlier_sd`` = 100 training standard deviations

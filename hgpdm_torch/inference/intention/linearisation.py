@@ -1,10 +1,10 @@
 r"""Statistical linearisation: ``E_q[log q~(y | x)]`` for a Gaussian ``q``.
 
 The transition term ``Q_t(g) = E_q[log p(x_{t+1} | x_t, g)]`` of the bound (Sec. 3.3.2,
-DESIGN.md sec. 7) and its measurement term replace the GP by the conditional of its
-moment-matched joint Gaussian ``q~`` (:func:`expected_log_conditional`); the expectation under
-``q`` is then exact. Used by batch inference (Algorithm 3.1) and by the online filter's
-``evidence="bound"`` (Algorithm 3.2).
+docs/design/math.md#the-transition-term-in-kl-form) and its measurement term replace the GP by
+the conditional of its moment-matched joint Gaussian ``q~`` (:func:`expected_log_conditional`);
+the expectation under ``q`` is then exact. Used by batch inference (Algorithm 3.1) and by the
+online filter's ``evidence="bound"`` (Algorithm 3.2).
 """
 
 from __future__ import annotations

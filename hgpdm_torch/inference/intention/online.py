@@ -7,8 +7,8 @@ one-step backward smoothing under the current belief (``evidence="bound"``,
 :func:`~hgpdm_torch.inference.intention.linearisation.expected_log_conditional`), or (the
 default) the GP-ADF predictive likelihood ``log q(z_t | z_{1:t-1}, g)`` from the shared ``q``.
 With ``q'`` the filtered ``q(x_t | z_{1:t})`` (the ``"bound"`` default) ``Q`` differs from
-DESIGN.md's formula only by terms shared by all g, and the K moment matchings of the prediction
-step are reused.
+the KL form (docs/design/math.md#the-online-filters-q) only by terms shared by all g, and the K
+moment matchings of the prediction step are reused.
 
 The pieces: the transition moments of all K values at once
 (:mod:`~hgpdm_torch.inference.intention.transition`: the IDDM's fast path or the generic one for
@@ -130,8 +130,9 @@ class OnlineIntentionFilter(IsolatedStreams):
         evidence: ``"predictive"`` or ``"bound"``.
         mixing: ``"grid"`` or ``"gaussian"`` (continuous g with ``evidence="bound"`` only).
         relinearize: (``"bound"``) score ``Q`` with the transition moment matched at the smoothed
-            ``q(x_{t-1} | z_{1:t})`` (exactly DESIGN.md's formula, twice the cost) instead of
-            the filtered ``q(x_{t-1} | z_{1:t-1})``. ``mixing="gaussian"`` always does.
+            ``q(x_{t-1} | z_{1:t})`` (exactly the KL form of
+            docs/design/math.md#the-online-filters-q, twice the cost) instead of the filtered
+            ``q(x_{t-1} | z_{1:t-1})``. ``mixing="gaussian"`` always does.
         mu0: ``[Dx]`` mean of the first state's prior (default: the training latents' mean).
         Sigma0: ``[Dx, Dx]`` its covariance (default: the training latents' covariance).
         state_prior: ``"marginal"`` (``mu0``, ``Sigma0``) or, for a discrete g, ``"class"``:

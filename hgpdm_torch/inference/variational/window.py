@@ -20,7 +20,8 @@ first state, the prior over g and the candidate values of a discrete g. On it li
                 - H(q(x_1), p(x_1)) + H(q)     [+ E_q[log p(g)] + H(q(g)) for a continuous g]
 
   where the GP predictive variances ``sigma_z^2``, ``sigma_x^2`` are evaluated at the variational
-  means (Eq. 15-17, the thesis's approximation; DESIGN.md sec. 7) and the expected squared errors
+  means (Eq. 15-17, the thesis's approximation;
+  docs/design/math.md#vb-variances-at-the-variational-means) and the expected squared errors
   come from :mod:`~hgpdm_torch.inference.variational.gaussian_input` (App. 2.A).
 
 A discrete g's transition kernel is block-diagonal, so each value touches only its own training
