@@ -12,8 +12,10 @@ per movement), Dz = 15, Dx = 4, linear measurement kernel, K = 25 grid values, o
 - ``online B streams``: time per stream of one batched update of B streams, and the same B
   updates as a Python loop over B single-stream filters (``x loop`` = loop / batched; target
   >= 3x at B = 256);
-- ``online batched`` by ``path``: the fused psi2 contraction (``settings.moment_path``, the
-  default) and the materialised path it replaced, timed in turn in this process, each with
+- ``online batched`` by ``path``: the fused psi2 contraction by the compiled kernel
+  (``native``, :mod:`hgpdm_torch.native`; the default where it runs), the same in torch
+  (``fused``, ``settings.native_kernels(False)``) and the materialised path it replaced
+  (``settings.moment_path``), timed in turn in this process, each with
   ``floor [ms/stream]`` (the step's operation count, :meth:`OnlineIntentionFilter.operations`,
   at this device's rates: a large GEMM and a large exponential timed in this process, recorded
   in ``meta["rates"]``), ``x floor`` (time over floor) and ``peak MB/stream`` (peak allocation
@@ -43,6 +45,8 @@ materialised path up to B = 1,024.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -57,7 +61,7 @@ from benchmarks._common import (
     parse_options,
     peak_bytes,
 )
-from hgpdm_torch import settings
+from hgpdm_torch import native, settings
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.beliefs import PHASE_IDDM
 from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
@@ -147,16 +151,32 @@ def _update_ms(opts: Options, f: OnlineIntentionFilter, z: torch.Tensor, updates
     return 1e3 * min(times)
 
 
+def paths(opts: Options) -> list[str]:
+    """The psi2 paths timed in turn, the default first: ``native`` (the fused contraction by the
+    compiled kernel, :mod:`hgpdm_torch.native`, where it runs: float64 on a CPU with AVX-512),
+    ``fused`` (in torch) and ``materialised``."""
+    compiled = opts.device.type == "cpu" and opts.dtype == torch.float64 and native.available()
+    return ["native"] * compiled + ["fused", "materialised"]
+
+
+@contextlib.contextmanager
+def on_path(path: str) -> Iterator[None]:
+    """Settings of one of :func:`paths`."""
+    fused = "materialised" if path == "materialised" else "fused"
+    with settings.moment_path(fused), settings.native_kernels(path == "native"):
+        yield
+
+
 def path_row(opts: Options, rates: Rates, model, grid, streams, B: int, path: str) -> dict:
-    """The online update of B streams on one psi2 path (``settings.moment_path``): ms per
-    stream, its floor (the step's operation count at this device's rates) and the peak memory
-    of one update per stream."""
+    """The online update of B streams on one psi2 path (:func:`paths`): ms per stream, its floor
+    (the step's operation count at this device's rates) and the peak memory of one update per
+    stream."""
     z = streams[torch.arange(B, device=streams.device) % len(streams)]
-    with settings.moment_path(path):
+    with on_path(path):
         f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
         per_stream = _update_ms(opts, f, z) / B
         peak = peak_bytes(lambda: f.update(z[:, 4]), opts.device)
-    floor = rates.floor_ms(f.operations())
+        floor = rates.floor_ms(f.operations())
     return {
         "algorithm": "online batched", "path": path, "B": B,
         "p50 [ms/obs/stream]": per_stream, "floor [ms/stream]": floor,
@@ -173,7 +193,7 @@ def streams_at(opts: Options, model, grid, streams, path: str, budget_ms: float 
         f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
         return _update_ms(opts, f, z, updates=2) <= budget_ms
 
-    with settings.moment_path(path):
+    with on_path(path):
         return largest_fitting(fits)
 
 
@@ -253,19 +273,20 @@ def run(opts: Options) -> ResultTable:
         sizes, loop_max = [1, 4, 16, 64, 256, 1024], 256
     name = str(opts.dtype).removeprefix("torch.")
     exact_loop = {}
-    # the fused psi2 path (the default) and the materialised one it replaced, in turn in this
-    # process: time, floor and peak memory per stream; the loop of single-stream filters
+    # the psi2 paths (the default first), in turn in this process: time, floor and peak memory
+    # per stream; the loop of single-stream filters on the default path
+    timed = paths(opts)
     for B in sizes:
-        for path in settings.moment_path.choices:
+        for path in timed:
             if path == "materialised" and B > 1024:  # 2 streams per chunk: minutes per update
                 continue
             row = path_row(opts, rates, model, grid, streams, B, path)
-            if path == "fused" and B <= loop_max:
+            if path == timed[0] and B <= loop_max:
                 exact_loop[B] = loop = loop_ms(opts, model, grid, streams, B)
                 row.update({"loop [ms/stream]": loop, "x loop": loop / row["p50 [ms/obs/stream]"]})
             table.add(dtype=name, **row)
             print(table.rows[-1], flush=True)
-    for path in settings.moment_path.choices:
+    for path in timed:
         table.add(**{
             "algorithm": "streams at 30 Hz", "path": path, "dtype": name,
             "streams at 30 Hz": streams_at(opts, model, grid, streams, path),

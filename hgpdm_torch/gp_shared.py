@@ -23,13 +23,14 @@ points, ``M`` pseudo-inputs.
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
 
-from . import settings
+from . import native, settings
 from .expectations import (
     Leaf,
     Term,
@@ -46,6 +47,20 @@ if TYPE_CHECKING:  # gp.py imports this module: GPPosterior only annotates here
     from .gp import GPPosterior
 
 __all__ = ["SharedTransition", "sparse_posterior"]
+
+
+@dataclass(frozen=True)
+class _NativeLayout:
+    """The compiled kernel's column layout of a :class:`SharedTransition` (module
+    :mod:`hgpdm_torch.native`): columns in the order ``(m, v)`` with v padded to ``up``."""
+
+    cols: torch.Tensor  # [Np] point of each column (padding: point 0, zero weights)
+    beta: torch.Tensor  # [N, Dx] each row's weights
+    betac: torch.Tensor  # [Dx, Np] each column's weights (0 at padding)
+    kinv: torch.Tensor  # [N, Np]
+    phi_t: torch.Tensor  # [up, Kp] phi[k, v], 0 at padding v and k >= K
+    up: int
+    pairs: tuple[torch.Tensor, torch.Tensor]  # weight dims (a, b), a <= b, row-major
 
 
 def _positive_int(value: object, name: str) -> None:
@@ -454,11 +469,14 @@ class SharedTransition:
         if log_phase is not None:  # psi2_ij times both points' phase factors: in the exponent
             left[..., dx] += log_phase  # the row term (left and right are this call's own)
             right[..., dx + 1, :] += log_phase  # the column term
+        needs = (left, right, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
+        if not grad and self._native_ready(left):
+            T, second = self._native_second(left, right)
+            return T, second - mean[..., :, None] * mean[..., None, :]
         right = right[..., self.columns]
         size = per_tile(self.workspace(), mu.dtype, mu.device)
         # the inputs' gradient, or the GP's (a posterior with detach=False): differentiable tiles
-        needs = (left, right, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
-        grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
         if grad:  # kept for backward while small, else recomputed there (tiling)
             keep = keeps_tiles(b * n * n, mu.dtype)
             parts = [
@@ -475,6 +493,55 @@ class SharedTransition:
                 rows = slice(i, min(i + size, b))
                 self._tile(left[rows], right[rows], out=(T[rows], second[rows]), bufs=bufs)
         return T, second - mean[..., :, None] * mean[..., None, :]
+
+    def _native_ready(self, left: torch.Tensor) -> bool:
+        """Whether :meth:`_native_second` runs (:func:`hgpdm_torch.native.usable`, Dx within the
+        kernel's limit)."""
+        return self.dx <= native.MAX_D and native.usable(left, self.kinv)
+
+    @functools.cached_property
+    def _native(self) -> _NativeLayout:
+        U, L, dx = self.groups, self.group_size, self.dx
+        n, up = U * L, -(-U // 8) * 8
+        dev = self.kinv.device
+        cols = torch.zeros(L, up, dtype=torch.long, device=dev)
+        cols[:, :U] = (
+            torch.arange(U, device=dev)[None, :] * L + torch.arange(L, device=dev)[:, None]
+        )
+        real = torch.zeros(L, up, dtype=torch.bool, device=dev)
+        real[:, :U] = True
+        cols, real = cols.reshape(-1), real.reshape(-1)
+        beta = self.beta.reshape(n, dx).contiguous()
+        kinv = self.kinv[:n, cols] * real
+        betac = (beta[cols] * real[:, None]).T.contiguous()
+        K = self.num_values
+        phi_t = torch.nn.functional.pad(self.phi.T, (0, -(-K // 8) * 8 - K, 0, up - U))
+        pairs = tuple(torch.triu_indices(dx, dx, device=cols.device))
+        return _NativeLayout(cols, beta, betac, kinv.contiguous(), phi_t.contiguous(), up, pairs)
+
+    def _native_second(
+        self, left: torch.Tensor, right: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``T [B, U, U]`` and ``beta_k^T psi2 beta_k [B, K, Dx, Dx]`` by the compiled kernel
+        (:func:`hgpdm_torch.native.psi2_groups`) in one call.
+
+        The kernel forms, per group u, the sums ``S[u, (a, b), v] = beta_{u,a}^T psi2_uv
+        beta_{v,b}`` for the weight pairs ``a <= b`` (``psi2`` is symmetric, so are the moments)
+        and contracts them with phi at once: ``sum_uv phi_ku phi_kv S[u, ., v]``, ``K U^2 Dx (Dx
+        + 1) / 2`` multiply-adds, against ``K U Dx N`` for phi over the columns of the torch
+        path.
+        """
+        lay = self._native
+        U, K, (a, b) = self.groups, self.num_values, lay.pairs
+        right = right[..., lay.cols].contiguous()
+        T, out = native.psi2_groups(
+            left, right, lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups
+        )
+        sums = out[..., :K].transpose(1, 2)  # [B, K, pairs]
+        second = left.new_empty(left.shape[0], K, self.dx, self.dx)
+        second[:, :, a, b] = sums
+        second[:, :, b, a] = sums
+        return T[..., :U].clone(), second
 
     def _tile(
         self,
@@ -514,17 +581,24 @@ class SharedTransition:
         shared between the ``streams`` of a call).
 
         ``N^2`` exponentials and ``N`` for ``psi1``; multiply-adds: ``N^2 (Dx + 2)`` for the
-        exponent, ``2 N^2`` for the product with ``K^-1`` and its group sums, ``N^2 Dx`` for
-        the group weights, ``K U Dx N`` for phi over groups, ``K Dx^2 N`` for the weighted
-        columns, ``K U^2`` for the traces, and the ``O(N Dx^2)`` and ``O(K U Dx^2)`` work of
-        ``psi1``, ``E[grad k]``, the means, the centring and ``Cov[x, f]`` (with a phase, its
-        ``N`` factors per stream and their products).
+        exponent, ``N^2 Dx`` for the group weights, ``K U^2`` for the traces, and the ``O(N
+        Dx^2)`` and ``O(K U Dx^2)`` work of ``psi1``, ``E[grad k]``, the means, the centring and
+        ``Cov[x, f]`` (with a phase, its ``N`` factors per stream and their products). Then, in
+        torch, ``2 N^2`` for the product with ``K^-1`` and its group sums, ``K U Dx N`` for phi
+        over groups and ``K Dx^2 N`` for the weighted columns; by the compiled kernel
+        (:mod:`hgpdm_torch.native`, where it runs), ``N^2`` for the product with ``K^-1`` (one
+        fused multiply-add), ``U P N`` for the weight pairs ``P = Dx (Dx + 1) / 2`` of each pair
+        of groups and ``K U^2 P`` for phi over both groups.
         """
         dx, U, K = self.dx, self.groups, self.num_values
         n = U * self.group_size
-        madds = n * n * (dx + 2) + 2 * n * n + n * n * dx + K * U * dx * n
-        madds += K * dx * dx * n + K * U * U + K * U + K * dx * dx
+        madds = n * n * (dx + 2) + n * n * dx + K * U * U + K * U + K * dx * dx
         madds += 4 * n * dx * dx + 3 * n * dx + K * U * dx * (1 + dx) + K * dx**3
+        if self._native_ready(self.kinv):
+            pairs = dx * (dx + 1) // 2
+            madds += n * n + U * pairs * n + K * U * U * pairs + K * U * pairs
+        else:
+            madds += 2 * n * n + K * U * dx * n + K * dx * dx * n
         if self.phase:  # each point's phase factor, and its use in psi1, E[grad k], the exponent
             return OpCount(exps=n * n + 2 * n, madds=madds + n * (dx + 5))
         return OpCount(exps=n * n + n, madds=madds)

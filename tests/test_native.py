@@ -1,0 +1,236 @@
+"""The compiled CPU kernel (:mod:`hgpdm_torch.native`) against independent references.
+
+- its exponential against mpmath at 200 bits (within 2 ulp; 0, inf and NaN where IEEE-754 puts
+  them);
+- its group sums of ``psi2 = exp(left @ right)`` against the dense formulas in torch, within a
+  first-order rounding bound of both (the exponent's products, the exponential, the sums);
+- one warning and the torch path where no compiler is found or the build fails;
+- a build into an empty cache folder, threads with their own buffers, and its inputs' checks.
+
+Where the kernel cannot run (no AVX-512F, no compiler) the tests that need it skip; the fallback
+tests run everywhere.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import stat
+import threading
+import warnings
+
+import mpmath
+import pytest
+import torch
+
+from hgpdm_torch import native, settings
+from hgpdm_torch.gp_shared import SharedTransition
+
+from .conftest import EPS
+from .test_tiling import DX, _close, _gaussians, _iddm_posterior
+
+needs_kernel = pytest.mark.skipif(
+    not native.available(),
+    reason="the compiled kernel does not run here: it needs an x86-64 CPU with AVX-512F and a C "
+    "compiler (native.available() is False)",
+)
+
+
+@needs_kernel
+def test_exp_within_two_ulp_of_the_exact_value():
+    """Random points over the whole finite range, near 0, and the edges of overflow and
+    underflow: within 2 ulp of the exact value (subnormal results: 2 ulp of the smallest
+    subnormal, as the result is rounded twice), inf and 0 beyond the range."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.cat(
+        [
+            torch.empty(3000, dtype=torch.float64).uniform_(-746.0, 710.0, generator=gen),
+            torch.empty(1000, dtype=torch.float64).uniform_(-1.0, 1.0, generator=gen),
+            torch.linspace(-40.0, 40.0, 1001, dtype=torch.float64),
+            torch.tensor([0.0, -0.0, 5e-324, -1e-300, 709.78, 709.783, -708.39, -708.4]),
+            torch.tensor([-745.13, -745.14, -746.0, 710.0, 1e308, -1e308]),
+        ]
+    )
+    got = native.exp_(x.clone()).tolist()
+    mpmath.mp.prec = 200
+    top, tiny = torch.finfo(torch.float64).max, torch.finfo(torch.float64).tiny
+    for v, g in zip(x.tolist(), got, strict=True):
+        exact = mpmath.exp(mpmath.mpf(v))
+        if exact > top:
+            assert g == math.inf, v
+        elif exact >= tiny:
+            assert abs(mpmath.mpf(g) - exact) <= 2 * math.ulp(float(exact)), v
+        else:
+            assert abs(mpmath.mpf(g) - exact) <= 2 * 5e-324, v
+
+
+@needs_kernel
+def test_exp_specials_and_tail():
+    """inf, -inf and NaN; lengths that are not a multiple of 8 touch nothing beyond the view."""
+    specials = torch.tensor([math.inf, -math.inf, math.nan, 0.0], dtype=torch.float64)
+    out = native.exp_(specials.clone())
+    assert out[0] == math.inf and out[1] == 0.0 and math.isnan(out[2]) and out[3] == 1.0
+    buf = torch.zeros(16, dtype=torch.float64)
+    native.exp_(buf[:13])
+    assert torch.equal(buf[:13], torch.ones(13, dtype=torch.float64))
+    assert torch.equal(buf[13:], torch.zeros(3, dtype=torch.float64))
+
+
+def _problem(streams: int, U: int, L: int, D: int, K: int, gen: torch.Generator):
+    """Random inputs of :func:`native.psi2_groups` and the dense quantities they stand for."""
+    n, up, kp = U * L, -(-U // 8) * 8, -(-K // 8) * 8
+    C = D + 2
+    left = 0.4 * torch.randn(streams, n, C, generator=gen, dtype=torch.float64)
+    right_points = 0.4 * torch.randn(streams, C, n, generator=gen, dtype=torch.float64)
+    A = torch.randn(n, n, generator=gen, dtype=torch.float64)
+    kinv = A + A.T
+    beta = torch.randn(n, D, generator=gen, dtype=torch.float64)
+    phi = torch.rand(K, U, generator=gen, dtype=torch.float64)
+    cols = torch.zeros(L, up, dtype=torch.long)
+    cols[:, :U] = torch.arange(U)[None, :] * L + torch.arange(L)[:, None]
+    real = torch.zeros(L, up, dtype=torch.bool)
+    real[:, :U] = True
+    cols, real = cols.reshape(-1), real.reshape(-1)
+    args = (
+        left,
+        right_points[..., cols].contiguous(),
+        beta,
+        (beta[cols] * real[:, None]).T.contiguous(),
+        (kinv[:, cols] * real).contiguous(),
+        torch.nn.functional.pad(phi.T, (0, kp - K, 0, up - U)).contiguous(),
+        U,
+    )
+    return args, (left, right_points, kinv, beta, phi)
+
+
+@needs_kernel
+@pytest.mark.parametrize(("U", "L", "D", "K"), [(11, 3, 4, 5), (8, 4, 1, 13), (5, 2, 8, 9)])
+def test_group_sums_equal_the_dense_formulas(U, L, D, K):
+    """``T`` and the pairs of weighted second moments against ``E = exp(left @ right)`` formed
+    whole. Each sum differs from the exact one by at most (first order) ``eps`` times its sum of
+    absolute terms times: 2 ulp of the exponential and ``C max_ij sum_c |l_ic r_cj|`` of the
+    exponent, per side; and the length of the summation chains (the kernel adds L rows, then L
+    column blocks, then U and U groups; torch's sums are no longer)."""
+    gen = torch.Generator().manual_seed(U * 100 + D)
+    args, (left, right, kinv, beta, phi) = _problem(3, U, L, D, K, gen)
+    T, out = native.psi2_groups(*args)
+    T, out = T.clone(), out.clone()
+    E = torch.exp(left @ right)
+    C, n = D + 2, U * L
+    spread = float((left.abs() @ right.abs()).max())
+    per_term = 2 * (2 + C * spread)
+    block = (E * kinv).view(3, U, L, U, L).sum((2, 4))
+    block_abs = (E * kinv).abs().view(3, U, L, U, L).sum((2, 4))
+    assert bool(((T[..., :U] - block).abs() <= (per_term + 4 * L) * EPS * block_abs).all())
+    assert bool((T[..., U:] == 0).all())
+    group = torch.arange(n) // L
+    Wk = phi[:, group, None] * beta  # [K, N, D]: phi[k, u_i] beta_ia
+    want = torch.einsum("kia,sij,kjb->skab", Wk, E, Wk)
+    want_abs = torch.einsum("kia,sij,kjb->skab", Wk.abs(), E, Wk.abs())
+    a, b = torch.triu_indices(D, D)
+    got = out[..., :K].transpose(1, 2)  # [S, K, pairs]
+    bound = (per_term + 4 * (L + U) + 8) * EPS * want_abs[..., a, b]
+    assert bool(((got - want[..., a, b]).abs() <= bound).all())
+    assert bool((out[..., K:] == 0).all())
+
+
+@needs_kernel
+def test_threads_use_their_own_buffers():
+    """The outputs live in per-thread scratch buffers: four threads at once (ctypes releases the
+    GIL) give each what it gives alone, bit for bit (the same code on the same inputs)."""
+    problems = [_problem(2, 9, 3, 3, 6, torch.Generator().manual_seed(i))[0] for i in range(4)]
+    alone = [tuple(t.clone() for t in native.psi2_groups(*p)) for p in problems]
+    results: dict[int, list] = {i: [] for i in range(4)}
+
+    def work(i: int) -> None:
+        for _ in range(20):
+            results[i].append(tuple(t.clone() for t in native.psi2_groups(*problems[i])))
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for i in range(4):
+        for got in results[i]:
+            assert all(torch.equal(g, w) for g, w in zip(got, alone[i], strict=True))
+
+
+@needs_kernel
+def test_inputs_are_checked():
+    args, _ = _problem(1, 9, 2, 2, 4, torch.Generator().manual_seed(1))
+    with pytest.raises(TypeError, match="left must be a contiguous float64 CPU tensor"):
+        native.psi2_groups(args[0].float(), *args[1:])
+    with pytest.raises(TypeError, match="right must be a contiguous"):
+        native.psi2_groups(args[0], args[1].transpose(1, 2).contiguous().transpose(1, 2), *args[2:])
+    with pytest.raises(ValueError, match="Up and Kp multiples of 8"):
+        native.psi2_groups(*args[:-1], 6)
+    wide = torch.zeros(18, 9, dtype=torch.float64)
+    with pytest.raises(ValueError, match="1 <= D <= 8"):
+        native.psi2_groups(args[0], args[1], wide, wide.T.contiguous(), *args[4:])
+    with pytest.raises(TypeError, match="t must be a contiguous float64"):
+        native.exp_(torch.zeros(3, dtype=torch.float32))
+
+
+@pytest.fixture
+def fresh_library(monkeypatch, tmp_path):
+    """An empty cache folder and no library loaded yet (restored afterwards)."""
+    monkeypatch.setenv("HGPDM_TORCH_CACHE", str(tmp_path))
+    monkeypatch.setattr(native, "supported", lambda: True)
+    native._library.cache_clear()
+    yield tmp_path
+    native._library.cache_clear()
+
+
+def _fake_compiler(folder, version_ok: bool):
+    script = folder / "fakecc"
+    script.write_text(
+        "#!/bin/sh\n"
+        f'if [ "$1" = --version ]; then echo fake 1.0; exit {0 if version_ok else 3}; fi\n'
+        'echo "fakecc: error: no such instruction" >&2; exit 1\n'
+    )
+    script.chmod(script.stat().st_mode | stat.S_IEXEC)
+    return str(script)
+
+
+@pytest.mark.parametrize("how", ["none", "broken", "fails"])
+def test_no_compiler_warns_once_and_torch_runs(how, fresh_library, monkeypatch, generator):
+    """No compiler, one that does not run, one whose build fails: one warning naming why, then
+    the torch path, with the materialised path's moments."""
+    if how == "none":
+        monkeypatch.setattr(native, "_compiler", lambda: None)
+        why = "no C compiler found"
+    else:
+        cc = _fake_compiler(fresh_library, version_ok=how == "fails")
+        monkeypatch.setattr(native, "_compiler", lambda: cc)
+        why = "does not run" if how == "broken" else "failed: fakecc: error"
+    with pytest.warns(RuntimeWarning, match=why):
+        assert not native.available()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not native.available()  # once per process
+        post, values = _iddm_posterior("iddm_continuous", generator)
+        fast = SharedTransition(post, values)
+        mu, S = _gaussians(4, DX, generator)
+        got = fast.moments(mu, S)
+    with settings.moment_path("materialised"):
+        want = fast.moments(mu, S)
+    _close(got, want, 64 * EPS * len(post.train_inputs))
+    assert not list(fresh_library.glob("*.so"))  # nothing half-built left behind
+
+
+@pytest.mark.skipif(
+    not (native.supported() and (shutil.which("cc") or shutil.which("gcc"))),
+    reason="needs an AVX-512F CPU and a C compiler",
+)
+def test_builds_into_an_empty_cache(fresh_library):
+    """The first use builds the library into the cache folder under its hash name, and a later
+    process (the cache cleared) loads it without building again."""
+    assert native.available()
+    built = list(fresh_library.glob("native_psi2_*.so"))
+    assert len(built) == 1 and not list(fresh_library.glob("tmp*"))
+    stamp = built[0].stat().st_mtime_ns
+    native._library.cache_clear()
+    assert native.available() and built[0].stat().st_mtime_ns == stamp
+    with settings.native_kernels(False):
+        assert not native.available()
