@@ -62,16 +62,25 @@ _FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fno-math-errno")
 
 
 @functools.cache
+def _cpu_features() -> frozenset[str]:
+    """The CPU features NumPy detected at import (its dispatch table), or none if unknown."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__
+    except ImportError:  # NumPy < 2
+        try:
+            from numpy.core._multiarray_umath import __cpu_features__
+        except ImportError:
+            return frozenset()
+    return frozenset(k for k, v in __cpu_features__.items() if v)
+
+
+@functools.cache
 def supported() -> bool:
     """Whether this CPU can run the kernel: x86-64 with AVX-512F (NumPy's CPU feature
     detection), on Linux or macOS."""
     if platform.machine().lower() not in ("x86_64", "amd64") or sys.platform == "win32":
         return False
-    try:
-        from numpy._core._multiarray_umath import __cpu_features__
-    except ImportError:  # NumPy < 2
-        return False
-    return bool(__cpu_features__.get("AVX512F"))
+    return "AVX512F" in _cpu_features()
 
 
 def cache_dir() -> Path:
@@ -114,19 +123,21 @@ def _library() -> ctypes.CDLL | None:
     except (OSError, subprocess.SubprocessError) as exc:
         _warn(f"the C compiler {cc} does not run ({exc})")
         return None
-    from numpy._core._multiarray_umath import __cpu_features__
-
-    cpu = ",".join(sorted(k for k, v in __cpu_features__.items() if v))
+    cpu = ",".join(sorted(_cpu_features()))
     key = hashlib.sha256(
         b"\0".join(s.encode() for s in (SOURCE.read_text(), cc, version, " ".join(_FLAGS), cpu))
     ).hexdigest()[:16]
     target = cache_dir() / f"native_psi2_{key}.so"
     if not target.exists():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        # built under a temporary name and renamed: processes building at once never load a
-        # half-written library
-        fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
-        os.close(fd)
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            # built under a temporary name and renamed: processes building at once never load a
+            # half-written library
+            fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+            os.close(fd)
+        except OSError as exc:
+            _warn(f"cannot write the cache folder {target.parent} ({exc}); set HGPDM_TORCH_CACHE")
+            return None
         try:
             run = subprocess.run(
                 [cc, *_FLAGS, "-o", tmp, str(SOURCE)], capture_output=True, text=True, timeout=300

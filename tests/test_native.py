@@ -193,13 +193,19 @@ def _fake_compiler(folder, version_ok: bool):
     return str(script)
 
 
-@pytest.mark.parametrize("how", ["none", "broken", "fails"])
+@pytest.mark.parametrize("how", ["none", "broken", "fails", "read-only"])
 def test_no_compiler_warns_once_and_torch_runs(how, fresh_library, monkeypatch, generator):
     """No compiler, one that does not run, one whose build fails: one warning naming why, then
     the torch path, with the materialised path's moments."""
     if how == "none":
         monkeypatch.setattr(native, "_compiler", lambda: None)
         why = "no C compiler found"
+    elif how == "read-only":  # a cache folder that cannot be made (a file stands in its way)
+        (fresh_library / "file").write_text("")
+        monkeypatch.setenv("HGPDM_TORCH_CACHE", str(fresh_library / "file" / "cache"))
+        cc = _fake_compiler(fresh_library, version_ok=True)
+        monkeypatch.setattr(native, "_compiler", lambda: cc)
+        why = "cannot write the cache folder"
     else:
         cc = _fake_compiler(fresh_library, version_ok=how == "fails")
         monkeypatch.setattr(native, "_compiler", lambda: cc)
