@@ -26,7 +26,7 @@ from hgpdm_torch.kernels import (
     IntentionRBFKernel,
     measurement_kernel,
 )
-from hgpdm_torch.models import GPDM, HGPDM, IDDM
+from hgpdm_torch.models import GPDM, HGPDM, IDDM, ModelFileError, load_model
 
 # ------------------------------------------------------------------------ generic kernel tests
 
@@ -228,13 +228,21 @@ def test_named_kernel_equals_the_same_kernel_passed_in(styles):
     assert torch.equal(named.loss(), passed.loss())
 
 
-def test_custom_models_refuse_save_and_point_to_torch_save(styles, tmp_path):
-    for model in (
-        GPDM(styles.sequences, 2, measurement=gpytorch.kernels.RBFKernel()),
-        IDDM(styles.sequences, styles.labels, 2, priors={"scales": None}),
-    ):
-        with pytest.raises(ValueError, match="torch.save"):
-            model.save(tmp_path / "m.pt")
+def test_custom_models_save_and_load_into_a_model_built_alike(styles, tmp_path):
+    """A custom kernel is saved with its parameters; the file names it, and the user's code
+    builds the model with it again (plain priors, here removing one, are rebuilt by the file)."""
+
+    def build() -> GPDM:
+        return GPDM(styles.sequences, 2, measurement=gpytorch.kernels.RBFKernel())
+
+    model = build()
+    model.save(tmp_path / "m.pt")
+    with pytest.raises(ModelFileError, match=r"measurement \(a RBFKernel\)"):
+        load_model(tmp_path / "m.pt")
+    assert torch.equal(load_model(tmp_path / "m.pt", model=build()).loss(), model.loss())
+    model = IDDM(styles.sequences, styles.labels, 2, priors={"scales": None})
+    model.save(tmp_path / "i.pt")
+    assert torch.equal(load_model(tmp_path / "i.pt").loss(), model.loss())
 
 
 @pytest.mark.parametrize(

@@ -1,10 +1,11 @@
 """Models: the GPDM, the hierarchical GPDM (H-GPDM), the Intention-Driven Dynamics Model and its
 linear-Gaussian, phase-indexed counterpart :class:`LinearIDDM`.
 
-Saving and loading: :meth:`GPDM.save`, :func:`load_model`, :func:`register_model` for your own
-subclasses, and :class:`ModelFileError` for files that cannot be loaded
-(:mod:`~hgpdm_torch.models.persistence`). :func:`supervised_init`: initial latent states that
-covary with the intention (partial least squares), for ``init``.
+Saving and loading: :meth:`GPDM.save`, :func:`load_model` (``model=``: into a model your code
+built, e.g. with a custom kernel), :func:`register_model` for your own subclasses, and
+:class:`ModelFileError` for files that cannot be loaded (:mod:`~hgpdm_torch.models.persistence`).
+:func:`supervised_init`: initial latent states that covary with the intention (partial least
+squares), for ``init``.
 """
 
 from .gpdm import GPDM

@@ -104,6 +104,16 @@ def _check_priors(priors: Mapping[str, Prior | None] | None) -> dict[str, Prior 
     return dict(priors)
 
 
+def _constrained_property(name: str, doc: str) -> property:
+    """A model property reading and setting the constrained parameter ``name`` (a tensor; set
+    from a float or a tensor, checked against its constraint)."""
+    return property(
+        lambda self: self._constrained(name),
+        lambda self, value: self._set_constrained(name, value),
+        doc=doc,
+    )
+
+
 class GPDM(gpytorch.Module, SavedModel):
     """Gaussian Process Dynamics Model with MAP learning (Eq. 3-6 without the exogenous g).
 
@@ -166,6 +176,8 @@ class GPDM(gpytorch.Module, SavedModel):
     """
 
     transition_kind = "gpdm"
+    #: constructor arguments that may be objects a saved file cannot hold (see :meth:`save`)
+    object_arguments = ("measurement", "priors", "back_constraint")
     #: Standard deviation of the log-normal prior of a learned process noise alpha_4.
     NOISE_PRIOR_SD = 2.0
     #: whether the transition GP has an output scale per latent dim (class default: models
@@ -215,24 +227,28 @@ class GPDM(gpytorch.Module, SavedModel):
         self.latent_dim = latent_dim
         self.measurement = name
         self.alpha_init = alpha
-        #: what :meth:`save` cannot rebuild from the configuration (custom kernel, priors)
-        self._unsaveable = [
-            what
-            for what, custom in (
-                ("measurement kernel", name == "custom"),
+        #: the constructor arguments :meth:`config` does not hold: a custom kernel, priors or
+        #: back-constraint module (saving records plain priors, asks the user for objects)
+        self._object_arguments = [
+            arg
+            for arg, custom in (
+                ("measurement", name == "custom"),
                 ("priors", bool(given_priors)),
+                ("back_constraint", isinstance(back_constraint, torch.nn.Module)),
             )
             if custom
         ]
         self._config: dict[str, Any] = {
             "latent_dim": latent_dim,
-            "measurement": name if name != "custom" else None,
+            "measurement": name,
             "alpha": list(alpha),
             "learn_alpha": bool(learn_alpha),
             "learn_noise": bool(learn_noise),
             "learn_measurement_width": bool(learn_measurement_width),
-            "back_constraint": back_constraint if isinstance(back_constraint, str) else None,
+            "back_constraint": back_constraint,
         }
+        for arg in self._object_arguments:  # saved in the state; rebuilt by the user's code
+            self._config.pop(arg, None)
 
         z = torch.cat(seqs, dim=0)
         check_magnitude(z, "sequences")
@@ -433,23 +449,13 @@ class GPDM(gpytorch.Module, SavedModel):
         with torch.no_grad():
             raw.copy_(new_raw)
 
-    @property
-    def measurement_noise(self) -> torch.Tensor:
-        """White noise of the measurement kernel: beta_2 of Eq. 1, or beta_1 of Eq. 2."""
-        return self._constrained("measurement_noise")
-
-    @measurement_noise.setter
-    def measurement_noise(self, value: float | torch.Tensor) -> None:
-        self._set_constrained("measurement_noise", value)
-
-    @property
-    def scales(self) -> torch.Tensor:
-        """``[Dz]`` diagonal of W, the per-dimension output scales."""
-        return self._constrained("scales")
-
-    @scales.setter
-    def scales(self, value: float | torch.Tensor) -> None:
-        self._set_constrained("scales", value)
+    measurement_noise = _constrained_property(
+        "measurement_noise",
+        "White noise of the measurement kernel: beta_2 of Eq. 1, or beta_1 of Eq. 2.",
+    )
+    scales = _constrained_property(
+        "scales", "``[Dz]`` diagonal of W, the per-dimension output scales."
+    )
 
     @property
     def transition_scales(self) -> torch.Tensor:
@@ -472,14 +478,9 @@ class GPDM(gpytorch.Module, SavedModel):
             return None
         return 1.0 / self.transition_scales.detach()
 
-    @property
-    def transition_noise(self) -> torch.Tensor:
-        """alpha_4, the white noise of the transition kernel."""
-        return self._constrained("transition_noise")
-
-    @transition_noise.setter
-    def transition_noise(self, value: float | torch.Tensor) -> None:
-        self._set_constrained("transition_noise", value)
+    transition_noise = _constrained_property(
+        "transition_noise", "alpha_4, the white noise of the transition kernel."
+    )
 
     @property
     def learn_alpha(self) -> bool:
@@ -734,7 +735,8 @@ class GPDM(gpytorch.Module, SavedModel):
 
     # ----------------------------------------------------------------- persistence
     def config(self) -> dict[str, Any]:
-        """Constructor arguments (other than data) that rebuild this model (a deep copy)."""
+        """Constructor options (other than data) that rebuild this model, all plain values (a
+        deep copy); a custom measurement kernel or back-constraint module is left out."""
         return copy.deepcopy(self._config)
 
     def _data_arguments(self) -> dict[str, Any]:
@@ -747,32 +749,21 @@ class GPDM(gpytorch.Module, SavedModel):
         return {"sequences": [s.clone() for s in self.sequences()]}
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Save the model to ``path``: class name, configuration, training data and state.
+        """Save the model to ``path``: class name, plain configuration, training data and
+        ``state_dict`` (:mod:`hgpdm_torch.models.persistence` has the layout).
 
-        The file has a format version and a SHA-256 checksum, and names the class by its
-        registered name (:func:`~hgpdm_torch.models.register_model`); see
-        :mod:`hgpdm_torch.models.persistence` for the layout. Load it with
-        :func:`~hgpdm_torch.models.load_model` or :meth:`load`.
+        Load it with :func:`~hgpdm_torch.models.load_model` or :meth:`load`. A model built with
+        a custom measurement kernel, priors or back-constraint module (or a subclass's object
+        argument) is saved too, its parameters in the state; the file cannot rebuild those
+        objects, so load it into a model your code builds with the same ones:
+        ``load_model(path, model=GPDM(sequences, 2, measurement=kernel))``.
 
         Raises:
-            TypeError: the model's class is not registered, or loading could not rebuild it
-                as saved (a subclass's constructor argument that is not in its configuration:
-                see :func:`~hgpdm_torch.models.register_model`).
+            TypeError: the model's class is not registered
+                (:func:`~hgpdm_torch.models.register_model`).
             FileNotFoundError: the folder of ``path`` does not exist (``NotADirectoryError``:
                 it is a file; ``IsADirectoryError``: ``path`` is a folder).
-            ValueError: the model uses a custom back-constraint module, measurement kernel or
-                priors, which the configuration cannot hold.
         """
-        unsaveable = list(self._unsaveable)
-        if self.latent_map is not None and self._config["back_constraint"] is None:
-            unsaveable.insert(0, "back-constraint module")
-        if unsaveable:
-            raise ValueError(
-                "save() rebuilds the model from its configuration, which cannot hold a custom "
-                f"{' or '.join(unsaveable)}; save the whole model with torch.save(model, path) "
-                "(load it with torch.load(path, weights_only=False), trusted files only) or "
-                "its state_dict instead"
-            )
         save_model(self, path)
 
     def _saved_dtype(self) -> torch.dtype:

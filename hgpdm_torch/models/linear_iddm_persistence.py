@@ -129,8 +129,7 @@ class LinearIDDMPersistence(SavedModel):
         """Save the fitted model to ``path`` in the checksummed, versioned format of
         :mod:`~hgpdm_torch.models.persistence` (configuration, training data, statistics);
         load it with :func:`~hgpdm_torch.models.load_model` or :meth:`load`. A registered
-        subclass with constructor arguments of its own adds them in an override of
-        :meth:`config`.
+        subclass's own plain constructor arguments are saved with the configuration.
 
         Raises:
             RuntimeError: the model is not fitted.

@@ -1,4 +1,5 @@
-"""Safe persistence of models: a versioned, checksummed file format and an allow-list of classes.
+"""Safe persistence of models: a versioned, checksummed file of a model's state and a small
+configuration, an allow-list of classes, and loading into a model your own code built.
 
 :meth:`GPDM.save <hgpdm_torch.models.GPDM.save>` writes, and :func:`load_model` reads, one file:
 
@@ -9,17 +10,36 @@ offset     bytes   content
 16         4       format version, unsigned little-endian (:data:`FORMAT_VERSION`)
 20         8       payload length P in bytes, unsigned little-endian
 28         32      SHA-256 of bytes ``0 .. 28`` followed by the payload (everything but itself)
-60         P       payload: ``torch.save`` of ``{"class", "config", "data", "state_dict",
-                   "dtype"}``
+60         P       payload: ``torch.save`` of a dict (below)
 =========  ======  ===========================================================================
 
-The payload holds everything that determines the model: the registered class name, the
-constructor configuration (:meth:`GPDM.config`), the training data (``_data_arguments``), the
-``state_dict`` (parameters and buffers) and the dtype name. Loading checks, in this order, the
-magic bytes, the version (a newer version is refused before anything else is read, as its layout
-may differ), the length, the checksum, the payload's structure, the class name against the
-registry, and finally that the training data stored beside the configuration equal the
-observations in the ``state_dict``. Every failure raises :class:`ModelFileError`.
+The format-2 payload is ``{"format": 2, "class", "config", "data", "state_dict",
+"user_arguments"}``:
+
+* ``class``: the name the model's class is registered under (:func:`register_model`);
+* ``config``: the constructor options that are plain values (``None``, bool, int, float, str,
+  and lists and str-keyed dicts of them; JSON-able), ``"dtype"`` among them: the class's own
+  :meth:`~hgpdm_torch.models.GPDM.config` plus the plain arguments a subclass's constructor
+  was called with (recorded automatically, see :func:`register_model`);
+* ``data``: the training data the constructor takes (``sequences``, ``intentions``);
+* ``state_dict``: ``model.state_dict()``, every parameter and buffer (kernel hyperparameters,
+  learned latent states, the parameters of custom kernels, priors and back-constraint maps);
+* ``user_arguments``: ``{argument: type name}`` of the constructor arguments the model was built
+  with that are objects, not plain values (a custom gpytorch kernel, priors, a back-constraint
+  module, a subclass's object argument): a file cannot rebuild them.
+
+:func:`load_model` rebuilds the model with the registered class's constructor from the data and
+configuration, then loads the state into it. A file with ``user_arguments`` is loaded into a
+model your code builds with those objects instead: ``load_model(path, model=MyModel(...))``
+checks that the given model matches the file (class, dtype, the saved plain options) and loads
+the state into it, strictly (every key, every shape). Format-1 files (release 1's layout, payload
+``{"class", "config", "data", "state_dict", "dtype"}``) still load, the same way.
+
+Loading checks, in this order, the magic bytes, the version (a newer version is refused before
+anything else is read, as its layout may differ), the length, the checksum, the payload's
+structure, the class name against the registry, and finally that the training data stored beside
+the configuration equal those in the ``state_dict``. Every failure raises :class:`ModelFileError`
+naming the file and what is wrong or missing.
 
 The checksum detects corruption (a damaged disk, a cut-off copy), not deliberate tampering:
 anyone can write a file with a matching hash. Safety against malicious files comes from two
@@ -38,7 +58,7 @@ step.
 
 from __future__ import annotations
 
-import copy
+import functools
 import hashlib
 import inspect
 import io
@@ -46,9 +66,11 @@ import os
 import secrets
 import struct
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar, overload
+from typing import Any, ClassVar, TypeVar, overload
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -66,11 +88,14 @@ __all__ = [
 #: that text-mode transfers and truncation to 7 bits are detected).
 MAGIC = b"\x89hgpdm-torch\r\n\x1a\n"
 #: The format version this release writes; it reads versions ``1 .. FORMAT_VERSION``.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _HEADER = struct.Struct("<IQ")  # version, payload length
 _DIGEST_SIZE = hashlib.sha256().digest_size
 _PREFIX_SIZE = len(MAGIC) + _HEADER.size + _DIGEST_SIZE
-_PAYLOAD_KEYS = frozenset({"class", "config", "data", "state_dict", "dtype"})
+_PAYLOAD_KEYS = {
+    1: frozenset({"class", "config", "data", "state_dict", "dtype"}),
+    2: frozenset({"format", "class", "config", "data", "state_dict", "user_arguments"}),
+}
 _DTYPES = {
     "float16": torch.float16,
     "bfloat16": torch.bfloat16,
@@ -81,7 +106,99 @@ _DTYPES = {
 
 class ModelFileError(ValueError):
     """A file is not a model file this release can load: foreign, empty, truncated, corrupted,
-    of an unknown format version, naming an unregistered class, or inconsistent."""
+    of an unknown format version, naming an unregistered class, inconsistent, needing arguments
+    only your code can build (pass ``model=``), or not fitting the model given."""
+
+
+# --------------------------------------------------------------------- constructor arguments
+class _NotPlain(Exception):
+    pass
+
+
+def _plain(value: Any) -> Any:
+    """A copy of ``value`` if it is a plain (JSON-able) value: ``None``, bool, int, float, str,
+    and lists, tuples and str-keyed dicts of them (NumPy scalars become Python's); else raise
+    :class:`_NotPlain`."""
+    if isinstance(value, np.generic) and not isinstance(value, np.void):
+        value = value.item()
+    if value is None or type(value) in (bool, int, float, str):
+        return value
+    if type(value) in (list, tuple):
+        return type(value)(_plain(v) for v in value)
+    if type(value) is dict and all(type(k) is str for k in value):
+        return {k: _plain(v) for k, v in value.items()}
+    raise _NotPlain
+
+
+def _is_plain(value: Any) -> bool:
+    try:
+        _plain(value)
+    except _NotPlain:
+        return False
+    return True
+
+
+@dataclass(frozen=True)
+class _Unrecorded:
+    """Stands for a constructor argument that is an object (its type name), not a value."""
+
+    type_name: str
+
+
+@functools.cache
+def _class_arguments(cls: type) -> tuple[inspect.Signature | None, frozenset[str], frozenset[str]]:
+    """``cls.__init__``'s signature, the argument names of the ``__init__`` of the hgpdm_torch
+    classes it derives from, and the names to record: those of the other model classes in its
+    MRO (a subclass's own arguments) and ``cls.object_arguments``."""
+    try:
+        signature = inspect.signature(cls.__init__)
+    except (TypeError, ValueError):
+        signature = None
+    library: set[str] = set()
+    own: set[str] = set()
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None or klass is SavedModel:
+            continue
+        try:
+            params = list(inspect.signature(init).parameters.values())[1:]
+        except (TypeError, ValueError):
+            continue
+        names = {p.name for p in params if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
+        if klass.__module__.split(".")[0] == "hgpdm_torch":
+            library.update(names)
+        elif issubclass(klass, SavedModel):  # not torch's or gpytorch's Module
+            own.update(names)
+    objects = set(getattr(cls, "object_arguments", ()))
+    return signature, frozenset(library), frozenset((own - library) | objects)
+
+
+def _capture(cls: type, args: tuple, kwargs: dict) -> dict[str, Any] | None:
+    """The arguments of a constructor call that :func:`save_model` may need: a subclass's own
+    arguments and ``cls.object_arguments``, each a plain copy or an :class:`_Unrecorded`; ``None``
+    where the call does not bind (the constructor then raises, or it is an unpickling)."""
+    signature, _, wanted = _class_arguments(cls)
+    if signature is None:
+        return None
+    try:
+        bound = signature.bind(None, *args, **kwargs)
+    except TypeError:
+        return None
+    bound.apply_defaults()
+    given: dict[str, Any] = {}
+    for param in list(signature.parameters.values())[1:]:
+        value = bound.arguments.get(param.name)
+        if param.kind is param.VAR_KEYWORD:
+            given.update(value)
+        elif param.kind is not param.VAR_POSITIONAL:
+            given[param.name] = value
+    recorded = {}
+    for name in wanted & given.keys():
+        try:
+            recorded[name] = _plain(given[name])
+        except _NotPlain:
+            recorded[name] = _Unrecorded(type(given[name]).__qualname__)
+    return recorded
 
 
 _S = TypeVar("_S", bound="SavedModel")
@@ -92,10 +209,24 @@ class SavedModel:
     :class:`~hgpdm_torch.models.GPDM` and :class:`~hgpdm_torch.models.LinearIDDM` (this module
     imports neither; they register themselves in :mod:`hgpdm_torch.models`).
 
-    A subclass provides ``config()`` (constructor options), ``_data_arguments()`` (training
-    data), ``state_dict()`` / ``load_state_dict()`` and ``_saved_dtype()``; it is rebuilt as
-    ``cls(**data, **config, dtype=dtype)`` unless it overrides :meth:`_from_saved`.
+    A subclass provides ``config()`` (its plain constructor options), ``_data_arguments()``
+    (training data), ``state_dict()`` / ``load_state_dict()`` and ``_saved_dtype()``; it is
+    rebuilt as ``cls(**data, **config, dtype=dtype)`` unless it overrides :meth:`_from_saved`.
+    Creating an instance records the constructor arguments ``save`` may need (a subclass's own,
+    and those named in :attr:`object_arguments`).
     """
+
+    #: Constructor arguments of the class that may be objects ``config()`` cannot hold; an
+    #: instance lists those it got in ``_object_arguments``.
+    object_arguments: ClassVar[tuple[str, ...]] = ()
+    #: ``{old keyword: new keyword}``: constructor keywords renamed since files were saved;
+    #: loading renames them in a file's configuration and data before rebuilding the model.
+    config_renames: ClassVar[dict[str, str]] = {}
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+        self = super().__new__(cls)
+        object.__setattr__(self, "_init_arguments", _capture(cls, args, kwargs))
+        return self
 
     def config(self) -> dict[str, Any]:
         raise NotImplementedError
@@ -115,20 +246,25 @@ class SavedModel:
         return cls(**data, **config, dtype=dtype)
 
     @classmethod
-    def load(cls: type[_S], path: str | os.PathLike[str]) -> _S:
-        """Load a model written by ``save``; it must be an instance of ``cls``.
+    def load(cls: type[_S], path: str | os.PathLike[str], *, model: _S | None = None) -> _S:
+        """:func:`~hgpdm_torch.models.load_model`, for a model that must be an instance of
+        ``cls``: ``HGPDM.load(path)``, or ``HGPDM.load(path, model=HGPDM(...))`` to load the
+        saved state into a model your code built.
 
         Raises:
             ModelFileError: see :func:`~hgpdm_torch.models.load_model`, or the file holds a
                 model of another class (e.g. ``HGPDM.load`` of a saved plain GPDM).
+            TypeError: ``model`` is not a ``cls``.
         """
-        model = load_model(path)
-        if not isinstance(model, cls):
+        if model is not None and not isinstance(model, cls):
+            raise TypeError(f"model must be a {cls.__qualname__}, got {type(model).__qualname__}")
+        loaded = load_model(path, model=model)
+        if not isinstance(loaded, cls):
             raise ModelFileError(
-                f"{path}: holds a {type(model).__qualname__}, not a {cls.__qualname__}; "
+                f"{path}: holds a {type(loaded).__qualname__}, not a {cls.__qualname__}; "
                 "use hgpdm_torch.models.load_model to load any registered class"
             )
-        return model
+        return loaded
 
 
 M = TypeVar("M", bound=type[SavedModel])
@@ -154,22 +290,21 @@ def register_model(cls: M | None = None, *, name: str | None = None) -> M | Call
 
         @register_model
         class MyGPDM(GPDM):
-            ...
+            def __init__(self, sequences, latent_dim=3, *, damping=0.5, kernel=None, **kwargs):
+                super().__init__(sequences, latent_dim, **kwargs)
+                ...
 
         register_model(OtherGPDM, name="mylab.OtherGPDM")
 
-    The class is rebuilt as ``cls(**model._data_arguments(), **model.config(), dtype=dtype)``
-    followed by ``load_state_dict``: a subclass whose constructor takes more arguments adds them
-    to ``self._config`` (constructor options) or overrides ``_data_arguments`` (data);
-    ``save`` refuses (``TypeError``) a class whose constructor takes an argument of its own
-    that neither holds, since loading would silently give it its default::
-
-        @register_model
-        class MyGPDM(GPDM):
-            def __init__(self, sequences, latent_dim=3, *, extra=5, **kwargs):
-                super().__init__(sequences, latent_dim, **kwargs)
-                self.extra = extra
-                self._config["extra"] = extra  # saved, and passed back on load
+    The class is rebuilt as ``cls(**data, **config, dtype=dtype)`` followed by
+    ``load_state_dict``. The arguments its constructor takes beyond those of the hgpdm_torch
+    classes it derives from are recorded when a model is built: plain values (``damping=0.25``)
+    are saved in the configuration and passed back on loading; an object (``kernel=Matern()``)
+    cannot be, so loading that file needs ``load_model(path, model=MyGPDM(..., kernel=...))``
+    and :class:`ModelFileError` names the argument otherwise. A value that changes after
+    construction belongs in ``self._config`` (what :meth:`GPDM.config` returns), which is saved
+    as it is when saving. A constructor keyword renamed later is listed in the class's
+    ``config_renames`` (``{"old": "new"}``) so that older files still rebuild.
 
     Args:
         cls: a subclass of :class:`~hgpdm_torch.models.GPDM` or
@@ -229,25 +364,56 @@ def _registered_name(cls: type[SavedModel]) -> str:
 
 
 # --------------------------------------------------------------------------------- writing
+def _saved_arguments(
+    model: SavedModel, data: Mapping[str, Any]
+) -> tuple[dict[str, Any], dict[str, str]]:
+    """The plain configuration and the ``{argument: type name}`` of the object arguments of
+    ``model`` (without the dtype)."""
+    config: dict[str, Any] = {}
+    user: dict[str, str] = {}
+    for key, value in model.config().items():
+        try:
+            config[key] = _plain(value)
+        except _NotPlain:  # an override of config() returning an object
+            user[key] = type(value).__qualname__
+    objects = list(getattr(model, "_object_arguments", ()))
+    captured = getattr(model, "_init_arguments", None)
+    if captured is None:  # built before arguments were recorded (an old pickle)
+        user.update({name: "object" for name in objects if name not in config})
+        return config, user
+    _, library, _ = _class_arguments(type(model))
+    for name, value in captured.items():
+        if name in config or name in data or name in user or name == "dtype":
+            continue
+        if name in library and name not in objects:
+            continue  # the library's own option, held by config() where it matters
+        if isinstance(value, _Unrecorded):
+            user[name] = value.type_name
+        else:
+            config[name] = value
+    return config, user
+
+
 def save_model(model: SavedModel, path: str | os.PathLike[str]) -> None:
     """Write ``model`` to ``path`` in the format above (what :meth:`GPDM.save` and
     :meth:`LinearIDDM.save` call).
 
-    The file is written beside ``path`` under a temporary name and then renamed over it, so an
-    interrupted save never leaves a half-written file in place of a good one.
+    Any model of a registered class is saved, custom kernels, priors and object arguments
+    included: their parameters are in the state, and the file lists the arguments that loading
+    needs from your code (``user_arguments``). The file is written beside ``path`` under a
+    temporary name and then renamed over it, so an interrupted save never leaves a half-written
+    file in place of a good one.
 
     Raises:
-        TypeError: the model's class is not registered (see :func:`register_model`), or
-            loading could not rebuild it as saved: its constructor refuses the saved
-            arguments, or takes one of its own that is not saved (add it to the configuration,
-            see :func:`register_model`).
+        TypeError: the model's class is not registered (see :func:`register_model`).
         FileNotFoundError: the folder of ``path`` does not exist.
         NotADirectoryError: the folder of ``path`` is a file.
         IsADirectoryError: ``path`` is a folder.
     """
     name = _registered_name(type(model))
-    config, data = copy.deepcopy(model.config()), model._data_arguments()
-    _check_rebuild(type(model), config, data)
+    data = model._data_arguments()
+    config, user = _saved_arguments(model, data)
+    config["dtype"] = str(model._saved_dtype()).removeprefix("torch.")
     path = Path(path)
     if not path.parent.exists():
         raise FileNotFoundError(
@@ -261,11 +427,12 @@ def save_model(model: SavedModel, path: str | os.PathLike[str]) -> None:
     if path.is_dir():
         raise IsADirectoryError(f"cannot save the model to {path}: it is a folder, not a file")
     blob = {
+        "format": FORMAT_VERSION,
         "class": name,
         "config": config,
         "data": data,
         "state_dict": model.state_dict(),
-        "dtype": str(model._saved_dtype()).removeprefix("torch."),
+        "user_arguments": user,
     }
     buffer = io.BytesIO()
     torch.save(blob, buffer)
@@ -281,59 +448,9 @@ def save_model(model: SavedModel, path: str | os.PathLike[str]) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def _check_rebuild(cls: type[SavedModel], config: dict[str, Any], data: dict[str, Any]) -> None:
-    """Refuse to save a model that :func:`load_model` would rebuild differently.
-
-    A class rebuilt the default way, ``cls(**data, **config, dtype=dtype)`` (one that does not
-    override :meth:`SavedModel._from_saved`), must take every saved argument, and every
-    argument its own constructor adds to those of the hgpdm_torch classes it derives from must
-    be saved: otherwise loading would fail, or silently rebuild the model with that argument's
-    default.
-
-    Raises:
-        TypeError: naming the class, the arguments and what to do.
-    """
-    if getattr(cls._from_saved, "__func__", None) is not SavedModel._from_saved.__func__:
-        return  # the class rebuilds itself; it knows what it saved
-    fix = (
-        "store each in the configuration in __init__ (self._config[name] = value, or override "
-        "config()) or, for training data, in _data_arguments(); or override _from_saved"
-    )
-    try:
-        inspect.signature(cls).bind(**data, **config, dtype=None)
-    except TypeError as err:
-        raise TypeError(
-            f"cannot save a {cls.__qualname__}: load_model rebuilds it as "
-            f"{cls.__qualname__}(**data, **config, dtype=...) with the saved arguments "
-            f"{sorted(data) + sorted(config)}, which its constructor refuses ({err}); let "
-            "__init__ take them (e.g. **kwargs passed on to super().__init__) or override "
-            "_from_saved"
-        ) from None
-    library, own = set(), {}
-    for klass in cls.__mro__:
-        init = klass.__dict__.get("__init__")
-        if init is None or klass is SavedModel:
-            continue
-        names = [
-            p.name
-            for p in list(inspect.signature(init).parameters.values())[1:]
-            if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
-        ]
-        if klass.__module__.split(".")[0] == "hgpdm_torch":
-            library.update(names)
-        else:
-            own.update(dict.fromkeys(names))
-    unsaved = [n for n in own if n not in library and n not in config and n not in data]
-    if unsaved:
-        raise TypeError(
-            f"cannot save a {cls.__qualname__}: its constructor takes {unsaved}, which "
-            f"save() does not store, so load_model would rebuild it with their defaults; {fix}"
-        )
-
-
 # --------------------------------------------------------------------------------- reading
-def _read_payload(path: Path) -> bytes:
-    """Check magic, version, length and checksum; return the verified payload bytes."""
+def _read_payload(path: Path) -> tuple[int, bytes]:
+    """Check magic, version, length and checksum; return the version and the payload bytes."""
     with open(path, "rb") as f:
         prefix = f.read(_PREFIX_SIZE)
         if not prefix:
@@ -372,39 +489,72 @@ def _read_payload(path: Path) -> bytes:
     expected = prefix[len(MAGIC) + _HEADER.size :]
     if hashlib.sha256(prefix[: len(MAGIC) + _HEADER.size] + payload).digest() != expected:
         raise ModelFileError(f"{path}: checksum mismatch; the file is corrupted")
-    return payload
+    return version, payload
 
 
-def _check_blob(path: Path, blob: Any) -> tuple[type[SavedModel], dict, dict, dict, torch.dtype]:
-    """Validate the structure of a verified payload; return class, config, data, state, dtype."""
-    if not isinstance(blob, dict) or set(blob) != _PAYLOAD_KEYS:
-        keys = sorted(map(str, blob)) if isinstance(blob, dict) else type(blob).__name__
+@dataclass
+class _Saved:
+    """A validated payload."""
+
+    name: str
+    cls: type[SavedModel] | None  # None: not registered (allowed with model=)
+    config: dict[str, Any]
+    data: dict[str, Any]
+    state: dict[str, torch.Tensor]
+    dtype: torch.dtype
+    user: dict[str, str]
+
+
+def _check_blob(path: Path, version: int, blob: Any, *, registered: bool) -> _Saved:
+    """Validate the structure of a verified payload of format ``version``. The class must be
+    registered when ``registered``."""
+    keys = _PAYLOAD_KEYS[version]
+    if not isinstance(blob, dict) or set(blob) != keys:
+        got = sorted(map(str, blob)) if isinstance(blob, dict) else type(blob).__name__
+        missing = f" (missing {sorted(keys - set(blob))})" if isinstance(blob, dict) else ""
         raise ModelFileError(
-            f"{path}: the payload must be a dict with keys {sorted(_PAYLOAD_KEYS)}, got {keys}"
+            f"{path}: the format-{version} payload must be a dict with keys {sorted(keys)}, "
+            f"got {got}{missing}"
+        )
+    if version >= 2 and (type(blob["format"]) is not int or blob["format"] != version):
+        raise ModelFileError(
+            f"{path}: the payload says format {blob['format']!r}, its header {version}"
         )
     name = blob["class"]
     cls = _REGISTRY.get(name) if isinstance(name, str) else None
-    if cls is None:
+    if cls is None and (registered or not isinstance(name, str)):
         raise ModelFileError(
             f"{path}: the file holds a model of class {name!r}, which is not registered "
             f"(registered: {sorted(_REGISTRY)}). If it is your own GPDM or LinearIDDM subclass, "
             "register it before loading: decorate the class with "
-            f"@hgpdm_torch.models.register_model, or call register_model(cls, name={name!r})"
-        )
-    dtype = _DTYPES.get(blob["dtype"]) if isinstance(blob["dtype"], str) else None
-    if dtype is None:
-        raise ModelFileError(
-            f"{path}: dtype must be one of {sorted(_DTYPES)}, got {blob['dtype']!r}"
+            f"@hgpdm_torch.models.register_model, or call register_model(cls, name={name!r}); "
+            "or build the model yourself and pass it: load_model(path, model=...)"
         )
     config, data, state = blob["config"], blob["data"], blob["state_dict"]
-    for key, value in (("config", config), ("data", data), ("state_dict", state)):
+    user = blob["user_arguments"] if version >= 2 else {}
+    parts = {"config": config, "data": data, "state_dict": state, "user_arguments": user}
+    for key, value in parts.items():
         if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
             raise ModelFileError(f"{path}: {key} must be a dict with str keys")
+    if not all(isinstance(v, str) for v in user.values()):
+        raise ModelFileError(f"{path}: user_arguments must map names to type names")
+    config = dict(config)
+    if version >= 2:
+        if not _is_plain(config):
+            raise ModelFileError(f"{path}: config must hold plain (JSON-able) values only")
+        dtype_name = config.pop("dtype", None)
+    else:
+        dtype_name = blob["dtype"]
+        if "dtype" in config:
+            raise ModelFileError(f"{path}: config and data name the same constructor argument")
+    dtype = _DTYPES.get(dtype_name) if isinstance(dtype_name, str) else None
+    if dtype is None:
+        raise ModelFileError(f"{path}: dtype must be one of {sorted(_DTYPES)}, got {dtype_name!r}")
     if not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise ModelFileError(f"{path}: every entry of state_dict must be a tensor")
-    if set(config) & set(data) or "dtype" in config or "dtype" in data:
+    if set(config) & set(data) or "dtype" in data:
         raise ModelFileError(f"{path}: config and data name the same constructor argument")
-    return cls, dict(config), dict(data), state, dtype
+    return _Saved(name, cls, config, dict(data), state, dtype, dict(user))
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -428,47 +578,136 @@ def _same(a: Any, b: Any) -> bool:
     return type(a) is type(b) and a == b
 
 
-def load_model(path: str | os.PathLike[str]) -> Any:
-    """Rebuild a model saved with :meth:`GPDM.save` or :meth:`LinearIDDM.save`: same class,
-    data, parameters and buffers (statistics).
+def _rename(path: Path, saved: _Saved, cls: type) -> None:
+    """Apply ``cls.config_renames`` to the saved configuration, data and argument names."""
+    for old, new in getattr(cls, "config_renames", {}).items():
+        for part in (saved.config, saved.data, saved.user):
+            if old in part:
+                if new in part:
+                    raise ModelFileError(f"{path}: the file names both {old!r} and {new!r}")
+                part[new] = part.pop(old)
 
-    The class is looked up by its saved name among the registered classes
-    (:func:`register_model`); nothing named by the file is imported, and the payload is read
-    with ``torch.load(..., weights_only=True)``. The model is rebuilt on the CPU.
+
+def _check_given(path: Path, saved: _Saved, model: Any) -> None:
+    """The model given to :func:`load_model` must match the file where the file can tell."""
+    if not isinstance(model, SavedModel):
+        raise TypeError(
+            f"model must be a GPDM or LinearIDDM (a SavedModel), got {type(model).__qualname__}"
+        )
+    kind = type(model).__qualname__
+    if saved.cls is not None and not isinstance(model, saved.cls):
+        raise ModelFileError(
+            f"{path}: holds a {saved.name}, but the model given is a {kind}; build a "
+            f"{saved.cls.__qualname__}"
+        )
+    if model._saved_dtype() != saved.dtype:
+        raise ModelFileError(
+            f"{path}: holds a {saved.dtype} model, the model given is {model._saved_dtype()}; "
+            f"build it with dtype={saved.dtype}"
+        )
+    _rename(path, saved, type(model))
+    mine, _ = _saved_arguments(model, model._data_arguments())
+    common = mine.keys() & saved.config.keys()
+    differ = sorted(k for k in common if not _same(mine[k], saved.config[k]))
+    if differ:
+        shown = ", ".join(f"{k} (file {saved.config[k]!r}, model {mine[k]!r})" for k in differ)
+        raise ModelFileError(
+            f"{path}: the model given was built with other options than the saved {saved.name}: "
+            f"{shown}; build it with the saved ones"
+        )
+
+
+def _load_state(path: Path, model: Any, state: dict[str, torch.Tensor], what: str) -> None:
+    """Load ``state`` into ``model`` strictly: every key of each, every shape."""
+    hint = (
+        "build the model with the same kernels, priors and options as the saved one"
+        if what.startswith("the model given")
+        else "if the model was built with objects of your own code, build it the same way and "
+        "pass it: load_model(path, model=...)"
+    )
+    try:
+        if isinstance(model, torch.nn.Module):
+            result = model.load_state_dict(state, strict=False)
+            missing, unexpected = list(result.missing_keys), list(result.unexpected_keys)
+        else:
+            model.load_state_dict(state)
+            missing, unexpected = [], []
+    except RuntimeError as err:
+        raise ModelFileError(f"{path}: the saved state does not fit {what}: {err}; {hint}") from err
+    if missing or unexpected:
+        parts = [f"missing from the file: {missing}"] if missing else []
+        parts += [f"in the file but not in the model: {unexpected}"] if unexpected else []
+        raise ModelFileError(
+            f"{path}: the saved state does not fit {what}: {'; '.join(parts)}; {hint}"
+        )
+
+
+def load_model(path: str | os.PathLike[str], *, model: Any = None) -> Any:
+    """Load a model saved with :meth:`GPDM.save` or :meth:`LinearIDDM.save` (any format
+    version up to :data:`FORMAT_VERSION`): same class, data, parameters and buffers.
+
+    Without ``model``, the model is rebuilt by the registered class the file names (looked up,
+    never imported) from the saved training data and plain configuration, on the CPU, and the
+    saved state is loaded into it. A model built with objects a file cannot hold (a custom
+    gpytorch kernel, priors, a back-constraint module, a subclass's object argument) is
+    rebuilt by your code instead, with the same objects: ``load_model(path, model=HGPDM(
+    sequences, intentions, 2, measurement=my_kernel))`` checks that it matches the file
+    (class, dtype, the saved plain options) and loads the saved state into it (every key, every
+    shape), so its parameters, the kernels' hyperparameters and the learned latent states are
+    the saved ones. The payload is read with ``torch.load(..., weights_only=True)``.
 
     Args:
         path: a file written by :meth:`GPDM.save` or :meth:`LinearIDDM.save`.
+        model: a model your code built to take the saved state (its class need not be
+            registered); ``None`` (default) rebuilds it from the file.
 
     Returns:
-        The model, an instance of the registered class the file names.
+        The model: ``model`` itself when given, else an instance of the registered class the
+        file names.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
+        TypeError: ``model`` is not a GPDM or LinearIDDM.
         ModelFileError: the file is empty, truncated, foreign, corrupted (checksum mismatch), of
-            an unknown format version, names an unregistered class, does not rebuild the
-            model, or its training data and saved observations differ.
+            an unknown format version, or names an unregistered class; it needs constructor
+            arguments only your code can build (the message names them: pass ``model=``); its
+            configuration and data do not rebuild the model; its state does not fit the model
+            (the missing and unexpected keys are named); the model given is of another class,
+            dtype or plain options; or the training data and the saved state differ.
     """
     path = Path(path)
-    payload = _read_payload(path)
+    version, payload = _read_payload(path)
     try:
         blob = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
     except Exception as err:  # any unpickling failure means a bad file
         raise ModelFileError(f"{path}: the payload cannot be read: {err}") from err
-    cls, config, data, state, dtype = _check_blob(path, blob)
-    try:
-        model = cls._from_saved(data, config, dtype, state)
-    except (TypeError, ValueError, RuntimeError) as err:
-        raise ModelFileError(
-            f"{path}: the saved configuration and data do not rebuild a {blob['class']}: {err}"
-        ) from err
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as err:
-        raise ModelFileError(
-            f"{path}: the saved state does not fit the {blob['class']} rebuilt from the "
-            f"configuration and data: {err}"
-        ) from err
-    if not _same(model._data_arguments(), data):
+    saved = _check_blob(path, version, blob, registered=model is None)
+    if model is not None:
+        _check_given(path, saved, model)
+        what = f"the model given ({type(model).__qualname__})"
+    else:
+        cls = saved.cls
+        assert cls is not None  # _check_blob
+        _rename(path, saved, cls)
+        if saved.user:
+            names = sorted(saved.user)
+            shown = ", ".join(f"{k} (a {saved.user[k]})" for k in names)
+            raise ModelFileError(
+                f"{path}: the {saved.name} was built with objects a file cannot hold, the "
+                f"constructor arguments {shown}. Build the model in your code with the same "
+                f"arguments, then load the saved state into it: load_model(path, "
+                f"model={cls.__qualname__}(..., {', '.join(f'{k}=...' for k in names)}))"
+            )
+        try:
+            model = cls._from_saved(saved.data, saved.config, saved.dtype, saved.state)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise ModelFileError(
+                f"{path}: the saved configuration and data do not rebuild a {saved.name}: {err}; "
+                f"build the model yourself and pass it: load_model(path, model=...)"
+            ) from err
+        what = f"the {saved.name} rebuilt from the configuration and data"
+    _load_state(path, model, saved.state, what)
+    if not _same(model._data_arguments(), saved.data):
         raise ModelFileError(
             f"{path}: the training data saved with the configuration differ from the training "
             f"data in the saved state (observations, lengths or intentions); refusing an "

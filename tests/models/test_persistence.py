@@ -113,7 +113,7 @@ def test_round_trip_rebuilds_the_same_model(tmp_path, build):
     )
     version, blob = _unpack(tmp_path / "m.pt")
     assert version == FORMAT_VERSION
-    assert blob["class"] == type(model).__name__ and blob["dtype"] == "float64"
+    assert blob["class"] == type(model).__name__ and blob["config"]["dtype"] == "float64"
 
 
 @pytest.mark.parametrize(
@@ -316,17 +316,22 @@ class FixedSignatureGPDM(GPDM):
         super().__init__(sequences, latent_dim, dtype=dtype)
 
 
-def test_subclass_arguments_save_does_not_store_are_refused(tmp_path):
-    """Issue 54: a subclass built with extra=9 saved, and loaded with extra=5. Now save refuses
-    it, naming the argument and the fix; a subclass that puts it in its configuration (as
-    DampedGPDM above) round-trips it."""
-    with pytest.raises(TypeError, match=r"takes \['extra'\], which save\(\) does not store"):
-        ForgetfulGPDM(_sequences(), 2, extra=9).save(tmp_path / "f.pt")
-    with pytest.raises(
-        TypeError, match=r"saved arguments .*'alpha'.*constructor refuses.*\*\*kwargs"
-    ):
-        FixedSignatureGPDM(_sequences(), 2).save(tmp_path / "g.pt")
-    assert not list(tmp_path.iterdir())
+def test_subclass_arguments_are_saved_without_being_added_to_the_config(tmp_path):
+    """Issue 54: a subclass built with extra=9 saved, and loaded with extra=5. Its constructor's
+    own plain arguments are now recorded and saved (format 2), without ``self._config``; a
+    subclass whose constructor refuses the saved options is saved, and loading it names the
+    cause and the way out (building it in code: ``model=``)."""
+    ForgetfulGPDM(_sequences(), 2, extra=9).save(tmp_path / "f.pt")
+    assert _unpack(tmp_path / "f.pt")[1]["config"]["extra"] == 9
+    assert load_model(tmp_path / "f.pt").extra == 9
+    model = FixedSignatureGPDM(_sequences(), 2)
+    model.save(tmp_path / "g.pt")
+    with pytest.raises(ModelFileError, match=r"do not rebuild.*unexpected keyword.*model=") as info:
+        load_model(tmp_path / "g.pt")
+    assert str(tmp_path / "g.pt") in str(info.value)
+    again = load_model(tmp_path / "g.pt", model=FixedSignatureGPDM(_sequences(), 2))
+    assert _loss(again) == _loss(model)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.pt", "g.pt"]
 
 
 def test_save_names_a_missing_folder(tmp_path):
@@ -362,7 +367,7 @@ def test_training_data_and_saved_state_must_agree(saved, tmp_path):
         _pack(path, bad)
         with pytest.raises(ModelFileError, match="training data"):
             load_model(path)
-    _pack(path, {**blob, "dtype": "Tensor"})
+    _pack(path, {**blob, "config": {**blob["config"], "dtype": "Tensor"}})
     with pytest.raises(ModelFileError, match="dtype"):
         load_model(path)
     _pack(path, {**blob, "config": {**blob["config"], "latent_dim": 3}})
