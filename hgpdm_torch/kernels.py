@@ -62,6 +62,20 @@ MEASUREMENT_KERNELS = ("rbf", "linear")
 TRANSITION_KERNELS = ("gpdm", "continuous", "discrete", "iddm_continuous", "iddm_discrete")
 
 
+def _part_lengthscale(part: str, kernel: IntentionRBFKernel) -> torch.Tensor:
+    """The length scale of ``part`` (x or g) of an :class:`IntentionRBFKernel`: its
+    ``lengthscale_{part}`` and its prior's closure."""
+    return kernel._get(part)
+
+
+def _set_part_lengthscale(
+    part: str, kernel: IntentionRBFKernel, value: float | torch.Tensor
+) -> None:
+    """Set the length scale of ``part``: the setter of ``lengthscale_{part}`` and the prior's
+    setting closure (``sample_from_prior``)."""
+    kernel._set(part, value)
+
+
 class IntentionRBFKernel(Kernel):
     r"""RBF over ``[x, g]`` with one length scale for the ``x`` dims and one for the ``g`` dims.
 
@@ -131,23 +145,11 @@ class IntentionRBFKernel(Kernel):
         constraint = getattr(self, f"raw_lengthscale_{part}_constraint")
         self.initialize(**{f"raw_lengthscale_{part}": constraint.inverse_transform(value)})
 
-    @property
-    def lengthscale_x(self) -> torch.Tensor:
-        """Length scale of the latent dims, ``[*batch, 1, 1]``."""
-        return self._get("x")
-
-    @lengthscale_x.setter
-    def lengthscale_x(self, value: float | torch.Tensor) -> None:
-        self._set("x", value)
-
-    @property
-    def lengthscale_g(self) -> torch.Tensor:
-        """Length scale of the intention dims, ``[*batch, 1, 1]``."""
-        return self._get("g")
-
-    @lengthscale_g.setter
-    def lengthscale_g(self, value: float | torch.Tensor) -> None:
-        self._set("g", value)
+    # the prior's closures are the accessors: one getter and one setter for both parts
+    lengthscale_x = property(partial(_part_lengthscale, "x"), partial(_set_part_lengthscale, "x"))
+    """Length scale of the latent dims, ``[*batch, 1, 1]`` (settable)."""
+    lengthscale_g = property(partial(_part_lengthscale, "g"), partial(_set_part_lengthscale, "g"))
+    """Length scale of the intention dims, ``[*batch, 1, 1]`` (settable)."""
 
     def lengthscale_vector(self) -> torch.Tensor:
         """Per-input-dim length scales ``[*batch, 1, Dx + Dg]`` (the equivalent ARD RBF)."""
@@ -167,16 +169,6 @@ class IntentionRBFKernel(Kernel):
         ls = self.lengthscale_vector()
         d2 = self.covar_dist(x1 / ls, x2 / ls, diag=diag, square_dist=True)
         return torch.exp(-0.5 * d2)
-
-
-def _part_lengthscale(part: str, kernel: IntentionRBFKernel) -> torch.Tensor:
-    """Prior closure of :class:`IntentionRBFKernel`: the length scale of ``part`` (x or g)."""
-    return kernel._get(part)
-
-
-def _set_part_lengthscale(part: str, kernel: IntentionRBFKernel, value: torch.Tensor) -> None:
-    """Setting closure of :class:`IntentionRBFKernel` (``sample_from_prior``)."""
-    kernel._set(part, value)
 
 
 class DiscreteIntentionKernel(Kernel):

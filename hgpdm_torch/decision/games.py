@@ -100,6 +100,17 @@ def check_reward_matrix(reward: object, name: str = "reward") -> np.ndarray:
     return r
 
 
+def _action_vector(value: object, n_actions: int | None, name: str, why: str) -> np.ndarray:
+    """``value`` as a non-empty ``[n_actions]`` vector (any length if ``None``): the shape
+    check of a strategy and of action counts (``why`` says what the length must match)."""
+    v = as_array(value, name, 1)
+    if n_actions is not None and v.shape[0] != n_actions:
+        raise ValueError(f"{name} must have {n_actions} entries {why}, got {v.shape[0]}")
+    if v.shape[0] == 0:
+        raise ValueError(f"{name} must not be empty")
+    return v
+
+
 def check_strategy(
     strategy: object, n_actions: int | None, name: str, *, atol: float = 1e-8
 ) -> np.ndarray:
@@ -109,13 +120,7 @@ def check_strategy(
     Returns:
         ``[n_actions]`` the strategy clipped at zero and renormalised.
     """
-    s = as_array(strategy, name, 1)
-    if n_actions is not None and s.shape[0] != n_actions:
-        raise ValueError(
-            f"{name} must have {n_actions} entries to match the reward matrix, got {s.shape[0]}"
-        )
-    if s.shape[0] == 0:
-        raise ValueError(f"{name} must not be empty")
+    s = _action_vector(strategy, n_actions, name, "to match the reward matrix")
     if (s < -atol).any() or abs(s.sum() - 1.0) > atol:
         raise ValueError(f"{name} must be a probability vector (non-negative, sums to 1), got {s}")
     s = np.clip(s, 0.0, None)
@@ -125,13 +130,7 @@ def check_strategy(
 def check_counts(counts: object, n_actions: int | None, name: str = "counts") -> np.ndarray:
     """Validate observed action counts: non-negative integers, ``[n_actions]`` (any number if
     ``None``). Returns them as float64."""
-    c = as_array(counts, name, 1)
-    if n_actions is not None and c.shape[0] != n_actions:
-        raise ValueError(
-            f"{name} must have {n_actions} entries (one per opponent action), got {c.shape[0]}"
-        )
-    if c.shape[0] == 0:
-        raise ValueError(f"{name} must not be empty")
+    c = _action_vector(counts, n_actions, name, "(one per opponent action)")
     if (c < 0).any() or not np.array_equal(c, np.round(c)):
         raise ValueError(f"{name} must hold non-negative integer counts, got {c}")
     return c

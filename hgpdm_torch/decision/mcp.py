@@ -300,10 +300,10 @@ class ParticleProjector:
             raise ValueError(
                 "belief_filter must be a filter of this model (latent/obs dims differ)"
             )
-        if belief_filter.evidence != "predictive":
+        if belief_filter.options.evidence.kind != "predictive":
             raise ValueError(
                 "MonteCarloPlanner replays the filter's predictive-evidence update; got a filter "
-                f"with evidence={belief_filter.evidence!r}"
+                f"with evidence={belief_filter.options.evidence.kind!r}"
             )
         check_choice(sampling, "sampling", ("moments", "points"))
         self.filter, self.sampling = belief_filter, sampling
@@ -453,7 +453,7 @@ class ParticleProjector:
                 f"{tuple(z.shape)}"
             )
         missing, rejected = self.filter.check.classify(z)
-        if self.filter.strict and bool(rejected.any()):
+        if self.filter.options.observations.strict and bool(rejected.any()):
             i = int(torch.nonzero(rejected)[0])
             raise bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
         update = self._update(shared, z.to(shared.z_mean.dtype), missing | rejected)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -24,8 +24,10 @@ from ..models import IDDM
 from ..progress import tqdm
 
 __all__ = [
+    "FoldRun",
     "Method",
     "Split",
+    "TableRows",
     "check_calibration_folds",
     "confusion",
     "coverage",
@@ -33,6 +35,7 @@ __all__ = [
     "fit_iddm",
     "fit_temperatures",
     "iddm_methods",
+    "run_fold",
     "table_methods",
 ]
 
@@ -204,6 +207,66 @@ def fit_temperatures(
     truth = torch.cat([truth for _, _, truth in out])
     temps = {name: fit_temperature(torch.cat(parts), truth) for name, parts in logs.items()}
     return temps, fits
+
+
+class TableRows(NamedTuple):
+    """The choices that make Table 3.3's rows, the same in every protocol: the IDDM's batch
+    ``windows``, its online ``forgettings``, the sliding-window baselines'
+    ``baseline_window``, the IDDM's first-state prior ``state_prior`` and the ``seed`` of the
+    fits and baselines (the keywords of :func:`table_methods`)."""
+
+    windows: Sequence[int]
+    forgettings: Sequence[float]
+    baseline_window: int
+    state_prior: str
+    seed: int
+
+
+class FoldRun(NamedTuple):
+    """One training/test split of a protocol (:func:`run_fold`): the IDDM and its fit, the
+    IDDM rows' evidence temperatures with the calibration fits' summaries (``{}`` and ``[]``
+    uncalibrated), and every method's :func:`decide` output on the test sequences."""
+
+    model: IDDM
+    fit: FitResult
+    temperatures: dict[str, float]
+    calibration_fits: list[dict[str, Any]]
+    decisions: list[tuple[str, torch.Tensor, float, torch.Tensor | None]]
+
+
+def run_fold(
+    z_train: torch.Tensor,
+    y_train: torch.Tensor,
+    z_test: torch.Tensor,
+    num_classes: int,
+    latent_dim: int,
+    fit_steps: int,
+    rows: TableRows,
+    meta: dict[str, Any],
+    *,
+    splits: Sequence[Split] | None = None,
+    calibration_dim: int | None = None,
+    progress: bool = False,
+    **iddm: Any,
+) -> FoldRun:
+    """Table 3.3 on one split, as every protocol runs it: the IDDM fitted on ``z_train [J, T,
+    Dz]``, ``y_train [J]`` (:func:`fit_iddm`, with ``iddm``), its rows' evidence temperatures
+    from the inner ``splits`` (:func:`fit_temperatures`, IDDMs of ``calibration_dim`` latent
+    dims, default ``latent_dim``; ``None``: ``T = 1``), and every method of
+    :func:`table_methods` (notes in ``meta``) deciding on ``z_test [M, T, Dz]``."""
+    model, fit = fit_iddm(
+        z_train, y_train, num_classes, latent_dim, fit_steps, rows.seed, progress, **iddm
+    )
+    temps: dict[str, float] = {}
+    inner_fits: list[dict[str, Any]] = []
+    if splits is not None:
+        temps, inner_fits = fit_temperatures(
+            splits, num_classes, latent_dim if calibration_dim is None else calibration_dim,
+            fit_steps, rows.seed, windows=rows.windows, forgettings=rows.forgettings,
+            state_prior=rows.state_prior, progress=progress, **iddm,
+        )  # fmt: skip
+    methods = table_methods(model, z_train, y_train, meta, temperatures=temps, **rows._asdict())
+    return FoldRun(model, fit, temps, inner_fits, decide(methods, z_test, progress))
 
 
 def check_calibration_folds(folds: Any, most: int, what: str) -> None:

@@ -33,7 +33,6 @@ method's confusion matrix over all decisions (rows true, columns predicted), and
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -44,16 +43,8 @@ from sklearn.model_selection import StratifiedKFold
 from ..datasets.basic_motions import load_basic_motions
 from ..inference.intention import STATE_PRIORS
 from ..results import ResultTable
-from .action_methods import (
-    check_calibration_folds,
-    confusion,
-    coverage,
-    decide,
-    fit_iddm,
-    fit_temperatures,
-    table_methods,
-)
-from .arguments import int_at_least, output_file, random_seed
+from .action_methods import TableRows, check_calibration_folds, confusion, coverage, run_fold
+from .arguments import int_at_least, output_file, random_seed, smoke_run
 from .msrc12_recognition import MSRC12_DEV, msrc12_recognition
 
 if TYPE_CHECKING:
@@ -133,9 +124,7 @@ def action_recognition(
     z_train, y_train = first(z_train, y_train, max_train)
     z_test, y_test = first(z_test, y_test, max_test)
     k = len(names)
-    model, fit = fit_iddm(z_train, y_train, k, latent_dim, fit_steps, seed, progress, **iddm)
-    temps: dict[str, float] = {}
-    inner_fits: list[dict[str, Any]] = []
+    splits = None
     if calibration_folds is not None:
         fewest = int(torch.bincount(y_train, minlength=k).min())
         check_calibration_folds(calibration_folds, fewest, "training recordings of a class")
@@ -144,10 +133,11 @@ def action_recognition(
             (z_train[a], y_train[a], z_train[b], y_train[b])
             for a, b in folds.split(z_train[:, 0], y_train)
         ]
-        temps, inner_fits = fit_temperatures(
-            splits, k, latent_dim, fit_steps, seed, windows=windows,
-            forgettings=forgettings, state_prior=state_prior, progress=progress, **iddm,
-        )  # fmt: skip
+    rows = TableRows(windows, forgettings, baseline_window, state_prior, seed)
+    notes: dict[str, Any] = {}  # the methods' notes, after the table's own
+    run = run_fold(z_train, y_train, z_test, k, latent_dim, fit_steps, rows, notes,
+                   splits=splits, progress=progress, **iddm)  # fmt: skip
+    model, fit = run.model, run.fit
     table = ResultTable(
         "Table 3.3: action recognition on BasicMotions, accuracy over all decisions",
         ["method", "accuracy [%]", "90% set coverage [%]", "CPU ms/decision"],
@@ -160,7 +150,7 @@ def action_recognition(
             "Dx": latent_dim,
             "state_prior": state_prior,
             "calibration_folds": calibration_folds,
-            "temperatures": temps,
+            "temperatures": run.temperatures,
             "alpha4": alpha4,
             "noise_per_value": noise_per_value,
             "value_noise": model.value_noise.tolist() if noise_per_value else None,
@@ -168,19 +158,11 @@ def action_recognition(
             "confusion": {},
             "fit": fit.summary(),
             "fits": [fit.summary()],
-            "calibration_fits": inner_fits,
+            "calibration_fits": run.calibration_fits,
+            **notes,
         },
     )
-    settings = dict(
-        windows=windows,
-        forgettings=forgettings,
-        baseline_window=baseline_window,
-        seed=seed,
-        state_prior=state_prior,
-        temperatures=temps,
-    )
-    methods = table_methods(model, z_train, y_train, table.meta, **settings)
-    for name, pred, ms, credible in decide(methods, z_test, progress):
+    for name, pred, ms, credible in run.decisions:
         acc = 100.0 * float((pred == y_test[:, None]).double().mean())
         cover = coverage(credible, y_test)
         table.add(
@@ -295,7 +277,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--figure", type=output_file, help="save the confusion matrices")
     parser.add_argument("--seed", type=random_seed, default=0)
     args = parser.parse_args(argv)
-    quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
+    quick = args.quick or smoke_run()
     msrc12_only = ("data", "folds", "train_per_class", "test_per_class")
     given = [f"--{o.replace('_', '-')}" for o in msrc12_only if getattr(args, o) is not None]
     if args.dataset == "basic_motions" and given:

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -74,13 +73,16 @@ from .arguments import (
     output_folder,
     positive_int,
     random_seed,
+    smoke_run,
 )
 from .dtype import float64_default
 
 __all__ = [
     "AnticipationConfig",
+    "add_common_arguments",
     "check_reward_cache",
     "connect",
+    "learn_players",
     "main",
     "player_bars",
     "plot_results",
@@ -351,6 +353,41 @@ def _methods(candidates: tuple[str, ...]) -> list[str]:
     return methods + [f"LSPI ({src} belief)" for src in candidates] + ["MCP (oracle belief)"]
 
 
+def learn_players(
+    vectors: dict[str, torch.Tensor],
+    rewards: torch.Tensor,
+    train: torch.Tensor,
+    test: torch.Tensor,
+    candidates: tuple[str, ...],
+    features: str,
+    config: AnticipationConfig,
+) -> tuple[str, dict[str, float], dict[str, tuple[StoppingProblem, StoppingProblem, Any, Any]]]:
+    """One fold's learned players, for this protocol and ``hgpdm demo``: the belief source
+    chosen on the training strokes ``train`` (:func:`~hgpdm_torch.decision.policies.
+    choose_source`, with its CV return rates) and, for each of ``candidates`` and the oracle,
+    ``(training problem, test problem, state features, LSPI's values)``
+    (:func:`~hgpdm_torch.decision.policies.learn_stopping` on the training strokes).
+
+    Args:
+        vectors: belief source -> ``[n, T, F]`` belief vectors of all ``n`` strokes.
+        rewards: ``[n, S, T]`` reward table of the strokes.
+        train: indices of the fold's training strokes.
+        test: indices of its test strokes.
+        candidates: the sources to choose from.
+        features: the state features, ``"moments"`` or ``"rbf"``.
+        config: ``centres``, ``ridge`` and ``seed`` of the players.
+    """
+    options = {"centres": config.centres, "ridge": config.ridge, "seed": config.seed}
+    source, cv = choose_source({s: v[train] for s, v in vectors.items()}, rewards[train],
+                               candidates, features, **options)  # fmt: skip
+    learned = {}
+    for src in (*candidates, "oracle"):
+        problem = StoppingProblem(vectors[src], rewards)
+        train_p, test_p = problem.subset(train), problem.subset(test)
+        learned[src] = (train_p, test_p, *learn_stopping(train_p, features, **options))
+    return source, cv, learned
+
+
 def _fold(
     obs: torch.Tensor,
     targets: torch.Tensor,
@@ -391,16 +428,9 @@ def _fold(
         if src != "oracle":
             v[train] = _cross_fitted(src, obs, targets, steps_at, train, config)
         vectors[src] = v
-    source, cv = choose_source({s: v[train] for s, v in vectors.items()}, rewards[train],
-                               candidates, config.features, centres=config.centres,
-                               ridge=config.ridge, seed=config.seed)  # fmt: skip
-    learned = {}
-    for src in (*candidates, "oracle"):
-        problem = StoppingProblem(vectors[src], rewards)
-        train_p, test_p = problem.subset(train), problem.subset(test)
-        basis, q = learn_stopping(train_p, config.features, centres=config.centres,
-                                  ridge=config.ridge, seed=config.seed)  # fmt: skip
-        learned[src] = (train_p, test_p, basis, q)
+    source, cv, learned = learn_players(
+        vectors, rewards, train, test, candidates, config.features, config
+    )
     train_p, test_p, basis, q = learned[source]
     # deterministic methods: the same in every repetition
     fixed = {}
@@ -622,6 +652,31 @@ def check_reward_cache(parser: argparse.ArgumentParser, cache_dir: Path | None) 
         parser.error(f"argument --cache-dir: {err}" if cache_dir is not None else str(err))
 
 
+def add_common_arguments(parser: argparse.ArgumentParser, out: str) -> None:
+    """The options this command shares with ``hgpdm demo``: how the players decide
+    (``--belief``, ``--features``, ``--wait-value``: the :class:`AnticipationConfig` fields of
+    the same names), ``--seed``, and where results and rewards go (``--out``, default ``out``;
+    ``--cache-dir``)."""
+    parser.add_argument(
+        "--belief", choices=BELIEFS, default="auto",
+        help="the belief source the players decide on: auto (the source with the best "
+        "cross-validated return rate on the training folds, among linear-iddm and gp-iddm), "
+        "linear-iddm, gp-iddm (the thesis's) or phase-gp-iddm (the phase-aware GP IDDM)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--features", choices=FEATURES, default="moments",
+        help="decision features: moments (belief mean, sd and step) or rbf (the thesis's)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--wait-value", choices=WAIT_VALUES, default="lspi",
+        help="how MCP values a particle of the next belief: lspi (the best LSPI value there, "
+        "waiting included) or stop (its best stopping value, Algorithm 4.2 as printed)",
+    )  # fmt: skip
+    parser.add_argument("--seed", type=random_seed, default=0)
+    parser.add_argument("--out", type=output_folder, default=out)
+    parser.add_argument("--cache-dir", type=output_folder, default=None)
+
+
 def main(argv: list[str]) -> int:
     """CLI entry: ``hgpdm anticipation [--full] [--trials N] [--folds K] [--repetitions R]
     [--belief SOURCE] [--features moments|rbf] [--wait-value lspi|stop]
@@ -635,29 +690,12 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--folds", type=int_at_least(2))
     parser.add_argument("--repetitions", type=positive_int)
     add_executor_arguments(parser, "the rewards' SAPIEN simulations and the folds")
-    parser.add_argument(
-        "--belief", choices=BELIEFS, default="auto",
-        help="the players' belief source: auto (best cross-validated return rate on the "
-        "training folds, among linear-iddm and gp-iddm), linear-iddm, gp-iddm (the thesis's) or "
-        "phase-gp-iddm (the phase-aware GP IDDM)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--features", choices=FEATURES, default="moments",
-        help="decision features: moments (belief mean, sd and step) or rbf (the thesis's)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--wait-value", choices=WAIT_VALUES, default="lspi",
-        help="how MCP values a particle of the next belief: lspi (the best LSPI value there, "
-        "waiting included) or stop (its best stopping value, Algorithm 4.2 as printed)",
-    )  # fmt: skip
-    parser.add_argument("--seed", type=random_seed, default=0)
-    parser.add_argument("--out", type=output_folder, default="hgpdm_anticipation_output")
-    parser.add_argument("--cache-dir", type=output_folder, default=None)
+    add_common_arguments(parser, out="hgpdm_anticipation_output")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
     check_output_files(parser, "--out", args.out, (*_TABLES, *_FIGURES))
     check_reward_cache(parser, args.cache_dir)
-    smoke = os.environ.get("HGPDM_SMOKE") == "1" or not args.full
+    smoke = smoke_run() or not args.full
     changes = {"seed": args.seed, "workers": args.workers or 1, "belief": args.belief,
                "features": args.features, "wait_value": args.wait_value}  # fmt: skip
     for key, name in (("num_trials", "trials"), ("folds", "folds"), ("repetitions", "repetitions")):

@@ -11,6 +11,7 @@ here.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import tempfile
 from collections.abc import Callable, Iterable
@@ -20,6 +21,7 @@ from ..parallel import Executor, get_executor, ray_address_type
 
 __all__ = [
     "MAX_SEED",
+    "SMOKE",
     "add_executor_arguments",
     "check_output_files",
     "connect",
@@ -29,10 +31,20 @@ __all__ = [
     "output_folder",
     "positive_int",
     "random_seed",
+    "smoke_run",
 ]
 
 #: Largest accepted seed: scikit-learn's ``random_state`` (used by K-means) takes ``[0, 2**32)``.
 MAX_SEED = 2**32 - 1
+
+
+def smoke_run() -> bool:
+    """Whether ``HGPDM_SMOKE=1`` asks for a smoke-sized run (CI, quick checks), read now."""
+    return os.environ.get("HGPDM_SMOKE", "0") == "1"
+
+
+#: :func:`smoke_run` when the experiments are imported: the sizes of their smoke defaults
+SMOKE = smoke_run()
 
 
 def _int(text: str, expected: str) -> int:

@@ -48,15 +48,12 @@ from ..decision.beliefs import decision_indices
 from ..decision.mcp import WAIT_VALUES, EarlyStopping
 from ..decision.policies import (
     blind_choice,
-    choose_source,
     fixed_time_choice,
     fixed_time_policy,
     greedy_policy,
-    learn_stopping,
     planning_policy,
 )
 from ..decision.sources import FEATURES, SELECTABLE_SOURCES, BeliefTrack, track_beliefs
-from ..decision.stopping import StoppingProblem
 from ..parallel import Executor, available_cpus, get_executor, ray_address_type
 from ..results import ResultTable
 from ..validation import check_choice
@@ -66,9 +63,7 @@ from .arguments import (
     check_output_files,
     connect,
     int_at_least,
-    output_folder,
     positive_int,
-    random_seed,
 )
 from .dtype import float64_default
 from .intervals import paired_difference_interval, return_rate_interval
@@ -497,9 +492,8 @@ def _learn_and_decide(
     for k in tqdm(range(folds), disable=not progress, desc="learn + plan (folds)", leave=False):
         at = torch.nonzero(fold_of == k).flatten()  # positions among the valid strokes
         tr = torch.nonzero(fold_of != k).flatten()
-        source, cv = choose_source({s: v[tr] for s, v in vectors.items()}, reward[tr],
-                                   candidates, features, centres=config.centres,
-                                   ridge=config.ridge, seed=config.seed)  # fmt: skip
+        source, cv, learned = ant.learn_players(vectors, reward, tr, at, candidates, features,
+                                                config)  # fmt: skip
         sources.append(source)
         rates.append(cv)
         for j in at.tolist():
@@ -508,10 +502,7 @@ def _learn_and_decide(
         blind.append(f"always {movements[a]} @{round(-1000 * start_times[t])}ms")
         won[BLIND][at] = reward[at, a, t] > 0
         for src in (*candidates, "oracle"):
-            problem = StoppingProblem(vectors[src], reward)
-            train, test = problem.subset(tr), problem.subset(at)
-            basis, q = learn_stopping(train, features, centres=config.centres,
-                                      ridge=config.ridge, seed=config.seed)  # fmt: skip
+            train, test, basis, q = learned[src]
             if src in candidates:
                 won[f"LSPI ({src} belief)"][at] = test.run(greedy_policy(q, basis, test)).reward > 0
             if src == source:
@@ -641,21 +632,6 @@ def main(argv: list[str]) -> int:
         help=f"further strokes the belief models learn from ({DEFAULT_WATCHED})",
     )
     parser.add_argument(
-        "--belief", choices=BELIEFS, default="auto",
-        help="the belief source the players decide on: auto (the source with the best "
-        "cross-validated return rate on the training folds, among linear-iddm and gp-iddm), "
-        "linear-iddm, gp-iddm (the thesis's) or phase-gp-iddm (the phase-aware GP IDDM)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--features", choices=FEATURES, default="moments",
-        help="decision features: moments (belief mean, sd and step) or rbf (the thesis's)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--wait-value", choices=WAIT_VALUES, default="lspi",
-        help="how MCP values a particle of the next belief: lspi (the best LSPI value there, "
-        "waiting included) or stop (its best stopping value, Algorithm 4.2 as printed)",
-    )  # fmt: skip
-    parser.add_argument(
         "--folds", type=int_at_least(2), default=3,
         help="cross-fitting folds: every stroke in the hitting region is a test rally once (3)",
     )  # fmt: skip
@@ -671,9 +647,7 @@ def main(argv: list[str]) -> int:
         default=None,
         help="simulate the reward table on Ray: 'local', 'auto' or HOST:PORT of a head node",
     )
-    parser.add_argument("--seed", type=random_seed, default=0)
-    parser.add_argument("--out", type=output_folder, default="hgpdm_demo_output")
-    parser.add_argument("--cache-dir", type=output_folder, default=None)
+    ant.add_common_arguments(parser, out="hgpdm_demo_output")
     parser.add_argument(
         "--full", action="store_true", help="run the full Sec. 4.3 experiment instead"
     )

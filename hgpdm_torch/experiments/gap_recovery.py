@@ -28,7 +28,6 @@ training trial or no test trial.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -44,7 +43,7 @@ from ..inference.variational import VariationalInference
 from ..inference.variational.prediction import candidate_predictions
 from ..models import GPDM, HGPDM
 from ..results import ResultTable
-from .arguments import output_file, positive_int
+from .arguments import SMOKE, output_file, positive_int
 from .intervals import mean_sem
 from .walkers import DEFAULT_OPTIONS, MODEL_METHODS, report
 
@@ -57,7 +56,6 @@ __all__ = [
     "template_copy",
 ]
 
-SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 METHODS = (*MODEL_METHODS, "linear interpolation", "template copy")
 #: the thesis's windows: 50 frames, 31 missing, first missing frame 5 ... 16 (1-based)
 FRAMES, GAP, FIRST_GAPS = 50, 31, tuple(range(4, 16))

@@ -14,15 +14,7 @@ from ..datasets.kinect_features import PosePCA, kinect_features
 from ..datasets.msrc12 import MSRC12, load_msrc12_folder, load_msrc12_npz
 from ..progress import tqdm
 from ..results import ResultTable
-from .action_methods import (
-    check_calibration_folds,
-    confusion,
-    coverage,
-    decide,
-    fit_iddm,
-    fit_temperatures,
-    table_methods,
-)
+from .action_methods import TableRows, check_calibration_folds, confusion, coverage, run_fold
 from .intervals import mean_sem
 
 if TYPE_CHECKING:
@@ -170,13 +162,7 @@ def msrc12_recognition(
     )
     results: dict[str, dict[str, list[float]]] = {}
     splits = list(GroupKFold(n_splits=folds).split(features, groups=data.groups()))
-    settings = dict(
-        windows=windows,
-        forgettings=forgettings,
-        baseline_window=baseline_window,
-        seed=seed,
-        state_prior=state_prior,
-    )
+    rows = TableRows(windows, forgettings, baseline_window, state_prior, seed)
     if calibration_folds is not None:
         fewest = min(len(set(persons[train].tolist())) for train, _ in splits)
         check_calibration_folds(calibration_folds, fewest, "training persons of a fold")
@@ -202,19 +188,20 @@ def msrc12_recognition(
         z_train, y_train = z[train_set], data.labels[train_set]
         z_test, y_test = z[test_set], data.labels[test_set]
         dx = min(latent_dim, prep.dim_)
-        model, fit = fit_iddm(z_train, y_train, k, dx, fit_steps, seed, progress)
-        table.meta["fits"].append(fit.summary())
-        temps: dict[str, float] = {}
+        inner_splits = None
         if calibration_folds is not None:
             inner_splits = _calibration_splits(
                 data, features, train, fold, pca, calibration_folds, train_per_class,
                 calibration_per_class, seed,
             )  # fmt: skip
-            temps, inner_fits = fit_temperatures(
-                inner_splits, k, latent_dim, fit_steps, seed, windows=windows,
-                forgettings=forgettings, state_prior=state_prior, progress=progress,
-            )  # fmt: skip
-            table.meta["calibration_fits"] += inner_fits
+        # the calibration IDDMs take latent_dim, each clipped to its own split's PCA
+        run = run_fold(
+            z_train, y_train, z_test, k, dx, fit_steps, rows, table.meta,
+            splits=inner_splits, calibration_dim=latent_dim, progress=progress,
+        )  # fmt: skip
+        fit = run.fit
+        table.meta["fits"].append(fit.summary())
+        table.meta["calibration_fits"] += run.calibration_fits
         table.meta["folds"].append(
             {
                 "test persons": sorted(set(persons[test].tolist())),
@@ -227,11 +214,10 @@ def msrc12_recognition(
                 if prep.explained_variance_ratio_ is None
                 else round(float(sum(prep.explained_variance_ratio_)), 4),
                 "fit": fit.summary(),
-                "temperatures": temps,
+                "temperatures": run.temperatures,
             }
         )
-        methods = table_methods(model, z_train, y_train, table.meta, temperatures=temps, **settings)
-        for name, pred, ms, credible in decide(methods, z_test, progress):
+        for name, pred, ms, credible in run.decisions:
             _record(results, table.meta, name, pred, ms, credible, y_test, k)
     for name, r in results.items():
         sem, sem_end = mean_sem(r["all"])[1], mean_sem(r["end"])[1]

@@ -18,7 +18,6 @@ Command line: ``hgpdm games {stationary,switch,two-stage,serves} [--quick] [--se
 from __future__ import annotations
 
 import argparse
-import os
 from collections.abc import Sequence
 
 import numpy as np
@@ -37,6 +36,7 @@ from hgpdm_torch.experiments.arguments import output_file, random_seed
 from hgpdm_torch.results import ResultTable
 
 from ..progress import tqdm
+from .arguments import SMOKE
 
 __all__ = [
     "TABLE_5_2",
@@ -48,7 +48,6 @@ __all__ = [
     "two_stage_rps_experiment",
 ]
 
-SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 
 #: Table 5.2: the opponent's local strategies in the two-stage game, state s_0 then s_1..s_9
 #: (state ``1 + 3 a_i + a_j`` follows the Stage-1 joint action, actions rock, paper, scissors).

@@ -14,7 +14,6 @@ naming the absent files, unless all 14 are there.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ from ..datasets.walkers import MissingTrialsError, Standardizer, find_trials
 from ..models import GPDM, HGPDM
 from ..models.hgpdm import trajectory_summaries
 from ..results import ResultTable
-from .arguments import output_folder, positive_int, random_seed
+from .arguments import output_folder, positive_int, random_seed, smoke_run
 
 __all__ = ["main", "run_style_discovery", "style_purity"]
 
@@ -227,7 +226,7 @@ def main(argv: list[str]) -> int:
         except MissingTrialsError as err:
             parser.error(str(err))
         print(f"hgpdm style-discovery: {found.describe()}", file=sys.stderr, flush=True)
-    quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
+    quick = args.quick or smoke_run()
     sizes: dict[str, int] = {"steps": 20, "iterations": 3} if quick else {}
     if quick and args.data == "synthetic":
         sizes |= {"per_style": 3, "length": 25}

@@ -25,7 +25,6 @@ Sizes shrink under ``HGPDM_SMOKE=1``.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -43,7 +42,7 @@ from ..models import GPDM, HGPDM
 from ..progress import tqdm
 from ..results import ResultTable
 from ..validation import check_choice
-from .arguments import output_file, positive_int, random_seed
+from .arguments import SMOKE, output_file, positive_int, random_seed
 
 __all__ = [
     "StyleData",
@@ -57,7 +56,6 @@ __all__ = [
     "style_recognition",
 ]
 
-SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 DATASETS = ("synthetic", "basic_motions")
 COLUMNS = [
     "data",

@@ -44,7 +44,6 @@ the target of 126 test plays 320, 240, 160 and 80 ms before the opponent hits th
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from typing import Any
 
@@ -64,7 +63,7 @@ from ..models import IDDM, LinearIDDM, supervised_init
 from ..progress import tqdm
 from ..results import ResultTable
 from ..validation import check_choice
-from .arguments import output_file, random_seed
+from .arguments import output_file, random_seed, smoke_run
 
 __all__ = [
     "HORIZONS_MS",
@@ -399,7 +398,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--init", choices=("pls", "pca"), default="pls", help="latent init")
     args = parser.parse_args(argv)
-    quick = args.quick or os.environ.get("HGPDM_SMOKE") == "1"
+    quick = args.quick or smoke_run()
     kwargs = (
         {
             "n_train": 24,

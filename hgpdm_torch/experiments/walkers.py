@@ -48,7 +48,6 @@ grouped CV). RMSE is over all standardised channels of a trial's windows; the
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from functools import partial
@@ -75,7 +74,14 @@ from ..inference.variational.prediction import candidate_forecasts
 from ..models import GPDM, HGPDM
 from ..parallel import Executor
 from ..results import ResultTable
-from .arguments import add_executor_arguments, connect, int_at_least, output_file, positive_int
+from .arguments import (
+    SMOKE,
+    add_executor_arguments,
+    connect,
+    int_at_least,
+    output_file,
+    positive_int,
+)
 from .intervals import mean_sem
 from .style_recognition import chunked_windows, forecast_windows, window_entries
 from .walkers_compare import compare_runs
@@ -99,7 +105,6 @@ __all__ = [
     "walkers",
 ]
 
-SMOKE = os.environ.get("HGPDM_SMOKE", "0") == "1"
 FORECAST_PROTOCOLS = ("walkers", "weird-walking")
 #: the models' rows, shared with gap recovery (:mod:`~hgpdm_torch.experiments.gap_recovery`)
 MODEL_METHODS = ("VB H-GPDM", "VB H-GPDM (BMA)", "oracle VB", "oracle MAP", "GPDM VB", "GPDM MAP")

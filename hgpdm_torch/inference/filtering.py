@@ -65,6 +65,24 @@ __all__ = [
 ]
 
 
+def check_window_model(model: object, kind: type, kinds: str, what: str) -> None:
+    """Refuse a model that ``what`` (the inference of windows of observations, in its own words)
+    cannot take: one that is not a ``kind`` (``kinds`` names those accepted), or a phase-aware
+    IDDM (``phase_width`` set), whose phase a window does not carry.
+
+    Raises:
+        TypeError: not a ``kind``.
+        ValueError: a phase-aware IDDM, naming the online filter that takes it.
+    """
+    if not isinstance(model, kind):
+        raise TypeError(f"model must be {kinds}, got {type(model).__name__}")
+    if getattr(model, "phase_width", None) is not None:
+        raise ValueError(
+            f"{what}: a phase-aware IDDM (phase_width set) is filtered online "
+            "(OnlineIntentionFilter), which counts each stream's frames"
+        )
+
+
 @dataclass
 class FilterResult:
     """Output of :func:`filter_sequence`.

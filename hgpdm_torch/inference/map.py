@@ -25,11 +25,10 @@ from typing import Any
 
 import torch
 
-from ..models import GPDM
-from .variational.initial import initial_guess
+from .variational.engine import WindowEngine
 from .variational.laplace import map_states
 from .variational.prediction import forecast
-from .variational.window import WindowModel, window_mask
+from .variational.window import window_mask
 
 __all__ = ["MAP_STEPS", "MAPInference", "MAPResult"]
 
@@ -63,7 +62,7 @@ class MAPResult:
         return self.latent.gather(-3, i)[..., 0, :, :]
 
 
-class MAPInference:
+class MAPInference(WindowEngine):
     """MAP estimate of the test latents (conditional GPDM), for a GPDM or an H-GPDM.
 
     Built on the same :class:`~hgpdm_torch.inference.variational.window.WindowModel` (GPs,
@@ -74,43 +73,21 @@ class MAPInference:
         model: a fitted :class:`~hgpdm_torch.models.GPDM` or an
             :class:`~hgpdm_torch.models.HGPDM` with a discrete g (a continuous g is not
             supported: the thesis compares MAP only for known or discrete g).
-        x1_prior: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
-        g_prior: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
-        measurement_points: as :class:`~hgpdm_torch.inference.variational.VariationalInference`.
+
+    The keywords ``x1_prior``, ``g_prior`` and ``measurement_points`` are VB's
+    (:class:`~hgpdm_torch.inference.variational.engine.WindowEngine`).
 
     Attributes:
         window: the shared window model.
         model, kind, values, measurement, transition, latent_dim, obs_dim: the window model's.
     """
 
-    def __init__(
-        self,
-        model: GPDM,
-        *,
-        x1_prior: tuple[object, object] | None = None,
-        g_prior: object = None,
-        measurement_points: int | None = None,
-    ) -> None:
-        self.window = w = WindowModel(
-            model, x1_prior=x1_prior, g_prior=g_prior, measurement_points=measurement_points
-        )
-        if w.kind == "continuous":
-            raise ValueError("MAPInference supports a GPDM or a discrete g, not a continuous g")
-        self.model, self.kind, self.values = w.model, w.kind, w.values
-        self.measurement, self.transition = w.measurement, w.transition
-        self.latent_dim, self.obs_dim = w.latent_dim, w.obs_dim
+    continuous_g = False
 
     def log_joint(self, z: object, x: torch.Tensor, *, values: object = None) -> torch.Tensor:
         """FIC log joint ``[..., K]`` of states ``x [..., K, T, Dx]`` and window ``z``."""
         z, observed = window_mask(z, self.obs_dim, self.window.x1_mean)
         return self.window.log_joint(z.to(x.dtype), observed, x, self.window.candidates(values))
-
-    def initial_guess(
-        self, z: torch.Tensor, values: torch.Tensor, init: str = "nearest"
-    ) -> tuple[torch.Tensor | None, ...]:
-        """Initial states, as VB's (:func:`~hgpdm_torch.inference.variational.initial.
-        initial_guess`): ``loc [..., K, T, Dx]`` first."""
-        return initial_guess(self.window, z, values, init)
 
     def infer(
         self,
@@ -140,7 +117,7 @@ class MAPInference:
         if not isinstance(steps, int) or steps < 0:
             raise ValueError(f"steps must be a non-negative int, got {steps!r}")
         values = w.candidates(values)
-        loc = initial_guess(w, z, values, init)[0]
+        loc = self.initial_guess(z, values, init)[0]
         x, history = map_states(w, z, observed, loc, values, None, max_iter=steps)
         with torch.no_grad():
             lj = w.log_joint(z, observed, x, values)

@@ -81,11 +81,12 @@ def test_the_options_make_another_filter_with_the_same_choices(model, z):
     again = OnlineIntentionFilter(model, GRID, batch_size=2, **vars(first.options))
     assert again.options == first.options
     assert torch.equal(beliefs(first, z), beliefs(again, z))
-    # the flat attributes read the groups
-    assert (first.forgetting, first.temperature, first.evidence) == (0.3, 1.0, "bound")
-    assert (first.mixing, first.relinearize, first.state_prior, first.strict) == (
-        "grid", False, "marginal", False,
-    )  # fmt: skip
+    # the flat keywords land in their groups
+    assert first.options.belief == BeliefUpdate(forgetting=0.3, temperature=1.0)
+    assert first.options.evidence == Evidence("bound", mixing="grid", relinearize=False)
+    assert first.options.state_prior.kind == "marginal"
+    assert first.options.observations == ObservationPolicy(outlier_sd=20.0, strict=False)
+    assert not hasattr(first, "forgetting")  # the groups alone hold the choices
     assert FilterOptions() == OnlineIntentionFilter(model, GRID).options
 
 
@@ -101,7 +102,7 @@ def test_a_group_and_its_keywords_together_are_refused(model):
         OnlineIntentionFilter(model, GRID, state_prior=StatePrior(), mu0=torch.zeros(3))
     # a keyword left at its default says nothing
     f = OnlineIntentionFilter(model, GRID, belief=BeliefUpdate(0.1), forgetting=0.2)
-    assert f.forgetting == 0.1
+    assert f.options.belief.forgetting == 0.1
 
 
 def test_bad_group_values_are_refused_where_the_group_is_made():

@@ -564,7 +564,8 @@ def test_numeric_options_are_validated(continuous_model):
     model = continuous_model
     for eps in (0.2, 0, np.float64(0.2), np.float32(0.2), torch.tensor(0.2), torch.tensor(0)):
         f = OnlineIntentionFilter(model, GRID, forgetting=eps)
-        assert isinstance(f.forgetting, float) and abs(f.forgetting - float(eps)) < 1e-7
+        forgetting = f.options.belief.forgetting
+        assert isinstance(forgetting, float) and abs(forgetting - float(eps)) < 1e-7
     for eps in ("0.2", None, torch.tensor([0.2]), [0.2], True, torch.tensor(True)):
         with pytest.raises(TypeError, match="forgetting"):
             OnlineIntentionFilter(model, GRID, forgetting=eps)

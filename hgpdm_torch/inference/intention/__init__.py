@@ -62,6 +62,7 @@ Shapes: ``B`` streams, ``K`` intention values, ``T`` steps, ``Dx`` latent, ``Dz`
 
 from ...gp_shared import SharedTransition
 from ...intention_belief import IntentionBelief
+from . import options
 from .batch import batch_bound, batch_bound_terms, infer_intention
 from .grid import intention_grid
 from .linearisation import expected_log_conditional
@@ -69,14 +70,7 @@ from .measurement import LinearMeasurement
 from .member import FilterBeliefs
 from .mixture import BeliefMixture, BeliefMixtureStream
 from .online import OnlineIntentionFilter
-from .options import (
-    BeliefUpdate,
-    Evidence,
-    FilterOptions,
-    ObservationPolicy,
-    StatePrior,
-    TransitionPath,
-)
+from .options import *  # noqa: F403 (the option groups: options.__all__, listed once)
 from .state_prior import STATE_PRIORS, class_state_prior
 from .transition import (
     EVIDENCE_LIMIT,
@@ -87,12 +81,7 @@ from .transition import (
 )
 
 __all__ = [
-    "BeliefUpdate",
-    "Evidence",
-    "FilterOptions",
-    "ObservationPolicy",
-    "StatePrior",
-    "TransitionPath",
+    *options.__all__,
     "BeliefMixture",
     "BeliefMixtureStream",
     "GenericTransition",

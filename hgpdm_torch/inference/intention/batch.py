@@ -27,7 +27,7 @@ from ...models import HGPDM
 from ...observations import DEFAULT_OUTLIER_SD, ObservationCheck, check_observations
 from ...progress import tqdm
 from ...validation import bad_observation
-from ..filtering import filter_sequence, smooth
+from ..filtering import check_window_model, filter_sequence, smooth
 from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional, gaussian_entropy
 from .state_prior import first_state_prior
@@ -191,13 +191,7 @@ def infer_intention(
     Returns:
         :class:`IntentionBelief` with ``prob [..., K]`` (``[..., T, K]`` with ``window``).
     """
-    if not isinstance(model, HGPDM):
-        raise TypeError(f"model must be an HGPDM/IDDM, got {type(model).__name__}")
-    if getattr(model, "phase_width", None) is not None:
-        raise ValueError(
-            "infer_intention's windows carry no phase: a phase-aware IDDM (phase_width set) is "
-            "filtered online (OnlineIntentionFilter), which counts each stream's frames"
-        )
+    check_window_model(model, HGPDM, "an HGPDM/IDDM", "infer_intention's windows carry no phase")
     values = intention_grid(model, intentions)
     dtype = values.dtype
     z = check_observations(z, model.obs_dim, min_ndim=2)

@@ -45,7 +45,6 @@ from .options import (
     ObservationPolicy,
     StatePrior,
     TransitionPath,
-    resolve,
 )
 from .state_prior import first_state_prior, marginal_state_prior
 from .streams import IsolatedStreams
@@ -198,9 +197,9 @@ class OnlineIntentionFilter(IsolatedStreams):
     choices.
 
     Attributes:
-        options: the :class:`~hgpdm_torch.inference.intention.options.FilterOptions` in use
-            (``forgetting``, ``temperature``, ``evidence``, ``mixing``, ``relinearize``,
-            ``state_prior`` and ``strict`` read them).
+        options: the :class:`~hgpdm_torch.inference.intention.options.FilterOptions` in use,
+            the one place the choices are read from (``f.options.belief.forgetting``,
+            ``f.options.evidence.kind``, ``f.options.observations.strict``, ...).
         mean, cov: ``[B, Dx]``, ``[B, Dx, Dx]`` the shared ``q(x_t)`` of every stream.
         log_belief: ``[B, K]`` normalised log posterior over the grid.
         started: ``[B]`` bool, whether the stream has seen its first observation.
@@ -246,17 +245,13 @@ class OnlineIntentionFilter(IsolatedStreams):
     ) -> None:
         values = intention_grid(model, intentions)
         # the option groups (options.py), each from a group object or its flat keywords
-        self.options = options = FilterOptions(
-            belief=resolve(BeliefUpdate, "belief", belief,
-                           {"forgetting": forgetting, "temperature": temperature, "prior": prior}),
-            evidence=resolve(Evidence, "evidence", evidence,
-                             {"mixing": mixing, "relinearize": relinearize}),
-            state_prior=resolve(StatePrior, "state_prior", state_prior,
-                                {"mu0": mu0, "Sigma0": Sigma0}),
-            transition=resolve(TransitionPath, "transition", transition,
-                               {"inducing": inducing, "inducing_values": inducing_values}),
-            observations=resolve(ObservationPolicy, "observations", observations,
-                                 {"outlier_sd": outlier_sd, "strict": strict}),
+        self.options = options = FilterOptions.from_keywords(
+            {"belief": belief, "evidence": evidence, "state_prior": state_prior,
+             "transition": transition, "observations": observations},
+            {"forgetting": forgetting, "temperature": temperature, "prior": prior,
+             "mixing": mixing, "relinearize": relinearize, "mu0": mu0, "Sigma0": Sigma0,
+             "inducing": inducing, "inducing_values": inducing_values,
+             "outlier_sd": outlier_sd, "strict": strict},
         )  # fmt: skip
         path, state = options.transition, options.state_prior
         if (
@@ -315,42 +310,6 @@ class OnlineIntentionFilter(IsolatedStreams):
         self.chunk_size = chunk_size or stream_chunk(n, workspace, self.dtype, self.mu0.device)
         self.reset()
 
-    # the flat view of the option groups, as the keywords name them
-    @property
-    def forgetting(self) -> float:
-        """``eps`` of :attr:`options` ``.belief``."""
-        return self.options.belief.forgetting
-
-    @property
-    def temperature(self) -> float:
-        """``T`` of :attr:`options` ``.belief``."""
-        return self.options.belief.temperature
-
-    @property
-    def evidence(self) -> str:
-        """``"predictive"`` or ``"bound"`` (:attr:`options` ``.evidence.kind``)."""
-        return self.options.evidence.kind
-
-    @property
-    def mixing(self) -> str:
-        """:attr:`options` ``.evidence.mixing``."""
-        return self.options.evidence.mixing
-
-    @property
-    def relinearize(self) -> bool:
-        """:attr:`options` ``.evidence.relinearize``."""
-        return self.options.evidence.relinearize
-
-    @property
-    def state_prior(self) -> str:
-        """``"marginal"`` or ``"class"`` (:attr:`options` ``.state_prior.kind``)."""
-        return self.options.state_prior.kind
-
-    @property
-    def strict(self) -> bool:
-        """:attr:`options` ``.observations.strict``."""
-        return self.options.observations.strict
-
     def operations(self) -> OpCount:
         """Work of one :meth:`update` per stream after its first observation, in chunks of
         ``chunk_size`` streams (the floor's count; predictive evidence): the transition moments
@@ -376,14 +335,14 @@ class OnlineIntentionFilter(IsolatedStreams):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Algorithm 3.2, lines 1-3: ``q(x_1)`` from the prior and ``z_1``; the belief stays
         (``state_prior="class"``: the belief takes ``log q(z_1 | g)``, ``q(x_1)`` the mixture)."""
-        if self.state_prior == "marginal":
+        if self.options.state_prior.kind == "marginal":
             mean, cov, _ = self.measure(m, P, z)
             return mean, cov, log_belief
         B, K = z.shape[0], self.num_values
         mk = self.class_mu0.expand(B, K, -1)
         Pk = self.class_Sigma0.expand(B, K, -1, -1)
         mean, cov, ll = self.measure(mk, Pk, z[:, None, :].expand(-1, K, -1))
-        new = log_belief + ll / self.temperature
+        new = log_belief + ll / self.options.belief.temperature
         new = new - torch.logsumexp(new, -1, keepdim=True)
         mean, cov = mixture_moments(new.exp(), mean, cov)
         return mean, cov, new
@@ -399,12 +358,13 @@ class OnlineIntentionFilter(IsolatedStreams):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         observed = ~torch.isnan(z).all(-1)
         p = phase if self.phase else None
-        if self.evidence == "predictive":
+        predictive = self.options.evidence.kind == "predictive"
+        if predictive:
             mf, Pf, evidence = self._predictive_step(m, P, z, p)
         else:
             mf, Pf, evidence = self._bound_step(m, P, log_belief, z, p)
         new = self.options.belief.step(log_belief, evidence, observed)
-        if self.evidence == "predictive":
+        if predictive:
             mf, Pf = mixture_moments(new.exp(), mf, Pf)
         return mf, Pf, new
 
@@ -436,7 +396,7 @@ class OnlineIntentionFilter(IsolatedStreams):
         # one-step GP-RTSS (Eq. 26-27); Cs = Cov[x_{t-1}, x_t | z_{1:t}]
         ms, Ps, Cs = rts_step(m, P, mp, Pp, C, mf, Pf, name="prediction")
         m_lin, P_lin = m, P
-        if self.relinearize:
+        if self.options.evidence.relinearize:
             m_lin, P_lin = ms, Ps
             per_k = self.transition.moments(ms, Ps, phase)
         Q = expected_log_conditional(

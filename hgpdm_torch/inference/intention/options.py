@@ -17,7 +17,8 @@ values when it is made and can be passed around, compared and reused by several 
 
 The filter takes either a group or its flat keywords (``OnlineIntentionFilter(model,
 forgetting=0.1)`` and ``OnlineIntentionFilter(model, belief=BeliefUpdate(forgetting=0.1))`` are
-the same filter), never both for one group; :func:`resolve` does that.
+the same filter), never both for one group; :meth:`FilterOptions.from_keywords` does that,
+reading which flat keyword belongs to which group from the groups' own fields.
 """
 
 from __future__ import annotations
@@ -42,7 +43,6 @@ __all__ = [
     "ObservationPolicy",
     "StatePrior",
     "TransitionPath",
-    "resolve",
 ]
 
 
@@ -208,6 +208,30 @@ class FilterOptions:
     transition: TransitionPath = field(default_factory=TransitionPath)
     observations: ObservationPolicy = field(default_factory=ObservationPolicy)
 
+    @classmethod
+    def from_keywords(cls, groups: dict[str, Any], flat: dict[str, Any]) -> FilterOptions:
+        """A filter's options from its keywords.
+
+        Args:
+            groups: each group's keyword (``"belief"``, ``"evidence"``, ...) -> its value: a
+                group object, ``None``, or (``evidence``, ``state_prior``, ``transition``) the
+                value of the group's first field, e.g. ``"bound"``.
+            flat: the flat keywords -> their values; a group's flat keywords are its fields,
+                and one at its field's default counts as not given.
+
+        Raises:
+            ValueError: a group object and flat keywords of that group that differ from their
+                defaults, naming them; or a bad value (from the group's own checks).
+            TypeError: a group keyword that is neither its group, ``None`` nor (where the group
+                has one) its first field's value.
+        """
+        out = {}
+        for f in fields(cls):
+            group = f.default_factory
+            own = {g.name: flat[g.name] for g in fields(group) if g.name in flat}
+            out[f.name] = _resolve(group, f.name, groups[f.name], own)
+        return cls(**out)
+
 
 #: The flat keyword of a group that takes the group's first field (e.g. ``evidence="bound"``).
 _LEADING = {"evidence": "kind", "state_prior": "kind", "transition": "path"}
@@ -226,22 +250,9 @@ def _given(value: Any, default: Any) -> bool:
         return True
 
 
-def resolve(group: type, name: str, given: Any, flat: dict[str, Any]) -> Any:
-    """The ``group`` object of a filter from its keyword ``name`` and the flat keywords of its
-    fields.
-
-    Args:
-        group: the group's class (e.g. :class:`BeliefUpdate`).
-        name: the filter's keyword for the group (``"belief"``, ``"evidence"``, ...).
-        given: that keyword's value: a ``group`` instance, ``None``, or (where the group has a
-            leading flat keyword of the same name, e.g. ``evidence="bound"``) that field's value.
-        flat: the filter's flat keywords of the group's (other) fields, field -> value; one at
-            its field's default counts as not given.
-
-    Raises:
-        ValueError: a ``group`` instance and flat keywords that differ from their defaults, naming
-            them; or a bad value (from the group's own checks).
-    """
+def _resolve(group: type, name: str, given: Any, flat: dict[str, Any]) -> Any:
+    """The ``group`` object of a filter from its keyword ``name`` (value ``given``) and the flat
+    keywords ``flat`` of the group's fields (:meth:`FilterOptions.from_keywords`)."""
     defaults = {f.name: f.default for f in fields(group)}
     passed = {k: v for k, v in flat.items() if _given(v, defaults[k])}
     if isinstance(given, group):

@@ -23,13 +23,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from ...intention_belief import IntentionBelief, flagged_belief
 from ...linalg import CholeskyError, positive_definite
 from ...observations import ObservationCheck, screen_observations
+
+if TYPE_CHECKING:
+    from .options import FilterOptions
 
 __all__ = ["IsolatedStreams"]
 
@@ -59,9 +62,11 @@ class IsolatedStreams:
     A subclass sets, before calling :meth:`reset`: ``batch_size`` (B), ``values [K, Dg]``,
     ``continuous`` (whether g is continuous), ``mu0 [Dx]``, ``Sigma0 [Dx, Dx]`` and
     ``log_prior [K]`` (the state of an unstarted stream, in the filter's ``dtype``),
-    ``check`` (an :class:`~hgpdm_torch.observations.ObservationCheck`), ``obs_dim``
-    (Dz), ``chunk_size`` and ``strict``; and implements ``_initialise`` (a stream's first
-    observation) and ``_step`` (every later one), both
+    ``check`` (an :class:`~hgpdm_torch.observations.ObservationCheck`), ``obs_dim`` (Dz),
+    ``chunk_size`` and ``options`` (a
+    :class:`~hgpdm_torch.inference.intention.options.FilterOptions`; with
+    ``options.observations.strict`` a bad row or a failed stream raises); and implements
+    ``_initialise`` (a stream's first observation) and ``_step`` (every later one), both
     ``(mean [S, Dx], cov [S, Dx, Dx], log_belief [S, K], z [S, Dz], phase [S]) -> (mean, cov,
     log_belief)`` on a chunk of S streams, raising one of ``_NUMERICAL_ERRORS`` where they fail
     numerically. ``phase`` is the frame index of the state updated from, counted in rows since
@@ -78,7 +83,7 @@ class IsolatedStreams:
     dtype: torch.dtype
     obs_dim: int
     chunk_size: int
-    strict: bool
+    options: FilterOptions
     _initialise: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
     _step: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
@@ -162,8 +167,8 @@ class IsolatedStreams:
         """
         B = self.batch_size
         z, rejected, single = screen_observations(
-            z, self.check, B, self.obs_dim, device=self.mean.device, strict=self.strict,
-            where=self._where,
+            z, self.check, B, self.obs_dim, device=self.mean.device,
+            strict=self.options.observations.strict, where=self._where,
         )  # fmt: skip
         z = z.to(self.dtype)
         # the update works on copies, written back at the end: a strict error changes nothing
@@ -233,7 +238,7 @@ class IsolatedStreams:
 
     def _fail(self, b: int, what: str, err: Exception | None = None) -> None:
         """With ``strict``, raise for stream ``b`` (else the caller restarts it)."""
-        if self.strict:
+        if self.options.observations.strict:
             cause = f": {err}" if err is not None else ""
             raise ValueError(
                 f"stream {b} at step {int(self.steps[b])} {what}{cause} (with strict=False it "

@@ -20,6 +20,8 @@ concept:
 - :mod:`~.window`: the model seen by a window, with the log joint (Eq. 8-9) and F (Eq. 13,
   15-17), shared by VB and the MAP baseline (:mod:`hgpdm_torch.inference.map`);
 - :mod:`~.initial`: initial states (Algorithm 2.2, step 1);
+- :mod:`~.engine`: :class:`~.engine.WindowEngine`, the window model and initial states of VB and
+  the MAP baseline;
 - :mod:`~.laplace`: Levenberg-Marquardt to the MAP states and the mean-field Laplace start;
 - :mod:`~.lbfgs` and :mod:`~.polish`: batched L-BFGS on the exact F in whitened coordinates;
 - :mod:`~.svi`: the Pyro model and ``pyro.infer.SVI`` on the guide;

@@ -37,15 +37,14 @@ from typing import Any
 
 import torch
 
-from ...models import GPDM
 from ...validation import check_choice
 from . import prediction
+from .engine import WindowEngine
 from .guide import MeanFieldGuide
-from .initial import initial_guess
 from .laplace import check_prune, laplace
 from .polish import polish
 from .svi import SVIOptions, fit_svi, pyro_model
-from .window import WindowModel, window_mask
+from .window import window_mask
 
 __all__ = ["METHODS", "VBResult", "VariationalInference"]
 
@@ -101,22 +100,16 @@ class VBResult:
         return mean, cov[..., 0, :, :, :]
 
 
-class VariationalInference:
+class VariationalInference(WindowEngine):
     """Variational Bayes inference in a fitted GPDM / H-GPDM (Sec. 2.3, Algorithm 2.2).
 
     Args:
         model: a fitted :class:`~hgpdm_torch.models.GPDM` (no g), or an
             :class:`~hgpdm_torch.models.HGPDM` / ``IDDM`` with a discrete or continuous g.
-        x1_prior: ``(mean [Dx], cov [Dx, Dx])`` of ``p(x_1)``, the first state of a window. The
-            default is the Gaussian fitted to all training latents, since a window may start
-            anywhere in a movement (the thesis's ``N(m_1, S_1)``).
-        g_prior: for a discrete g, ``[K]`` prior probabilities (default uniform); for a continuous
-            g, ``(mean [Dg], cov [Dg, Dg])`` (default: fitted to the training intentions).
-        measurement_points: route the measurement GP through at most this many pseudo-inputs,
-            the latents of evenly spaced training frames (the DTC sparse GP on all the data:
-            each window's kernel expectations cost ``M^2`` instead of ``N^2``;
-            :meth:`~hgpdm_torch.models.GPDM.measurement_posterior`). Default: the exact GP,
-            the thesis's model.
+
+    The keywords ``x1_prior``, ``g_prior`` and ``measurement_points`` (the window model's priors
+    and measurement GP) are those of
+    :class:`~hgpdm_torch.inference.variational.engine.WindowEngine`.
 
     Attributes:
         window: the :class:`~hgpdm_torch.inference.variational.window.WindowModel` (GPs, priors,
@@ -128,21 +121,6 @@ class VariationalInference:
         >>> res = vb.infer(window)                             # doctest: +SKIP
         >>> res.posterior, res.g_ml                            # doctest: +SKIP
     """
-
-    def __init__(
-        self,
-        model: GPDM,
-        *,
-        x1_prior: tuple[object, object] | None = None,
-        g_prior: object = None,
-        measurement_points: int | None = None,
-    ) -> None:
-        self.window = w = WindowModel(
-            model, x1_prior=x1_prior, g_prior=g_prior, measurement_points=measurement_points
-        )
-        self.model, self.kind, self.values = w.model, w.kind, w.values
-        self.measurement, self.transition = w.measurement, w.transition
-        self.latent_dim, self.obs_dim = w.latent_dim, w.obs_dim
 
     # ------------------------------------------------------------------ the objective
     def free_energy(
@@ -187,13 +165,6 @@ class VariationalInference:
         pyro_model(self.window, z, observed, self.window.candidates(values), guide)
 
     # ------------------------------------------------------------------ Algorithm 2.2
-    def initial_guess(
-        self, z: torch.Tensor, values: torch.Tensor, init: str = "nearest"
-    ) -> tuple[torch.Tensor | None, ...]:
-        """Initial q(x) [and q(g)] for :meth:`infer` (Algorithm 2.2, step 1): see
-        :func:`~hgpdm_torch.inference.variational.initial.initial_guess`."""
-        return initial_guess(self.window, z, values, init)
-
     def laplace(
         self,
         z: torch.Tensor,
@@ -274,7 +245,7 @@ class VariationalInference:
         if svi is not None and method != "svi":
             raise ValueError("svi options apply to method='svi' only")
         values = w.candidates(values)
-        loc, cov, g_loc, g_cov = initial_guess(w, z, values, init)
+        loc, cov, g_loc, g_cov = self.initial_guess(z, values, init)
         map_states = None
         if newton_steps:
             loc, cov = laplace(

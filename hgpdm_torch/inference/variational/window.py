@@ -46,6 +46,7 @@ from ...gaussian import (
 from ...linalg import psd_cholesky, symmetrize
 from ...models import GPDM, HGPDM
 from ...validation import as_tensor
+from ..filtering import check_window_model
 from .gaussian_input import GaussianInputGP, expected_sq_error
 
 __all__ = ["WindowModel", "window_mask"]
@@ -124,13 +125,7 @@ class WindowModel:
         g_prior: object = None,
         measurement_points: int | None = None,
     ) -> None:
-        if not isinstance(model, GPDM):
-            raise TypeError(f"model must be a GPDM/HGPDM, got {type(model).__name__}")
-        if getattr(model, "phase_width", None) is not None:
-            raise ValueError(
-                "window inference carries no phase: a phase-aware IDDM (phase_width set) is "
-                "filtered online (OnlineIntentionFilter), which counts each stream's frames"
-            )
+        check_window_model(model, GPDM, "a GPDM/HGPDM", "window inference carries no phase")
         self.model = model
         self.kind = model.intention if isinstance(model, HGPDM) else "none"
         self.measurement = model.measurement_posterior(measurement_points)

@@ -44,6 +44,7 @@ Imports flow one way: ``ball_state`` <- ``ball_scalar``, ``ball_dynamics``, ``ba
 
 from __future__ import annotations
 
+from hgpdm_torch.robots.table_tennis import ball_state
 from hgpdm_torch.robots.table_tennis.ball_aiming import BounceAim, aim, aim_through_bounce
 from hgpdm_torch.robots.table_tennis.ball_contact import racket_contact, racket_velocity_for_return
 from hgpdm_torch.robots.table_tennis.ball_crossing import predict_plane_crossing
@@ -58,26 +59,10 @@ from hgpdm_torch.robots.table_tennis.ball_recording import (
 )
 from hgpdm_torch.robots.table_tennis.ball_scalar import Floats as Floats
 from hgpdm_torch.robots.table_tennis.ball_scalar import ScalarBall
-from hgpdm_torch.robots.table_tennis.ball_state import (
-    DEFAULT_PARAMS,
-    MAX_DURATION,
-    MAX_SPEED,
-    MAX_SPIN,
-    MAX_STEPS,
-    BallParams,
-    BallState,
-    make_state,
-    table_point,
-)
+from hgpdm_torch.robots.table_tennis.ball_state import *  # noqa: F403 (its __all__, below)
 
 __all__ = [
-    "DEFAULT_PARAMS",
-    "MAX_DURATION",
-    "MAX_SPEED",
-    "MAX_SPIN",
-    "MAX_STEPS",
-    "BallParams",
-    "BallState",
+    *ball_state.__all__,  # constants, state and ranges: listed once, there
     "BallTrajectory",
     "BounceAim",
     "Landing",
@@ -88,7 +73,6 @@ __all__ = [
     "flight",
     "is_legal_return",
     "landing",
-    "make_state",
     "predict_plane_crossing",
     "propagate",
     "racket_contact",
@@ -96,5 +80,4 @@ __all__ = [
     "simulate",
     "step",
     "step_events",
-    "table_point",
 ]

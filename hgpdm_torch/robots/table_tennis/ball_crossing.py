@@ -27,18 +27,12 @@ from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     BallParams,
     BallState,
-    check_dt,
-    check_duration,
-    check_params,
+    check_flight,
     check_result,
-    check_state,
-    check_steps,
 )
 from hgpdm_torch.validation import as_tensor
 
-__all__ = [
-    "predict_plane_crossing",
-]
+__all__ = ["predict_plane_crossing"]
 
 
 def predict_plane_crossing(
@@ -65,11 +59,9 @@ def predict_plane_crossing(
         [...]: whether the ball crossed within ``max_time`` before falling to the floor. Where
         ``valid`` is false ``t`` is ``max_time`` and the state is the last one simulated.
     """
-    state = check_state(state)
-    params = check_params(params)
-    dt = check_dt(dt)
-    max_time = check_duration(max_time, "max_time")
-    check_steps(math.ceil(max_time / dt - 1e-9), "max_time", dt)
+    state, params, dt, max_time, _ = check_flight(
+        state, params, dt, max_time, "max_time", lambda r: math.ceil(r - 1e-9)
+    )
     t_cross, out, valid = find_plane_crossing(state, y_plane, params, max_time, dt)
     check_result("predict_plane_crossing", t_cross, *out)
     return t_cross, out, valid

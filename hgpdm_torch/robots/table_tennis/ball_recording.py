@@ -17,12 +17,8 @@ from hgpdm_torch.robots.table_tennis.ball_state import (
     DEFAULT_PARAMS,
     BallParams,
     BallState,
-    check_dt,
-    check_duration,
-    check_params,
+    check_flight,
     check_result,
-    check_state,
-    check_steps,
 )
 
 from ...progress import tqdm
@@ -101,11 +97,9 @@ def simulate(
     Returns:
         :class:`BallTrajectory` with ``S = round(duration / dt) + 1`` samples.
     """
-    state = check_state(state)
-    params = check_params(params)
-    dt = check_dt(dt)
-    duration = check_duration(duration, "duration")
-    n = check_steps(max(1, round(duration / dt)), "duration", dt)
+    state, params, dt, duration, n = check_flight(
+        state, params, dt, duration, "duration", lambda r: max(1, round(r))
+    )
     if is_single_ball(state):
         traj = _trajectory(*scalar_ball(params).simulate(state_floats(state), duration, dt))
         check_result("simulate", traj.pos, traj.vel, traj.spin, traj.bounce_pos, traj.bounce_time)

@@ -10,6 +10,7 @@ checks here (state, params, step, duration, finite results) are the ones every p
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -232,6 +233,22 @@ def check_steps(n: int, name: str, dt: float) -> int:
             f"(at most {_MAX_DT} s; got {dt}) or a shorter {name}"
         )
     return n
+
+
+def check_flight(
+    state: BallState,
+    params: BallParams,
+    dt: float,
+    duration: object,
+    name: str,
+    steps: Callable[[float], int],
+) -> tuple[BallState, BallParams, float, float, int]:
+    """The checked arguments of one simulated flight, as every simulating call takes them: the
+    state, the ball constants, the step ``dt``, the simulated time ``duration`` (the argument
+    ``name``) and its number of steps ``steps(duration / dt)`` (at most :data:`MAX_STEPS`)."""
+    state, params, dt = check_state(state), check_params(params), check_dt(dt)
+    duration = check_duration(duration, name)
+    return state, params, dt, duration, check_steps(steps(duration / dt), name, dt)
 
 
 def table_point(x: object, y: object) -> torch.Tensor:
