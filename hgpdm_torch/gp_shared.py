@@ -499,6 +499,11 @@ class SharedTransition:
         kernel's limit)."""
         return self.dx <= native.MAX_D and native.usable(left, self.kinv)
 
+    def compiled(self) -> bool:
+        """Whether :meth:`moments` runs on the compiled CPU kernel here (without gradients):
+        float64 on a CPU where :mod:`hgpdm_torch.native` is available, Dx at most its limit."""
+        return self._native_ready(self.kinv)
+
     @functools.cached_property
     def _native(self) -> _NativeLayout:
         U, L, dx = self.groups, self.group_size, self.dx
@@ -594,7 +599,7 @@ class SharedTransition:
         n = U * self.group_size
         madds = n * n * (dx + 2) + n * n * dx + K * U * U + K * U + K * dx * dx
         madds += 4 * n * dx * dx + 3 * n * dx + K * U * dx * (1 + dx) + K * dx**3
-        if self._native_ready(self.kinv):
+        if self.compiled():
             pairs = dx * (dx + 1) // 2
             madds += n * n + U * pairs * n + K * U * U * pairs + K * U * pairs
         else:

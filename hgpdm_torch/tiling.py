@@ -38,6 +38,7 @@ T = TypeVar("T")
 __all__ = [
     "CPU_STREAM_CHUNK",
     "KEEP_FOR_BACKWARD_BYTES",
+    "NATIVE_STREAM_CHUNK",
     "OpCount",
     "differentiable_tile",
     "exp_",
@@ -104,25 +105,35 @@ def per_tile(entries: int, dtype: torch.dtype, device: torch.device) -> int:
 #: thread: 0.21 ms in chunks of 2, 0.074 of 8, 0.039 of 32, 0.038 of 64, 0.029 of 256. Each
 #: stream of a chunk holds O(N Dx) numbers while the chunk runs (about 70 KB at N = 500).
 CPU_STREAM_CHUNK = 32
+#: Streams updated together on a CPU where the compiled kernel (:mod:`hgpdm_torch.native`) runs
+#: the transition: it keeps no psi2 tile, so a stream of a chunk holds only its O(N Dx) inputs
+#: (about 90 KB at N = 500) and larger chunks spread the rest of the update's small operations
+#: further. At B = 256, N = 500, one thread, three runs each: 0.66 ms per stream in chunks of
+#: 32, 0.62 of 64, 0.60-0.61 of 128 and of 256.
+NATIVE_STREAM_CHUNK = 128
 
 
-def stream_chunk(n: int, workspace: int, dtype: torch.dtype, device: torch.device) -> int:
+def stream_chunk(
+    n: int, workspace: int, dtype: torch.dtype, device: torch.device, compiled: bool = False
+) -> int:
     """Default number of streams updated together (``OnlineIntentionFilter(chunk_size=None)``).
 
     Args:
         n: N, the transition GP's training (or pseudo-) inputs.
         workspace: entries of the psi2 tile work space one stream needs (the transition's
             ``workspace()``).
+        compiled: whether the transition runs on the compiled CPU kernel (its
+            ``compiled()``).
 
     On the materialised path the earlier default, ``2^19 / N^2`` (its ``[chunk, N, N]``
-    temporaries in cache); on the fused path :data:`CPU_STREAM_CHUNK` on a CPU, and on an
-    accelerator as many streams as one tile holds (:func:`per_tile`), so that one launch per
-    operation updates them all.
+    temporaries in cache); on the fused path :data:`CPU_STREAM_CHUNK` on a CPU
+    (:data:`NATIVE_STREAM_CHUNK` with the compiled kernel), and on an accelerator as many streams
+    as one tile holds (:func:`per_tile`), so that one launch per operation updates them all.
     """
     if settings.moment_path.get() == "materialised":
         return max(1, 2**19 // (n * n))
     if device.type == "cpu":
-        return CPU_STREAM_CHUNK
+        return NATIVE_STREAM_CHUNK if compiled else CPU_STREAM_CHUNK
     return per_tile(workspace, dtype, device)
 
 

@@ -240,3 +240,19 @@ def test_builds_into_an_empty_cache(fresh_library):
     assert native.available() and built[0].stat().st_mtime_ns == stamp
     with settings.native_kernels(False):
         assert not native.available()
+
+
+@needs_kernel
+def test_filter_takes_larger_chunks_on_the_kernel(continuous_iddm):
+    """Where the compiled kernel runs the transition, the filter's default chunk of streams is
+    :data:`~hgpdm_torch.tiling.NATIVE_STREAM_CHUNK` (no psi2 tile per stream to keep in cache);
+    with it off, or in float32, the torch tiles' :data:`~hgpdm_torch.tiling.CPU_STREAM_CHUNK`."""
+    from hgpdm_torch.inference.intention import OnlineIntentionFilter
+    from hgpdm_torch.tiling import CPU_STREAM_CHUNK, NATIVE_STREAM_CHUNK
+
+    grid = torch.linspace(-1.2, 1.2, 9)
+    f = OnlineIntentionFilter(continuous_iddm, grid, batch_size=3)
+    assert f.transition.compiled() and f.chunk_size == NATIVE_STREAM_CHUNK
+    with settings.native_kernels(False):
+        f = OnlineIntentionFilter(continuous_iddm, grid, batch_size=3)
+        assert not f.transition.compiled() and f.chunk_size == CPU_STREAM_CHUNK

@@ -29,7 +29,14 @@ from hgpdm_torch.gp_shared import SharedTransition
 from hgpdm_torch.inference.intention import OnlineIntentionFilter
 from hgpdm_torch.kernels import transition_kernel
 from hgpdm_torch.moments import input_moments, input_operations, pair_operations
-from hgpdm_torch.tiling import CPU_STREAM_CHUNK, OpCount, exp_, per_tile, stream_chunk
+from hgpdm_torch.tiling import (
+    CPU_STREAM_CHUNK,
+    NATIVE_STREAM_CHUNK,
+    OpCount,
+    exp_,
+    per_tile,
+    stream_chunk,
+)
 
 from .conftest import EPS
 from .test_gp_gaussian import KINDS, known_g, make_posterior
@@ -217,6 +224,7 @@ def test_stream_chunk_per_path_and_device():
     cpu = torch.device("cpu")
     n = 500
     assert stream_chunk(n, 3 * n * n, torch.float64, cpu) == CPU_STREAM_CHUNK
+    assert stream_chunk(n, 3 * n * n, torch.float64, cpu, compiled=True) == NATIVE_STREAM_CHUNK
     with settings.moment_path("materialised"):
         assert stream_chunk(n, 3 * n * n, torch.float64, cpu) == 2**19 // (n * n)
     with settings.tile_bytes(10 * 8 * n * n):

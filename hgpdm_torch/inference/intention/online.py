@@ -171,7 +171,8 @@ class OnlineIntentionFilter(IsolatedStreams):
             default ``round(sqrt(inducing))``, all training values when ``inducing >= N``).
         chunk_size: positive int, streams processed together (fixed ranges of stream indices,
             see above). The default (:func:`~hgpdm_torch.tiling.stream_chunk`) is 32 on a CPU
-            and on an accelerator as many streams as one ``psi2`` tile holds; the ``N x N``
+            (128 where the compiled kernel runs) and on an accelerator as many streams as one
+            ``psi2`` tile holds; the ``N x N``
             expectations are tiled inside the transition whatever the chunk
             (:class:`~hgpdm_torch.settings.moment_path`; on the materialised path
             ``2^19 / N^2``, which keeps its ``[chunk, N, N]`` temporaries in cache).
@@ -307,7 +308,9 @@ class OnlineIntentionFilter(IsolatedStreams):
         self.obs_dim = model.obs_dim
         n, workspace = self.transition.inputs.shape[0], self.transition.workspace()
         # on an accelerator a chunk of streams is what one tile of the transition holds
-        self.chunk_size = chunk_size or stream_chunk(n, workspace, self.dtype, self.mu0.device)
+        self.chunk_size = chunk_size or stream_chunk(
+            n, workspace, self.dtype, self.mu0.device, self.transition.compiled()
+        )
         self.reset()
 
     def operations(self) -> OpCount:

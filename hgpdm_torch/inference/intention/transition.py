@@ -79,6 +79,8 @@ class TransitionMoments(Protocol):
 
     def workspace(self) -> int: ...
 
+    def compiled(self) -> bool: ...
+
 
 class GenericTransition:
     r"""Transition moments for every K grid value by moment matching of the transition GP.
@@ -171,6 +173,11 @@ class GenericTransition:
         and its products with the K grid values' weights (``N K Dx``)."""
         n = self.inputs.shape[0]
         return n * n + n * self.num_values * self.posterior.output_dim
+
+    def compiled(self) -> bool:
+        """``False``: the generic moments run in torch (their exponential may be the compiled
+        one, :func:`hgpdm_torch.tiling.exp_`)."""
+        return False
 
     def operations(self, streams: int = 1) -> OpCount:
         """Work of :meth:`moments` per stream when ``streams`` share a call (the floor's
