@@ -1,10 +1,12 @@
-"""The Gaussian Process Dynamics Model (GPDM) and the MAP objective shared by its extensions.
+"""The Gaussian Process Dynamics Model (GPDM), the base of its extensions.
 
 A GPDM explains J observed sequences ``Z^j [T_j, Dz]`` by latent trajectories ``X^j [T_j, Dx]``
 with a GP measurement map ``h: x -> z`` and a GP transition map ``f: x_t -> x_{t+1}``, both
 marginalised out (thesis Sec. 2.2). The latent states X, the measurement hyperparameters beta and
 the output scales W are learned by minimising the negative log posterior of Eq. 6 with any torch
-optimizer. The transition kernel's hyperparameters alpha_1..3 are fixed to alpha-bar (Sec. 2.4.1)
+optimizer; the model defines the GPs and latents, and its objective
+(:class:`~hgpdm_torch.models.objective.MAPObjective`, ``model.objective()``) computes Eq. 6
+beside it. The transition kernel's hyperparameters alpha_1..3 are fixed to alpha-bar (Sec. 2.4.1)
 unless ``learn_alpha=True``; the process noise alpha_4 can be learned under a weak log-normal prior
 centred on alpha-bar (``learn_noise=True``). It is fixed by default, as in the thesis: on real
 walks the MAP estimate collapses towards the noise floor and forecasts get worse (docs, Walkers);
@@ -12,7 +14,10 @@ choose it by cross-validation (:func:`hgpdm_torch.model_selection.cross_validate
 
 Subclasses change the transition inputs and kernel (:class:`~hgpdm_torch.models.HGPDM` appends
 the exogenous variable g), or override :meth:`GPDM.initial_latents` and
-:meth:`GPDM.build_transition_kernel`.
+:meth:`GPDM.build_transition_kernel`; the objective reads the hooks :meth:`GPDM.transition_inputs`,
+:meth:`GPDM.transition_targets`, :meth:`GPDM.transition_blocks` and
+:meth:`GPDM.transition_block_noise`, and a new term goes in a ``MAPObjective`` subclass named by
+``objective_class``.
 """
 
 from __future__ import annotations
@@ -30,11 +35,9 @@ from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.kernels import Kernel
 from gpytorch.priors import NormalPrior, Prior
 
-from ..fitting import FitResult, OptimizerLike, fit_map
-from ..gaussian import LOG_2PI
+from ..fitting import FitResult, OptimizerLike
 from ..gp import GPPosterior
 from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
-from ..linalg import gaussian_nll
 from ..validation import (
     as_tensor,
     check_choice,
@@ -44,11 +47,12 @@ from ..validation import (
     positive_reals,
 )
 from .back_constraints import make_back_constraint
+from .objective import MAPObjective
+from .objective import fit as fit_model
 from .persistence import SavedModel, save_model
 
 __all__ = ["GPDM"]
 
-_FIT_OPTIONS = {"ftol", "gtol", "patience", "max_eval", "restarts", "restart_scale", "seed", "warn"}
 #: Lower bound of both noise variances. It is the fixed jitter of the objective: it keeps the
 #: kernel matrices of Eq. 4-5 positive definite in float64, so the loss is a smooth function of
 #: the parameters and never needs jitter escalation (which would make it discontinuous).
@@ -183,6 +187,9 @@ class GPDM(gpytorch.Module, SavedModel):
     #: whether the transition GP has an output scale per latent dim (class default: models
     #: pickled before the option existed have none)
     scale_transitions = False
+    #: the class of :meth:`objective`, the negative log posterior of Eq. 6: a subclass of
+    #: :class:`~hgpdm_torch.models.objective.MAPObjective` changes the terms of every fit
+    objective_class: type[MAPObjective] = MAPObjective
 
     def __init__(
         self,
@@ -532,32 +539,15 @@ class GPDM(gpytorch.Module, SavedModel):
         return latent[self.src_index + 1]
 
     # ----------------------------------------------------------------- objective
-    def measurement_nll(self, latent: torch.Tensor | None = None) -> torch.Tensor:
-        """``-log p(Z | X, beta, W)`` of Eq. 4, constants included (X: ``latent`` or the
-        model's, ``[M, Dx]``)."""
-        x = self.latent if latent is None else latent
-        m, dz = self.observations.shape
-        k = self.measurement_kernel(x).to_dense()
-        k = k + self.measurement_noise * torch.eye(m, dtype=x.dtype, device=x.device)
-        y = ((self.observations - self.obs_mean) * self.scales)[:, self.varying]
-        nll = gaussian_nll(k, y, name="measurement kernel matrix K_z")
-        return nll - m * self.scales[self.varying].log().sum()
+    def objective(self) -> MAPObjective:
+        """A new :class:`~hgpdm_torch.models.objective.MAPObjective` (``objective_class``) of
+        this model: the negative log posterior of Eq. 6, computed beside the model."""
+        return self.objective_class(self)
 
-    def _gaussian_sequence_nll(
-        self, inputs: torch.Tensor, targets: torch.Tensor, noise: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """``-log N(targets; 0, K_x(inputs) + alpha_4 I)`` per output column, summed (Eq. 5);
-        ``noise`` replaces alpha_4 (default :attr:`transition_noise`). With
-        ``scale_transitions`` column d is ``N(v_d targets_d; 0, K_x + alpha_4 I)``, whose
-        density in ``targets_d`` carries the Jacobian ``v_d^m`` (m rows), as Eq. 4's W."""
-        noise = self.transition_noise if noise is None else noise
-        k = self.transition_kernel(inputs).to_dense()
-        k = k + noise * torch.eye(k.shape[0], dtype=k.dtype, device=k.device)
-        if not self.scale_transitions:
-            return gaussian_nll(k, targets, name="transition kernel matrix K_x")
-        v = self.transition_scales
-        nll = gaussian_nll(k, targets * v, name="transition kernel matrix K_x")
-        return nll - targets.shape[0] * v.log().sum()
+    def measurement_nll(self, latent: torch.Tensor | None = None) -> torch.Tensor:
+        """``-log p(Z | X, beta, W)`` of Eq. 4, by :meth:`objective` (X: ``latent`` or the
+        model's, ``[M, Dx]``)."""
+        return self.objective().measurement_nll(latent)
 
     def transition_block_noise(self, rows: torch.Tensor) -> torch.Tensor:
         """Process noise alpha_4 of the block of transition pairs ``rows`` (one of
@@ -566,18 +556,9 @@ class GPDM(gpytorch.Module, SavedModel):
         return self.transition_noise
 
     def transition_nll(self, latent: torch.Tensor | None = None) -> torch.Tensor:
-        """``-log p(X | g)`` of Eq. 5: GP transitions plus the unit Gaussian on first states
-        (X: ``latent`` or the model's, ``[M, Dx]``)."""
-        x = self.latent if latent is None else latent
-        first = x[self.first_index]
-        inputs, targets = self.transition_inputs(x), self.transition_targets(x)
-        nll = sum(
-            self._gaussian_sequence_nll(
-                inputs[rows], targets[rows], self.transition_block_noise(rows)
-            )
-            for rows in self.transition_blocks()
-        )
-        return nll + 0.5 * first.pow(2).sum() + 0.5 * first.numel() * LOG_2PI
+        """``-log p(X | g)`` of Eq. 5, by :meth:`objective`: GP transitions plus the unit
+        Gaussian on first states (X: ``latent`` or the model's, ``[M, Dx]``)."""
+        return self.objective().transition_nll(latent)
 
     def transition_blocks(self) -> list[torch.Tensor]:
         """Row sets of independent blocks of ``K_x`` (one block: all transitions).
@@ -588,24 +569,17 @@ class GPDM(gpytorch.Module, SavedModel):
         return [torch.arange(self.src_index.numel(), device=self.src_index.device)]
 
     def prior_nll(self) -> torch.Tensor:
-        """``-sum log p(theta)`` over every registered gpytorch prior (log-normal on beta, W)."""
-        total = torch.zeros((), dtype=self.latent.dtype, device=self.latent.device)
-        for name, module, prior, closure, _ in self.named_priors():
-            if name == "transition_noise_prior" and not self.learn_noise:
-                continue  # a fixed alpha_4 is not a parameter of the posterior
-            total = total - prior.log_prob(closure(module)).sum()
-        return total
+        """``-sum log p(theta)`` over every registered gpytorch prior, by :meth:`objective`."""
+        return self.objective().prior_nll()
 
     def loss(self) -> torch.Tensor:
-        """The negative log posterior ``L`` of Eq. 6 (with all normalising constants)."""
-        x = self.latent  # one evaluation of a back-constraint map serves both terms
-        value = self.measurement_nll(x) + self.transition_nll(x) + self.prior_nll()
-        if not bool(torch.isfinite(value)):
-            raise FloatingPointError(
-                "the negative log posterior is not finite; lower the learning rate or check "
-                "the data for outliers"
-            )
-        return value
+        """The negative log posterior ``L`` of Eq. 6 (with all normalising constants):
+        ``self.objective()()``.
+
+        Raises:
+            FloatingPointError: ``L`` is not finite.
+        """
+        return self.objective()()
 
     def forward(self) -> torch.Tensor:
         """Calling the model returns :meth:`loss` (so ``torch.func.functional_call`` works)."""
@@ -628,10 +602,11 @@ class GPDM(gpytorch.Module, SavedModel):
     ) -> FitResult:
         """MAP fit (Eq. 3): minimise :meth:`loss` over X, beta, W (and alpha if learned).
 
-        Runs :func:`hgpdm_torch.fitting.fit_map`: L-BFGS with a strong-Wolfe line search (or
-        any torch optimizer), explicit convergence criteria, recovery from failed steps and
-        rollback to the best state on divergence. A fit that does not converge emits a
-        :class:`~hgpdm_torch.fitting.ConvergenceWarning` (``warn=False`` silences it).
+        The convenience for :func:`hgpdm_torch.models.objective.fit` with the default objective
+        (:meth:`objective`): :func:`hgpdm_torch.fitting.fit_map`'s L-BFGS with a strong-Wolfe
+        line search (or any torch optimizer), explicit convergence criteria, recovery from
+        failed steps and rollback to the best state on divergence. A fit that does not converge
+        emits a :class:`~hgpdm_torch.fitting.ConvergenceWarning` (``warn=False`` silences it).
 
         Args:
             steps: maximum optimizer steps (for L-BFGS each has a line search).
@@ -645,17 +620,9 @@ class GPDM(gpytorch.Module, SavedModel):
         Returns:
             A :class:`~hgpdm_torch.fitting.FitResult` (loss history, converged flag, reason).
         """
-        unknown = set(options) - _FIT_OPTIONS
-        if unknown:
-            raise ValueError(
-                f"unknown fit option(s) {sorted(unknown)}; expected some of {sorted(_FIT_OPTIONS)}"
-            )
-        options.setdefault("warn", True)
-        result = fit_map(self, steps, optimizer=optimizer, lr=lr, progress=progress, **options)
-        self.fit_seconds = result.seconds
-        self.fit_result = result
-        self.eval()
-        return result
+        return fit_model(
+            self, self.objective(), optimizer, steps, lr=lr, progress=progress, **options
+        )
 
     # ----------------------------------------------------------------- posteriors
     def measurement_posterior(self, points: int | None = None) -> GPPosterior:
