@@ -5,7 +5,6 @@ missing."""
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import struct
@@ -26,6 +25,8 @@ from hgpdm_torch.models import (
 )
 from hgpdm_torch.models.persistence import FORMAT_VERSION, MAGIC
 from tests.fixtures.make_model_format1 import predictions
+
+from .test_persistence import _loss, _pack
 
 FIXTURES = Path(__file__).parents[1] / "fixtures"
 _HEAD = struct.Struct("<IQ")
@@ -48,19 +49,6 @@ def _unpack(path: Path) -> tuple[int, dict]:
     raw = path.read_bytes()
     version, length = _HEAD.unpack_from(raw, len(MAGIC))
     return version, torch.load(io.BytesIO(raw[_PREFIX:]), weights_only=True)
-
-
-def _pack(path: Path, blob: dict, version: int = 2) -> None:
-    buffer = io.BytesIO()
-    torch.save(blob, buffer)
-    payload = buffer.getvalue()
-    head = MAGIC + _HEAD.pack(version, len(payload))
-    path.write_bytes(head + hashlib.sha256(head + payload).digest() + payload)
-
-
-def _loss(model: GPDM) -> float:
-    with torch.no_grad():
-        return float(model.loss())
 
 
 def _same_state(model: GPDM, other: GPDM) -> None:
