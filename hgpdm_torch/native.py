@@ -101,7 +101,7 @@ def _compiler() -> str | None:
 def _warn(why: str) -> None:
     warnings.warn(
         f"hgpdm_torch.native: {why}; the fused psi2 contraction runs in torch instead (on this "
-        "CPU about 1.8 times slower per batched online update). Install a C compiler (gcc or "
+        "CPU about twice as slow per batched online update). Install a C compiler (gcc or "
         "clang) or set CC, or set HGPDM_TORCH_NATIVE=0 to silence this.",
         RuntimeWarning,
         stacklevel=3,
