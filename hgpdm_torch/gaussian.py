@@ -383,11 +383,11 @@ def mixture_moments(
         raise ValueError(f"cross must have shape [..., {k}, Du, {d}], got {tuple(cross.shape)}")
     m = (weights[..., None] * means).sum(-2)
     diff = means - m[..., None, :]
+    # sum_k p_k d_k d_k^T as one product [..., D, K] @ [..., K, D]: no [..., K, D, D] temporary
+    S = (weights[..., None] * diff).mT @ diff
     w = weights[..., None, None]
-    if covs is None:
-        S = ((w * diff[..., :, None]) * diff[..., None, :]).sum(-3)
-    else:
-        S = (w * (covs + diff[..., :, None] * diff[..., None, :])).sum(-3)
+    if covs is not None:
+        S = S + (w * covs).sum(-3)
     S = symmetrize(S)
     return (m, S) if cross is None else (m, S, (w * cross).sum(-3))
 
