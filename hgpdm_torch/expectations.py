@@ -18,19 +18,24 @@ a continuous intention that is uncertain and correlated with ``x`` is simply par
 
 How it is organised (GPflow-style dispatch, on a normal form):
 
-1. :func:`kernel_leaves` dispatches on the gpytorch kernel type (``RBFKernel`` ARD or not,
-   ``LinearKernel``, ``ScaleKernel``, ``AdditiveKernel``, ``ProductKernel``, ``active_dims``,
-   and our ``DiscreteIntentionKernel`` and legacy ``IntentionRBFKernel``) and rewrites it as a
-   sum of :class:`Leaf` terms over all input columns: ``coef * exp(-1/2 sum_c w_c (x_c - x'_c)^2)``
-   or ``coef * sum_c w_c x_c x'_c``, each times Kronecker deltas on code columns and, from a
-   product, times linear factors (``Leaf.factors``).
+1. :func:`~hgpdm_torch.leaves.kernel_leaves` dispatches on the gpytorch kernel type
+   (:mod:`hgpdm_torch.leaves`: ``RBFKernel`` ARD or not, ``LinearKernel``, ``ScaleKernel``,
+   ``AdditiveKernel``, ``ProductKernel``, ``active_dims``, and our intention kernels; more by
+   :func:`~hgpdm_torch.leaves.register_leaves`) and rewrites it as a sum of :class:`Leaf` terms
+   over all input columns: ``coef * exp(-1/2 sum_c w_c (x_c - x'_c)^2)`` or
+   ``coef * sum_c w_c x_c x'_c``, each times Kronecker deltas on code columns and, from a
+   product, times linear factors (``Leaf.factors``). Any other kernel is an opaque leaf, and a
+   leaf with an opaque part becomes one ``"quadrature"`` term, integrated at Gauss-Hermite nodes
+   (:mod:`hgpdm_torch.quadrature`): Matern, periodic or a user's kernel work everywhere the
+   closed forms do, to the rule's accuracy.
 2. :func:`split_terms` splits every leaf into a part over the Gaussian columns times a per-training-
    point factor from the known columns (:class:`Term`): e.g. the tensor-product kernel
    ``exp(-|x - x_i|^2/2l_x^2) exp(-|g - g_i|^2/2l_g^2)`` becomes an RBF over ``x`` times the factor
    ``exp(-|g - g_i|^2/2l_g^2)``. The ``x`` part is therefore shared by all values of ``g``
    (docs/design/math.md#shared-work-across-intentions); a discrete kernel's delta is a 0/1 factor.
-3. One function per quantity (:func:`term_psi1`, :func:`term_grad`, :func:`term_psi2`) dispatches
-   on the term kinds ``"rbf"``, ``"linear"``, ``"const"`` (and pairs of kinds for psi2).
+3. One function per quantity (:func:`term_psi1`, :func:`term_psi1_grad`, :func:`term_psi2`)
+   dispatches on the term kinds ``"rbf"``, ``"linear"``, ``"const"``, ``"quadrature"`` (and
+   pairs of kinds for psi2: a pair with a quadrature term has rank S, the rule's nodes).
 
 Products (``ProductKernel``) distribute over the sums of their factors' leaves. Two RBF leaves
 multiply into one RBF leaf with the summed precisions,
@@ -71,19 +76,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from functools import singledispatch
 
 import torch
-from gpytorch.kernels import (
-    AdditiveKernel,
-    Kernel,
-    LinearKernel,
-    ProductKernel,
-    RBFKernel,
-    ScaleKernel,
-)
+from gpytorch.kernels import Kernel
 
-from .kernels import DiscreteIntentionKernel, IntentionRBFKernel
+from . import quadrature as quad
+from .leaves import Leaf, kernel_leaves, register_leaves
 from .linalg import cholesky_logdet, psd_cholesky
 from .settings import validate_internal
 from .validation import as_tensor
@@ -99,6 +97,7 @@ __all__ = [
     "psi1",
     "psi2",
     "rbf_psi2_exponent",
+    "register_leaves",
     "split_terms",
     "term_k",
     "term_psi1_grad",
@@ -107,173 +106,6 @@ __all__ = [
     "term_psi2_factors",
     "x_psi1",
 ]
-
-
-# --------------------------------------------------------------------------------------------
-# 1. Kernel -> sum of leaves over all input columns
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Leaf:
-    """One additive term of a kernel over all ``Din`` input columns.
-
-    Attributes:
-        kind: ``"rbf"`` (``coef exp(-1/2 sum_c w_c (x_c - x'_c)^2)``) or ``"linear"``
-            (``coef sum_c w_c x_c x'_c``).
-        coef: scalar tensor, product of the enclosing ``ScaleKernel`` output scales.
-        weight: ``[Din]`` inverse squared length scales (rbf) or variances (linear); zero on
-            columns the term does not read.
-        cols: the columns the term reads (structural, independent of the weight values).
-        codes: columns holding discrete codes; the term is multiplied by ``delta(x_c, x'_c)``.
-        factors: linear leaves (unit ``coef``, no codes, no factors) the term is multiplied by,
-            from a ``ProductKernel`` (RBF parts of a product are merged into one RBF leaf, so
-            these are never RBFs). Each part must read known columns only, except at most one
-            part (this leaf or a factor) over the Gaussian columns (:func:`split_terms`).
-    """
-
-    kind: str
-    coef: torch.Tensor
-    weight: torch.Tensor
-    cols: frozenset[int]
-    codes: tuple[int, ...] = ()
-    factors: tuple[Leaf, ...] = ()
-
-    def parts(self) -> list[Leaf]:
-        """The leaf without its factors, followed by its factors (whose product it is)."""
-        return [replace(self, factors=()), *self.factors] if self.factors else [self]
-
-
-def kernel_leaves(kernel: Kernel, input_dim: int) -> list[Leaf]:
-    """Rewrite ``kernel`` as a sum of :class:`Leaf` terms over ``input_dim`` input columns.
-
-    Follows gpytorch's calling conventions: a kernel's ``active_dims`` selects columns when it is
-    called (at the top level and inside ``AdditiveKernel``), while ``ScaleKernel`` and
-    ``DiscreteIntentionKernel`` call their base kernel's ``forward`` on the columns they see.
-
-    Raises:
-        TypeError: for a kernel type without closed-form expectations.
-        ValueError: for batched kernels or inconsistent dimensions.
-    """
-    if not isinstance(kernel, Kernel):
-        raise TypeError(f"kernel must be a gpytorch Kernel, got {type(kernel).__name__}")
-    return _called(kernel, list(range(int(input_dim))), int(input_dim))
-
-
-def _called(kernel: Kernel, cols: list[int], din: int) -> list[Leaf]:
-    if kernel.active_dims is not None:
-        idx = [int(i) for i in kernel.active_dims.tolist()]
-        if any(i < -len(cols) or i >= len(cols) for i in idx):
-            raise ValueError(
-                f"{type(kernel).__name__}.active_dims {idx} out of range for {len(cols)} columns"
-            )
-        cols = [cols[i] for i in idx]
-    return _leaves(kernel, cols, din)
-
-
-def _check_unbatched(kernel: Kernel) -> None:
-    if len(kernel.batch_shape) != 0:
-        raise ValueError(
-            f"{type(kernel).__name__} has batch_shape {tuple(kernel.batch_shape)}; Gaussian-input "
-            "expectations support unbatched kernels only (batch the inputs instead)"
-        )
-
-
-def _scatter(values: torch.Tensor, cols: list[int], din: int) -> torch.Tensor:
-    idx = torch.as_tensor(cols, dtype=torch.long, device=values.device)
-    out = torch.zeros(din, dtype=values.dtype, device=values.device)
-    return out.index_add(0, idx, values.reshape(-1).expand(len(cols)))
-
-
-def _rbf_leaf(lengthscale: torch.Tensor, cols: list[int], din: int, name: str) -> Leaf:
-    ls = lengthscale.reshape(-1)
-    if ls.numel() not in (1, len(cols)):
-        raise ValueError(
-            f"{name} has {ls.numel()} length scales but sees {len(cols)} input columns"
-        )
-    w = _scatter(ls.pow(-2), cols, din)
-    return Leaf("rbf", torch.ones((), dtype=w.dtype, device=w.device), w, frozenset(cols))
-
-
-@singledispatch
-def _leaves(kernel: Kernel, cols: list[int], din: int) -> list[Leaf]:
-    raise TypeError(
-        f"no Gaussian-input expectations for {type(kernel).__name__}; supported: RBFKernel, "
-        "LinearKernel, ScaleKernel, AdditiveKernel, ProductKernel, IntentionRBFKernel, "
-        "DiscreteIntentionKernel"
-    )
-
-
-@_leaves.register
-def _(kernel: RBFKernel, cols: list[int], din: int) -> list[Leaf]:
-    _check_unbatched(kernel)
-    return [_rbf_leaf(kernel.lengthscale, cols, din, "RBFKernel")]
-
-
-@_leaves.register
-def _(kernel: IntentionRBFKernel, cols: list[int], din: int) -> list[Leaf]:
-    _check_unbatched(kernel)
-    if len(cols) != kernel.x_dim + kernel.g_dim:
-        raise ValueError(
-            f"IntentionRBFKernel expects {kernel.x_dim + kernel.g_dim} columns, sees {len(cols)}"
-        )
-    return [_rbf_leaf(kernel.lengthscale_vector(), cols, din, "IntentionRBFKernel")]
-
-
-@_leaves.register
-def _(kernel: LinearKernel, cols: list[int], din: int) -> list[Leaf]:
-    _check_unbatched(kernel)
-    w = _scatter(kernel.variance.reshape(1), cols, din)
-    return [Leaf("linear", torch.ones((), dtype=w.dtype, device=w.device), w, frozenset(cols))]
-
-
-@_leaves.register
-def _(kernel: ScaleKernel, cols: list[int], din: int) -> list[Leaf]:
-    _check_unbatched(kernel)
-    scale = kernel.outputscale.reshape(())
-    return [
-        replace(leaf, coef=leaf.coef * scale) for leaf in _leaves(kernel.base_kernel, cols, din)
-    ]
-
-
-@_leaves.register
-def _(kernel: AdditiveKernel, cols: list[int], din: int) -> list[Leaf]:
-    return [leaf for k in kernel.kernels for leaf in _called(k, cols, din)]
-
-
-@_leaves.register
-def _(kernel: ProductKernel, cols: list[int], din: int) -> list[Leaf]:
-    # (sum_a leaf_a)(sum_b leaf_b) = sum_ab leaf_a leaf_b; each factor applies its active_dims
-    out = _called(kernel.kernels[0], cols, din)
-    for factor in kernel.kernels[1:]:
-        out = [_leaf_product(a, b) for a in out for b in _called(factor, cols, din)]
-    return out
-
-
-def _leaf_product(a: Leaf, b: Leaf) -> Leaf:
-    """The product of two leaves as one leaf: every RBF part merged into one RBF (precisions
-    add, exactly), the linear parts kept as unit-coefficient factors of the first part."""
-    parts = [*a.parts(), *b.parts()]
-    rbfs = [p for p in parts if p.kind == "rbf"]
-    linears = [replace(p, coef=torch.ones_like(p.coef), codes=()) for p in parts if p.kind != "rbf"]
-    coef, codes = a.coef * b.coef, (*a.codes, *b.codes)
-    if rbfs:
-        weight = torch.stack([p.weight for p in rbfs]).sum(0)
-        cols = frozenset().union(*(p.cols for p in rbfs))
-        head = Leaf("rbf", coef, weight, cols, codes)
-    else:
-        head = replace(linears.pop(0), coef=coef, codes=codes)
-    return replace(head, factors=tuple(linears))
-
-
-@_leaves.register
-def _(kernel: DiscreteIntentionKernel, cols: list[int], din: int) -> list[Leaf]:
-    _check_unbatched(kernel)
-    code = cols[-1]
-    return [
-        replace(leaf, codes=(*leaf.codes, code))
-        for leaf in _leaves(kernel.base_kernel, cols[:-1], din)
-    ]
 
 
 # --------------------------------------------------------------------------------------------
@@ -286,19 +118,28 @@ class Term:
     """A kernel term over the Gaussian columns, times a per-training-point factor.
 
     ``k_term(x, X_i) = factor_i * coef * base(x, X_i[:D])`` with base an RBF with precisions
-    ``weight`` (``"rbf"``), ``sum_c weight_c x_c X_ic`` (``"linear"``) or 1 (``"const"``).
+    ``weight`` (``"rbf"``), ``sum_c weight_c x_c X_ic`` (``"linear"``) or 1 (``"const"``); a
+    ``"quadrature"`` term is a whole opaque leaf ``k_leaf([x, g], X_i)``, which need not
+    separate into Gaussian and known columns (:mod:`hgpdm_torch.quadrature`).
 
     Attributes:
-        kind: ``"rbf"``, ``"linear"`` or ``"const"``.
-        coef: scalar tensor.
-        weight: ``[D]`` precisions or variances over the Gaussian columns (unused for const).
+        kind: ``"rbf"``, ``"linear"``, ``"const"`` or ``"quadrature"``.
+        coef: scalar tensor (1 for quadrature: the leaf holds its own).
+        weight: ``[D]`` precisions or variances over the Gaussian columns (unused for const;
+            zeros for quadrature).
         factor: ``[..., N]`` factor from the known columns (``g``), or ``None`` for all ones.
+        leaf: a quadrature term's leaf.
+        g: ``[..., Dg]`` its known input columns, or ``None``.
+        Xg: ``[..., N, Dg]`` the training points' known columns, or ``None``.
     """
 
     kind: str
     coef: torch.Tensor
     weight: torch.Tensor
     factor: torch.Tensor | None
+    leaf: Leaf | None = None
+    g: torch.Tensor | None = None
+    Xg: torch.Tensor | None = None
 
 
 def split_terms(
@@ -316,6 +157,8 @@ def split_terms(
     Returns:
         Terms with factors of shape ``[..., N]`` (batch of ``g`` and ``train_inputs``).
 
+    A kernel with an opaque leaf (a kernel without closed forms) becomes one ``"quadrature"``
+    term per leaf, its closed-form leaves included, so that all its moments come from one rule.
     A leaf with product factors (:attr:`Leaf.factors`) becomes the terms of its one part over
     the Gaussian columns (or of its first part when none is), each times the other parts'
     known-column factors: ``E[k_x(x, X_i) f(g, X_i)] = f(g, X_i) E[k_x(x, X_i)]``.
@@ -326,12 +169,19 @@ def split_terms(
             (the input covariance couples them; only RBF x RBF products are closed-form there).
     """
     terms: list[Term] = []
+    whole = any(leaf.opaque for leaf in leaves)  # one rule for all: quadrature's docstring
     for leaf in leaves:
         if any(c < dim for c in leaf.codes):
             raise ValueError(
                 "a discrete intention code column cannot be Gaussian: pass the code as the known "
                 f"input g (code column {min(leaf.codes)} < Gaussian dim {dim})"
             )
+        if whole:
+            # without g the columns past dim are not read (e.g. a discrete block's code column)
+            known = None if g is None else train_inputs[..., dim:]
+            one = torch.ones_like(leaf.coef)
+            terms.append(Term("quadrature", one, leaf.weight[:dim], None, leaf, g, known))
+            continue
         parts = leaf.parts()
         if len(parts) == 1:
             terms += _split_leaf(leaf, train_inputs, g, dim)
@@ -414,7 +264,11 @@ def leaves_psi0(
             [second.expand(*batch, second.shape[-1]), g.pow(2).expand(*batch, g.shape[-1])], -1
         )
     out = torch.zeros(second.shape[:-1], dtype=mu.dtype, device=mu.device)
+    whole = any(leaf.opaque for leaf in leaves)  # as split_terms: one rule for all
     for leaf in leaves:
+        if whole:
+            out = out + quad.leaf_psi0(leaf, mu, Sigma, g)
+            continue
         parts = leaf.parts()
         if len(parts) > 1:
             _gaussian_part(parts, mu.shape[-1])
@@ -466,6 +320,8 @@ def term_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -
     """
     if t.kind == "rbf":
         return _rbf_psi1_parts(t, mu, Sigma, X)[0]
+    if t.kind == "quadrature":
+        return quad.term_psi1_grad(t, mu, Sigma, X, grad=False)[0]
     if t.kind == "linear":
         return t.coef * ((X * t.weight) @ mu[..., :, None]).squeeze(-1)
     return t.coef * torch.ones(X.shape[:-1], dtype=X.dtype, device=X.device)
@@ -482,6 +338,8 @@ def term_psi1_grad(
     if t.kind == "rbf":
         p1, s, L, sd = _rbf_psi1_parts(t, mu, Sigma, X)
         return p1, p1[..., None, :] * s[:, None] * torch.cholesky_solve(sd, L)
+    if t.kind == "quadrature":
+        return quad.term_psi1_grad(t, mu, Sigma, X)
     p1 = term_psi1(t, mu, Sigma, X)
     if t.kind == "linear":
         return p1, t.coef * (X * t.weight).transpose(-1, -2)
@@ -497,6 +355,9 @@ def term_k(
     The ``Sigma = 0`` limit of :func:`term_psi1_grad` without its Cholesky factor and solves:
     the fast path for point evaluations (MAP states, Gauss-Newton Jacobians).
     """
+    if t.kind == "quadrature":
+        k, dk = quad.term_points(t, x[..., None, :], X, grad=grad)
+        return k[..., 0, :], None if dk is None else dk[..., 0, :, :]
     if t.kind == "rbf":
         diff = X - x[..., None, :]  # [..., N, D]
         k = t.coef * torch.exp(-0.5 * (diff.pow(2) * t.weight).sum(-1))
@@ -572,6 +433,9 @@ def term_psi2_factors(
     """
     if a.kind == "rbf" and b.kind == "rbf":
         return None
+    if "quadrature" in (a.kind, b.kind):  # both at the rule's nodes: rank S
+        U, V = quad.psi2_factors(a, b, mu, Sigma, X, _term_values)
+        return U, V, True
     if b.kind == "linear":
         return _x_psi1(a, mu, Sigma, X), b.coef * (X * b.weight).transpose(-1, -2), True
     if a.kind == "linear":
@@ -581,6 +445,14 @@ def term_psi2_factors(
     if a.kind == "const":
         return term_psi1(b, mu, Sigma, X)[..., None, :], a.coef * ones, False
     return term_psi1(a, mu, Sigma, X)[..., None, :], b.coef * ones, True
+
+
+def _term_values(t: Term, x: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """A term without its factor at points ``x [..., S, D]`` against ``X [..., N, D]``:
+    ``[..., S, N]`` (a constant term broadcasts along S)."""
+    if t.kind == "quadrature":
+        return quad.term_points(t, x, X)[0]
+    return term_k(t, x, X[..., None, :, :])[0]
 
 
 def term_psi2(
@@ -756,6 +628,11 @@ def psi0_cross(
     if mu1.shape[-1] != mu2.shape[-1]:
         raise ValueError(f"inputs must have the same dim, got {mu1.shape[-1]} and {mu2.shape[-1]}")
     leaves = kernel_leaves(kernel, mu1.shape[-1])
+    if any(leaf.opaque for leaf in leaves):
+        raise ValueError(
+            "psi0_cross has closed forms only (RBF and linear kernels, their scales, sums and "
+            "RBF products)"
+        )
     if any(leaf.codes for leaf in leaves):
         raise ValueError("psi0_cross does not support discrete intention kernels")
     if any(leaf.factors for leaf in leaves):

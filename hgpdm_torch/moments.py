@@ -40,6 +40,7 @@ from .expectations import (
     term_psi2_factors,
 )
 from .linalg import shared_matmul
+from .quadrature import num_nodes
 from .tiling import OpCount, differentiable_tile, exp_, keeps_tiles, tile_budget
 
 __all__ = ["input_moments", "input_operations", "pair_operations"]
@@ -265,12 +266,15 @@ def input_operations(
     """Work of :func:`input_moments` for one input Gaussian, in the loops it runs.
 
     Per term: ``psi1`` (for an RBF ``N`` exponentials and ``N D^2`` multiply-adds to whiten the
-    inputs, with ``grad`` ``N D^2`` more for ``E[d k / dx]``; ``N D`` for a linear term),
-    contracted with ``S`` weight sets (``N S Dout``, times ``D + 1`` with the gradient). Per term
-    pair: an RBF x RBF pair :func:`pair_operations`; a low-rank pair of rank ``r`` (``D``, or 1
-    with a constant term) ``2 r N S Dout`` for the two projections, ``r S Dout^2`` for the pair
-    and with ``trace`` ``r N S`` against ``K^-1``, plus its ``r N^2 S`` product with ``K^-1``,
-    which one call does once for all its ``inputs`` Gaussians (counted here as a share). ``D``
+    inputs, with ``grad`` ``N D^2`` more for ``E[d k / dx]``; ``N D`` for a linear term; for a
+    quadrature term ``Q N`` kernel values at its Q nodes, counted as an exponential and ``Din``
+    multiply-adds each, three times that with the gradient), contracted with ``S`` weight sets
+    (``N S Dout``, times ``D + 1`` with the gradient). Per term pair: an RBF x RBF pair
+    :func:`pair_operations`; a low-rank pair of rank ``r`` (``D``, 1 with a constant term, Q
+    with a quadrature term) ``2 r N S Dout`` for the two projections, ``r S Dout^2`` for the
+    pair and with ``trace`` ``r N S`` against ``K^-1``, plus its ``r N^2 S`` product with
+    ``K^-1``, which one call does once for all its ``inputs`` Gaussians (counted here as a
+    share). ``D``
     is the terms' Gaussian dim (their ``weight``).
     """
     ops = OpCount()
@@ -278,6 +282,9 @@ def input_operations(
         d = t.weight.shape[-1]
         if t.kind == "rbf":  # whitening solve (and with grad its Cholesky solve), N exps
             ops = ops + OpCount(exps=n, madds=n * d * d * (1 + int(grad)))
+        elif t.kind == "quadrature":  # S N kernel values, each about an exp and Din madds
+            s, din = num_nodes(d), d + (0 if t.g is None else t.g.shape[-1])
+            ops = ops + OpCount(exps=s * n, madds=s * n * din * (1 + 2 * int(grad)))
         elif t.kind == "linear":
             ops = ops + OpCount(madds=n * d)
         ops = ops + OpCount(madds=n * sets * dout * (1 + d * int(grad)))  # against the weights
@@ -287,7 +294,10 @@ def input_operations(
             if a.kind == "rbf" and b.kind == "rbf":
                 ops = ops + pair_operations(n, d, dout, sets=sets, diagonal=diagonal, trace=trace)
                 continue
-            r = 1 if "const" in (a.kind, b.kind) else d
+            if "quadrature" in (a.kind, b.kind):
+                r = num_nodes(d)
+            else:
+                r = 1 if "const" in (a.kind, b.kind) else d
             madds = 2 * r * n * sets * dout + r * sets * (dout if diagonal else dout * dout)
             shared = r * n * n * sets / inputs  # V K^-1: once per call, for all its inputs
             ops = ops + OpCount(madds=madds + (shared + r * n * sets if trace else 0))

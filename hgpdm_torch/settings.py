@@ -35,7 +35,8 @@ chunk of inputs and then reduces them; it stays for comparison in benchmarks and
 :class:`tile_bytes` overrides the tile size that :mod:`hgpdm_torch.tiling` picks per device.
 :class:`native_kernels` lets the fused path run its compiled CPU kernel (:mod:`hgpdm_torch.native`)
 where one is available (default on; the environment variable ``HGPDM_TORCH_NATIVE=0`` turns it off
-for a process).
+for a process). :class:`quadrature_points` sets the Gauss-Hermite rule of the kernels without
+closed-form expectations (:mod:`hgpdm_torch.quadrature`).
 
 :func:`default_dtype` sets torch's default dtype for a block. :func:`snapshot` captures all of
 these (and the default dtype) where a job is made: an executor's worker
@@ -61,6 +62,7 @@ __all__ = [
     "internal_step",
     "moment_path",
     "native_kernels",
+    "quadrature_points",
     "snapshot",
     "tile_bytes",
     "validate_internal",
@@ -70,6 +72,7 @@ _debug = contextvars.ContextVar("hgpdm_torch_debug", default=False)
 _internal = contextvars.ContextVar("hgpdm_torch_internal", default=False)
 _path = contextvars.ContextVar("hgpdm_torch_moment_path", default="fused")
 _tile = contextvars.ContextVar("hgpdm_torch_tile_bytes", default=None)
+_quadrature = contextvars.ContextVar("hgpdm_torch_quadrature_points", default=None)
 _native = contextvars.ContextVar(
     "hgpdm_torch_native_kernels", default=os.environ.get("HGPDM_TORCH_NATIVE", "1") != "0"
 )
@@ -183,7 +186,24 @@ class moment_path(_Setting):
         return _path.get()
 
 
-class tile_bytes(_Setting):
+class _Count(_Setting):
+    """A setting holding a positive int (``None`` outside any block: the default)."""
+
+    #: the argument and what it must be, for the error message
+    argument, unit = "value", "a positive int"
+
+    def __init__(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{self.argument} must be {self.unit}, got {value!r}")
+        super().__init__(value)
+
+    @classmethod
+    def get(cls) -> int | None:
+        """The value in effect, or ``None`` for the default."""
+        return cls._var.get()
+
+
+class tile_bytes(_Count):
     """Context manager fixing the size of one ``psi2`` tile in bytes, instead of the device's
     default (:func:`hgpdm_torch.tiling.tile_budget`); e.g. small tiles to test the tiled loops.
 
@@ -193,16 +213,7 @@ class tile_bytes(_Setting):
     """
 
     _var = _tile
-
-    def __init__(self, size: int) -> None:
-        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-            raise ValueError(f"size must be a positive int (bytes), got {size!r}")
-        super().__init__(size)
-
-    @staticmethod
-    def get() -> int | None:
-        """The size in effect, or ``None`` for the device's default."""
-        return _tile.get()
+    argument, unit = "size", "a positive int (bytes)"
 
 
 class native_kernels(_Setting):
@@ -227,17 +238,31 @@ class native_kernels(_Setting):
         return _native.get()
 
 
+class quadrature_points(_Count):
+    """Context manager setting the points per Gaussian dimension of the Gauss-Hermite rule that
+    integrates kernels without closed-form expectations (:mod:`hgpdm_torch.quadrature`;
+    ``n^D`` nodes), instead of :func:`~hgpdm_torch.quadrature.default_points`.
+
+    Args:
+        points: an int >= 1 (1 evaluates the kernel at the mean only).
+    """
+
+    _var = _quadrature
+    argument = "points"
+
+
 @dataclass(frozen=True)
 class Snapshot:
     """The settings in effect where :func:`snapshot` was called: torch's default dtype,
-    :class:`moment_path`, :class:`tile_bytes`, :class:`debug` and :class:`native_kernels`
-    (picklable)."""
+    :class:`moment_path`, :class:`tile_bytes`, :class:`debug`, :class:`native_kernels` and
+    :class:`quadrature_points` (picklable)."""
 
     dtype: torch.dtype
     path: str
     tile: int | None
     debug: bool
     native: bool = True
+    quadrature: int | None = None
 
     @contextlib.contextmanager
     def applied(self) -> Iterator[None]:
@@ -247,10 +272,11 @@ class Snapshot:
             stack.enter_context(moment_path(self.path))
             stack.enter_context(debug(self.debug))
             stack.enter_context(native_kernels(self.native))
-            if self.tile is not None:
-                stack.enter_context(tile_bytes(self.tile))
-            else:
-                stack.enter_context(_Unset(_tile))
+            for value, setting, var in (
+                (self.tile, tile_bytes, _tile),
+                (self.quadrature, quadrature_points, _quadrature),
+            ):
+                stack.enter_context(setting(value) if value is not None else _Unset(var))
             yield
 
 
@@ -265,5 +291,10 @@ class _Unset(_Setting):
 def snapshot() -> Snapshot:
     """The settings in effect now, for a job that runs elsewhere (module docstring)."""
     return Snapshot(
-        torch.get_default_dtype(), _path.get(), _tile.get(), _debug.get(), _native.get()
+        torch.get_default_dtype(),
+        _path.get(),
+        _tile.get(),
+        _debug.get(),
+        _native.get(),
+        _quadrature.get(),
     )

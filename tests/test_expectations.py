@@ -370,8 +370,8 @@ def test_bad_inputs_raise():
         ex.psi1(kernel, torch.tensor([float("nan"), 0.0]), Sigma, X)
     with pytest.raises(ValueError, match="columns"):
         ex.psi1(kernel, mu, Sigma, torch.zeros(4, 3))
-    with pytest.raises(TypeError, match="MaternKernel"):
-        ex.psi1(MaternKernel(), mu, Sigma, X)
+    with pytest.raises(TypeError, match="gpytorch Kernel"):
+        ex.psi1(lambda a, b: a @ b.T, mu, Sigma, X)
     with pytest.raises(ValueError, match="batch_shape"):
         ex.psi1(RBFKernel(batch_shape=torch.Size([2])), mu, Sigma, X)
     discrete = transition_kernel("discrete", 1, num_values=2)

@@ -22,8 +22,8 @@ KNOWN_CYCLES: set[tuple[str, ...]] = set()
 LAYERS = (
     {"validation", "settings", "native", "tiling", "progress", "linalg", "results", "parallel"}
     | {"_lazy"},
-    {"gaussian", "kernels", "fitting", "calibration", "crossval"},
-    {"expectations", "moments", "gp_shared", "gp", "observations", "intention_belief"},
+    {"gaussian", "kernels", "fitting", "calibration", "crossval", "quadrature"},
+    {"leaves", "expectations", "moments", "gp_shared", "gp", "observations", "intention_belief"},
     {"models"},
     {"inference"},
     {"model_selection", "baselines", "datasets"},
