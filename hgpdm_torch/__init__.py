@@ -28,6 +28,7 @@ _EXPORTS: dict[str, str] = {
     "IDDM": ".models",
     "LinearIDDM": ".models",
     "ModelFileError": ".models",
+    "OnlineIntentionFilter": ".inference.intention",
     "cross_validate": ".model_selection",
     "datasets": ".datasets",
     "decision": ".decision",

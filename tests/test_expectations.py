@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from gpytorch.kernels import AdditiveKernel, LinearKernel, MaternKernel, RBFKernel, ScaleKernel
+from gpytorch.kernels import AdditiveKernel, LinearKernel, RBFKernel, ScaleKernel
 from scipy import integrate
 
 from hgpdm_torch import expectations as ex

@@ -37,7 +37,8 @@ from gpytorch.priors import NormalPrior, Prior
 
 from ..fitting import FitResult, OptimizerLike
 from ..gp import GPPosterior
-from ..kernels import ALPHA_BAR, measurement_kernel, set_requires_grad, transition_kernel
+from ..kernels import ALPHA_BAR, set_requires_grad, transition_kernel
+from ..kernels import measurement_kernel as make_measurement_kernel
 from ..validation import (
     as_tensor,
     check_choice,
@@ -130,6 +131,17 @@ class GPDM(gpytorch.Module, SavedModel):
             in the loss; noise and output scales W are added as for the named kernels, the noise
             starting at 0.01). The moment-matching inference supports the kernels of
             :mod:`hgpdm_torch.expectations`. ``model.measurement`` is the name, or ``"custom"``.
+            Any gpytorch kernel works everywhere: those without closed-form Gaussian-input
+            expectations are integrated by quadrature (:mod:`hgpdm_torch.quadrature`).
+        measurement_kernel: a gpytorch kernel object for the measurement GP, the same as
+            passing it as ``measurement`` (give one of the two).
+        transition_kernel: a gpytorch kernel object over the transition GP's inputs (``[x]``;
+            ``[x, g]`` for an H-GPDM or IDDM, the code last for a discrete g) instead of the
+            model's own (:meth:`build_transition_kernel`; ``alpha[:3]`` then do not apply).
+            Its hyperparameters are learned with ``learn_alpha=True`` and kept at their values
+            otherwise. For a discrete g, wrap it in
+            :class:`~hgpdm_torch.kernels.DiscreteIntentionKernel` for dynamics of their own per
+            value (block-diagonal ``K_x``); any other kernel reads the code as a number.
         priors: priors of the hyperparameters of Eq. 6, replacing the defaults key by key:
             ``"beta1"`` (width of the ``"rbf"`` measurement kernel), ``"measurement_noise"``,
             ``"scales"`` (each w_d of a varying dim), ``"transition_noise"`` (alpha_4, in the
@@ -181,7 +193,13 @@ class GPDM(gpytorch.Module, SavedModel):
 
     transition_kind = "gpdm"
     #: constructor arguments that may be objects a saved file cannot hold (see :meth:`save`)
-    object_arguments = ("measurement", "priors", "back_constraint")
+    object_arguments = (
+        "measurement",
+        "measurement_kernel",
+        "transition_kernel",
+        "priors",
+        "back_constraint",
+    )
     #: Standard deviation of the log-normal prior of a learned process noise alpha_4.
     NOISE_PRIOR_SD = 2.0
     #: whether the transition GP has an output scale per latent dim (class default: models
@@ -197,6 +215,8 @@ class GPDM(gpytorch.Module, SavedModel):
         latent_dim: int = 3,
         *,
         measurement: str | Kernel = "rbf",
+        measurement_kernel: Kernel | None = None,
+        transition_kernel: Kernel | None = None,
         alpha: Sequence[float] = ALPHA_BAR,
         priors: Mapping[str, Prior | None] | None = None,
         learn_alpha: bool = False,
@@ -210,6 +230,18 @@ class GPDM(gpytorch.Module, SavedModel):
         super().__init__()
         if not isinstance(latent_dim, int) or latent_dim < 1:
             raise ValueError(f"latent_dim must be a positive int, got {latent_dim!r}")
+        for arg, value in (
+            ("measurement_kernel", measurement_kernel),
+            ("transition_kernel", transition_kernel),
+        ):
+            if value is not None and not isinstance(value, Kernel):
+                raise TypeError(f"{arg} must be a gpytorch Kernel, got {type(value).__name__}")
+        if measurement_kernel is not None:
+            if not (isinstance(measurement, str) and measurement == "rbf"):
+                raise ValueError(
+                    "give the measurement kernel as measurement= or measurement_kernel="
+                )
+            measurement = measurement_kernel
         if isinstance(measurement, Kernel):
             name = "custom"
         elif isinstance(measurement, str):
@@ -239,7 +271,11 @@ class GPDM(gpytorch.Module, SavedModel):
         self._object_arguments = [
             arg
             for arg, custom in (
-                ("measurement", name == "custom"),
+                (
+                    "measurement" if measurement_kernel is None else "measurement_kernel",
+                    name == "custom",
+                ),
+                ("transition_kernel", transition_kernel is not None),
                 ("priors", bool(given_priors)),
                 ("back_constraint", isinstance(back_constraint, torch.nn.Module)),
             )
@@ -292,7 +328,7 @@ class GPDM(gpytorch.Module, SavedModel):
 
         # Measurement: beta (kernel width for "rbf", and noise) and the output scales W carry
         # log-normal priors, i.e. 1/2 ||log beta||^2 + 1/2 ||log w||^2 in Eq. 6 (by default).
-        self.measurement_kernel = measurement_kernel(measurement)
+        self.measurement_kernel = make_measurement_kernel(measurement)
         if name == "rbf":
             self.measurement_kernel.raw_lengthscale.requires_grad_(bool(learn_measurement_width))
             self._register_log_prior(self.measurement_kernel, "beta1", hyper_priors, _log_beta1)
@@ -315,7 +351,9 @@ class GPDM(gpytorch.Module, SavedModel):
         self.scales = torch.where(varying, 1.0 / std.clamp_min(1e-300), torch.ones_like(std))
         self._register_log_prior(self, "scales", hyper_priors, _log_scales)
 
-        self.transition_kernel = self.build_transition_kernel()
+        self.transition_kernel = (
+            self.build_transition_kernel() if transition_kernel is None else transition_kernel
+        )
         self.register_parameter(
             "raw_transition_noise", torch.nn.Parameter(z.new_zeros((), dtype=dtype))
         )

@@ -21,7 +21,7 @@ from sklearn.cluster import KMeans
 
 from ..fitting import FitResult
 from ..gp import GPPosterior
-from ..kernels import transition_kernel
+from ..kernels import DiscreteIntentionKernel, transition_kernel
 from ..linalg import gaussian_nll
 from ..progress import trange
 from ..validation import as_tensor, check_choice, check_dtype, check_sequences, positive_reals
@@ -258,7 +258,12 @@ class HGPDM(GPDM):
 
     def transition_blocks(self) -> list[torch.Tensor]:
         """One block of ``K_x`` per value of a discrete g (``delta(g, g')`` zeroes the rest)."""
-        if self.intention != "discrete" or self.sharing:
+        if (
+            self.intention != "discrete"
+            or self.sharing
+            or ("transition_kernel" in getattr(self, "_object_arguments", ())
+                and not isinstance(self.transition_kernel, DiscreteIntentionKernel))
+        ):  # fmt: skip
             return super().transition_blocks()
         codes = self.intentions[self.seq_of_src, 0]
         return [
