@@ -21,7 +21,7 @@ from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import lspi
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
 from hgpdm_torch.decision.stopping import StoppingProblem, belief_vector
-from hgpdm_torch.inference.intention import OnlineIntentionFilter
+from hgpdm_torch.inference.intention import OnlineIntentionFilter, infer_intention
 from hgpdm_torch.inference.variational import VariationalInference
 from hgpdm_torch.models import HGPDM, load_model
 from hgpdm_torch.models.persistence import ModelFileError
@@ -106,7 +106,8 @@ def test_gaussian_input_moments_agree_with_monte_carlo(model):
 
 def test_it_filters_online_runs_vb_and_plans(model, data):
     """The online filter recognises the training targets (belief means within 0.25 of the
-    labels on average, chance is ~0.7), VB gives finite evidence, MCP decides."""
+    labels on average, chance is ~0.7), VB gives finite evidence, batch inference (GP-ADF and
+    RTS smoothing) puts its mean within 0.5 of each label, MCP decides."""
     z = torch.stack(data.sequences)
     f = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=z.shape[0])
     means, covs, logs = [], [], []
@@ -121,6 +122,9 @@ def test_it_filters_online_runs_vb_and_plans(model, data):
 
     res = VariationalInference(model).infer(z[:2, :5], steps=5)
     assert bool(torch.isfinite(res.log_evidence).all())
+    # batch inference: GP-ADF filtering and RTS smoothing under every grid value (Alg. 3.1)
+    batch = infer_intention(model, z[:3], GRID)
+    assert float((batch.mean[:, 0] - data.labels.reshape(-1)[:3]).abs().max()) < 0.5
 
     mean, cov, log_prob = (torch.stack(v, 1) for v in (means, covs, logs))
     beliefs = belief_vector(mean, cov, log_prob.exp())
