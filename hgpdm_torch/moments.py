@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 
@@ -92,7 +93,7 @@ def input_moments(
             low_rank = term_psi2_factors(a, b, mu, Sigma, X)
             tr = None
             if low_rank is None:  # RBF x RBF: one N x N matrix per input Gaussian
-                m, tr = reduce_pair(a, b, mu, Sigma, X, (fa, fba, fb, fbb), kinv, pair)
+                m, tr = reduce_pair(_Pair(a, b, mu, Sigma, X, (fa, fba, fb, fbb), kinv, pair))
             else:  # psi2 = U^T V of rank <= D: no N x N matrix per input
                 U, V, a_on_u = low_rank
                 (fu, fbu), (fv, fbv) = ((fa, fba), (fb, fbb)) if a_on_u else ((fb, fbb), (fa, fba))
@@ -116,21 +117,28 @@ def input_moments(
 _PSI2_CHUNK = 2**21
 
 
-def _materialised_pair(
-    a: Term,
-    b: Term,
-    mu: torch.Tensor,
-    Sigma: torch.Tensor,
-    X: torch.Tensor,
-    weights: tuple[torch.Tensor, ...],
-    kinv: torch.Tensor | None,
-    pair: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor | None]:
+class _Pair(NamedTuple):
+    """An RBF x RBF term pair of :func:`input_moments` and what its reduction reads: the input
+    Gaussians ``mu``, ``Sigma``, the points ``X``, the weights ``(fa, fa beta, fb, fb beta)``,
+    ``K^-1`` (or ``None``: no trace) and ``pair``, the product of two weighted sums."""
+
+    a: Term
+    b: Term
+    mu: torch.Tensor
+    Sigma: torch.Tensor
+    X: torch.Tensor
+    weights: tuple[torch.Tensor, ...]
+    kinv: torch.Tensor | None
+    pair: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def _materialised_pair(p: _Pair) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The RBF x RBF term pair of :func:`input_moments` on the materialised path
     (:class:`~hgpdm_torch.settings.moment_path`): ``pair(fa beta, psi2 fb beta)`` and
     ``fa^T (psi2 * K^-1) fb`` (``None`` without ``kinv``), with ``psi2`` formed for a chunk of
     input Gaussians when the training side (``X``, ``weights = (fa, fa beta, fb, fb beta)``,
     ``kinv``) has no batch dims, else for all of them at once."""
+    a, b, mu, Sigma, X, weights, kinv, pair = p
     fa, fba, fb, fbb = weights
 
     def reduce(mu_c: torch.Tensor, Sigma_c: torch.Tensor, X_c: torch.Tensor, *w: torch.Tensor):
@@ -176,16 +184,7 @@ def _contract(
     return m, (fa * shared_matmul(qk, fb[..., None])[..., 0]).sum(-1)
 
 
-def _fused_pair(
-    a: Term,
-    b: Term,
-    mu: torch.Tensor,
-    Sigma: torch.Tensor,
-    X: torch.Tensor,
-    weights: tuple[torch.Tensor, ...],
-    kinv: torch.Tensor | None,
-    pair: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor | None]:
+def _fused_pair(p: _Pair) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The RBF x RBF term pair of :func:`input_moments` on the fused path: what
     :func:`_materialised_pair` gives, with ``psi2`` evaluated and reduced one tile of input
     Gaussians at a time.
@@ -198,6 +197,7 @@ def _fused_pair(
     the weights) stay whole inside a tile. ``left`` and ``right`` (``O(N D)`` per input) are
     computed once for all.
     """
+    a, b, mu, Sigma, X, weights, kinv, pair = p
     fa, fba, fb, fbb = weights
     left, right = rbf_psi2_exponent(a, b, mu, Sigma, X)
     n = X.shape[-2]

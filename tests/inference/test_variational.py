@@ -23,6 +23,7 @@ from hgpdm_torch.inference.variational import (
     prediction,
     window_mask,
 )
+from hgpdm_torch.inference.variational.laplace import laplace
 from hgpdm_torch.inference.variational.prediction import candidate_forecasts
 from hgpdm_torch.models import GPDM, HGPDM
 
@@ -538,13 +539,13 @@ def test_pruning_keeps_a_candidate_that_starts_far_off(planted):
     z, observed = window_mask(test.sequences[0][:8], vb.obs_dim, vb.window.x1_mean)
     values = vb.values
     x0 = vb.initial_guess(z, values)[0]
-    start, _ = vb.laplace(z, observed, x0, values, prune=None)  # the others start converged
+    start, _ = laplace(vb.window, z, observed, x0, values, prune=None)  # the others start converged
     k = int((-vb.window.log_joint(z, observed, start, values)).argmin())  # the best candidate ...
     start[k] = x0[k] + 2.0  # ... starts far off
     f0 = -vb.window.log_joint(z, observed, start, values)
     assert float(f0[k]) > float(f0.min()) + 1000.0
-    ref, _ = vb.laplace(z, observed, start, values, prune=None)
-    out, _ = vb.laplace(z, observed, start, values, prune=50.0)
+    ref, _ = laplace(vb.window, z, observed, start, values, prune=None)
+    out, _ = laplace(vb.window, z, observed, start, values, prune=50.0)
     torch.testing.assert_close(out[k], ref[k], rtol=0, atol=1e-4)
 
 
@@ -601,15 +602,15 @@ def test_lm_broadcasts_windows_and_refuses_bad_prune(planted):
         torch.stack([s[:6] for s in test.sequences[:3]]), 12, vb.window.x1_mean
     )
     x0 = vb.initial_guess(z[0], vb.values)[0]  # [K, T, Dx], broadcast over the 3 windows
-    rows, _ = vb.laplace(z, observed, x0, vb.values, prune=50.0)
+    rows, _ = laplace(vb.window, z, observed, x0, vb.values, prune=50.0)
     assert rows.shape == (3, *x0.shape)
-    one, _ = vb.laplace(z[1], observed[1], x0, vb.values, prune=50.0)
+    one, _ = laplace(vb.window, z[1], observed[1], x0, vb.values, prune=50.0)
     # equal up to LM's stopping tolerance (roundoff in other batch shapes can move a stop by a
     # step below 1e-3 nats)
     lj = [vb.window.log_joint(z[1], observed[1], x, vb.values) for x in (rows[1], one)]
     torch.testing.assert_close(lj[1], lj[0], rtol=0, atol=1e-3)
     with pytest.raises(ValueError, match="prune"):
-        vb.laplace(z, observed, x0, vb.values, prune=-1.0)
+        laplace(vb.window, z, observed, x0, vb.values, prune=-1.0)
 
 
 def test_batched_windows_equal_one_window_at_a_time(planted):

@@ -52,7 +52,19 @@ def batch_bound_terms(
     GP-RTSS smoother under ``g``. Their sum is :func:`batch_bound`. Comparing a term across the
     K values shows where the evidence for (or against) each value comes from: on real gestures
     only ``"transition"`` and ``"state"`` favour the true class (docs, action recognition).
-    Arguments as :func:`batch_bound`.
+
+    Args:
+        trans: transition GP ``[x, g] -> x_{t+1}``; meas: measurement GP ``x -> z``.
+        z: ``[W, T, Dz]`` windows (NaN rows missing; other bad rows raise, see
+            :func:`~hgpdm_torch.inference.filtering.filter_sequence`).
+        g: ``[K, Dg]`` intention values (codes).
+        mu0: ``[Dx]`` mean of the first state's prior (or ``[K, 1, Dx]``: one per intention
+            value).
+        Sigma0: ``[Dx, Dx]`` its covariance (or ``[K, 1, Dx, Dx]``).
+        outlier_sd: plausibility threshold of the observation check (``None``: finiteness only).
+
+    Returns:
+        ``{"state", "measurement", "transition", "entropy"}``, each ``[K, W]``.
     """
     gk = g[:, None, :]  # [K, 1, Dg] broadcasts against the W windows
     fr = filter_sequence(trans, meas, z, mu0, Sigma0, g=gk, outlier_sd=outlier_sd)
@@ -99,38 +111,15 @@ def batch_bound_terms(
     }
 
 
-def batch_bound(
-    trans: GPPosterior,
-    meas: GPPosterior,
-    z: torch.Tensor,
-    g: torch.Tensor,
-    mu0: torch.Tensor,
-    Sigma0: torch.Tensor,
-    *,
-    outlier_sd: float | None = DEFAULT_OUTLIER_SD,
-) -> torch.Tensor:
-    """The bound of Eq. 22 without ``log p(g)``, for every intention value and window.
+def batch_bound(*args: Any, **kwargs: Any) -> torch.Tensor:
+    """The bound of Eq. 22 without ``log p(g)``, ``[K, W]`` for every intention value and window.
 
     ``B(g) - log p(g) = E_q[log p(x_1)] + sum_t E_q[log p(z_t | x_t)] + sum_t Q_t(g) + H(q)``
-    with ``q = q_g(x_{1:T})`` the GP-RTSS smoother under ``g`` (the sum of
-    :func:`batch_bound_terms`). For a linear-Gaussian model the smoother is exact and the bound
-    equals ``log p(z_{1:T} | g)``.
-
-    Args:
-        trans: transition GP ``[x, g] -> x_{t+1}``; meas: measurement GP ``x -> z``.
-        z: ``[W, T, Dz]`` windows (NaN rows missing; other bad rows raise, see
-            :func:`~hgpdm_torch.inference.filtering.filter_sequence`).
-        g: ``[K, Dg]`` intention values (codes).
-        mu0: ``[Dx]`` mean of the first state's prior (or ``[K, 1, Dx]``: one per intention
-            value).
-        Sigma0: ``[Dx, Dx]`` its covariance (or ``[K, 1, Dx, Dx]``).
-        outlier_sd: plausibility threshold of the observation check (``None``: finiteness only).
-
-    Returns:
-        ``[K, W]``.
+    with ``q = q_g(x_{1:T})`` the GP-RTSS smoother under ``g``: the sum of
+    :func:`batch_bound_terms`, which takes the same arguments. For a linear-Gaussian model the
+    smoother is exact and the bound equals ``log p(z_{1:T} | g)``.
     """
-    terms = batch_bound_terms(trans, meas, z, g, mu0, Sigma0, outlier_sd=outlier_sd)
-    return sum(terms.values())
+    return sum(batch_bound_terms(*args, **kwargs).values())
 
 
 def infer_intention(

@@ -165,21 +165,6 @@ class VariationalInference(WindowEngine):
         pyro_model(self.window, z, observed, self.window.candidates(values), guide)
 
     # ------------------------------------------------------------------ Algorithm 2.2
-    def laplace(
-        self,
-        z: torch.Tensor,
-        observed: torch.Tensor,
-        x: torch.Tensor,
-        values: torch.Tensor,
-        g_loc: torch.Tensor | None = None,
-        *,
-        max_iter: int = 30,
-        prune: float | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean-field Laplace start of q(x) (Algorithm 2.2, step 2): see
-        :func:`~hgpdm_torch.inference.variational.laplace.laplace`."""
-        return laplace(self.window, z, observed, x, values, g_loc, max_iter=max_iter, prune=prune)
-
     def infer(
         self,
         z: object,
@@ -198,8 +183,9 @@ class VariationalInference(WindowEngine):
         Every window and candidate g is its own problem, all solved in the same tensor calls:
 
         1. initial states (:meth:`initial_guess`);
-        2. :meth:`laplace`: Levenberg-Marquardt to the MAP states, then the mean-field Laplace
-           covariances (the optimum of F to second order; cheap: GP predictions at points only);
+        2. :func:`~hgpdm_torch.inference.variational.laplace.laplace`: Levenberg-Marquardt to
+           the MAP states, then the mean-field Laplace covariances (the optimum of F to second
+           order; cheap: GP predictions at points only);
         3. ``steps`` iterations on the exact F: L-BFGS on the closed form (``method=
            "closed_form"``, the default: exact, deterministic and fast) or ``pyro.infer.SVI`` on
            the :class:`MeanFieldGuide` (``method="svi"``; its loss, closed-form F or Pyro's

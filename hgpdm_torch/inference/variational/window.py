@@ -118,13 +118,9 @@ class WindowModel:
     """
 
     def __init__(
-        self,
-        model: GPDM,
-        *,
-        x1_prior: tuple[object, object] | None = None,
-        g_prior: object = None,
-        measurement_points: int | None = None,
-    ) -> None:
+        self, model: GPDM, *, x1_prior: tuple[object, object] | None = None,
+        g_prior: object = None, measurement_points: int | None = None,
+    ) -> None:  # fmt: skip
         check_window_model(model, GPDM, "a GPDM/HGPDM", "window inference carries no phase")
         self.model = model
         self.kind = model.intention if isinstance(model, HGPDM) else "none"
