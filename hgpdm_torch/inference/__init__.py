@@ -3,7 +3,7 @@ Bayes (Ch. 2.3), the MAP baseline (conditional GPDM), and batch and online inten
 (Algorithms 3.1-3.2)."""
 
 from ..calibration import calibration, fit_temperature, grid_index, temper
-from ..intention_belief import IntentionBelief
+from ..intention_belief import IntentionBelief, IntentionModel, IntentionStream
 from ..observations import DEFAULT_OUTLIER_SD, ObservationCheck
 from .filtering import (
     FilterResult,
@@ -44,6 +44,8 @@ __all__ = [
     "BeliefMixtureStream",
     "FilterBeliefs",
     "IntentionBelief",
+    "IntentionModel",
+    "IntentionStream",
     "LinearMeasurement",
     "OnlineIntentionFilter",
     "SharedTransition",

@@ -3,6 +3,7 @@ the online stream against the batch beliefs, and bad input."""
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -247,3 +248,54 @@ def test_filter_beliefs_mix_a_gp_iddm_with_linear_models(generator):
         FilterBeliefs(models[0])
     with pytest.raises(ValueError, match="forgetting"):
         FilterBeliefs(gp, forgetting=2.0)
+
+
+def test_one_belief_interface_and_one_streaming_protocol(generator):
+    """Every model (LinearIDDM, a GP IDDM through FilterBeliefs, a mixture) is an
+    IntentionModel and every stream (OnlineIntentionFilter, LinearIDDM's, a mixture's) an
+    IntentionStream: one loop written against the protocol runs them all and gets the batch
+    beliefs. The belief's entropy against scipy, its mixture against the weighted average."""
+    from scipy import stats
+
+    from hgpdm_torch.inference import (
+        FilterBeliefs,
+        IntentionBelief,
+        IntentionModel,
+        IntentionStream,
+        OnlineIntentionFilter,
+    )
+    from hgpdm_torch.models import IDDM
+
+    models, test = _members(generator)
+    grid = models[0].grid()
+    obs = torch.randn(12, 5, 2, generator=generator, dtype=torch.float64)
+    g = torch.linspace(float(grid.min()), float(grid.max()), 12, dtype=torch.float64)
+    torch.manual_seed(0)
+    gp = IDDM(list(obs), g, 2, intention="continuous", measurement="linear")
+    members = [models[0], FilterBeliefs(gp, forgetting=0.1)]
+    members.append(BeliefMixture(members))
+    assert isinstance(OnlineIntentionFilter(gp, grid), IntentionStream)
+
+    def online(model: IntentionModel, z: torch.Tensor) -> torch.Tensor:
+        stream = model.stream(len(z), grid)
+        assert isinstance(stream, IntentionStream)
+        return torch.stack([stream.update(z[:, t]).log_prob for t in range(z.shape[1])], 1)
+
+    for model in members:
+        assert isinstance(model, IntentionModel)
+        batch = model.beliefs(test, grid)
+        # the stream and the batch beliefs run the same updates: a few ulp of O(10) logs
+        torch.testing.assert_close(online(model, test), batch.log_prob, rtol=0, atol=1e-10)
+    assert not isinstance(object(), IntentionModel)
+
+    belief = members[0].beliefs(test, grid)
+    p = belief.prob.reshape(-1, len(grid)).numpy()
+    torch.testing.assert_close(belief.entropy().reshape(-1), torch.as_tensor(stats.entropy(p.T)))
+    certain = IntentionBelief.from_log(torch.tensor([0.0, -math.inf]), grid[:2], True)
+    assert float(certain.entropy()) == 0.0
+    parts = [m.beliefs(test, grid) for m in members[:2]]
+    mixed = IntentionBelief.mixture(parts, [0.25, 0.75])
+    torch.testing.assert_close(mixed.prob, 0.25 * parts[0].prob + 0.75 * parts[1].prob)
+    torch.testing.assert_close(mixed.mean, 0.25 * parts[0].mean + 0.75 * parts[1].mean)
+    with pytest.raises(ValueError, match="does not match"):
+        IntentionBelief.mixture([parts[0], members[0].beliefs(test[0], grid)], [0.5, 0.5])

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ...intention_belief import IntentionBelief
+from ...intention_belief import IntentionBelief, IntentionModel
 
 __all__ = ["BeliefMixture", "BeliefMixtureStream"]
 
@@ -48,9 +48,9 @@ class BeliefMixture:
         if not isinstance(models, Sequence) or isinstance(models, str) or not models:
             raise TypeError("models must be a non-empty sequence of fitted intention models")
         for m, model in enumerate(models):
-            needed = ("beliefs", "stream", "grid")
-            missing = [a for a in needed if not callable(getattr(model, a, None))]
-            if missing:
+            if not isinstance(model, IntentionModel):
+                needed = ("beliefs", "stream", "grid")
+                missing = [a for a in needed if not callable(getattr(model, a, None))]
                 raise TypeError(
                     f"models[{m}] ({type(model).__name__}) has no {', '.join(missing)} method: "
                     "a member must give beliefs over a grid (e.g. a LinearIDDM)"
@@ -110,29 +110,7 @@ class BeliefMixture:
 
     def _mix(self, beliefs: list[IntentionBelief], values: torch.Tensor) -> IntentionBelief:
         """``log sum_m w_m p_m`` of the members' beliefs ``[..., K]`` over ``values``."""
-        first = beliefs[0]
-        for m, b in enumerate(beliefs):
-            if b.log_prob.shape != first.log_prob.shape or (b.mean is None) != (
-                first.mean is None
-            ):  # fmt: skip
-                raise ValueError(
-                    f"models[{m}]'s belief ({tuple(b.log_prob.shape)}, "
-                    f"{'continuous' if b.mean is not None else 'discrete'} g) does not match "
-                    f"models[0]'s ({tuple(first.log_prob.shape)}, "
-                    f"{'continuous' if first.mean is not None else 'discrete'} g): the members "
-                    "must score the same intention on the same grid"
-                )
-        devices = {b.log_prob.device for b in beliefs}
-        if len(devices) > 1:
-            raise ValueError(
-                f"the members' beliefs lie on different devices {sorted(map(str, devices))}: "
-                "fit every member on one device"
-            )
-        log_w = torch.tensor(self.weights, dtype=first.log_prob.dtype,
-                             device=first.log_prob.device).log()  # fmt: skip
-        stacked = torch.stack([b.log_prob for b in beliefs], -1)  # [..., K, M]
-        mixed = torch.logsumexp(stacked + log_w, -1)
-        return IntentionBelief.from_log(mixed, values, first.mean is not None)
+        return IntentionBelief.mixture(beliefs, self.weights, values)  # belief m: models[m]'s
 
 
 class BeliefMixtureStream:
