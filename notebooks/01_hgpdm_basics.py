@@ -65,17 +65,21 @@ plt.ylabel('negative log posterior (Eq. 6)')
 plt.show()
 
 # %% [markdown]
-# The model is an ordinary torch module: any optimizer over `model.parameters()` works.
+# The model is an ordinary torch module and its objective stands beside it, as gpytorch's
+# marginal log likelihood does: `model.objective()` is the negative log posterior of Eq. 6, a
+# module over the model's parameters with its named terms. Any optimizer and loop work:
 
 # %%
 own = hg.GPDM(data.sequences, latent_dim=3)
+objective = own.objective()
 opt = torch.optim.Adam(own.parameters(), lr=0.02)
 for _ in range(30 if SMOKE else 200):
     opt.zero_grad()
-    loss = own.loss()
+    loss = objective()
     loss.backward()
     opt.step()
-print(f'GPDM loss after Adam: {loss.item():.1f}')
+print(f'GPDM loss after Adam: {loss.item():.1f};',
+      {name: round(float(term), 1) for name, term in objective.terms().items()})
 
 # %% [markdown]
 # ## Discover styles without labels (Algorithm 2.1)
