@@ -380,7 +380,13 @@ def _x_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -> 
 
 
 def rbf_psi2_exponent(
-    a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
+    a: Term,
+    b: Term,
+    mu: torch.Tensor,
+    Sigma: torch.Tensor,
+    X: torch.Tensor,
+    *,
+    out: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The RBF x RBF ``psi2`` block as ``exp(left @ right)`` (module docstring's closed form).
 
@@ -389,7 +395,8 @@ def rbf_psi2_exponent(
     uC_i . v_j``: the whole exponent as one product with a small inner dimension, so that the
     ``N x N`` work is one matmul and one exponential, whether the block is stored
     (:func:`term_psi2`) or reduced tile by tile (:mod:`hgpdm_torch.tiling`). ``right`` is built
-    contiguous (a transposed view makes the small-inner-dimension matmul 2-3x slower).
+    contiguous (a transposed view makes the small-inner-dimension matmul 2-3x slower). ``out``:
+    two tensors of those shapes to write them into (e.g. reused buffers, not under autograd).
     """
     s, L, logdet = _rbf_factor(a.weight + b.weight, Sigma)
     inv_s = torch.where(s > 0, 1.0 / torch.where(s > 0, s, torch.ones_like(s)), torch.zeros_like(s))
@@ -406,9 +413,11 @@ def rbf_psi2_exponent(
     else:
         v = u
     one = torch.ones_like(row)
-    left = torch.cat([uC, row[..., None], one[..., None]], dim=-1)
-    right = torch.cat([v.expand_as(uC).transpose(-1, -2), one[..., None, :], col[..., None, :]], -2)
-    return left, right
+    lefts = [uC, row[..., None], one[..., None]]
+    rights = [v.expand_as(uC).transpose(-1, -2), one[..., None, :], col[..., None, :]]
+    if out is None:
+        return torch.cat(lefts, -1), torch.cat(rights, -2)
+    return torch.cat(lefts, -1, out=out[0]), torch.cat(rights, -2, out=out[1])
 
 
 def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):

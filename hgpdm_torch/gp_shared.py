@@ -403,10 +403,10 @@ class SharedTransition:
         g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
         cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
         if settings.moment_path.get() == "fused":
-            T, cov = self._fused_second(mu, Sigma, mean, log_phase)
+            trace, cov = self._fused_second(mu, Sigma, mean, log_phase)
         else:
             T, cov = self._materialised_second(mu, Sigma, p1, log_phase)
-        trace = ((phi @ T) * phi).sum(-1)
+            trace = self._trace(T)
         var = (self.coef - trace).clamp_min(0.0) + self.noise
         var = (
             var[..., None].expand(b, -1, dx)
@@ -442,6 +442,11 @@ class SharedTransition:
         P2 = (self.phi @ P1.reshape(b, U, dx * U * L)).view(b, -1, dx, U * L)  # [B, K, Dx, UL]
         return T, P2 @ self.weighted_beta
 
+    def _trace(self, T: torch.Tensor) -> torch.Tensor:
+        """``tr(K^-1 psi2)`` of every value k, ``sum_uv phi_ku T_uv phi_kv`` ``[B, K]``, from the
+        group sums ``T [B, U, U]``."""
+        return ((self.phi @ T) * self.phi).sum(-1)
+
     def _fused_second(
         self,
         mu: torch.Tensor,
@@ -449,7 +454,8 @@ class SharedTransition:
         mean: torch.Tensor,
         log_phase: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """What :meth:`_materialised_second` gives, one tile of streams at a time.
+        """What :meth:`_materialised_second` gives, one tile of streams at a time, with the
+        group sums ``T`` already reduced to the traces ``[B, K]`` (:meth:`_trace`).
 
         A tile is ``psi2 = exp(left @ right)`` of :func:`~hgpdm_torch.tiling.per_tile` streams,
         its rows in groups ``(u, l)`` and its columns in the order ``(m, v)`` (``columns``),
@@ -465,15 +471,21 @@ class SharedTransition:
         """
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         n, K = U * L, self.num_values
-        left, right = rbf_psi2_exponent(self.term, self.term, mu, Sigma, self.inputs)
+        native_path = not torch.is_grad_enabled() and self._native_ready(mu)
+        out = None
+        if native_path:  # reused buffers: fresh MB-sized ones cost a page fault per 4 KB
+            size = b * n * (dx + 2)
+            out = (native.scratch(size, 3).view(b, n, dx + 2),
+                   native.scratch(size, 4).view(b, dx + 2, n))  # fmt: skip
+        left, right = rbf_psi2_exponent(self.term, self.term, mu, Sigma, self.inputs, out=out)
         if log_phase is not None:  # psi2_ij times both points' phase factors: in the exponent
             left[..., dx] += log_phase  # the row term (left and right are this call's own)
             right[..., dx + 1, :] += log_phase  # the column term
         needs = (left, right, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
         grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
         if not grad and self._native_ready(left):
-            T, second = self._native_second(left, right)
-            return T, second - mean[..., :, None] * mean[..., None, :]
+            trace, second = self._native_second(left, right)
+            return trace, second - mean[..., :, None] * mean[..., None, :]
         right = right[..., self.columns]
         size = per_tile(self.workspace(), mu.dtype, mu.device)
         # the inputs' gradient, or the GP's (a posterior with detach=False): differentiable tiles
@@ -492,7 +504,7 @@ class SharedTransition:
             for i in range(0, b, size):
                 rows = slice(i, min(i + size, b))
                 self._tile(left[rows], right[rows], out=(T[rows], second[rows]), bufs=bufs)
-        return T, second - mean[..., :, None] * mean[..., None, :]
+        return self._trace(T), second - mean[..., :, None] * mean[..., None, :]
 
     def _native_ready(self, left: torch.Tensor) -> bool:
         """Whether :meth:`_native_second` runs (:func:`hgpdm_torch.native.usable`, Dx within the
@@ -527,26 +539,25 @@ class SharedTransition:
     def _native_second(
         self, left: torch.Tensor, right: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``T [B, U, U]`` and ``beta_k^T psi2 beta_k [B, K, Dx, Dx]`` by the compiled kernel
-        (:func:`hgpdm_torch.native.psi2_groups`) in one call.
+        """The traces ``[B, K]`` (:meth:`_trace`) and ``beta_k^T psi2 beta_k [B, K, Dx, Dx]`` by
+        the compiled kernel (:func:`hgpdm_torch.native.psi2_groups`) in one call.
 
-        The kernel forms, per group u, the sums ``S[u, (a, b), v] = beta_{u,a}^T psi2_uv
-        beta_{v,b}`` for the weight pairs ``a <= b`` (``psi2`` is symmetric, so are the moments)
-        and contracts them with phi at once: ``sum_uv phi_ku phi_kv S[u, ., v]``, ``K U^2 Dx (Dx
-        + 1) / 2`` multiply-adds, against ``K U Dx N`` for phi over the columns of the torch
-        path.
+        The traces come from the kernel too (its ``out``'s last row), contracted as each row of
+        ``T`` is complete.
         """
         lay = self._native
-        U, K, (a, b) = self.groups, self.num_values, lay.pairs
-        right = right[..., lay.cols].contiguous()
-        T, out = native.psi2_groups(
+        K, (a, b) = self.num_values, lay.pairs
+        s, rows = left.shape[0], right.shape[-2]
+        gathered = native.scratch(s * rows * len(lay.cols), 5).view(s, rows, len(lay.cols))
+        right = torch.index_select(right, -1, lay.cols, out=gathered)
+        _, out = native.psi2_groups(
             left, right, lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups
         )
-        sums = out[..., :K].transpose(1, 2)  # [B, K, pairs]
+        sums = out[:, :-1, :K].transpose(1, 2)  # [B, K, pairs]
         second = left.new_empty(left.shape[0], K, self.dx, self.dx)
         second[:, :, a, b] = sums
         second[:, :, b, a] = sums
-        return T[..., :U].clone(), second
+        return out[:, -1, :K].clone(), second
 
     def _tile(
         self,

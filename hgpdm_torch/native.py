@@ -244,9 +244,12 @@ def psi2_groups(
     Returns:
         Views of this thread's :func:`scratch` buffers, overwritten by its next call:
         ``T [S, U, Up]`` with ``T[s, u, v] = sum_{l, m} psi2 K^-1`` over the block of groups
-        ``(u, v)`` (0 for padding v), and ``out [S, D (D + 1) / 2, Kp]`` with ``out[s, (a, b),
-        k] = sum_ij phi[k, u_i] beta_ia psi2_ij beta_jb phi[k, u_j]`` for the pairs ``a <= b``
-        in row-major order.
+        ``(u, v)`` (0 for padding v), and ``out [S, D (D + 1) / 2 + 1, Kp]`` with ``out[s, (a,
+        b), k] = sum_ij phi[k, u_i] beta_ia psi2_ij beta_jb phi[k, u_j]`` for the pairs ``a <=
+        b`` in row-major order, then the trace row ``out[s, -1, k] = sum_uv phi[k, u] T[s, u,
+        v] phi[k, v]`` (``tr(K^-1 psi2)`` of value k, contracted in the kernel as each row of T
+        is complete: in torch, a small-inner-dimension product over ``S U`` rows had cost a
+        tenth of the filter's update).
     """
     s, n, c = left.shape
     d, np_, kp = beta.shape[1], right.shape[2], phi_t.shape[1]
@@ -269,7 +272,7 @@ def psi2_groups(
     ]
     # outputs and work space in this thread's scratch buffers: valid until its next call
     T = scratch(s * U * up, 0).view(s, U, up)
-    out = scratch(s * pairs * kp, 1).view(s, pairs, kp)
+    out = scratch(s * (pairs + 1) * kp, 1).view(s, pairs + 1, kp)
     work = scratch((d + 1) * np_ + pairs * up, 2)
     lib = _library()
     if lib is None:

@@ -8,6 +8,8 @@
        T[s, u, v]     = sum_{l, m} psi2[s, (u, l), (v, m)] kinv[(u, l), (v, m)]   (groups u, v)
        out[s, (a, b), k] = sum_{u, v} phi[k, u] phi[k, v] S[s, u, (a, b), v]      (a <= b), with
        S[s, u, (a, b), v] = sum_{l, m} beta[(u, l), a] psi2[s, (u, l), (v, m)] beta[(v, m), b],
+       and in the row after the pairs the trace out[s, P, k] = sum_{u, v} phi[k, u] phi[k, v]
+       T[s, u, v] (tr(K^-1 psi2) of value k), contracted as each row of T is complete,
      psi2[s] = exp(left[s] @ right[s]) evaluated eight columns of one group's rows at a time in
      registers and never stored: one pass over the N x N block instead of the exponential, the
      weighted sums and the K^-1 product each reading and writing it; S of one group is contracted
@@ -170,20 +172,21 @@ INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up
     double *acc = work, *prow = work + Np, *Su = prow + D * Np;
     for (int64_t s = 0; s < S; ++s) {
         const double *ls = left + s * N * C, *rs = right + s * C * Np;
-        double *os = out + s * P * Kp;
-        for (int64_t j = 0; j < P * Kp; ++j) os[j] = 0.0;
-        for (int64_t u = 0; u < U; ++u) {
+        double *os = out + s * (P + 1) * Kp, *Tu = T + s * U * Up;
+        for (int64_t j = 0; j < (P + 1) * Kp; ++j) os[j] = 0.0;
+        for (int64_t u = 0; u < U; ++u, Tu += Up) {
             group_rows(D, L, C, Np, ls + u * L * C, rs, beta + u * L * D, kinv + u * L * Np,
                        prow, acc);
-            group_sums(D, L, Up, acc, prow, betac, T + (s * U + u) * Up, Su);
+            group_sums(D, L, Up, acc, prow, betac, Tu, Su);
             contract(P, Up, Kp, Su, phiT, phiT + u * Kp, os);
+            contract(1, Up, Kp, Tu, phiT, phiT + u * Kp, os + P * Kp); /* the trace row */
         }
     }
 }
 
 /* Shapes (all C-contiguous float64): left [S, N, C] (rows (u, l)), right [S, C, Np],
    beta [N, D], betac [D, Np], kinv [N, Np], phiT [Up, Kp] (phi[k, v]; zero at padding v and
-   k >= K, Kp a multiple of 8), T [S, U, Up], out [S, D (D + 1) / 2, Kp],
+   k >= K, Kp a multiple of 8), T [S, U, Up], out [S, D (D + 1) / 2 + 1, Kp],
    work [(D + 1) Np + D (D + 1) / 2 Up]. Returns 0, or 1 for D outside 1..MAX_D (nothing
    written). */
 int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t C, int64_t D,

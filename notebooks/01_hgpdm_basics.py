@@ -79,7 +79,7 @@ for _ in range(30 if SMOKE else 200):
     loss.backward()
     opt.step()
 print(f'GPDM loss after Adam: {loss.item():.1f};',
-      {name: round(float(term), 1) for name, term in objective.terms().items()})
+      {name: round(term.item(), 1) for name, term in objective.terms().items()})
 
 # %% [markdown]
 # ## Discover styles without labels (Algorithm 2.1)

@@ -128,10 +128,15 @@ def test_group_sums_equal_the_dense_formulas(U, L, D, K):
     want = torch.einsum("kia,sij,kjb->skab", Wk, E, Wk)
     want_abs = torch.einsum("kia,sij,kjb->skab", Wk.abs(), E, Wk.abs())
     a, b = torch.triu_indices(D, D)
-    got = out[..., :K].transpose(1, 2)  # [S, K, pairs]
+    got = out[:, :-1, :K].transpose(1, 2)  # [S, K, pairs]
     bound = (per_term + 4 * (L + U) + 8) * EPS * want_abs[..., a, b]
     assert bool(((got - want[..., a, b]).abs() <= bound).all())
     assert bool((out[..., K:] == 0).all())
+    # the trace row: sum_ij phi[k, u_i] psi2_ij K^-1_ij phi[k, u_j], chains as for the pairs
+    trace = torch.einsum("ki,sij,kj->sk", phi[:, group], E * kinv, phi[:, group])
+    trace_abs = torch.einsum("ki,sij,kj->sk", phi[:, group], (E * kinv).abs(), phi[:, group])
+    bound = (per_term + 4 * (L + U) + 8) * EPS * trace_abs
+    assert bool(((out[:, -1, :K] - trace).abs() <= bound).all())
 
 
 @needs_kernel
