@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import torch
 
 from ..inference.intention import OnlineIntentionFilter
+from ..intention_belief import IntentionBelief
 from ..models import IDDM
 from ..validation import as_tensor
 from .mcp import Belief
@@ -124,6 +125,13 @@ class Beliefs:
     def vectors(self) -> torch.Tensor:
         """``[n, T, F]`` belief vectors (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
         return belief_vector(self.mean, self.cov, self.log_prob.exp())
+
+    def intentions(self) -> IntentionBelief:
+        """The target histograms ``[n, T, K]`` as an
+        :class:`~hgpdm_torch.intention_belief.IntentionBelief` over the filter's grid (its mean
+        and sd, entropy, credible sets), the belief every inference path reports."""
+        f = self.belief_filter
+        return IntentionBelief.from_log(self.log_prob, f.values, f.continuous)
 
     def belief(self, i: int, t: int) -> Belief:
         """The planner's :class:`~hgpdm_torch.decision.mcp.Belief` of trial ``i`` at step ``t``."""

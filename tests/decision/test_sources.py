@@ -465,3 +465,22 @@ def test_draw_next_checks_the_stroke(problem):
         tracks["oracle"].draw_next(120, 0, 5)
     with pytest.raises(ValueError, match="num must be at least 1"):
         tracks["oracle"].draw_next(0, 0, 0)
+
+
+def test_decision_beliefs_read_as_an_intention_belief(continuous_iddm):
+    """Beliefs.intentions() is the IntentionBelief the online filter itself reports at each
+    decision time (its histogram, mean and sd over the filter's grid)."""
+    from hgpdm_torch.decision.beliefs import filter_beliefs
+    from hgpdm_torch.inference.intention import OnlineIntentionFilter
+
+    obs = continuous_iddm.observations[:40].view(4, 10, -1)[:, :5]  # 4 strokes of 10 frames
+    config = _Config()
+    beliefs = filter_beliefs(continuous_iddm, obs, [1, 3], config)
+    got = beliefs.intentions()
+    grid = torch.linspace(-config.grid_max, config.grid_max, config.grid_size)
+    f = OnlineIntentionFilter(continuous_iddm, grid, forgetting=config.forgetting, batch_size=4)
+    want = [f.update(obs[:, t]) for t in range(4)]
+    for j, t in enumerate([1, 3]):
+        torch.testing.assert_close(got.prob[:, j], want[t].prob)
+        torch.testing.assert_close(got.mean[:, j], want[t].mean)
+    assert got.entropy().shape == (4, 2)
