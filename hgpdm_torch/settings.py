@@ -215,6 +215,9 @@ class tile_bytes(_Count):
     _var = _tile
     argument, unit = "size", "a positive int (bytes)"
 
+    def __init__(self, size: int) -> None:
+        super().__init__(size)
+
 
 class native_kernels(_Setting):
     """Context manager (and flag) letting the fused path use its compiled CPU kernel
@@ -249,6 +252,9 @@ class quadrature_points(_Count):
 
     _var = _quadrature
     argument = "points"
+
+    def __init__(self, points: int) -> None:
+        super().__init__(points)
 
 
 @dataclass(frozen=True)
