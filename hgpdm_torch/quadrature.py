@@ -18,10 +18,12 @@ Every moment is that of one distribution, the weighted nodes: a kernel with an o
 integrated as a whole by the rule (its RBF and linear leaves too,
 :func:`~hgpdm_torch.expectations.split_terms`), and the expected gradient is Stein's form over
 the same nodes, so the joint covariance of input and GP output is positive semi-definite
-whatever the rule's error, which the filters' conditioning needs. The kernel is evaluated
-pairwise (``kernel.forward(a, b, diag=True)`` on every node-point pair), the one evaluation
-every gpytorch kernel implements; at points (:func:`term_points` with ``grad``, Gauss-Newton
-Jacobians) its gradient is taken by autograd on those pairs.
+whatever the rule's error, which the filters' conditioning needs. The kernel is evaluated as a
+matrix between the nodes and the training points (``kernel.forward(nodes, X)``: gpytorch forms
+the distances by products; on pairs of rows an online filter's step took 4.6x as long);
+``k(x, x)`` on pairs (``diag=True``), and at points (:func:`term_points` with ``grad``,
+Gauss-Newton Jacobians) the gradient by autograd on pairs, each value with its own copy of the
+point. Cost: docs/api/expectations.md#cost-of-the-quadrature.
 
 Accuracy. With ``n`` points per dimension the rule integrates exactly every polynomial of degree
 ``<= 2n - 1`` in each coordinate. A kernel of length scale ``l`` at an input of standard deviation
@@ -54,6 +56,7 @@ __all__ = [
     "default_points",
     "gauss_hermite",
     "leaf_diag",
+    "leaf_matrix",
     "leaf_pairs",
     "leaf_psi0",
     "nodes",
@@ -148,6 +151,36 @@ def leaf_pairs(leaf: Leaf, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def _part_matrix(part: Leaf, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """One part of a leaf (no factors, no codes, unit coefficient) at every pair of rows of
+    ``a [..., S, Din]`` and ``b [..., N, Din]`` (equal batch dims) -> ``[..., S, N]``."""
+    if part.kind == "rbf":  # |a - b|^2 by one product, from a common centre (as gpytorch does)
+        s = part.weight.clamp_min(0.0).sqrt()
+        centre = b.mean(-2, keepdim=True)
+        sa, sb = (a - centre) * s, (b - centre) * s
+        d2 = sa.pow(2).sum(-1)[..., :, None] + sb.pow(2).sum(-1)[..., None, :] - 2 * sa @ sb.mT
+        return torch.exp(-0.5 * d2.clamp_min(0.0))
+    if part.kind == "linear":
+        return (a * part.weight) @ b.mT
+    cols = list(part.columns)
+    out = part.kernel.forward(a[..., cols], b[..., cols])
+    return out if isinstance(out, torch.Tensor) else out.to_dense()
+
+
+def leaf_matrix(leaf: Leaf, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``k_leaf(a_s, b_i)`` for all rows ``a [..., S, Din]`` and ``b [..., N, Din]`` (batch dims
+    broadcast) -> ``[..., S, N]``: the kernel's matrix evaluation (gpytorch forms its distances
+    by products), without the ``[..., S, N, Din]`` differences of :func:`leaf_pairs`."""
+    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
+    out = leaf.coef * _part_matrix(leaf, a, b)
+    for part in leaf.factors:
+        out = out * _part_matrix(part, a, b)
+    for c in leaf.codes:
+        out = out * (a[..., :, None, c] == b[..., None, :, c]).to(out.dtype)
+    return out
+
+
 def leaf_diag(leaf: Leaf, a: torch.Tensor) -> torch.Tensor:
     """``k_leaf(a, a)`` for rows ``a [..., Din]`` -> ``[...]``."""
     return leaf_pairs(leaf, a, a)
@@ -168,16 +201,16 @@ def term_points(
     """A quadrature term at points: ``k(x~_s, X~_i)`` ``[..., S, N]`` for ``x [..., S, D]`` and
     the training points' Gaussian columns ``X [..., N, D]`` (the term holds their known ones),
     and with ``grad`` its gradient in ``x`` ``[..., S, D, N]``."""
-    a = _full(t, x)[..., :, None, :]  # [..., S, 1, Din]
     if t.Xg is None:
         Xfull = X
     else:
         batch = torch.broadcast_shapes(X.shape[:-2], t.Xg.shape[:-2])
         n = X.shape[-2]
         Xfull = torch.cat([X.expand(*batch, n, -1), t.Xg.expand(*batch, n, -1)], -1)
-    b = Xfull[..., None, :, :]  # [..., 1, N, Din]
     if not grad:
-        return leaf_pairs(t.leaf, a, b), None
+        return leaf_matrix(t.leaf, _full(t, x), Xfull), None
+    a = _full(t, x)[..., :, None, :]  # [..., S, 1, Din]
+    b = Xfull[..., None, :, :]  # [..., 1, N, Din]
     outer = torch.is_grad_enabled() and (x.requires_grad or any(
         p.requires_grad for p in (t.leaf.coef, Xfull)
     ))  # fmt: skip
