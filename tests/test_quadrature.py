@@ -220,3 +220,30 @@ def test_settings_choose_the_rule():
         assert settings.quadrature_points.get() == 2
     with pytest.raises(ValueError, match="positive int"):
         settings.quadrature_points(0)
+
+
+def test_matrix_and_pairwise_evaluations_agree():
+    """The node-by-point matrix (values) and the pairwise rows (k(x, x), gradients) of one leaf
+    with an opaque part, RBF and linear factors and a code column: equal to rounding of O(1)
+    values (the RBF part's distances are formed by products in one, by differences in the
+    other)."""
+    from hgpdm_torch.kernels import DiscreteIntentionKernel
+
+    kernel = DiscreteIntentionKernel(
+        MaternKernel(nu=1.5, active_dims=[0, 1]) * RBFKernel(active_dims=[1])
+        * LinearKernel(active_dims=[0]),
+        num_values=3,
+    )  # fmt: skip
+    (leaf,) = kernel_leaves(kernel, 3)
+    assert leaf.opaque and leaf.codes == (2,)
+    gen = torch.Generator().manual_seed(10)
+    a = torch.cat(
+        [torch.randn(2, 5, 2, generator=gen), torch.randint(3, (2, 5, 1), generator=gen)], -1
+    )
+    b = torch.cat([torch.randn(7, 2, generator=gen), torch.randint(3, (7, 1), generator=gen)], -1)
+    with torch.no_grad():
+        matrix = quadrature.leaf_matrix(leaf, a, b)
+        pairs = quadrature.leaf_pairs(leaf, a[..., :, None, :], b[None, None])
+    assert matrix.shape == (2, 5, 7)
+    torch.testing.assert_close(matrix, pairs, rtol=1e-12, atol=1e-12)
+    assert bool((matrix[a[..., 2:3].expand(-1, -1, 7) != b[:, 2]] == 0).all())
