@@ -41,12 +41,13 @@ from .expectations import (
     term_psi2_factors,
 )
 from .linalg import shared_matmul
-from .quadrature import num_nodes
+from .quadrature import num_nodes, shared_evaluations
 from .tiling import OpCount, differentiable_tile, exp_, keeps_tiles, tile_budget
 
 __all__ = ["input_moments", "input_operations", "pair_operations"]
 
 
+@shared_evaluations()  # a quadrature term's values at the nodes serve psi1 and every psi2 pair
 def input_moments(
     terms: list[Term],
     mu: torch.Tensor,

@@ -39,8 +39,11 @@ Shapes: ``S`` nodes, ``N`` training points, ``D`` Gaussian columns, ``Din`` all 
 
 from __future__ import annotations
 
+import contextlib
+import threading
+from collections.abc import Callable, Iterator
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -62,6 +65,7 @@ __all__ = [
     "nodes",
     "num_nodes",
     "psi2_factors",
+    "shared_evaluations",
     "term_points",
     "term_psi1_grad",
 ]
@@ -110,16 +114,58 @@ def gauss_hermite(
     )
 
 
-def nodes(mu: torch.Tensor, Sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The rule's nodes on ``N(mu, Sigma)``: ``x [..., S, D]`` and weights ``[S]``.
+_memo = threading.local()
 
-    ``Sigma`` is factorised by :func:`~hgpdm_torch.linalg.psd_cholesky` (a singular one with a
-    little jitter, which moves the nodes by far less than the kernel's scale).
-    """
-    dim = mu.shape[-1]
-    xi, w = gauss_hermite(dim, default_points(dim), dtype=mu.dtype, device=mu.device)
-    L = psd_cholesky(Sigma, name="input covariance Sigma")
-    return mu[..., None, :] + xi @ L.transpose(-1, -2), w
+
+@contextlib.contextmanager
+def shared_evaluations() -> Iterator[None]:
+    """Within the block (this thread's), the rule's nodes on an input Gaussian and each term's
+    values at them are computed once: :func:`hgpdm_torch.moments.input_moments` asks for psi1,
+    its gradient and every psi2 pair of the same terms at the same inputs. Entries are matched by
+    the identity of the objects they were computed from and dropped when the block ends."""
+    if getattr(_memo, "table", None) is not None:  # an enclosing block shares its table
+        yield
+        return
+    _memo.table = {}
+    try:
+        yield
+    finally:
+        _memo.table = None
+
+
+def _once(sources: tuple[Any, ...], compute: Callable[[], Any]) -> Any:
+    """``compute()``, or inside :func:`shared_evaluations` its earlier result for the same
+    ``sources`` (the same objects: the table holds them, so their ids stay theirs)."""
+    table = getattr(_memo, "table", None)
+    if table is None:
+        return compute()
+    key = tuple(map(id, sources))
+    hit = table.get(key)
+    if hit is None or any(a is not b for a, b in zip(hit[0], sources, strict=True)):
+        hit = table[key] = (sources, compute())
+    return hit[1]
+
+
+def _rule_on(
+    mu: torch.Tensor, Sigma: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Nodes ``x [..., S, D]``, weights ``[S]``, standard nodes ``xi [S, D]`` and the factor
+    ``L [..., D, D]`` of ``Sigma`` (:func:`~hgpdm_torch.linalg.psd_cholesky`: a singular one with
+    a little jitter, which moves the nodes by far less than the kernel's scale)."""
+
+    def compute() -> tuple[torch.Tensor, ...]:
+        dim = mu.shape[-1]
+        xi, w = gauss_hermite(dim, default_points(dim), dtype=mu.dtype, device=mu.device)
+        L = psd_cholesky(Sigma, name="input covariance Sigma")
+        return mu[..., None, :] + xi @ L.transpose(-1, -2), w, xi, L
+
+    return _once((mu, Sigma), compute)
+
+
+def nodes(mu: torch.Tensor, Sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rule's nodes on ``N(mu, Sigma)``: ``x [..., S, D]`` and weights ``[S]``."""
+    x, w, _, _ = _rule_on(mu, Sigma)
+    return x, w
 
 
 # --------------------------------------------------------------------------------------------
@@ -186,11 +232,11 @@ def leaf_diag(leaf: Leaf, a: torch.Tensor) -> torch.Tensor:
     return leaf_pairs(leaf, a, a)
 
 
-def _full(t: Term, x: torch.Tensor) -> torch.Tensor:
-    """Rows ``[x, g]`` of the Gaussian columns ``x [..., S, D]`` and the term's known ``g``."""
-    if t.g is None:
+def _full(x: torch.Tensor, g: torch.Tensor | None) -> torch.Tensor:
+    """Rows ``[x, g]`` of the Gaussian columns ``x [..., S, D]`` and known columns ``g``."""
+    if g is None:
         return x
-    g = t.g[..., None, :]
+    g = g[..., None, :]
     batch = torch.broadcast_shapes(x.shape[:-1], g.shape[:-1])
     return torch.cat([x.expand(*batch, x.shape[-1]), g.expand(*batch, g.shape[-1])], -1)
 
@@ -208,8 +254,8 @@ def term_points(
         n = X.shape[-2]
         Xfull = torch.cat([X.expand(*batch, n, -1), t.Xg.expand(*batch, n, -1)], -1)
     if not grad:
-        return leaf_matrix(t.leaf, _full(t, x), Xfull), None
-    a = _full(t, x)[..., :, None, :]  # [..., S, 1, Din]
+        return leaf_matrix(t.leaf, _full(x, t.g), Xfull), None
+    a = _full(x, t.g)[..., :, None, :]  # [..., S, 1, Din]
     b = Xfull[..., None, :, :]  # [..., 1, N, Din]
     outer = torch.is_grad_enabled() and (x.requires_grad or any(
         p.requires_grad for p in (t.leaf.coef, Xfull)
@@ -241,11 +287,8 @@ def term_psi1_grad(
     input standard deviation ``sigma`` (relative to the kernel's scale), so a nearly
     deterministic input (``sigma`` ~ 1e-8 or less) loses that many digits of the gradient.
     """
-    dim = mu.shape[-1]
-    xi, w = gauss_hermite(dim, default_points(dim), dtype=mu.dtype, device=mu.device)
-    L = psd_cholesky(Sigma, name="input covariance Sigma")
-    x = mu[..., None, :] + xi @ L.transpose(-1, -2)
-    k, _ = term_points(t, x, X)
+    x, w, xi, L = _rule_on(mu, Sigma)
+    k = _values(t, x, X, lambda: term_points(t, x, X)[0])
     p1 = (w[:, None] * k).sum(-2)
     if not grad:
         return p1, None
@@ -259,9 +302,15 @@ def psi2_factors(
     """``U = w k_a``, ``V = k_b`` ``[..., S, N]`` at the rule's nodes, ``psi2_ab ~= U^T V``;
     ``values(term, x, X)`` evaluates a term at points ``x [..., S, D]`` without its factor."""
     x, w = nodes(mu, Sigma)
-    ka = values(a, x, X)
-    kb = ka if b is a else values(b, x, X)
+    ka = _values(a, x, X, lambda: values(a, x, X))
+    kb = ka if b is a else _values(b, x, X, lambda: values(b, x, X))
     return w[:, None] * ka, kb
+
+
+def _values(t: Term, x: torch.Tensor, X: torch.Tensor, compute: Callable[[], Any]) -> Any:
+    """A term's values ``[..., S, N]`` at the nodes ``x``, once per :func:`shared_evaluations`
+    block."""
+    return _once((t, x, X), compute)
 
 
 def leaf_psi0(
@@ -269,11 +318,7 @@ def leaf_psi0(
 ) -> torch.Tensor:
     """``E[k(x~, x~)]`` of one leaf at ``x~ = [x, g]``, ``x ~ N(mu, Sigma)`` -> ``[...]``."""
     x, w = nodes(mu, Sigma)
-    if g is not None:
-        gs = g[..., None, :]
-        batch = torch.broadcast_shapes(x.shape[:-1], gs.shape[:-1])
-        x = torch.cat([x.expand(*batch, x.shape[-1]), gs.expand(*batch, gs.shape[-1])], -1)
-    return (w * leaf_diag(leaf, x)).sum(-1)
+    return (w * leaf_diag(leaf, _full(x, g))).sum(-1)
 
 
 def num_nodes(dim: int) -> int:

@@ -247,3 +247,29 @@ def test_matrix_and_pairwise_evaluations_agree():
     assert matrix.shape == (2, 5, 7)
     torch.testing.assert_close(matrix, pairs, rtol=1e-12, atol=1e-12)
     assert bool((matrix[a[..., 2:3].expand(-1, -1, 7) != b[:, 2]] == 0).all())
+
+
+def test_one_moment_call_evaluates_each_term_once():
+    """input_moments asks for psi1, its gradient and psi2 of the same opaque term: its kernel
+    runs once at the nodes (shared_evaluations), and again in a new call."""
+    from hgpdm_torch.moments import input_moments
+
+    calls = []
+
+    class Counted(MaternKernel):
+        def forward(self, x1, x2, diag=False, **params):
+            calls.append(diag)
+            return super().forward(x1, x2, diag=diag, **params)
+
+    X = torch.randn(6, 2, generator=torch.Generator().manual_seed(11))
+    terms = ex.split_terms(kernel_leaves(Counted(nu=2.5), 2), X, None, 2)
+    mu, Sigma = _gaussian(2, 0.3)
+    beta = torch.randn(6, 3, generator=torch.Generator().manual_seed(12))
+    with torch.no_grad():
+        first = input_moments(terms, mu, Sigma, X, beta, torch.eye(6))
+        assert calls == [False]
+        with settings.quadrature_points(quadrature.default_points(2)):  # the same rule, anew
+            again = input_moments(terms, mu, Sigma, X, beta, torch.eye(6))
+    assert calls == [False, False]
+    for a, b in zip(first, again, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
