@@ -37,6 +37,7 @@ from .expectations import (
     kernel_leaves,
     rbf_psi2_exponent,
     split_terms,
+    term_psi1,
     term_psi1_grad,
     term_psi2,
 )
@@ -369,8 +370,13 @@ class SharedTransition:
         return _tensor_product(_group_terms(split[0], split[1], values, dx)[2])
 
     def moments(
-        self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        self,
+        mu: torch.Tensor,
+        Sigma: torch.Tensor,
+        phase: torch.Tensor | None = None,
+        *,
+        cross: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``
         (``noise``: alpha_4, or the ``alpha_4,k`` of value k with a per-value process noise).
 
@@ -380,9 +386,12 @@ class SharedTransition:
                 only for, a phase-aware GP (``phase=True``). Its factor
                 ``exp(-w_p (p - p_i)^2 / 2)`` rescales each training point's weight per stream,
                 so it multiplies ``psi1`` and ``E[grad k]`` and enters ``psi2``'s exponent.
+            cross: whether to compute ``Cov[x, x_{t+1}]`` (and ``E[grad k]`` for it); the
+                predictive filter step and the planner's particles do not use it.
 
         Returns:
-            ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
+            ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``
+            (``None`` with ``cross=False``).
         """
         if (phase is None) != (self.phases is None):
             raise ValueError(
@@ -391,17 +400,23 @@ class SharedTransition:
                 else "phase is for a phase-aware transition GP (IDDM(phase_width=...)) only"
             )
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
-        p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
+        if cross:
+            p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
+        else:
+            p1, grad = term_psi1(self.term, mu, Sigma, self.inputs), None
         log_phase = None
         if phase is not None:  # log of each point's phase factor per stream: [B, UL]
             log_phase = -0.5 * self.phase_weight * (phase.to(mu)[:, None] - self.phases).pow(2)
             factor = log_phase.exp()
-            p1, grad = p1 * factor, grad * factor[:, None, :]
+            p1 = p1 * factor
+            grad = None if grad is None else grad * factor[:, None, :]
         phi, beta = self.phi, self.beta
         m_u = torch.einsum("bul,ula->bua", p1.view(b, U, L), beta)
         mean = torch.einsum("ku,bua->bka", phi, m_u)
-        g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
-        cross = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
+        cov_x = None
+        if grad is not None:
+            g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
+            cov_x = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
         if settings.moment_path.get() == "fused":
             trace, cov = self._fused_second(mu, Sigma, mean, log_phase)
         else:
@@ -414,7 +429,7 @@ class SharedTransition:
             else var[..., None] * self.scale2
         )
         cov = symmetrize(cov) + torch.diag_embed(var)
-        return mean if self.offset is None else mean + self.offset, cov, cross
+        return mean if self.offset is None else mean + self.offset, cov, cov_x
 
     def _materialised_second(
         self,
@@ -592,14 +607,15 @@ class SharedTransition:
         n = self.groups * self.group_size
         return n * n + (self.groups + self.num_values) * self.dx * n
 
-    def operations(self, streams: int = 1) -> OpCount:
+    def operations(self, streams: int = 1, *, cross: bool = True) -> OpCount:
         """Work of :meth:`moments` per stream on the fused path (the floor's count; nothing is
-        shared between the ``streams`` of a call).
+        shared between the ``streams`` of a call; ``cross`` as there).
 
         ``N^2`` exponentials and ``N`` for ``psi1``; multiply-adds: ``N^2 (Dx + 2)`` for the
-        exponent, ``N^2 Dx`` for the group weights, ``K U^2`` for the traces, and the ``O(N
-        Dx^2)`` and ``O(K U Dx^2)`` work of ``psi1``, ``E[grad k]``, the means, the centring and
-        ``Cov[x, f]`` (with a phase, its ``N`` factors per stream and their products). Then, in
+        exponent, ``N^2 Dx`` for the group weights, ``K U^2`` for the traces, the ``O(N Dx^2)``
+        and ``O(K U Dx)`` work of ``psi1``, the means and the centring, and with ``cross``,
+        ``2 N Dx^2 + N Dx + K U Dx^2 + K Dx^3`` for ``E[grad k]`` and ``Cov[x, f]`` (with a
+        phase, its ``N`` factors per stream and their products). Then, in
         torch, ``2 N^2`` for the product with ``K^-1`` and its group sums, ``K U Dx N`` for phi
         over groups and ``K Dx^2 N`` for the weighted columns; by the compiled kernel
         (:mod:`hgpdm_torch.native`, where it runs), ``N^2`` for the product with ``K^-1`` (one
@@ -609,7 +625,9 @@ class SharedTransition:
         dx, U, K = self.dx, self.groups, self.num_values
         n = U * self.group_size
         madds = n * n * (dx + 2) + n * n * dx + K * U * U + K * U + K * dx * dx
-        madds += 4 * n * dx * dx + 3 * n * dx + K * U * dx * (1 + dx) + K * dx**3
+        madds += 2 * n * dx * dx + 2 * n * dx + K * U * dx
+        if cross:
+            madds += 2 * n * dx * dx + n * dx + K * U * dx * dx + K * dx**3
         if self.compiled():
             pairs = dx * (dx + 1) // 2
             madds += n * n + U * pairs * n + K * U * U * pairs + K * U * pairs

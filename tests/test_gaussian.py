@@ -207,10 +207,16 @@ def test_condition_gaussian_shared_observed_set_matches_dense_reference(generato
 
 
 @pytest.mark.parametrize("with_covs", [True, False])
-def test_mixture_moments_brute_force(generator, with_covs):
+@pytest.mark.parametrize("batch_last", [False, True])
+def test_mixture_moments_brute_force(generator, with_covs, batch_last):
+    """Against explicit sums; ``batch_last``: weights and means stored with the batch innermost
+    (``[K, B]``, ``[K, D, B]``, as the planner's particles), the branch that sums over them."""
     B, K, D, Du = 2, 4, 3, 2
     w = torch.softmax(torch.randn(B, K, generator=generator), -1)
     means = torch.randn(B, K, D, generator=generator)
+    if batch_last:
+        w, means = w.T.contiguous().T, means.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+        assert means.stride(0) == 1 and w.stride(0) == 1
     covs = _spd(generator, B, K, D) if with_covs else None
     cross = torch.randn(B, K, Du, D, generator=generator)
     mean, cov, cr = G.mixture_moments(w, means, covs, cross)

@@ -257,6 +257,17 @@ def test_operation_counts_cover_the_work(generator, monkeypatch):
     assert sum(taken) == 4 * n * n == 4 * (count.exps - n)
     products = counter.get_total_flops() / 2 / 4  # multiply-adds per stream
     assert 0.8 * count.madds < products < count.madds
+    # without Cov[x, f] (the predictive filter, the planner): the same mean and covariance,
+    # and the count and the products both lose the expected gradient's work
+    with settings.native_kernels(False), FlopCounterMode(display=False) as counter:
+        mean, cov, cross = fast.moments(mu, S, cross=False)
+        lean = fast.operations(cross=False)
+    with settings.native_kernels(False):
+        full = fast.moments(mu, S)
+    assert cross is None and torch.equal(mean, full[0]) and torch.equal(cov, full[1])
+    fewer = counter.get_total_flops() / 2 / 4
+    assert lean.exps == count.exps and 0.8 * lean.madds < fewer < lean.madds < count.madds
+    assert count.madds - lean.madds > 0.5 * (products - fewer)
     if native.available():  # the compiled kernel's own algebra: fewer multiply-adds
         with FlopCounterMode(display=False) as counter:
             fast.moments(mu, S)

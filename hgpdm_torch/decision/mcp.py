@@ -191,15 +191,18 @@ class _Shared:
     z_mean: torch.Tensor  # [K, Dz]
     z_chol: torch.Tensor  # [K, Dz, Dz]  chol L of S = Cov[z_{t+1} | g]
     z_logdet: torch.Tensor  # [K]  log |S|
-    # a batch of z [I, Dz] conditioned on all K at once, as innovations y = z - centre from the
+    # a batch of z conditioned on all K at once, particles along the last dim (every elementwise
+    # step then runs over I contiguous entries), as innovations y = z - centre [Dz, I] from the
     # particles' mean observation (their terms then stay at the scale of the spread):
-    #   mu = y @ gain + gain_offset  ([I, K Dx]),
-    #   maha = [y y^T (flat), y] @ quad + quad_offset  ([I, K]): (z - m^z_k)^T S_k^-1 (.)
+    #   mu = gain @ y + gain_offset  ([K Dx, I]),
+    #   maha = quad @ [y_a y_b (a <= b), y] + quad_offset  ([K, I]): (z - m^z_k)^T S_k^-1 (.)
     centre: torch.Tensor  # [Dz]  sum_k p_k m^z_k
-    gain: torch.Tensor  # [Dz, K Dx]  (S^-1 C^T)_k side by side
-    gain_offset: torch.Tensor  # [K Dx]  m_k - (m^z_k - centre) S^-1 C^T
-    quad: torch.Tensor  # [Dz (Dz + 1), K]  S_k^-1 flat, then -2 S_k^-1 d_k (d_k = m^z_k - centre)
-    quad_offset: torch.Tensor  # [K]  d_k^T S_k^-1 d_k
+    gain: torch.Tensor  # [K Dx, Dz]  (C S^-1)_k stacked
+    gain_offset: torch.Tensor  # [K Dx, 1]  m_k - C_k S_k^-1 d_k  (d_k = m^z_k - centre)
+    pairs: tuple[torch.Tensor, torch.Tensor]  # the Dz (Dz + 1) / 2 index pairs a <= b
+    quad: torch.Tensor  # [K, Dz (Dz + 1) / 2 + Dz]  S_k^-1 over the pairs (off-diagonal twice),
+    #                     then -2 S_k^-1 d_k
+    quad_offset: torch.Tensor  # [K, 1]  d_k^T S_k^-1 d_k
     post_cov: torch.Tensor  # [K, Dx, Dx]  P - C S^-1 C^T
     x_chol: torch.Tensor  # [Dx, Dx]  chol of Cov[x_t] (for sampling="points")
     mean: torch.Tensor  # [Dx]
@@ -323,6 +326,10 @@ class ParticleProjector:
         self.measurement = model.measurement_posterior()
         # the filter's transition GP (sparse where the filter's is)
         self.transition = belief_filter.posterior if sampling == "points" else None
+        # the observation's index pairs a <= b and the factor of y_a y_b in a quadratic form
+        a, b = torch.triu_indices(*(2 * [belief_filter.obs_dim]), device=belief_filter.mu0.device)
+        self._pairs, self._upper = (a, b), a * belief_filter.obs_dim + b
+        self._twice = 2.0 - (a == b).to(belief_filter.dtype)
 
     def sample_beliefs(
         self, belief: Belief, num: int, generator: torch.Generator | None = None
@@ -331,7 +338,8 @@ class ParticleProjector:
         ``log_prob [I, K]`` after a sampled observation (Algorithm 4.2, lines 3-6)."""
         if isinstance(num, bool) or not isinstance(num, int) or num < 1:
             raise ValueError(f"num must be a positive int, got {num!r}")
-        return self._particles(self._shared(self._check_belief(belief)), num, generator)
+        particles = self._particles(self._shared(self._check_belief(belief)), num, generator)
+        return tuple(v.contiguous() for v in particles)
 
     def _particles(self, shared: _Shared, num: int, generator: torch.Generator | None):
         z = self._sample_observations(shared, num, generator)
@@ -379,7 +387,7 @@ class ParticleProjector:
         m = belief.mean.to(f.dtype)[None]
         P = belief.cov.to(f.dtype)[None]
         phase = None if belief.phase is None else m.new_full((1,), float(belief.phase))
-        mean, cov, _ = f.transition.moments(m, P, phase)  # [1, K, Dx(, Dx)]
+        mean, cov, _ = f.transition.moments(m, P, phase, cross=False)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
         linear = linear_measurement(f.measure)
         if linear is not None:  # the filter's own, precomputed: O(Dx Dz^2)
@@ -397,12 +405,12 @@ class ParticleProjector:
         log_prob = log_prob - torch.logsumexp(log_prob, -1)
         prob = log_prob.exp()
         K, dz = mz.shape
-        eye = torch.eye(dz, dtype=L.dtype, device=L.device).expand_as(L)
-        inv_l = torch.linalg.solve_triangular(L, eye, upper=False)
-        prec = inv_l.mT @ inv_l  # S^-1  [K, Dz, Dz]
+        prec = torch.cholesky_inverse(L)  # S^-1  [K, Dz, Dz]
         centre = prob @ mz
         d = mz - centre
         pd = (prec @ d[..., None])[..., 0]  # S^-1 d  [K, Dz]
+        # y^T S^-1 y over the pairs a <= b: the entries above the diagonal twice
+        upper = prec.reshape(K, -1).index_select(1, self._upper) * self._twice
         return _Shared(
             prob=prob,
             log_prob=log_prob,
@@ -412,10 +420,11 @@ class ParticleProjector:
             z_chol=L,
             z_logdet=cholesky_logdet(L),
             centre=centre,
-            gain=gain_t.permute(1, 0, 2).reshape(dz, -1),
-            gain_offset=(mean - (d[:, None, :] @ gain_t)[:, 0]).reshape(-1),
-            quad=torch.cat([prec.reshape(K, -1), -2.0 * pd], -1).T.contiguous(),
-            quad_offset=(pd * d).sum(-1),
+            gain=gain_t.mT.reshape(-1, dz),
+            gain_offset=(mean - (d[:, None, :] @ gain_t)[:, 0]).reshape(-1, 1),
+            pairs=self._pairs,
+            quad=torch.cat([upper, -2.0 * pd], -1),
+            quad_offset=(pd * d).sum(-1, keepdim=True),
             post_cov=post_cov,
             x_chol=psd_cholesky(P[0], name="belief covariance"),
             mean=m[0],
@@ -434,7 +443,8 @@ class ParticleProjector:
         dz = shared.z_mean.shape[-1]
         if self.sampling == "moments":
             eps = _randn((num, dz, 1), generator, shared.z_mean)
-            return shared.z_mean[g] + (shared.z_chol[g] @ eps)[..., 0]
+            mean = shared.z_mean.index_select(0, g)[..., None]
+            return torch.baddbmm(mean, shared.z_chol.index_select(0, g), eps)[..., 0]
         dx = shared.mean.shape[0]
         x = shared.mean + _randn((num, dx), generator, shared.mean) @ shared.x_chol.T
         known = [x, f.values[g]]
@@ -476,38 +486,44 @@ class ParticleProjector:
             i = int(torch.nonzero(rejected)[0])
             raise bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
         update = self._update(shared, z.to(shared.z_mean.dtype), missing | rejected)
-        return ParticleUpdate(*update, rejected)
+        return ParticleUpdate(*(v.contiguous() for v in update), rejected)
 
     def _update(
         self, shared: _Shared, z: torch.Tensor, missing: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, ...]:
         """Linear-Gaussian conditioning of the shared predictions on ``z [I, Dz]``; the rows
         ``missing [I]`` (missing or rejected observations) are prediction-only steps, as in the
-        filter."""
+        filter.
+
+        Returns ``mean [I, Dx]``, ``cov [I, Dx, Dx]`` and ``log_prob [I, K]`` as views of
+        tensors stored with the particles last (``[Dx, I]``, ``[Dx, Dx, I]``, ``[K, I]``): each
+        elementwise step then runs over I contiguous entries, not over rows of Dx or K.
+        """
         num, (K, dx), dz = z.shape[0], shared.pred_mean.shape, z.shape[1]
         skip = missing is not None and bool(missing.any())
         if skip:
             z = z.masked_fill(missing[:, None], 0.0)
-        y = z - shared.centre
-        mu = torch.addmm(shared.gain_offset, y, shared.gain).view(num, K, dx)  # filtered means
-        quadratic = torch.cat([(y[:, :, None] * y[:, None, :]).view(num, -1), y], -1)
-        maha = torch.addmm(shared.quad_offset, quadratic, shared.quad).clamp_min_(0.0)  # [I, K]
-        evidence = log_density_terms(maha, shared.z_logdet, dz)
+        y = (z - shared.centre).T.contiguous()  # [Dz, I]
+        mu = torch.addmm(shared.gain_offset, shared.gain, y).view(K, dx, num)  # filtered means
+        a, b = shared.pairs
+        quadratic = torch.cat([y.index_select(0, a) * y.index_select(0, b), y])
+        maha = torch.addmm(shared.quad_offset, shared.quad, quadratic).clamp_min_(0.0)  # [K, I]
+        evidence = log_density_terms(maha, shared.z_logdet[:, None], dz).T
         observed = torch.ones(num, dtype=torch.bool, device=z.device)
         if skip:
-            mu = torch.where(missing[:, None, None], shared.pred_mean, mu)
+            mu = torch.where(missing, shared.pred_mean[..., None], mu)
             observed = ~missing
         # the filter's recursion B_t = (1 - eps) B_{t-1} + E_t / T from the shared B_{t-1}
-        log_prob = self.filter.options.belief.step(
-            shared.log_prob.expand(num, -1), evidence, observed
-        )
-        p = log_prob.exp()  # [I, K]
+        prior = shared.log_prob[:, None].expand(K, num).contiguous().T  # stored [K, I] too
+        log_prob = self.filter.options.belief.step(prior, evidence, observed)
+        p = log_prob.exp()  # [I, K] (stored [K, I])
         # mixture covariance: sum_k p_k P_k + Cov_p[mu_k], with P_k shared by all particles
-        mean, spread = mixture_moments(p, mu)
-        cov = (p @ shared.post_cov.reshape(K, dx * dx)).view(num, dx, dx)
+        mean, spread = mixture_moments(p, mu.permute(2, 0, 1))
+        covs = shared.pred_cov if skip else shared.post_cov
+        cov = (covs.reshape(K, dx * dx).T @ p.T).view(dx, dx, num).permute(2, 0, 1)
         if skip:
-            predicted = (p @ shared.pred_cov.reshape(K, dx * dx)).view(num, dx, dx)
-            cov = torch.where(missing[:, None, None], predicted, cov)
+            posterior = (shared.post_cov.reshape(K, dx * dx).T @ p.T).view(dx, dx, num)
+            cov = torch.where(missing[:, None, None], cov, posterior.permute(2, 0, 1))
         return mean, symmetrize(cov + spread), log_prob
 
 
@@ -589,7 +605,7 @@ class MonteCarloPlanner(ParticleProjector):
         num = self.num_particles if num is None else num
         f, meas = self.filter, self.measurement
         K, dx, dz = f.num_values, f.mu0.shape[0], meas.output_dim
-        shared = f.transition.operations(1)
+        shared = f.transition.operations(1, cross=False)
         if linear_measurement(f.measure) is not None:
             shared = shared + OpCount(madds=K * (2 * dx * dx + dx * dx * dz + dz * dz * dx))
         else:

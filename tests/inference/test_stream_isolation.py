@@ -157,10 +157,10 @@ def test_numerical_failure_restarts_only_that_stream(model, streams, clean, fres
             if how == "CholeskyError" and t == 0:
                 moments = f.transition.moments
 
-                def failing(m, P, phase=None):
+                def failing(m, P, phase=None, **options):
                     if bool((m == 777.0).any()):
                         raise CholeskyError("injected failure")
-                    return moments(m, P, phase)
+                    return moments(m, P, phase, **options)
 
                 f.transition.moments = failing
             for stream in targets:

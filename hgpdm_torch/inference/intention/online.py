@@ -315,7 +315,7 @@ class OnlineIntentionFilter(IsolatedStreams):
 
     def operations(self) -> OpCount:
         """Work of one :meth:`update` per stream after its first observation, in chunks of
-        ``chunk_size`` streams (the floor's count; predictive evidence): the transition moments
+        ``chunk_size`` streams (the floor's count; for predictive evidence): the transition moments
         of the K grid values (:meth:`~hgpdm_torch.gp_shared.SharedTransition.operations` or
         :meth:`~hgpdm_torch.inference.intention.transition.GenericTransition.operations`), K
         measurement updates (``measurement_operations`` of
@@ -323,7 +323,8 @@ class OnlineIntentionFilter(IsolatedStreams):
         exponentials, ``3 K Dx^2`` multiply-adds)."""
         K, dx = self.num_values, self.mu0.shape[0]
         streams = min(self.batch_size, self.chunk_size)  # that share one transition call
-        ops = self.transition.operations(streams)
+        cross = self.options.evidence.kind != "predictive"  # the bound's mixture uses it
+        ops = self.transition.operations(streams, cross=cross)
         ops = ops + measurement_operations(self.measure, dx, streams * K) * K
         return ops + OpCount(exps=K, madds=3 * K * dx * dx + 2 * K * dx + 4 * K)
 
@@ -375,7 +376,7 @@ class OnlineIntentionFilter(IsolatedStreams):
         self, m: torch.Tensor, P: torch.Tensor, z: torch.Tensor, phase: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per-intention GP-ADF update: filtered ``[B, K, Dx(, Dx)]`` and ``log q(z_t | g)``."""
-        mean, cov, _ = self.transition.moments(m, P, phase)
+        mean, cov, _ = self.transition.moments(m, P, phase, cross=False)
         K = mean.shape[1]
         zk = z[:, None, :].expand(-1, K, -1)
         return self.measure(mean, cov, zk)

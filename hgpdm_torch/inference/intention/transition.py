@@ -72,10 +72,15 @@ class TransitionMoments(Protocol):
     def num_values(self) -> int: ...
 
     def moments(
-        self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+        self,
+        mu: torch.Tensor,
+        Sigma: torch.Tensor,
+        phase: torch.Tensor | None = None,
+        *,
+        cross: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]: ...
 
-    def operations(self, streams: int = 1) -> OpCount: ...
+    def operations(self, streams: int = 1, *, cross: bool = True) -> OpCount: ...
 
     def workspace(self) -> int: ...
 
@@ -136,14 +141,21 @@ class GenericTransition:
         return self.values.shape[0]
 
     def moments(
-        self, mu: torch.Tensor, Sigma: torch.Tensor, phase: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        self,
+        mu: torch.Tensor,
+        Sigma: torch.Tensor,
+        phase: torch.Tensor | None = None,
+        *,
+        cross: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Moments of ``x_{t+1} = f(x, g_k) + noise`` for every k at ``x ~ N(mu, Sigma)``.
 
         Args:
             mu: ``[B, Dx]``; Sigma: ``[B, Dx, Dx]``.
             phase: ``[B]`` each stream's phase (the frame index of ``x``); required for, and
                 only for, a phase-aware GP.
+            cross: accepted for the protocol (the shared path skips ``Cov[x, x_{t+1}]`` without
+                it); moment matching gives it with the others, so it is returned either way.
 
         Returns:
             ``mean [B, K, Dx]``, ``cov [B, K, Dx, Dx]`` and ``Cov[x, x_{t+1}] [B, K, Dx, Dx]``.
@@ -179,12 +191,13 @@ class GenericTransition:
         one, :func:`hgpdm_torch.tiling.exp_`)."""
         return False
 
-    def operations(self, streams: int = 1) -> OpCount:
+    def operations(self, streams: int = 1, *, cross: bool = True) -> OpCount:
         """Work of :meth:`moments` per stream when ``streams`` share a call (the floor's
-        count): the moment matching of the transition GP for the K grid values sharing one
-        input Gaussian (:func:`~hgpdm_torch.moments.input_operations`); with a discrete g's
-        blocks (:meth:`GPPosterior.blocks <hgpdm_torch.gp.GPPosterior.blocks>`) K separate
-        ones over the padded block of each code."""
+        count; ``cross`` does not change it): the moment matching of the transition GP for the
+        K grid values sharing one input Gaussian (:func:`~hgpdm_torch.moments.input_operations`);
+        with a discrete g's blocks (:meth:`GPPosterior.blocks
+        <hgpdm_torch.gp.GPPosterior.blocks>`) K separate ones over the padded block of each
+        code."""
         post = self.posterior
         dx, X = post.output_dim, post.train_inputs
         leaves = kernel_leaves(post.kernel, post.input_dim)
