@@ -83,9 +83,9 @@ __all__ = [
     "particle_value",
 ]
 
-#: the most particles advanced in one batched update where no interval is checked between chunks
-#: (``early_stop=False``, :meth:`MonteCarloPlanner.project`): its largest temporary, the
-#: innovations' products ``[BATCH, Dz (Dz + 1)]``, is 7.9 MB at Dz = 15 in float64
+#: the most particles drawn and advanced at once where no interval is checked between chunks
+#: (``early_stop=False``, :meth:`MonteCarloPlanner.project`): its largest temporary, the drawn
+#: components' Cholesky factors ``[BATCH, Dz, Dz]``, is 7.4 MB at Dz = 15 in float64
 BATCH = 4096
 
 #: how a particle of the next belief is valued (module docstring): ``"lspi"``, the best LSPI
@@ -540,10 +540,10 @@ class MonteCarloPlanner(ParticleProjector):
         num_particles: I, the sampling budget per decision.
         confidence: level of the two-sided Student-t interval of Algorithm 4.3.
         min_particles: particles drawn before the interval is first checked.
-        chunk_size: particles drawn at once; the interval is checked after each chunk. With
-            early termination each chunk is one batched update; without it (``early_stop=False``,
-            :meth:`project`) up to :data:`BATCH` particles are, drawn chunk by chunk (the same
-            random stream).
+        chunk_size: particles drawn at once where the interval is checked, after each chunk;
+            without early termination (``early_stop=False``, :meth:`project`) up to
+            :data:`BATCH` particles are drawn and advanced at once (other draws than a chunked
+            run's from the same generator).
         sampling: as for :class:`ParticleProjector`.
         vectorize: ``(mean, cov, prob) -> [..., F]`` belief vectors that ``features`` takes
             (default :func:`~hgpdm_torch.decision.stopping.belief_vector`, the thesis's).
@@ -624,19 +624,13 @@ class MonteCarloPlanner(ParticleProjector):
     def _project(
         self, shared: _Shared, num: int, generator: torch.Generator | None, can_wait_next: bool
     ) -> torch.Tensor:
-        """Values ``[num]`` of ``num`` particles, drawn ``chunk_size`` at a time (the random
-        stream of a chunked run) and advanced in batches of up to :data:`BATCH` particles: one
-        update of 500 particles costs 0.7 of five updates of 100 (their small operations'
-        overhead)."""
-        batch = self.chunk_size * max(1, BATCH // self.chunk_size)
-        if num > batch:
-            sizes = [batch] * (num // batch) + [num % batch]
-            parts = [self._project(shared, n, generator, can_wait_next) for n in sizes if n]
-            return torch.cat(parts)
-        sizes = [self.chunk_size] * (num // self.chunk_size) + [num % self.chunk_size]
-        z = torch.cat([self._sample_observations(shared, n, generator) for n in sizes if n])
-        usable = self.filter.check.usable(z)
-        mean, cov, log_prob = self._update(shared, z, None if bool(usable.all()) else ~usable)
+        """Values ``[num]`` of ``num`` particles, drawn and advanced in batches of up to
+        :data:`BATCH` particles (at I = 500 one batch takes 0.7 of the time of five of 100:
+        their small operations' overhead)."""
+        if num > BATCH:
+            sizes = [min(BATCH, num - start) for start in range(0, num, BATCH)]
+            return torch.cat([self._project(shared, n, generator, can_wait_next) for n in sizes])
+        mean, cov, log_prob = self._particles(shared, num, generator)
         values = self.q.values(self.features(self.vectorize(mean, cov, log_prob.exp())))
         return particle_value(values, self.wait_value, can_wait_next)
 
@@ -649,7 +643,8 @@ class MonteCarloPlanner(ParticleProjector):
 
         Args:
             belief: the current belief.
-            num: particles (default ``num_particles``), advanced ``chunk_size`` at a time.
+            num: particles (default ``num_particles``), drawn and advanced up to :data:`BATCH`
+                at a time.
             generator: random generator.
             can_wait_next: whether the next step may wait too.
 

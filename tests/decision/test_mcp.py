@@ -252,7 +252,7 @@ def test_projection_values_each_particle_with_the_online_filter(model, pipeline)
     drawn = _record(planner, "_sample_observations")
     r = planner.project(belief, generator=torch.Generator().manual_seed(5))
     z = torch.cat(drawn)
-    assert [len(c) for c in drawn] == [64, 64, 22] and r.shape == (150,)
+    assert [len(c) for c in drawn] == [150] and r.shape == (150,)  # one batch: no interval
 
     ref = OnlineIntentionFilter(model, GRID, forgetting=0.1, batch_size=1)
     ref.update(torch.zeros(model.obs_dim))  # start the stream, then set its state per particle
@@ -380,9 +380,11 @@ def test_early_termination_uses_the_student_t_interval(model, pipeline, n_check,
     confidence = 0.9
     kwargs = dict(num_particles=300, confidence=confidence, min_particles=n_check, chunk_size=30)
     planner = MonteCarloPlanner(model, f, q, basis, **kwargs)
-    samples = _record(planner, "_project")
-    planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(3))
-    r = torch.cat(samples)[:n_check].numpy()
+    # the rewards the early-terminating decision draws: chunks of 30 from the same generator
+    shared = planner._shared(planner._check_belief(belief))
+    gen = torch.Generator().manual_seed(3)
+    r = torch.cat([planner._project(shared, 30, gen, False) for _ in range(n_check // 30)])
+    r = r.numpy()
     half = stats.t.ppf((1 + confidence) / 2, n_check - 1) * r.std(ddof=1) / math.sqrt(n_check)
     best = float(_stop_value(basis, q, current))
     for factor, stops in ((1 + 1e-6, True), (1 - 1e-6, False)):
