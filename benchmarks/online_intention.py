@@ -19,7 +19,9 @@ per movement), Dz = 15, Dx = 4, linear measurement kernel, K = 25 grid values, o
   ``floor [ms/stream]`` (the step's operation count, :meth:`OnlineIntentionFilter.operations`,
   at this device's rates: a large GEMM and a large exponential timed in this process, recorded
   in ``meta["rates"]``), ``x floor`` (time over floor) and ``peak MB/stream`` (peak allocation
-  of one update over B); each path at its own default chunk of streams;
+  of one update over B); each path at its own default chunk of streams; at the largest B also
+  ``marginal KB/stream``, what each further stream adds to the peak (the peaks at 2B and B
+  apart, over B): the rest of the peak is the fixed working set of one chunk of streams;
 - ``streams at 30 Hz`` by path: the largest B whose whole update fits in 33 ms;
 - ``online sparse M``: the sparse pseudo-input transition (Sec. 3.3.3; M pseudo-inputs on
   ``round(sqrt(M))`` intention values), one stream and B = 256 streams (``x exact loop``: the
@@ -167,21 +169,38 @@ def on_path(path: str) -> Iterator[None]:
         yield
 
 
-def path_row(opts: Options, rates: Rates, model, grid, streams, B: int, path: str) -> dict:
+def _peak(opts: Options, model, grid, streams, B: int) -> int:
+    """Peak bytes of the fifth update of a filter of B streams (as :func:`path_row` takes it)."""
+    z = streams[torch.arange(B, device=streams.device) % len(streams)]
+    f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
+    for t in range(4):
+        f.update(z[:, t])
+    return peak_bytes(lambda: f.update(z[:, 4]), opts.device)
+
+
+def path_row(
+    opts: Options, rates: Rates, model, grid, streams, B: int, path: str, marginal: bool = False
+) -> dict:
     """The online update of B streams on one psi2 path (:func:`paths`): ms per stream, its floor
     (the step's operation count at this device's rates) and the peak memory of one update per
-    stream."""
+    stream; with ``marginal``, also what each further stream adds to that peak (the peaks of 2B
+    and B streams apart, over B): the peak of B streams is the fixed working set of one chunk of
+    streams plus B times this."""
     z = streams[torch.arange(B, device=streams.device) % len(streams)]
     with on_path(path):
         f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
-        per_stream = _update_ms(opts, f, z) / B
+        per_stream = _update_ms(opts, f, z) / B  # the initial and three timed updates
         peak = peak_bytes(lambda: f.update(z[:, 4]), opts.device)
         floor = rates.floor_ms(f.operations())
-    return {
-        "algorithm": "online batched", "path": path, "B": B,
-        "p50 [ms/obs/stream]": per_stream, "floor [ms/stream]": floor,
-        "x floor": per_stream / floor, "peak MB/stream": peak / B / 1e6,
-    }  # fmt: skip
+        row = {
+            "algorithm": "online batched", "path": path, "B": B,
+            "p50 [ms/obs/stream]": per_stream, "floor [ms/stream]": floor,
+            "x floor": per_stream / floor, "peak MB/stream": peak / B / 1e6,
+        }  # fmt: skip
+        if marginal:
+            double = _peak(opts, model, grid, streams, 2 * B)
+            row["marginal KB/stream"] = (double - peak) / B / 1e3
+    return row
 
 
 def streams_at(opts: Options, model, grid, streams, path: str, budget_ms: float = 1e3 / 30):
@@ -238,6 +257,7 @@ def run(opts: Options) -> ResultTable:
             "floor [ms/stream]",
             "x floor",
             "peak MB/stream",
+            "marginal KB/stream",
             "streams at 30 Hz",
             "loop [ms/stream]",
             "x loop",
@@ -280,7 +300,7 @@ def run(opts: Options) -> ResultTable:
         for path in timed:
             if path == "materialised" and B > 1024:  # 2 streams per chunk: minutes per update
                 continue
-            row = path_row(opts, rates, model, grid, streams, B, path)
+            row = path_row(opts, rates, model, grid, streams, B, path, B == sizes[-1])
             if path == timed[0] and B <= loop_max:
                 exact_loop[B] = loop = loop_ms(opts, model, grid, streams, B)
                 row.update({"loop [ms/stream]": loop, "x loop": loop / row["p50 [ms/obs/stream]"]})
