@@ -27,8 +27,9 @@ particle starts from the same belief, so the K per-intention predictions ``q(x_{
 their moment-matched joints with ``z_{t+1}`` are computed once per decision. A particle differs
 only by its observation, and conditioning a Gaussian on it is linear:
 ``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)`` with a shared covariance ``P_g - C_g S_g^-1 C_g^T``
-and the evidence ``log N(z^i | m^z_g, S_g)``. All particles of a chunk are advanced in one
-batched update of ``[I, K]`` small matrices.
+and the evidence ``log N(z^i | m^z_g, S_g)``. All particles of a chunk (without early
+termination, of the decision) are advanced in one batched update, stored with the particles
+last.
 
 Particles draw ``z^i`` either from the moment-matched ``N(m^z_g, S_g)`` (``sampling="moments"``,
 the fast default, consistent with the filter's own approximation) or literally as Algorithm 4.2
