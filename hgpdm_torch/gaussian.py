@@ -381,11 +381,13 @@ def mixture_moments(
         raise ValueError(f"covs must have shape [..., {k}, {d}, {d}], got {tuple(covs.shape)}")
     if cross is not None and (cross.dim() < 3 or cross.shape[-3] != k or cross.shape[-1] != d):
         raise ValueError(f"cross must have shape [..., {k}, Du, {d}], got {tuple(cross.shape)}")
-    if weights.dim() <= 2 and means.dim() == 3 and means.stride(0) == 1 < means.shape[0]:
-        # a batch stored innermost (a [K, D, I] tensor seen as [I, K, D], as the planner's
-        # particles): the same sums over [K, D, I] run over I contiguous entries (87 against 270
-        # us for the product below at I = 500, K = 25, D = 3)
-        p, mu = weights.movedim(-1, 0), means.permute(1, 2, 0)
+    batch_last = weights.dim() == 2 and means.dim() == 3 and means.shape[0] > 1
+    if batch_last and weights.stride(0) == 1 == means.stride(0) and weights.shape[0] > 1:
+        # weights and means both stored with the batch innermost ([K, I] and [K, D, I] seen as
+        # [I, K] and [I, K, D], as the planner's particles): the same sums over [K, D, I] run
+        # over I contiguous entries (87 against 270 us for the product below at I = 500, K =
+        # 25, D = 3); any other layout takes the product
+        p, mu = weights.T, means.permute(1, 2, 0)
         m = (p[:, None] * mu).sum(0)
         diff = mu - m
         S = ((p[:, None] * diff)[:, :, None] * diff[:, None]).sum(0).permute(2, 0, 1)

@@ -634,5 +634,5 @@ class SharedTransition:
         else:
             madds += 2 * n * n + K * U * dx * n + K * dx * dx * n
         if self.phase:  # each point's phase factor, and its use in psi1, E[grad k], the exponent
-            return OpCount(exps=n * n + 2 * n, madds=madds + n * (dx + 5))
+            return OpCount(exps=n * n + 2 * n, madds=madds + n * (dx * cross + 5))
         return OpCount(exps=n * n + n, madds=madds)

@@ -217,6 +217,16 @@ def test_mixture_moments_brute_force(generator, with_covs, batch_last):
     if batch_last:
         w, means = w.T.contiguous().T, means.permute(1, 2, 0).contiguous().permute(2, 0, 1)
         assert means.stride(0) == 1 and w.stride(0) == 1
+        # weights shared by the batch ([K], [1, K]; K == D, so a misaligned broadcast would
+        # not raise) and one batch member stored the same way: the product's results
+        wk = torch.softmax(torch.randn(D, generator=generator), -1)
+        mk = torch.randn(D, D, B, generator=generator).permute(2, 0, 1)
+        pairs = [(wb, mk, wb, mk.contiguous()) for wb in (wk, wk[None])]
+        pairs.append((w[:1], means[:1], w[:1].contiguous(), means[:1].contiguous()))
+        for wa, ma, wb, mb in pairs:
+            got, want = G.mixture_moments(wa, ma), G.mixture_moments(wb, mb)
+            for a, b in zip(got, want, strict=True):
+                torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
     covs = _spd(generator, B, K, D) if with_covs else None
     cross = torch.randn(B, K, Du, D, generator=generator)
     mean, cov, cr = G.mixture_moments(w, means, covs, cross)

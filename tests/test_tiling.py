@@ -267,7 +267,9 @@ def test_operation_counts_cover_the_work(generator, monkeypatch):
     assert cross is None and torch.equal(mean, full[0]) and torch.equal(cov, full[1])
     fewer = counter.get_total_flops() / 2 / 4
     assert lean.exps == count.exps and 0.8 * lean.madds < fewer < lean.madds < count.madds
-    assert count.madds - lean.madds > 0.5 * (products - fewer)
+    # the count's difference has the expected gradient's triangular solve too, which the flop
+    # counter does not see (measured 1.5 times the products' difference)
+    assert products - fewer < count.madds - lean.madds < 2 * (products - fewer)
     if native.available():  # the compiled kernel's own algebra: fewer multiply-adds
         with FlopCounterMode(display=False) as counter:
             fast.moments(mu, S)

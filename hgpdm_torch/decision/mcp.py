@@ -28,8 +28,8 @@ their moment-matched joints with ``z_{t+1}`` are computed once per decision. A p
 only by its observation, and conditioning a Gaussian on it is linear:
 ``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)`` with a shared covariance ``P_g - C_g S_g^-1 C_g^T``
 and the evidence ``log N(z^i | m^z_g, S_g)``. All particles of a chunk (without early
-termination, of the decision) are advanced in one batched update, stored with the particles
-last.
+termination, up to :data:`BATCH` or ``chunk_size`` of them) are advanced in one batched
+update, stored with the particles last.
 
 Particles draw ``z^i`` either from the moment-matched ``N(m^z_g, S_g)`` (``sampling="moments"``,
 the fast default, consistent with the filter's own approximation) or literally as Algorithm 4.2
@@ -85,8 +85,10 @@ __all__ = [
 ]
 
 #: the most particles drawn and advanced at once where no interval is checked between chunks
-#: (``early_stop=False``, :meth:`MonteCarloPlanner.project`): its largest temporary, the drawn
-#: components' Cholesky factors ``[BATCH, Dz, Dz]``, is 7.4 MB at Dz = 15 in float64
+#: (``early_stop=False``, :meth:`MonteCarloPlanner.project`) on a CPU, unless ``chunk_size`` is
+#: larger: its largest temporaries, the drawn components' Cholesky factors ``[BATCH, Dz, Dz]``
+#: and the mixture's products ``[K, Dx, Dx, BATCH]``, are 7.4 MB each at Dz = 15, K = 25, Dx = 3
+#: in float64
 BATCH = 4096
 
 #: how a particle of the next belief is valued (module docstring): ``"lspi"``, the best LSPI
@@ -543,8 +545,8 @@ class MonteCarloPlanner(ParticleProjector):
         min_particles: particles drawn before the interval is first checked.
         chunk_size: particles drawn at once where the interval is checked, after each chunk;
             without early termination (``early_stop=False``, :meth:`project`) up to
-            :data:`BATCH` particles are drawn and advanced at once (other draws than a chunked
-            run's from the same generator).
+            :data:`BATCH` particles, or ``chunk_size`` if larger, are drawn and advanced at once
+            (other draws than a chunked run's from the same generator).
         sampling: as for :class:`ParticleProjector`.
         vectorize: ``(mean, cov, prob) -> [..., F]`` belief vectors that ``features`` takes
             (default :func:`~hgpdm_torch.decision.stopping.belief_vector`, the thesis's).
@@ -591,13 +593,14 @@ class MonteCarloPlanner(ParticleProjector):
         floor's count, without early termination).
 
         Shared by the particles: the K transition moments of the belief (the filter's
-        ``transition.operations()``), the measurement's moments at the K predictions (``Dx^2
-        (Dz + 2) + Dz^2 Dx`` each through the filter's
+        ``transition.operations(cross=False)``), the measurement's moments at the K predictions
+        (``Dx^2 (Dz + 2) + Dz^2 Dx`` each through the filter's
         :class:`~hgpdm_torch.inference.intention.measurement.LinearMeasurement`, else the GP's,
         :func:`~hgpdm_torch.moments.input_operations`), their Cholesky factors, gains and
         precisions (``K (Dz^3 / 2 + Dz^2 Dx + Dz Dx^2)``). Per particle: the drawn observation
-        (``Dz^2``), its conditioning on all K (``Dz^2`` for ``y y^T``, ``Dz K (Dx + Dz + 1)``
-        for the means and quadratic forms), the belief and mixture
+        (``Dz^2``), its conditioning on all K (``P = Dz (Dz + 1) / 2`` pair products ``y_a
+        y_b``, ``K Dx Dz`` for the means, ``K (P + Dz)`` for the quadratic forms), the belief
+        and mixture
         (``2 K Dx^2 + K Dx``, ``K`` exponentials), the features (``features.operations(1)``
         where the feature map has one, e.g.
         :meth:`~hgpdm_torch.decision.basis.RadialBasis.operations`) and the values
@@ -618,7 +621,8 @@ class MonteCarloPlanner(ParticleProjector):
         count = getattr(self.features, "operations", None)
         features = count(1) if callable(count) else OpCount()
         a, phi = self.q.weights.shape
-        madds = 2 * dz * dz + dz * K * (dx + dz + 1) + 2 * K * dx * dx + K * dx
+        pairs = dz * (dz + 1) // 2
+        madds = dz * dz + pairs + K * (dx * dz + pairs + dz) + 2 * K * dx * dx + K * dx
         one = OpCount(exps=K, madds=madds)
         return shared + (one + features + OpCount(madds=phi * a)) * num
 
@@ -626,10 +630,11 @@ class MonteCarloPlanner(ParticleProjector):
         self, shared: _Shared, num: int, generator: torch.Generator | None, can_wait_next: bool
     ) -> torch.Tensor:
         """Values ``[num]`` of ``num`` particles, drawn and advanced in batches of up to
-        :data:`BATCH` particles (at I = 500 one batch takes 0.7 of the time of five of 100:
-        their small operations' overhead)."""
-        if num > BATCH:
-            sizes = [min(BATCH, num - start) for start in range(0, num, BATCH)]
+        :data:`BATCH` (or ``chunk_size``, if larger) particles (at I = 500 one batch takes 0.7
+        of the time of five of 100: their small operations' overhead)."""
+        batch = max(BATCH, self.chunk_size)  # an accelerator's chunk may be all particles
+        if num > batch:
+            sizes = [min(batch, num - start) for start in range(0, num, batch)]
             return torch.cat([self._project(shared, n, generator, can_wait_next) for n in sizes])
         mean, cov, log_prob = self._particles(shared, num, generator)
         values = self.q.values(self.features(self.vectorize(mean, cov, log_prob.exp())))
@@ -644,8 +649,8 @@ class MonteCarloPlanner(ParticleProjector):
 
         Args:
             belief: the current belief.
-            num: particles (default ``num_particles``), drawn and advanced up to :data:`BATCH`
-                at a time.
+            num: particles (default ``num_particles``), drawn and advanced in batches of up to
+                :data:`BATCH` (or ``chunk_size``, if larger).
             generator: random generator.
             can_wait_next: whether the next step may wait too.
 

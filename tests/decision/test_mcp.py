@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from scipy import stats
+from torch.utils.flop_counter import FlopCounterMode
 
 from hgpdm_torch import settings
 from hgpdm_torch.decision.basis import RadialBasis
@@ -507,3 +508,24 @@ def test_planner_does_not_depend_on_the_default_dtype(model, pipeline):
         torch.set_default_dtype(before)
     for a, b in zip(expected, got, strict=True):
         assert a.dtype == b.dtype and torch.equal(a, b)
+
+
+def test_operation_count_covers_the_particles_products(model, pipeline):
+    """The floor's per-particle count (``operations``, less the features and the values)
+    against the multiply-adds of the particles' matrix products (``torch.utils.flop_counter``:
+    the drawn observation, the gains, the quadratic forms and the covariances), most of their
+    work; an overcount, such as all Dz^2 pair products counted, fails the upper bound."""
+    f, basis, q, states = pipeline
+    planner = MonteCarloPlanner(model, f, q, basis)
+    shared = planner._shared(planner._check_belief(_belief(states, 2, 1)))
+    n = 400
+    with FlopCounterMode(display=False) as counter:
+        planner._particles(shared, n, torch.Generator().manual_seed(0))
+    products = counter.get_total_flops() / 2 / n
+    one = planner.operations(n + 1).madds - planner.operations(n).madds
+    particle = one - basis.operations(1).madds - q.weights.numel()
+    # what the counter does not see: the pair products y_a y_b and the mixture's elementwise
+    # sums (the mean and the spread), exactly
+    k, dx, dz = f.num_values, f.mu0.shape[0], f.obs_dim
+    assert products == particle - (dz * (dz + 1) // 2 + k * dx * dx + k * dx)
+    assert products > 0.75 * particle
