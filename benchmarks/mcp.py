@@ -8,9 +8,9 @@ Setting: an IDDM (continuous target g, Dx = 3, linear measurement kernel, Dz = 1
 table-tennis opponent's observations) on ``targeted_movements`` with N transition points, not
 fitted (timings do not depend on the fit); the online filter on a K = 25 grid; stopping values
 from LSPI on the filtered training movements with rewards by the target's region (three
-movements). Decisions are timed on the training beliefs, float64, one thread, best of a few
-repeats of the mean over the states. ``cpu`` columns are the process CPU time, which on a shared
-machine is closer to what an idle core gives than the wall time:
+movements). Decisions are timed on the training beliefs, float64, one thread, best of 7 repeats
+(3 at GPU sizes) of the mean over the states. ``cpu`` columns are the process CPU time, which on
+a shared machine is closer to what an idle core gives than the wall time:
 
 - ``shared``: the per-decision work every particle shares (K moment-matched predictions and
   their joints with z);

@@ -73,8 +73,8 @@ def log_density_terms(
 
     With ``maha = (x - m)^T S^-1 (x - m)`` and ``logdet = log|S|`` this is ``log N(x; m, S)``;
     with the expected Mahalanobis term ``E_q[maha]`` it is ``E_q[log N(x; m, S)]``. For callers
-    that obtain the Mahalanobis term in their own way (whitened innovations shared by many
-    particles, a low-rank measurement update).
+    that obtain the Mahalanobis term in their own way (quadratic forms in many particles'
+    innovations with shared factors, a low-rank measurement update).
 
     Shapes: ``maha [...]``, ``logdet [...]`` (broadcast) -> ``[...]``; ``dim`` the dimension D.
     """

@@ -202,7 +202,6 @@ class _Shared:
     centre: torch.Tensor  # [Dz]  sum_k p_k m^z_k
     gain: torch.Tensor  # [K Dx, Dz]  (C S^-1)_k stacked
     gain_offset: torch.Tensor  # [K Dx, 1]  m_k - C_k S_k^-1 d_k  (d_k = m^z_k - centre)
-    pairs: tuple[torch.Tensor, torch.Tensor]  # the Dz (Dz + 1) / 2 index pairs a <= b
     quad: torch.Tensor  # [K, Dz (Dz + 1) / 2 + Dz]  S_k^-1 over the pairs (off-diagonal twice),
     #                     then -2 S_k^-1 d_k
     quad_offset: torch.Tensor  # [K, 1]  d_k^T S_k^-1 d_k
@@ -425,7 +424,6 @@ class ParticleProjector:
             centre=centre,
             gain=gain_t.mT.reshape(-1, dz),
             gain_offset=(mean - (d[:, None, :] @ gain_t)[:, 0]).reshape(-1, 1),
-            pairs=self._pairs,
             quad=torch.cat([upper, -2.0 * pd], -1),
             quad_offset=(pd * d).sum(-1, keepdim=True),
             post_cov=post_cov,
@@ -508,7 +506,7 @@ class ParticleProjector:
             z = z.masked_fill(missing[:, None], 0.0)
         y = (z - shared.centre).T.contiguous()  # [Dz, I]
         mu = torch.addmm(shared.gain_offset, shared.gain, y).view(K, dx, num)  # filtered means
-        a, b = shared.pairs
+        a, b = self._pairs  # the Dz (Dz + 1) / 2 channel pairs a <= b
         quadratic = torch.cat([y.index_select(0, a) * y.index_select(0, b), y])
         maha = torch.addmm(shared.quad_offset, shared.quad, quadratic).clamp_min_(0.0)  # [K, I]
         evidence = log_density_terms(maha, shared.z_logdet[:, None], dz).T
