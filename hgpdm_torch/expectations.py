@@ -97,6 +97,7 @@ __all__ = [
     "psi1",
     "psi2",
     "rbf_psi2_exponent",
+    "rbf_psi2_quadratic",
     "register_leaves",
     "split_terms",
     "term_k",
@@ -379,45 +380,66 @@ def _x_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -> 
     return mu[..., :, None] * p1[..., None, :] + Sigma @ grad
 
 
+def rbf_psi2_quadratic(
+    a: Term, b: Term, Sigma: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The RBF x RBF ``log psi2`` as one quadratic form in the two points' offsets ``d = X - mu``
+    (module docstring's closed form)::
+
+        log psi2_ij = d_i^T H d_j + d_i^T M_a d_i + d_j^T M_b d_j + c
+
+    with ``D_a = diag(w_a / s)``, ``D_b = diag(w_b / s)``, ``C = I - B^-1``: ``H = D_a C D_b``,
+    ``M_a = (D_a C D_a - W_a) / 2``, ``M_b = (D_b C D_b - W_b) / 2`` and ``c = log(coef_a coef_b)
+    - log|B| / 2``. Everything that depends on the input Gaussian but not on the points, so that
+    the ``N``-sized work is the forms themselves (:func:`rbf_psi2_exponent` in torch, the compiled
+    kernel of :mod:`hgpdm_torch.native` in registers).
+
+    Shapes: ``Sigma [..., D, D]`` -> ``H``, ``M_a``, ``M_b`` ``[..., D, D]`` and ``c [...]``
+    (``M_b`` is ``M_a`` where ``b is a``).
+    """
+    s, L, logdet = _rbf_factor(a.weight + b.weight, Sigma)
+    inv_s = torch.where(s > 0, 1.0 / torch.where(s > 0, s, torch.ones_like(s)), torch.zeros_like(s))
+    C = -torch.cholesky_inverse(L)  # I - B^{-1}, PSD with eigenvalues in [0, 1)
+    C.diagonal(dim1=-2, dim2=-1).add_(1.0)
+    da = a.weight * inv_s
+    H_a = da[..., :, None] * C * da[..., None, :]
+    M_a = 0.5 * (H_a - torch.diag_embed(a.weight))
+    const = torch.log(a.coef * b.coef) - 0.5 * logdet
+    if b is a:
+        return H_a, M_a, M_a, const
+    db = b.weight * inv_s
+    M_b = 0.5 * (db[..., :, None] * C * db[..., None, :] - torch.diag_embed(b.weight))
+    return da[..., :, None] * C * db[..., None, :], M_a, M_b, const
+
+
 def rbf_psi2_exponent(
     a: Term,
     b: Term,
     mu: torch.Tensor,
     Sigma: torch.Tensor,
     X: torch.Tensor,
-    *,
-    out: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The RBF x RBF ``psi2`` block as ``exp(left @ right)`` (module docstring's closed form).
+    """The RBF x RBF ``psi2`` block as ``exp(left @ right)`` (:func:`rbf_psi2_quadratic`).
 
     Shapes: ``mu [..., D]``, ``Sigma [..., D, D]``, ``X [..., N, D]`` -> ``left [..., N, D+2]``
-    and ``right [..., D+2, N]``, with ``(left @ right)_ij = log psi2_ij = row_i + col_j +
-    uC_i . v_j``: the whole exponent as one product with a small inner dimension, so that the
+    and ``right [..., D+2, N]``: ``left_i = [d_i^T H, row_i, 1]``, ``right_j = [d_j; 1; col_j]``
+    with ``row_i = d_i^T M_a d_i + c`` and ``col_j = d_j^T M_b d_j``, so ``(left @ right)_ij =
+    log psi2_ij``: the whole exponent as one product with a small inner dimension, so that the
     ``N x N`` work is one matmul and one exponential, whether the block is stored
     (:func:`term_psi2`) or reduced tile by tile (:mod:`hgpdm_torch.tiling`). ``right`` is built
-    contiguous (a transposed view makes the small-inner-dimension matmul 2-3x slower). ``out``:
-    two tensors of those shapes to write them into (e.g. reused buffers, not under autograd).
+    contiguous (a transposed view makes the small-inner-dimension matmul 2-3x slower).
     """
-    s, L, logdet = _rbf_factor(a.weight + b.weight, Sigma)
-    inv_s = torch.where(s > 0, 1.0 / torch.where(s > 0, s, torch.ones_like(s)), torch.zeros_like(s))
+    H, M_a, M_b, const = rbf_psi2_quadratic(a, b, Sigma)
     d = X - mu[..., None, :]  # [..., N, D]
-    eye = torch.eye(s.shape[-1], dtype=Sigma.dtype, device=Sigma.device)
-    C = eye - torch.cholesky_inverse(L)  # I - B^{-1}, PSD with eigenvalues in [0, 1)
-    u = d * (a.weight * inv_s)
-    uC = u @ C
-    col = -0.5 * (d.pow(2) * a.weight).sum(-1) + 0.5 * (uC * u).sum(-1)
-    row = col + (torch.log(a.coef * b.coef) - 0.5 * logdet[..., None])
-    if b is not a:  # a psi2 across two terms (e.g. the parts of a sum kernel)
-        v = d * (b.weight * inv_s)
-        col = -0.5 * (d.pow(2) * b.weight).sum(-1) + 0.5 * ((v @ C) * v).sum(-1)
-    else:
-        v = u
-    one = torch.ones_like(row)
-    lefts = [uC, row[..., None], one[..., None]]
-    rights = [v.expand_as(uC).transpose(-1, -2), one[..., None, :], col[..., None, :]]
-    if out is None:
-        return torch.cat(lefts, -1), torch.cat(rights, -2)
-    return torch.cat(lefts, -1, out=out[0]), torch.cat(rights, -2, out=out[1])
+    D = d.shape[-1]
+    forms = [H, M_a] if M_b is M_a else [H, M_a, M_b]
+    dF = d @ torch.cat(forms, -1)  # [..., N, 2D or 3D]: d^T H, d^T M_a (, d^T M_b)
+    quad_a = (dF[..., D : 2 * D] * d).sum(-1)
+    quad_b = quad_a if M_b is M_a else (dF[..., 2 * D :] * d).sum(-1)
+    one = torch.ones_like(quad_a)
+    left = torch.cat([dF[..., :D], (quad_a + const[..., None])[..., None], one[..., None]], -1)
+    right = torch.cat([d.transpose(-1, -2), one[..., None, :], quad_b[..., None, :]], -2)
+    return left, right
 
 
 def _psi2_rbf_rbf(a: Term, b: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor):

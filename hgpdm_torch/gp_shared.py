@@ -36,6 +36,7 @@ from .expectations import (
     Term,
     kernel_leaves,
     rbf_psi2_exponent,
+    rbf_psi2_quadratic,
     split_terms,
     term_psi1,
     term_psi1_grad,
@@ -486,21 +487,16 @@ class SharedTransition:
         """
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         n, K = U * L, self.num_values
-        native_path = not torch.is_grad_enabled() and self._native_ready(mu)
-        out = None
-        if native_path:  # reused buffers: fresh MB-sized ones cost a page fault per 4 KB
-            size = b * n * (dx + 2)
-            out = (native.scratch(size, 3).view(b, n, dx + 2),
-                   native.scratch(size, 4).view(b, dx + 2, n))  # fmt: skip
-        left, right = rbf_psi2_exponent(self.term, self.term, mu, Sigma, self.inputs, out=out)
+        needs = (mu, Sigma, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
+        needs += () if log_phase is None else (log_phase,)
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
+        if not grad and self._native_ready(mu, Sigma):
+            trace, second = self._native_second(mu, Sigma, log_phase)
+            return trace, second - mean[..., :, None] * mean[..., None, :]
+        left, right = rbf_psi2_exponent(self.term, self.term, mu, Sigma, self.inputs)
         if log_phase is not None:  # psi2_ij times both points' phase factors: in the exponent
             left[..., dx] += log_phase  # the row term (left and right are this call's own)
             right[..., dx + 1, :] += log_phase  # the column term
-        needs = (left, right, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
-        grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
-        if not grad and self._native_ready(left):
-            trace, second = self._native_second(left, right)
-            return trace, second - mean[..., :, None] * mean[..., None, :]
         right = right[..., self.columns]
         size = per_tile(self.workspace(), mu.dtype, mu.device)
         # the inputs' gradient, or the GP's (a posterior with detach=False): differentiable tiles
@@ -521,15 +517,15 @@ class SharedTransition:
                 self._tile(left[rows], right[rows], out=(T[rows], second[rows]), bufs=bufs)
         return self._trace(T), second - mean[..., :, None] * mean[..., None, :]
 
-    def _native_ready(self, left: torch.Tensor) -> bool:
-        """Whether :meth:`_native_second` runs (:func:`hgpdm_torch.native.usable`, Dx within the
-        kernel's limit)."""
-        return self.dx <= native.MAX_D and native.usable(left, self.kinv)
+    def _native_ready(self, *inputs: torch.Tensor) -> bool:
+        """Whether :meth:`_native_second` runs on these inputs
+        (:func:`hgpdm_torch.native.usable`, Dx within the kernel's limit)."""
+        return self.dx <= native.MAX_D and native.usable(*inputs, self.kinv)
 
     def compiled(self) -> bool:
         """Whether :meth:`moments` runs on the compiled CPU kernel here (without gradients):
         float64 on a CPU where :mod:`hgpdm_torch.native` is available, Dx at most its limit."""
-        return self._native_ready(self.kinv)
+        return self._native_ready()
 
     @functools.cached_property
     def _native(self) -> _NativeLayout:
@@ -552,24 +548,28 @@ class SharedTransition:
         return _NativeLayout(cols, beta, betac, kinv.contiguous(), phi_t.contiguous(), up, pairs)
 
     def _native_second(
-        self, left: torch.Tensor, right: torch.Tensor
+        self, mu: torch.Tensor, Sigma: torch.Tensor, log_phase: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The traces ``[B, K]`` (:meth:`_trace`) and ``beta_k^T psi2 beta_k [B, K, Dx, Dx]`` by
-        the compiled kernel (:func:`hgpdm_torch.native.psi2_groups`) in one call.
+        the compiled kernel (:func:`hgpdm_torch.native.psi2_groups`) in one call, from each
+        stream's quadratic form (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic`): the
+        kernel builds the exponent's ``O(N Dx)`` factors itself, one stream at a time.
 
         The traces come from the kernel too (its ``out``'s last row), contracted as each row of
         ``T`` is complete.
         """
         lay = self._native
         K, (a, b) = self.num_values, lay.pairs
-        s, rows = left.shape[0], right.shape[-2]
-        gathered = native.scratch(s * rows * len(lay.cols), 5).view(s, rows, len(lay.cols))
-        right = torch.index_select(right, -1, lay.cols, out=gathered)
+        H, M_a, M_b, const = rbf_psi2_quadratic(self.term, self.term, Sigma)
+        forms = torch.stack([H, M_a, M_b], -3).expand(mu.shape[0], 3, self.dx, self.dx)
         _, out = native.psi2_groups(
-            left, right, lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups
-        )
+            self.inputs, lay.cols, mu.contiguous(), forms.contiguous(),
+            const.expand(mu.shape[0]).contiguous(),
+            None if log_phase is None else log_phase.contiguous(),
+            lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups,
+        )  # fmt: skip
         sums = out[:, :-1, :K].transpose(1, 2)  # [B, K, pairs]
-        second = left.new_empty(left.shape[0], K, self.dx, self.dx)
+        second = mu.new_empty(mu.shape[0], K, self.dx, self.dx)
         second[:, :, a, b] = sums
         second[:, :, b, a] = sums
         return out[:, -1, :K].clone(), second

@@ -156,7 +156,7 @@ def _library() -> ctypes.CDLL | None:
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.hgpdm_exp_f64.argtypes = [i64, ptr]
     lib.hgpdm_exp_f64.restype = None
-    lib.hgpdm_psi2_groups_f64.argtypes = [i64] * 7 + [ptr] * 9
+    lib.hgpdm_psi2_groups_f64.argtypes = [i64] * 6 + [ptr] * 13
     lib.hgpdm_psi2_groups_f64.restype = ctypes.c_int
     return lib
 
@@ -219,24 +219,35 @@ def exp_(t: torch.Tensor) -> torch.Tensor:
 
 
 def psi2_groups(
-    left: torch.Tensor,
-    right: torch.Tensor,
+    points: torch.Tensor,
+    cols: torch.Tensor,
+    mu: torch.Tensor,
+    forms: torch.Tensor,
+    const: torch.Tensor,
+    log_phase: torch.Tensor | None,
     beta: torch.Tensor,
     betac: torch.Tensor,
     kinv: torch.Tensor,
     phi_t: torch.Tensor,
     groups: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Group sums of ``psi2 = exp(left @ right)`` against ``K^-1``, and its weighted second
-    moments for every grid value, per stream (``native_psi2.c``).
+    """Group sums of ``psi2`` against ``K^-1``, and its weighted second moments for every grid
+    value, per stream (``native_psi2.c``), with ``log psi2_ij = d_i^T H d_j + d_i^T M_a d_i +
+    d_j^T M_b d_j + c + lp_i + lp_j`` and ``d = x - mu``
+    (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic`, plus the log phase factors ``lp``).
 
     Args:
-        left: ``[S, N, C]``, rows (points) in group order ``(u, l)``, ``N = U L``.
-        right: ``[S, C, Np]``, columns in the order ``(m, v)`` with v padded to ``Up`` (a
-            multiple of 8), ``Np = L Up``: column ``m Up + v`` is point ``(v, m)``.
+        points: ``[N, D]`` the points, in group order ``(u, l)``, ``N = U L``.
+        cols: ``[Np]`` int64, the point of each column; columns in the order ``(m, v)`` with v
+            padded to ``Up`` (a multiple of 8), ``Np = L Up``: column ``m Up + v`` is point
+            ``(v, m)`` (a padding column names any point: its weights are 0).
+        mu: ``[S, D]`` each stream's input mean.
+        forms: ``[S, 3, D, D]`` each stream's ``H``, ``M_a`` and ``M_b``.
+        const: ``[S]`` each stream's ``c``.
+        log_phase: ``[S, N]`` each point's log phase factor per stream, or ``None``.
         beta: ``[N, D]`` each point's weights (``D <= MAX_D``).
         betac: ``[D, Np]`` the weights of each column's point (0 at padding columns).
-        kinv: ``[N, Np]`` ``K^-1`` (rows as ``left``, columns as ``right``; 0 at padding).
+        kinv: ``[N, Np]`` ``K^-1`` (rows as ``points``, columns as ``cols``; 0 at padding).
         phi_t: ``[Up, Kp]`` ``phi[k, v]`` of grid value k and group v (0 at padding v and at
             ``k >= K``; Kp a multiple of 8).
         groups: U.
@@ -251,8 +262,8 @@ def psi2_groups(
         is complete: in torch, a small-inner-dimension product over ``S U`` rows had cost a
         tenth of the filter's update).
     """
-    s, n, c = left.shape
-    d, np_, kp = beta.shape[1], right.shape[2], phi_t.shape[1]
+    n, d = points.shape
+    s, np_, kp = mu.shape[0], cols.shape[0], phi_t.shape[1]
     U = groups
     L = n // U if U else 0
     if not U or n % U or np_ % L or (np_ // L) % 8 or kp % 8 or not 1 <= d <= MAX_D:
@@ -261,10 +272,19 @@ def psi2_groups(
             f"multiples of 8 and 1 <= D <= {MAX_D}; got N = {n}, U = {U}, Np = {np_}, Kp = {kp}, "
             f"D = {d}"
         )
+    if cols.dtype != torch.int64 or cols.device.type != "cpu" or not cols.is_contiguous():
+        raise TypeError(f"cols must be a contiguous int64 CPU tensor, got {cols.dtype}")
+    low, high = torch.aminmax(cols)  # an index out of range would read outside points
+    if int(low) < 0 or int(high) >= n:
+        raise ValueError(f"cols must index the {n} points, got values in [{int(low)}, {int(high)}]")
     up, pairs = np_ // L, d * (d + 1) // 2
     ptrs = [
-        _check("left", left, (s, n, c)),
-        _check("right", right, (s, c, np_)),
+        _check("points", points, (n, d)),
+        cols.data_ptr(),
+        _check("mu", mu, (s, d)),
+        _check("forms", forms, (s, 3, d, d)),
+        _check("const", const, (s,)),
+        None if log_phase is None else _check("log_phase", log_phase, (s, n)),
         _check("beta", beta, (n, d)),
         _check("betac", betac, (d, np_)),
         _check("kinv", kinv, (n, np_)),
@@ -273,12 +293,12 @@ def psi2_groups(
     # outputs and work space in this thread's scratch buffers: valid until its next call
     T = scratch(s * U * up, 0).view(s, U, up)
     out = scratch(s * (pairs + 1) * kp, 1).view(s, pairs + 1, kp)
-    work = scratch((d + 1) * np_ + pairs * up, 2)
+    work = scratch((d + 1) * np_ + pairs * up + (d + 2) * (n + np_), 2)
     lib = _library()
     if lib is None:
         raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
     if s:
         lib.hgpdm_psi2_groups_f64(
-            s, U, L, up, c, d, kp, *ptrs, T.data_ptr(), out.data_ptr(), work.data_ptr()
+            s, U, L, up, d, kp, *ptrs, T.data_ptr(), out.data_ptr(), work.data_ptr()
         )
     return T, out

@@ -11,9 +11,10 @@
        and in the row after the pairs the trace out[s, P, k] = sum_{u, v} phi[k, u] phi[k, v]
        T[s, u, v] (tr(K^-1 psi2) of value k), contracted as each row of T is complete,
      psi2[s] = exp(left[s] @ right[s]) evaluated eight columns of one group's rows at a time in
-     registers and never stored: one pass over the N x N block instead of the exponential, the
-     weighted sums and the K^-1 product each reading and writing it; S of one group is contracted
-     with phi while it is in the L1 cache.
+     registers and never stored (left and right, O(N D) per stream, are built from the stream's
+     quadratic form in the work space): one pass over the N x N block instead of the
+     exponential, the weighted sums and the K^-1 product each reading and writing it; S of one
+     group is contracted with phi while it is in the L1 cache.
 
    Layout: points (training inputs) in group order (u, l), N = U L (padding points have zero
    weights). The columns are in the order (m, v), v padded to Up (a multiple of 8), Np = L Up:
@@ -164,18 +165,62 @@ static void contract(int64_t P, int64_t Up, int64_t Kp, const double *Su, const 
         }
 }
 
-INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, int64_t C,
-                        int64_t Kp, const double *left, const double *right, const double *beta,
+/* The exponent of psi2 for one stream as left [N, C] @ right [C, Np] (C = D + 2), from the
+   quadratic form of hgpdm_torch.expectations.rbf_psi2_quadratic: with d = x - mu,
+   left_i = [d_i^T H, d_i^T Ma d_i + c + lp_i, 1] and right_j = [d_j; 1; d_j^T Mb d_j + lp_j] for
+   column j's point cols[j]; lp the log phase factors, or none. O((N + Np) D^2), in the work
+   space: no O(N) tensor per stream leaves the kernel. */
+INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const int64_t *cols,
+                     const double *mu, const double *Q, double c, const double *lp,
+                     double *left, double *right) {
+    const int C = D + 2;
+    const double *H = Q, *Ma = Q + D * D, *Mb = Q + 2 * D * D;
+    double d[MAX_D];
+    for (int64_t i = 0; i < N; ++i) {
+        for (int a = 0; a < D; ++a) d[a] = X[i * D + a] - mu[a];
+        double row = c + (lp ? lp[i] : 0.0);
+        for (int a = 0; a < D; ++a) {
+            double h = 0.0, m = 0.0;
+            for (int b = 0; b < D; ++b) {
+                h += d[b] * H[b * D + a];
+                m += d[b] * Ma[b * D + a];
+            }
+            left[i * C + a] = h;
+            row += m * d[a];
+        }
+        left[i * C + D] = row;
+        left[i * C + D + 1] = 1.0;
+    }
+    for (int64_t j = 0; j < Np; ++j) {
+        const int64_t p = cols[j];
+        for (int a = 0; a < D; ++a) d[a] = X[p * D + a] - mu[a];
+        double col = lp ? lp[p] : 0.0;
+        for (int a = 0; a < D; ++a) {
+            double m = 0.0;
+            for (int b = 0; b < D; ++b) m += d[b] * Mb[b * D + a];
+            col += m * d[a];
+            right[a * Np + j] = d[a];
+        }
+        right[D * Np + j] = 1.0;
+        right[(D + 1) * Np + j] = col;
+    }
+}
+
+INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, int64_t Kp,
+                        const double *X, const int64_t *cols, const double *mu, const double *Q,
+                        const double *c, const double *lp, const double *beta,
                         const double *betac, const double *kinv, const double *phiT, double *T,
                         double *out, double *work) {
-    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2;
-    double *acc = work, *prow = work + Np, *Su = prow + D * Np;
+    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, C = D + 2;
+    double *acc = work, *prow = work + Np, *Su = prow + D * Np, *left = Su + P * Up;
+    double *right = left + N * C;
     for (int64_t s = 0; s < S; ++s) {
-        const double *ls = left + s * N * C, *rs = right + s * C * Np;
+        exponent(D, N, Np, X, cols, mu + s * D, Q + s * 3 * D * D, c[s], lp ? lp + s * N : 0,
+                 left, right);
         double *os = out + s * (P + 1) * Kp, *Tu = T + s * U * Up;
         for (int64_t j = 0; j < (P + 1) * Kp; ++j) os[j] = 0.0;
         for (int64_t u = 0; u < U; ++u, Tu += Up) {
-            group_rows(D, L, C, Np, ls + u * L * C, rs, beta + u * L * D, kinv + u * L * Np,
+            group_rows(D, L, C, Np, left + u * L * C, right, beta + u * L * D, kinv + u * L * Np,
                        prow, acc);
             group_sums(D, L, Up, acc, prow, betac, Tu, Su);
             contract(P, Up, Kp, Su, phiT, phiT + u * Kp, os);
@@ -184,13 +229,15 @@ INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up
     }
 }
 
-/* Shapes (all C-contiguous float64): left [S, N, C] (rows (u, l)), right [S, C, Np],
-   beta [N, D], betac [D, Np], kinv [N, Np], phiT [Up, Kp] (phi[k, v]; zero at padding v and
-   k >= K, Kp a multiple of 8), T [S, U, Up], out [S, D (D + 1) / 2 + 1, Kp],
-   work [(D + 1) Np + D (D + 1) / 2 Up]. Returns 0, or 1 for D outside 1..MAX_D (nothing
-   written). */
-int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t C, int64_t D,
-                          int64_t Kp, const double *left, const double *right,
+/* Shapes (all C-contiguous; float64 but cols): X [N, D] the points in group order (u, l),
+   cols [Np] (int64, in 0 .. N - 1) the point of each column, mu [S, D], Q [S, 3, D, D] (H, Ma,
+   Mb), c [S], lp [S, N] or NULL, beta [N, D], betac [D, Np], kinv [N, Np], phiT [Up, Kp]
+   (phi[k, v]; zero at padding v and k >= K, Kp a multiple of 8), T [S, U, Up],
+   out [S, D (D + 1) / 2 + 1, Kp], work [(D + 1) Np + D (D + 1) / 2 Up + (D + 2) (N + Np)].
+   Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp,
+                          const double *X, const int64_t *cols, const double *mu,
+                          const double *Q, const double *c, const double *lp,
                           const double *beta, const double *betac, const double *kinv,
                           const double *phiT, double *T, double *out, double *work) {
     /* flush subnormal results and operands to zero: psi2 of far-apart points underflows, and
@@ -200,11 +247,11 @@ int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t C
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ */
     int status = 1;
     switch (D) {
-#define CASE(DD)                                                                        \
-    case DD:                                                                            \
-        all_streams(DD, S, U, L, Up, C, Kp, left, right, beta, betac, kinv, phiT, T, out, \
-                    work);                                                               \
-        status = 0;                                                                     \
+#define CASE(DD)                                                                              \
+    case DD:                                                                                  \
+        all_streams(DD, S, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, \
+                    work);                                                                     \
+        status = 0;                                                                           \
         break;
         CASE(1) CASE(2) CASE(3) CASE(4) CASE(5) CASE(6) CASE(7) CASE(8)
 #undef CASE

@@ -76,49 +76,67 @@ def test_exp_specials_and_tail():
     assert torch.equal(buf[13:], torch.zeros(3, dtype=torch.float64))
 
 
-def _problem(streams: int, U: int, L: int, D: int, K: int, gen: torch.Generator):
-    """Random inputs of :func:`native.psi2_groups` and the dense quantities they stand for."""
+def _problem(streams: int, U: int, L: int, D: int, K: int, gen: torch.Generator, phase=False):
+    """Random inputs of :func:`native.psi2_groups` and the dense quantities they stand for: the
+    exponent ``d_i^T H d_j + d_i^T M_a d_i + d_j^T M_b d_j + c + lp_i + lp_j`` formed whole."""
     n, up, kp = U * L, -(-U // 8) * 8, -(-K // 8) * 8
-    C = D + 2
-    left = 0.4 * torch.randn(streams, n, C, generator=gen, dtype=torch.float64)
-    right_points = 0.4 * torch.randn(streams, C, n, generator=gen, dtype=torch.float64)
-    A = torch.randn(n, n, generator=gen, dtype=torch.float64)
+    f64 = {"generator": gen, "dtype": torch.float64}
+    points = torch.randn(n, D, **f64)
+    mu = 0.5 * torch.randn(streams, D, **f64)
+    forms = 0.3 * torch.randn(streams, 3, D, D, **f64) / D
+    const = torch.randn(streams, **f64)
+    log_phase = -torch.rand(streams, n, **f64) if phase else None
+    A = torch.randn(n, n, **f64)
     kinv = A + A.T
-    beta = torch.randn(n, D, generator=gen, dtype=torch.float64)
-    phi = torch.rand(K, U, generator=gen, dtype=torch.float64)
+    beta = torch.randn(n, D, **f64)
+    phi = torch.rand(K, U, **f64)
     cols = torch.zeros(L, up, dtype=torch.long)
     cols[:, :U] = torch.arange(U)[None, :] * L + torch.arange(L)[:, None]
     real = torch.zeros(L, up, dtype=torch.bool)
     real[:, :U] = True
     cols, real = cols.reshape(-1), real.reshape(-1)
     args = (
-        left,
-        right_points[..., cols].contiguous(),
-        beta,
+        points, cols, mu, forms, const, log_phase, beta,
         (beta[cols] * real[:, None]).T.contiguous(),
         (kinv[:, cols] * real).contiguous(),
         torch.nn.functional.pad(phi.T, (0, kp - K, 0, up - U)).contiguous(),
         U,
-    )
-    return args, (left, right_points, kinv, beta, phi)
+    )  # fmt: skip
+    d = points - mu[:, None, :]  # [S, N, D]
+    H, Ma, Mb = forms.unbind(1)
+    terms = [
+        torch.einsum("sia,sab,sjb->sijab", d, H, d).flatten(-2),
+        torch.einsum("sia,sab,sib->siab", d, Ma, d).flatten(-2)[:, :, None].expand(-1, -1, n, -1),
+        torch.einsum("sja,sab,sjb->sjab", d, Mb, d).flatten(-2)[:, None].expand(-1, n, -1, -1),
+        const[:, None, None, None].expand(-1, n, n, 1),
+    ]
+    if log_phase is not None:
+        terms += [log_phase[:, :, None, None].expand(-1, -1, n, 1)]
+        terms += [log_phase[:, None, :, None].expand(-1, n, -1, 1)]
+    terms = torch.cat(terms, -1)  # [S, N, N, all terms of the exponent]
+    return args, (terms.sum(-1), terms.abs().sum(-1), kinv, beta, phi)
 
 
 @needs_kernel
-@pytest.mark.parametrize(("U", "L", "D", "K"), [(11, 3, 4, 5), (8, 4, 1, 13), (5, 2, 8, 9)])
-def test_group_sums_equal_the_dense_formulas(U, L, D, K):
-    """``T`` and the pairs of weighted second moments against ``E = exp(left @ right)`` formed
-    whole. Each sum differs from the exact one by at most (first order) ``eps`` times its sum of
-    absolute terms times: 2 ulp of the exponential and ``C max_ij sum_c |l_ic r_cj|`` of the
-    exponent, per side; and the length of the summation chains (the kernel adds L rows, then L
-    column blocks, then U and U groups; torch's sums are no longer)."""
+@pytest.mark.parametrize(
+    ("U", "L", "D", "K", "phase"),
+    [(11, 3, 4, 5, False), (8, 4, 1, 13, True), (5, 2, 8, 9, False), (9, 5, 3, 25, True)],
+)
+def test_group_sums_equal_the_dense_formulas(U, L, D, K, phase):
+    """``T`` and the pairs of weighted second moments against ``E = exp(exponent)`` formed whole
+    from its terms. Each sum differs from the exact one by at most (first order) ``eps`` times
+    its sum of absolute terms times: 2 ulp of the exponential and, per side, the exponent's
+    sum of absolute terms times its longest summation chain (``D`` products in ``d^T H``, then
+    ``D + 2`` columns, plus the two roundings of each offset ``d``: ``2 D + 4``); and the length
+    of the summation chains after it (the kernel adds L rows, then L column blocks, then U and
+    U groups; torch's sums are no longer)."""
     gen = torch.Generator().manual_seed(U * 100 + D)
-    args, (left, right, kinv, beta, phi) = _problem(3, U, L, D, K, gen)
+    args, (exponent, spread, kinv, beta, phi) = _problem(3, U, L, D, K, gen, phase)
     T, out = native.psi2_groups(*args)
     T, out = T.clone(), out.clone()
-    E = torch.exp(left @ right)
-    C, n = D + 2, U * L
-    spread = float((left.abs() @ right.abs()).max())
-    per_term = 2 * (2 + C * spread)
+    E = torch.exp(exponent)
+    n = U * L
+    per_term = 2 * (2 + (2 * D + 4) * float(spread.max()))
     block = (E * kinv).view(3, U, L, U, L).sum((2, 4))
     block_abs = (E * kinv).abs().view(3, U, L, U, L).sum((2, 4))
     assert bool(((T[..., :U] - block).abs() <= (per_term + 4 * L) * EPS * block_abs).all())
@@ -164,15 +182,23 @@ def test_threads_use_their_own_buffers():
 @needs_kernel
 def test_inputs_are_checked():
     args, _ = _problem(1, 9, 2, 2, 4, torch.Generator().manual_seed(1))
-    with pytest.raises(TypeError, match="left must be a contiguous float64 CPU tensor"):
+    with pytest.raises(TypeError, match="points must be a contiguous float64 CPU tensor"):
         native.psi2_groups(args[0].float(), *args[1:])
-    with pytest.raises(TypeError, match="right must be a contiguous"):
-        native.psi2_groups(args[0], args[1].transpose(1, 2).contiguous().transpose(1, 2), *args[2:])
+    with pytest.raises(TypeError, match="forms must be a contiguous"):
+        native.psi2_groups(*args[:3], args[3].transpose(2, 3), *args[4:])
+    with pytest.raises(TypeError, match="cols must be a contiguous int64"):
+        native.psi2_groups(args[0], args[1].int(), *args[2:])
+    beyond = args[1].clone()
+    beyond[-1] = 18  # one past the last point
+    with pytest.raises(ValueError, match=r"cols must index the 18 points, got values in \[0, 18\]"):
+        native.psi2_groups(args[0], beyond, *args[2:])
+    with pytest.raises(ValueError, match=r"log_phase must have shape \(1, 18\)"):
+        native.psi2_groups(*args[:5], torch.zeros(1, 17, dtype=torch.float64), *args[6:])
     with pytest.raises(ValueError, match="Up and Kp multiples of 8"):
         native.psi2_groups(*args[:-1], 6)
     wide = torch.zeros(18, 9, dtype=torch.float64)
     with pytest.raises(ValueError, match="1 <= D <= 8"):
-        native.psi2_groups(args[0], args[1], wide, wide.T.contiguous(), *args[4:])
+        native.psi2_groups(wide, *args[1:])
     with pytest.raises(TypeError, match="t must be a contiguous float64"):
         native.exp_(torch.zeros(3, dtype=torch.float32))
 

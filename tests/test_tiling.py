@@ -328,17 +328,38 @@ def test_gradients_through_a_posterior_that_keeps_its_graph(generator, gp_roundi
         torch.testing.assert_close(a, b, rtol=rel, atol=rel * float(b.abs().max()))
 
 
-def test_phase_path_has_gradients(generator, monkeypatch):
-    """gradcheck of a phase-aware shared transition (its phase factor in the exponent) in tiles
-    of one stream, recomputed in the backward pass."""
-    monkeypatch.setattr(tiling, "KEEP_FOR_BACKWARD_BYTES", 0)
+def _phase_transition(generator) -> tuple[GPPosterior, SharedTransition]:
+    """A phase-aware shared transition (its phase factor in psi2's exponent)."""
     kernel = transition_kernel("iddm_continuous", DX, alpha=(0.9, 0.4, 0.1, 1e-2),
                                phase_width=1.5)  # fmt: skip
     X = torch.randn(24, DX, generator=generator)
     G = torch.linspace(-1, 1, 6).repeat_interleave(4)[:, None]
     p = torch.arange(4.0).repeat(6)[:, None]
     post = GPPosterior(kernel, torch.cat([X, G, p], 1), torch.tanh(X), 1e-2)
-    fast = SharedTransition(post, torch.linspace(-1, 1, 3)[:, None], phase=True)
+    return post, SharedTransition(post, torch.linspace(-1, 1, 3)[:, None], phase=True)
+
+
+@pytest.mark.parametrize("path", ["tiles", "native"])
+def test_phase_paths_equal_materialised(path, generator, gp_rounding):
+    """With a phase factor per point and stream, the torch tiles and the compiled kernel (which
+    adds the log factors to its own exponent) give the materialised moments."""
+    if path == "native" and not native.available():
+        pytest.skip("the compiled kernel does not run here (native.available() is False)")
+    post, fast = _phase_transition(generator)
+    mu, S = _gaussians(3, DX, generator)
+    phase = torch.tensor([0.0, 2.0, 3.5])
+    with settings.moment_path("materialised"):
+        want = fast.moments(mu, S, phase)
+    with settings.native_kernels(path == "native"), torch.no_grad():
+        got = fast.moments(mu, S, phase)
+    _close(got, want, gp_rounding(post))
+
+
+def test_phase_path_has_gradients(generator, monkeypatch):
+    """gradcheck of a phase-aware shared transition (its phase factor in the exponent) in tiles
+    of one stream, recomputed in the backward pass."""
+    monkeypatch.setattr(tiling, "KEEP_FOR_BACKWARD_BYTES", 0)
+    _, fast = _phase_transition(generator)
     mu0, S0 = _gaussians(2, DX, generator)
     phase = torch.tensor([0.0, 2.0])
 
