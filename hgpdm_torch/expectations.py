@@ -96,6 +96,7 @@ __all__ = [
     "psi0_cross",
     "psi1",
     "psi2",
+    "rbf_psi1_quadratic",
     "rbf_psi2_exponent",
     "rbf_psi2_quadratic",
     "register_leaves",
@@ -304,14 +305,25 @@ def _rbf_factor(
     return s, L, logdet
 
 
+def rbf_psi1_quadratic(t: Term, Sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The RBF ``psi1`` as a quadratic form in the point's offset ``d = X - mu`` (module
+    docstring's closed form): ``psi1_i = coef exp(d_i^T P d_i + c)`` with ``P = -S B^-1 S / 2``
+    (``S = diag(s)``) and ``c = -log|B| / 2``; its gradient ``E[d/dx k(x, X_i)] = -2 psi1_i P
+    d_i``. Shapes: ``Sigma [..., D, D]`` -> ``P [..., D, D]`` and ``c [...]``.
+    """
+    s, L, logdet = _rbf_factor(t.weight, Sigma)
+    return -0.5 * s[..., :, None] * torch.cholesky_inverse(L) * s[..., None, :], -0.5 * logdet
+
+
 def _rbf_psi1_parts(
     t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    s, L, logdet = _rbf_factor(t.weight, Sigma)
-    sd = ((X - mu[..., None, :]) * s).transpose(-1, -2)  # [..., D, N]
-    y = torch.linalg.solve_triangular(L, sd, upper=False)
-    p1 = t.coef * torch.exp(-0.5 * (logdet[..., None] + y.pow(2).sum(-2)))
-    return p1, s, L, sd
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``psi1 [..., N]`` and ``P d_i`` as ``[..., D, N]`` (:func:`rbf_psi1_quadratic`), the points
+    along the last dim: the form's sum over D then runs over contiguous rows of N."""
+    P, c = rbf_psi1_quadratic(t, Sigma)
+    d = X.transpose(-1, -2) - mu[..., :, None]  # [..., D, N]
+    Pd = P @ d
+    return t.coef * torch.exp((Pd * d).sum(-2) + c[..., None]), Pd
 
 
 def term_psi1(t: Term, mu: torch.Tensor, Sigma: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
@@ -337,8 +349,8 @@ def term_psi1_grad(
     covariance of any variable jointly Gaussian with ``x``.
     """
     if t.kind == "rbf":
-        p1, s, L, sd = _rbf_psi1_parts(t, mu, Sigma, X)
-        return p1, p1[..., None, :] * s[:, None] * torch.cholesky_solve(sd, L)
+        p1, Pd = _rbf_psi1_parts(t, mu, Sigma, X)
+        return p1, -2.0 * p1[..., None, :] * Pd
     if t.kind == "quadrature":
         return quad.term_psi1_grad(t, mu, Sigma, X)
     p1 = term_psi1(t, mu, Sigma, X)

@@ -35,6 +35,7 @@ from .expectations import (
     Leaf,
     Term,
     kernel_leaves,
+    rbf_psi1_quadratic,
     rbf_psi2_exponent,
     rbf_psi2_quadratic,
     split_terms,
@@ -401,16 +402,24 @@ class SharedTransition:
                 else "phase is for a phase-aware transition GP (IDDM(phase_width=...)) only"
             )
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
-        if cross:
-            p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
-        else:
-            p1, grad = term_psi1(self.term, mu, Sigma, self.inputs), None
         log_phase = None
         if phase is not None:  # log of each point's phase factor per stream: [B, UL]
             log_phase = -0.5 * self.phase_weight * (phase.to(mu)[:, None] - self.phases).pow(2)
-            factor = log_phase.exp()
-            p1 = p1 * factor
-            grad = None if grad is None else grad * factor[:, None, :]
+        fused = settings.moment_path.get() == "fused"
+        inputs = (mu, Sigma) if log_phase is None else (mu, Sigma, log_phase)
+        compiled = fused and self._native_ready(*inputs)
+        if compiled:  # psi1 and the second moments in one call of the kernel
+            p1, trace, second = self._native_moments(mu, Sigma, log_phase)
+        grad = None
+        if cross or not compiled:
+            if cross:
+                p1, grad = term_psi1_grad(self.term, mu, Sigma, self.inputs)  # [B, UL], [B, Dx, UL]
+            else:
+                p1 = term_psi1(self.term, mu, Sigma, self.inputs)
+            if log_phase is not None:
+                factor = log_phase.exp()
+                p1 = p1 * factor
+                grad = None if grad is None else grad * factor[:, None, :]
         phi, beta = self.phi, self.beta
         m_u = torch.einsum("bul,ula->bua", p1.view(b, U, L), beta)
         mean = torch.einsum("ku,bua->bka", phi, m_u)
@@ -418,7 +427,9 @@ class SharedTransition:
         if grad is not None:
             g_u = torch.einsum("bdul,ula->bdua", grad.view(b, dx, U, L), beta)
             cov_x = Sigma[:, None] @ torch.einsum("ku,bdua->bkda", phi, g_u)
-        if settings.moment_path.get() == "fused":
+        if compiled:
+            cov = second - mean[..., :, None] * mean[..., None, :]
+        elif fused:
             trace, cov = self._fused_second(mu, Sigma, mean, log_phase)
         else:
             T, cov = self._materialised_second(mu, Sigma, p1, log_phase)
@@ -487,20 +498,16 @@ class SharedTransition:
         """
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         n, K = U * L, self.num_values
-        needs = (mu, Sigma, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
-        needs += () if log_phase is None else (log_phase,)
-        grad = torch.is_grad_enabled() and any(t.requires_grad for t in needs)
-        if not grad and self._native_ready(mu, Sigma):
-            trace, second = self._native_second(mu, Sigma, log_phase)
-            return trace, second - mean[..., :, None] * mean[..., None, :]
         left, right = rbf_psi2_exponent(self.term, self.term, mu, Sigma, self.inputs)
         if log_phase is not None:  # psi2_ij times both points' phase factors: in the exponent
             left[..., dx] += log_phase  # the row term (left and right are this call's own)
             right[..., dx + 1, :] += log_phase  # the column term
         right = right[..., self.columns]
         size = per_tile(self.workspace(), mu.dtype, mu.device)
-        # the inputs' gradient, or the GP's (a posterior with detach=False): differentiable tiles
-        if grad:  # kept for backward while small, else recomputed there (tiling)
+        needs = (left, right, self.beta_rows, self.phi, self.kinv_cols, self.weighted_beta_cols)
+        # the inputs' gradient, or the GP's (a posterior with detach=False): differentiable tiles,
+        # kept for backward while small, else recomputed there (tiling)
+        if torch.is_grad_enabled() and any(t.requires_grad for t in needs):
             keep = keeps_tiles(b * n * n, mu.dtype)
             parts = [
                 differentiable_tile(self._tile, left[i : i + size], right[i : i + size], keep=keep)
@@ -518,9 +525,11 @@ class SharedTransition:
         return self._trace(T), second - mean[..., :, None] * mean[..., None, :]
 
     def _native_ready(self, *inputs: torch.Tensor) -> bool:
-        """Whether :meth:`_native_second` runs on these inputs
-        (:func:`hgpdm_torch.native.usable`, Dx within the kernel's limit)."""
-        return self.dx <= native.MAX_D and native.usable(*inputs, self.kinv)
+        """Whether :meth:`_native_moments` runs on these inputs
+        (:func:`hgpdm_torch.native.usable`: float64 on the CPU, none of them and none of the GP's
+        weights needing a gradient; Dx within the kernel's limit)."""
+        weights = (self.kinv, self.beta_rows, self.phi, self.weighted_beta_cols)
+        return self.dx <= native.MAX_D and native.usable(*inputs, *weights)
 
     def compiled(self) -> bool:
         """Whether :meth:`moments` runs on the compiled CPU kernel here (without gradients):
@@ -547,32 +556,36 @@ class SharedTransition:
         pairs = tuple(torch.triu_indices(dx, dx, device=cols.device))
         return _NativeLayout(cols, beta, betac, kinv.contiguous(), phi_t.contiguous(), up, pairs)
 
-    def _native_second(
+    def _native_moments(
         self, mu: torch.Tensor, Sigma: torch.Tensor, log_phase: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The traces ``[B, K]`` (:meth:`_trace`) and ``beta_k^T psi2 beta_k [B, K, Dx, Dx]`` by
-        the compiled kernel (:func:`hgpdm_torch.native.psi2_groups`) in one call, from each
-        stream's quadratic form (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic`): the
-        kernel builds the exponent's ``O(N Dx)`` factors itself, one stream at a time.
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``psi1 [B, N]`` (times the phase factors), the traces ``[B, K]`` (:meth:`_trace`) and
+        ``beta_k^T psi2 beta_k [B, K, Dx, Dx]`` by the compiled kernel
+        (:func:`hgpdm_torch.native.psi2_groups`) in one call, from each stream's quadratic forms
+        (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic`,
+        :func:`~hgpdm_torch.expectations.rbf_psi1_quadratic`): the kernel builds the exponents'
+        ``O(N Dx)`` factors itself, one stream at a time.
 
         The traces come from the kernel too (its ``out``'s last row), contracted as each row of
         ``T`` is complete.
         """
-        lay = self._native
-        K, (a, b) = self.num_values, lay.pairs
+        lay, b = self._native, mu.shape[0]
+        K, (i, j) = self.num_values, lay.pairs
         H, M_a, M_b, const = rbf_psi2_quadratic(self.term, self.term, Sigma)
-        forms = torch.stack([H, M_a, M_b], -3).expand(mu.shape[0], 3, self.dx, self.dx)
-        _, out = native.psi2_groups(
-            self.inputs, lay.cols, mu.contiguous(), forms.contiguous(),
-            const.expand(mu.shape[0]).contiguous(),
-            None if log_phase is None else log_phase.contiguous(),
+        P, const1 = rbf_psi1_quadratic(self.term, Sigma)
+        forms = torch.stack(torch.broadcast_tensors(H, M_a, M_b, P), -3)
+        forms = forms.expand(b, 4, self.dx, self.dx).contiguous()
+        consts = torch.stack(torch.broadcast_tensors(const, const1 + self.coef.log()), -1)
+        phase = None if log_phase is None else log_phase.contiguous()
+        _, out, p1 = native.psi2_groups(
+            self.inputs, lay.cols, mu.contiguous(), forms, consts.expand(b, 2).contiguous(), phase,
             lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups,
         )  # fmt: skip
         sums = out[:, :-1, :K].transpose(1, 2)  # [B, K, pairs]
-        second = mu.new_empty(mu.shape[0], K, self.dx, self.dx)
-        second[:, :, a, b] = sums
-        second[:, :, b, a] = sums
-        return out[:, -1, :K].clone(), second
+        second = mu.new_empty(b, K, self.dx, self.dx)
+        second[:, :, i, j] = sums
+        second[:, :, j, i] = sums
+        return p1.clone(), out[:, -1, :K].clone(), second
 
     def _tile(
         self,

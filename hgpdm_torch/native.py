@@ -156,7 +156,7 @@ def _library() -> ctypes.CDLL | None:
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.hgpdm_exp_f64.argtypes = [i64, ptr]
     lib.hgpdm_exp_f64.restype = None
-    lib.hgpdm_psi2_groups_f64.argtypes = [i64] * 6 + [ptr] * 13
+    lib.hgpdm_psi2_groups_f64.argtypes = [i64] * 6 + [ptr] * 14
     lib.hgpdm_psi2_groups_f64.restype = ctypes.c_int
     return lib
 
@@ -230,11 +230,12 @@ def psi2_groups(
     kinv: torch.Tensor,
     phi_t: torch.Tensor,
     groups: int,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Group sums of ``psi2`` against ``K^-1``, and its weighted second moments for every grid
-    value, per stream (``native_psi2.c``), with ``log psi2_ij = d_i^T H d_j + d_i^T M_a d_i +
-    d_j^T M_b d_j + c + lp_i + lp_j`` and ``d = x - mu``
-    (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic`, plus the log phase factors ``lp``).
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Group sums of ``psi2`` against ``K^-1``, its weighted second moments for every grid value,
+    and ``psi1``, per stream (``native_psi2.c``), with ``log psi2_ij = d_i^T H d_j + d_i^T M_a
+    d_i + d_j^T M_b d_j + c + lp_i + lp_j``, ``log psi1_i = d_i^T P d_i + c_1 + lp_i`` and ``d = x
+    - mu`` (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic` and
+    :func:`~hgpdm_torch.expectations.rbf_psi1_quadratic`, plus the log phase factors ``lp``).
 
     Args:
         points: ``[N, D]`` the points, in group order ``(u, l)``, ``N = U L``.
@@ -242,8 +243,8 @@ def psi2_groups(
             padded to ``Up`` (a multiple of 8), ``Np = L Up``: column ``m Up + v`` is point
             ``(v, m)`` (a padding column names any point: its weights are 0).
         mu: ``[S, D]`` each stream's input mean.
-        forms: ``[S, 3, D, D]`` each stream's ``H``, ``M_a`` and ``M_b``.
-        const: ``[S]`` each stream's ``c``.
+        forms: ``[S, 4, D, D]`` each stream's ``H``, ``M_a``, ``M_b`` and ``P``.
+        const: ``[S, 2]`` each stream's ``c`` and ``c_1``.
         log_phase: ``[S, N]`` each point's log phase factor per stream, or ``None``.
         beta: ``[N, D]`` each point's weights (``D <= MAX_D``).
         betac: ``[D, Np]`` the weights of each column's point (0 at padding columns).
@@ -260,7 +261,7 @@ def psi2_groups(
         b`` in row-major order, then the trace row ``out[s, -1, k] = sum_uv phi[k, u] T[s, u,
         v] phi[k, v]`` (``tr(K^-1 psi2)`` of value k, contracted in the kernel as each row of T
         is complete: in torch, a small-inner-dimension product over ``S U`` rows had cost a
-        tenth of the filter's update).
+        tenth of the filter's update). Then ``psi1 [S, N]``.
     """
     n, d = points.shape
     s, np_, kp = mu.shape[0], cols.shape[0], phi_t.shape[1]
@@ -282,8 +283,8 @@ def psi2_groups(
         _check("points", points, (n, d)),
         cols.data_ptr(),
         _check("mu", mu, (s, d)),
-        _check("forms", forms, (s, 3, d, d)),
-        _check("const", const, (s,)),
+        _check("forms", forms, (s, 4, d, d)),
+        _check("const", const, (s, 2)),
         None if log_phase is None else _check("log_phase", log_phase, (s, n)),
         _check("beta", beta, (n, d)),
         _check("betac", betac, (d, np_)),
@@ -293,12 +294,23 @@ def psi2_groups(
     # outputs and work space in this thread's scratch buffers: valid until its next call
     T = scratch(s * U * up, 0).view(s, U, up)
     out = scratch(s * (pairs + 1) * kp, 1).view(s, pairs + 1, kp)
+    p1 = scratch(s * n, 3).view(s, n)
     work = scratch((d + 1) * np_ + pairs * up + (d + 2) * (n + np_), 2)
     lib = _library()
     if lib is None:
         raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
     if s:
         lib.hgpdm_psi2_groups_f64(
-            s, U, L, up, d, kp, *ptrs, T.data_ptr(), out.data_ptr(), work.data_ptr()
+            s,
+            U,
+            L,
+            up,
+            d,
+            kp,
+            *ptrs,
+            T.data_ptr(),
+            out.data_ptr(),
+            p1.data_ptr(),
+            work.data_ptr(),
         )
-    return T, out
+    return T, out, p1

@@ -9,7 +9,8 @@
        out[s, (a, b), k] = sum_{u, v} phi[k, u] phi[k, v] S[s, u, (a, b), v]      (a <= b), with
        S[s, u, (a, b), v] = sum_{l, m} beta[(u, l), a] psi2[s, (u, l), (v, m)] beta[(v, m), b],
        and in the row after the pairs the trace out[s, P, k] = sum_{u, v} phi[k, u] phi[k, v]
-       T[s, u, v] (tr(K^-1 psi2) of value k), contracted as each row of T is complete,
+       T[s, u, v] (tr(K^-1 psi2) of value k), contracted as each row of T is complete, and
+       psi1[s, i] on the way,
      psi2[s] = exp(left[s] @ right[s]) evaluated eight columns of one group's rows at a time in
      registers and never stored (left and right, O(N D) per stream, are built from the stream's
      quadratic form in the work space): one pass over the N x N block instead of the
@@ -165,31 +166,36 @@ static void contract(int64_t P, int64_t Up, int64_t Kp, const double *Su, const 
         }
 }
 
-/* The exponent of psi2 for one stream as left [N, C] @ right [C, Np] (C = D + 2), from the
-   quadratic form of hgpdm_torch.expectations.rbf_psi2_quadratic: with d = x - mu,
-   left_i = [d_i^T H, d_i^T Ma d_i + c + lp_i, 1] and right_j = [d_j; 1; d_j^T Mb d_j + lp_j] for
-   column j's point cols[j]; lp the log phase factors, or none. O((N + Np) D^2), in the work
-   space: no O(N) tensor per stream leaves the kernel. */
+/* The exponent of psi2 for one stream as left [N, C] @ right [C, Np] (C = D + 2), and the log
+   of psi1 [N], from the quadratic forms of hgpdm_torch.expectations (rbf_psi2_quadratic,
+   rbf_psi1_quadratic): with d = x - mu, left_i = [d_i^T H, d_i^T Ma d_i + c + lp_i, 1],
+   right_j = [d_j; 1; d_j^T Mb d_j + lp_j] for column j's point cols[j], and
+   p1_i = d_i^T P d_i + c1 + lp_i; lp the log phase factors, or none. O((N + Np) D^2), in the
+   work space: no O(N D) tensor per stream leaves the kernel. */
 INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const int64_t *cols,
-                     const double *mu, const double *Q, double c, const double *lp,
-                     double *left, double *right) {
+                     const double *mu, const double *Q, const double *c, const double *lp,
+                     double *left, double *right, double *p1) {
     const int C = D + 2;
-    const double *H = Q, *Ma = Q + D * D, *Mb = Q + 2 * D * D;
+    const double *H = Q, *Ma = Q + D * D, *Mb = Q + 2 * D * D, *P = Q + 3 * D * D;
     double d[MAX_D];
     for (int64_t i = 0; i < N; ++i) {
         for (int a = 0; a < D; ++a) d[a] = X[i * D + a] - mu[a];
-        double row = c + (lp ? lp[i] : 0.0);
+        const double phase = lp ? lp[i] : 0.0;
+        double row = c[0] + phase, one = c[1] + phase;
         for (int a = 0; a < D; ++a) {
-            double h = 0.0, m = 0.0;
+            double h = 0.0, m = 0.0, q = 0.0;
             for (int b = 0; b < D; ++b) {
                 h += d[b] * H[b * D + a];
                 m += d[b] * Ma[b * D + a];
+                q += d[b] * P[b * D + a];
             }
             left[i * C + a] = h;
             row += m * d[a];
+            one += q * d[a];
         }
         left[i * C + D] = row;
         left[i * C + D + 1] = 1.0;
+        p1[i] = one;
     }
     for (int64_t j = 0; j < Np; ++j) {
         const int64_t p = cols[j];
@@ -204,19 +210,20 @@ INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const 
         right[D * Np + j] = 1.0;
         right[(D + 1) * Np + j] = col;
     }
+    hgpdm_exp_f64(N, p1);
 }
 
 INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, int64_t Kp,
                         const double *X, const int64_t *cols, const double *mu, const double *Q,
                         const double *c, const double *lp, const double *beta,
                         const double *betac, const double *kinv, const double *phiT, double *T,
-                        double *out, double *work) {
+                        double *out, double *p1, double *work) {
     const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, C = D + 2;
     double *acc = work, *prow = work + Np, *Su = prow + D * Np, *left = Su + P * Up;
     double *right = left + N * C;
     for (int64_t s = 0; s < S; ++s) {
-        exponent(D, N, Np, X, cols, mu + s * D, Q + s * 3 * D * D, c[s], lp ? lp + s * N : 0,
-                 left, right);
+        exponent(D, N, Np, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s, lp ? lp + s * N : 0,
+                 left, right, p1 + s * N);
         double *os = out + s * (P + 1) * Kp, *Tu = T + s * U * Up;
         for (int64_t j = 0; j < (P + 1) * Kp; ++j) os[j] = 0.0;
         for (int64_t u = 0; u < U; ++u, Tu += Up) {
@@ -230,16 +237,18 @@ INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up
 }
 
 /* Shapes (all C-contiguous; float64 but cols): X [N, D] the points in group order (u, l),
-   cols [Np] (int64, in 0 .. N - 1) the point of each column, mu [S, D], Q [S, 3, D, D] (H, Ma,
-   Mb), c [S], lp [S, N] or NULL, beta [N, D], betac [D, Np], kinv [N, Np], phiT [Up, Kp]
-   (phi[k, v]; zero at padding v and k >= K, Kp a multiple of 8), T [S, U, Up],
-   out [S, D (D + 1) / 2 + 1, Kp], work [(D + 1) Np + D (D + 1) / 2 Up + (D + 2) (N + Np)].
-   Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+   cols [Np] (int64, in 0 .. N - 1) the point of each column, mu [S, D], Q [S, 4, D, D] (H, Ma,
+   Mb, P), c [S, 2] (c, c1), lp [S, N] or NULL, beta [N, D], betac [D, Np], kinv [N, Np],
+   phiT [Up, Kp] (phi[k, v]; zero at padding v and k >= K, Kp a multiple of 8), T [S, U, Up],
+   out [S, D (D + 1) / 2 + 1, Kp], p1 [S, N] (psi1 = exp(d^T P d + c1 + lp)),
+   work [(D + 1) Np + D (D + 1) / 2 Up + (D + 2) (N + Np)]. Returns 0, or 1 for D outside
+   1..MAX_D (nothing written). */
 int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp,
                           const double *X, const int64_t *cols, const double *mu,
                           const double *Q, const double *c, const double *lp,
                           const double *beta, const double *betac, const double *kinv,
-                          const double *phiT, double *T, double *out, double *work) {
+                          const double *phiT, double *T, double *out, double *p1,
+                          double *work) {
     /* flush subnormal results and operands to zero: psi2 of far-apart points underflows, and
        arithmetic on subnormals takes microcode assists (up to ~100 times slower per operation);
        they change a sum by less than 2.3e-308 each */
@@ -250,7 +259,7 @@ int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D
 #define CASE(DD)                                                                              \
     case DD:                                                                                  \
         all_streams(DD, S, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, \
-                    work);                                                                     \
+                    p1, work);                                                                 \
         status = 0;                                                                           \
         break;
         CASE(1) CASE(2) CASE(3) CASE(4) CASE(5) CASE(6) CASE(7) CASE(8)

@@ -78,13 +78,15 @@ def test_exp_specials_and_tail():
 
 def _problem(streams: int, U: int, L: int, D: int, K: int, gen: torch.Generator, phase=False):
     """Random inputs of :func:`native.psi2_groups` and the dense quantities they stand for: the
-    exponent ``d_i^T H d_j + d_i^T M_a d_i + d_j^T M_b d_j + c + lp_i + lp_j`` formed whole."""
+    exponent ``d_i^T H d_j + d_i^T M_a d_i + d_j^T M_b d_j + c + lp_i + lp_j`` formed whole, its
+    sum of absolute terms, and psi1's exponent ``d_i^T P d_i + c_1 + lp_i`` with its sum of
+    absolute terms."""
     n, up, kp = U * L, -(-U // 8) * 8, -(-K // 8) * 8
     f64 = {"generator": gen, "dtype": torch.float64}
     points = torch.randn(n, D, **f64)
     mu = 0.5 * torch.randn(streams, D, **f64)
-    forms = 0.3 * torch.randn(streams, 3, D, D, **f64) / D
-    const = torch.randn(streams, **f64)
+    forms = 0.3 * torch.randn(streams, 4, D, D, **f64) / D
+    const = torch.randn(streams, 2, **f64)
     log_phase = -torch.rand(streams, n, **f64) if phase else None
     A = torch.randn(n, n, **f64)
     kinv = A + A.T
@@ -103,18 +105,31 @@ def _problem(streams: int, U: int, L: int, D: int, K: int, gen: torch.Generator,
         U,
     )  # fmt: skip
     d = points - mu[:, None, :]  # [S, N, D]
-    H, Ma, Mb = forms.unbind(1)
+    H, Ma, Mb, P = forms.unbind(1)
     terms = [
         torch.einsum("sia,sab,sjb->sijab", d, H, d).flatten(-2),
         torch.einsum("sia,sab,sib->siab", d, Ma, d).flatten(-2)[:, :, None].expand(-1, -1, n, -1),
         torch.einsum("sja,sab,sjb->sjab", d, Mb, d).flatten(-2)[:, None].expand(-1, n, -1, -1),
-        const[:, None, None, None].expand(-1, n, n, 1),
+        const[:, None, None, :1].expand(-1, n, n, 1),
+    ]
+    ones = [
+        torch.einsum("sia,sab,sib->siab", d, P, d).flatten(-2),
+        const[:, None, 1:].expand(-1, n, 1),
     ]
     if log_phase is not None:
         terms += [log_phase[:, :, None, None].expand(-1, -1, n, 1)]
         terms += [log_phase[:, None, :, None].expand(-1, n, -1, 1)]
-    terms = torch.cat(terms, -1)  # [S, N, N, all terms of the exponent]
-    return args, (terms.sum(-1), terms.abs().sum(-1), kinv, beta, phi)
+        ones += [log_phase[..., None]]
+    terms, ones = torch.cat(terms, -1), torch.cat(ones, -1)  # [S, N, N, terms], [S, N, terms]
+    return args, (
+        terms.sum(-1),
+        terms.abs().sum(-1),
+        ones.sum(-1),
+        ones.abs().sum(-1),
+        kinv,
+        beta,
+        phi,
+    )
 
 
 @needs_kernel
@@ -131,9 +146,13 @@ def test_group_sums_equal_the_dense_formulas(U, L, D, K, phase):
     of the summation chains after it (the kernel adds L rows, then L column blocks, then U and
     U groups; torch's sums are no longer)."""
     gen = torch.Generator().manual_seed(U * 100 + D)
-    args, (exponent, spread, kinv, beta, phi) = _problem(3, U, L, D, K, gen, phase)
-    T, out = native.psi2_groups(*args)
-    T, out = T.clone(), out.clone()
+    args, (exponent, spread, exponent1, spread1, kinv, beta, phi) = _problem(
+        3, U, L, D, K, gen, phase
+    )
+    T, out, p1 = (t.clone() for t in native.psi2_groups(*args))
+    # psi1: 2 ulp of the exponential, the form's chain (D products, then D terms) and d's rounding
+    bound = (2 + (2 * D + 4) * spread1) * EPS * torch.exp(exponent1)
+    assert bool(((p1 - torch.exp(exponent1)).abs() <= bound).all())
     E = torch.exp(exponent)
     n = U * L
     per_term = 2 * (2 + (2 * D + 4) * float(spread.max()))
