@@ -106,10 +106,10 @@ def per_tile(entries: int, dtype: torch.dtype, device: torch.device) -> int:
 #: stream of a chunk holds O(N Dx) numbers while the chunk runs (about 70 KB at N = 500).
 CPU_STREAM_CHUNK = 32
 #: Streams updated together on a CPU where the compiled kernel (:mod:`hgpdm_torch.native`) runs
-#: the transition: it keeps no psi2 tile, so a stream of a chunk holds only its O(N Dx) inputs
-#: (about 90 KB at N = 500) and larger chunks spread the rest of the update's small operations
-#: further. At B = 256, N = 500, one thread, three runs each: 0.66 ms per stream in chunks of
-#: 32, 0.62 of 64, 0.60-0.61 of 128 and of 256.
+#: the transition: it keeps no psi2 tile nor O(N Dx) factors, so a stream of a chunk holds only
+#: the rest of the update's temporaries (about 40 KB at N = 500, K = 25, Dz = 15), and larger
+#: chunks spread the update's small operations further. At B = 256, N = 500, one thread: 0.77
+#: ms per stream in chunks of 16, 0.57 of 32, 0.56 of 64, 0.52 of 128.
 NATIVE_STREAM_CHUNK = 128
 
 
