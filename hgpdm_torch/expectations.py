@@ -450,7 +450,8 @@ def rbf_psi2_exponent(
     quad_b = quad_a if M_b is M_a else (dF[..., 2 * D :] * d).sum(-1)
     one = torch.ones_like(quad_a)
     left = torch.cat([dF[..., :D], (quad_a + const[..., None])[..., None], one[..., None]], -1)
-    right = torch.cat([d.transpose(-1, -2), one[..., None, :], quad_b[..., None, :]], -2)
+    dT = d.transpose(-1, -2).expand(*quad_b.shape[:-1], D, -1)  # Sigma's batch dims too
+    right = torch.cat([dT, one[..., None, :], quad_b[..., None, :]], -2)
     return left, right
 
 

@@ -527,8 +527,8 @@ class SharedTransition:
     def _native_ready(self, *inputs: torch.Tensor) -> bool:
         """Whether :meth:`_native_moments` runs on these inputs
         (:func:`hgpdm_torch.native.usable`: float64 on the CPU, none of them and none of the GP's
-        weights needing a gradient; Dx within the kernel's limit)."""
-        weights = (self.kinv, self.beta_rows, self.phi, self.weighted_beta_cols)
+        points and weights recording a gradient; Dx within the kernel's limit)."""
+        weights = (self.inputs, self.kinv, self.beta, self.beta_rows, self.phi)
         return self.dx <= native.MAX_D and native.usable(*inputs, *weights)
 
     def compiled(self) -> bool:

@@ -168,11 +168,13 @@ def available() -> bool:
 
 
 def usable(*tensors: torch.Tensor) -> bool:
-    """Whether the kernel may take these tensors: :func:`available`, and all float64 on the CPU
-    without gradient (autograd, float32 and GPUs take the torch path)."""
+    """Whether the kernel may take these tensors: :func:`available`, and all float64 on the CPU,
+    none of them recording a gradient (one that requires it while autograd is on: autograd,
+    float32 and GPUs take the torch path)."""
+    grad = torch.is_grad_enabled()
     return (
         all(
-            t.device.type == "cpu" and t.dtype == torch.float64 and not t.requires_grad
+            t.device.type == "cpu" and t.dtype == torch.float64 and not (grad and t.requires_grad)
             for t in tensors
         )
         and available()

@@ -280,6 +280,28 @@ def test_batched_broadcasting_matches_loop():
         torch.testing.assert_close(outx[b, k], ex.x_psi1(*args, X, g=g[0, k]))
 
 
+@pytest.mark.parametrize("mean_shape", [(2,), (1, 2)])
+def test_covariances_with_batch_dims_the_mean_lacks(mean_shape):
+    """One mean, several covariances (``mu [D]`` or ``[1, D]``, ``Sigma [B, D, D]``) broadcast
+    like any batch: each member as if alone (the same formulas per member, so only the rounding
+    of the batched products differs, far below the default tolerance)."""
+    kernel = ScaleKernel(RBFKernel(ard_num_dims=2))
+    kernel.base_kernel.lengthscale = torch.tensor([[0.7, 1.3]])
+    gen = torch.Generator().manual_seed(6)
+    B, N = 4, 5
+    mu = torch.randn(mean_shape, generator=gen)
+    Sigma = torch.stack([random_cov(2, gen) for _ in range(B)])
+    X = torch.randn(N, 2, generator=gen)
+    out1, out2 = ex.psi1(kernel, mu, Sigma, X), ex.psi2(kernel, mu, Sigma, X)
+    outx = ex.x_psi1(kernel, mu, Sigma, X)
+    assert out1.shape == (B, N) and out2.shape == (B, N, N) and outx.shape == (B, 2, N)
+    for b in range(B):
+        args = (kernel, mu.reshape(2), Sigma[b], X)
+        torch.testing.assert_close(out1[b], ex.psi1(*args))
+        torch.testing.assert_close(out2[b], ex.psi2(*args))
+        torch.testing.assert_close(outx[b], ex.x_psi1(*args))
+
+
 def test_zero_covariance_is_point_evaluation():
     kernel = intention_uncertain(3)
     mu, _, X = setup(3, seed=2)

@@ -199,6 +199,17 @@ def test_threads_use_their_own_buffers():
 
 
 @needs_kernel
+def test_usable_only_where_no_gradient_is_recorded():
+    """A tensor that requires a gradient goes to the kernel only where autograd is off (the
+    kernel records none); float32 never does."""
+    leaf = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    assert not native.usable(leaf)
+    with torch.no_grad():
+        assert native.usable(leaf)
+        assert not native.usable(leaf.detach().float())
+
+
+@needs_kernel
 def test_inputs_are_checked():
     args, _ = _problem(1, 9, 2, 2, 4, torch.Generator().manual_seed(1))
     with pytest.raises(TypeError, match="points must be a contiguous float64 CPU tensor"):
