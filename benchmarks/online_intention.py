@@ -12,14 +12,16 @@ per movement), Dz = 15, Dx = 4, linear measurement kernel, K = 25 grid values, o
 - ``online B streams``: time per stream of one batched update of B streams, and the same B
   updates as a Python loop over B single-stream filters (``x loop`` = loop / batched; target
   >= 3x at B = 256);
-- ``online batched`` by ``path``: the fused psi2 contraction by the compiled kernel
-  (``native``, :mod:`hgpdm_torch.native`; the default where it runs), the same in torch
-  (``fused``, ``settings.native_kernels(False)``) and the materialised path it replaced
-  (``settings.moment_path``), timed in turn in this process, each with
+- ``online batched`` by ``path``: the whole predictive step by the compiled kernel
+  (``native``, :mod:`hgpdm_torch.inference.intention.compiled`; the default where it runs), its
+  fused psi2 contraction alone with the rest of the step in torch (``native psi2``), the
+  contraction in torch (``fused``, ``settings.native_kernels(False)``) and the materialised
+  path it replaced (``settings.moment_path``), timed in turn in this process, each with
   ``floor [ms/stream]`` (the step's operation count, :meth:`OnlineIntentionFilter.operations`,
   at this device's rates: a large GEMM and a large exponential timed in this process, recorded
   in ``meta["rates"]``), ``x floor`` (time over floor) and ``peak MB/stream`` (peak allocation
-  of one update over B); each path at its own default chunk of streams; at the largest B also
+  of one update over B, the compiled kernel's work space included); each path at its own
+  default chunk of streams; at the largest B also
   ``marginal KB/stream``, what each further stream adds to the peak (the peaks at 2B and B
   apart, over B): the rest of the peak is the fixed working set of one chunk of streams;
 - ``streams at 30 Hz`` by path: the largest B whose whole update fits in 33 ms;
@@ -154,28 +156,44 @@ def _update_ms(opts: Options, f: OnlineIntentionFilter, z: torch.Tensor, updates
 
 
 def paths(opts: Options) -> list[str]:
-    """The psi2 paths timed in turn, the default first: ``native`` (the fused contraction by the
-    compiled kernel, :mod:`hgpdm_torch.native`, where it runs: float64 on a CPU with AVX-512),
-    ``fused`` (in torch) and ``materialised``."""
+    """The paths timed in turn, the default first: ``native`` (the whole predictive step by the
+    compiled kernel, :mod:`hgpdm_torch.native`, where it runs: float64 on a CPU with AVX-512;
+    :mod:`hgpdm_torch.inference.intention.compiled`), ``native psi2`` (its contraction only, the
+    rest of the step in torch), ``fused`` (all in torch) and ``materialised``."""
     compiled = opts.device.type == "cpu" and opts.dtype == torch.float64 and native.available()
-    return ["native"] * compiled + ["fused", "materialised"]
+    return ["native", "native psi2"] * compiled + ["fused", "materialised"]
 
 
 @contextlib.contextmanager
 def on_path(path: str) -> Iterator[None]:
-    """Settings of one of :func:`paths`."""
+    """Settings of one of :func:`paths` (``native psi2``: also :func:`path_filter`)."""
     fused = "materialised" if path == "materialised" else "fused"
-    with settings.moment_path(fused), settings.native_kernels(path == "native"):
+    with settings.moment_path(fused), settings.native_kernels(path.startswith("native")):
         yield
 
 
-def _peak(opts: Options, model, grid, streams, B: int) -> int:
+def path_filter(path: str, model, grid, B: int, dtype: torch.dtype) -> OnlineIntentionFilter:
+    """A filter of B streams on one of :func:`paths` (inside its :func:`on_path`)."""
+    f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=dtype)
+    if path == "native psi2":
+        f.compiled_step = None
+    return f
+
+
+def measured_peak(f: OnlineIntentionFilter, z: torch.Tensor, device: torch.device) -> int:
+    """Peak bytes of the update ``f.update(z)``, the compiled kernel's work space included (its
+    buffers are freed first, so the update allocates them again)."""
+    native.clear_scratch()
+    return peak_bytes(lambda: f.update(z), device)
+
+
+def _peak(opts: Options, model, grid, streams, B: int, path: str) -> int:
     """Peak bytes of the fifth update of a filter of B streams (as :func:`path_rows` takes it)."""
     z = streams[torch.arange(B, device=streams.device) % len(streams)]
-    f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
+    f = path_filter(path, model, grid, B, opts.dtype)
     for t in range(4):
         f.update(z[:, t])
-    return peak_bytes(lambda: f.update(z[:, 4]), opts.device)
+    return measured_peak(f, z[:, 4], opts.device)
 
 
 def path_rows(
@@ -195,9 +213,7 @@ def path_rows(
     filters, best = {}, dict.fromkeys(timed, float("inf"))
     for path in timed:
         with on_path(path):
-            filters[path] = OnlineIntentionFilter(
-                model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype
-            )
+            filters[path] = path_filter(path, model, grid, B, opts.dtype)
             filters[path].update(z[:, 0])  # the first observation only initialises the streams
     for t in range(1, 1 + updates):
         for path in timed:
@@ -208,7 +224,7 @@ def path_rows(
     rows = []
     for path, f in filters.items():
         with on_path(path):
-            peak = peak_bytes(lambda f=f: f.update(z[:, 1 + updates]), opts.device)
+            peak = measured_peak(f, z[:, 1 + updates], opts.device)
             floor = rates.floor_ms(f.operations())
             per_stream = 1e3 * best[path] / B
             row = {
@@ -217,7 +233,7 @@ def path_rows(
                 "x floor": per_stream / floor, "peak MB/stream": peak / B / 1e6,
             }  # fmt: skip
             if marginal:
-                double = _peak(opts, model, grid, streams, 2 * B)
+                double = _peak(opts, model, grid, streams, 2 * B, path)
                 row["marginal KB/stream"] = (double - peak) / B / 1e3
         rows.append(row)
     return rows
@@ -229,7 +245,7 @@ def streams_at(opts: Options, model, grid, streams, path: str, budget_ms: float 
 
     def fits(B: int) -> bool:
         z = streams[torch.arange(B, device=streams.device) % len(streams)]
-        f = OnlineIntentionFilter(model, grid, batch_size=B, forgetting=0.2, dtype=opts.dtype)
+        f = path_filter(path, model, grid, B, opts.dtype)
         return _update_ms(opts, f, z, updates=2) <= budget_ms
 
     with on_path(path):

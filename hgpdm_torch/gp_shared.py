@@ -404,7 +404,7 @@ class SharedTransition:
         b, dx, U, L = mu.shape[0], self.dx, self.groups, self.group_size
         log_phase = None
         if phase is not None:  # log of each point's phase factor per stream: [B, UL]
-            log_phase = -0.5 * self.phase_weight * (phase.to(mu)[:, None] - self.phases).pow(2)
+            log_phase = self.log_phase(phase.to(mu))
         fused = settings.moment_path.get() == "fused"
         inputs = (mu, Sigma) if log_phase is None else (mu, Sigma, log_phase)
         compiled = fused and self._native_ready(*inputs)
@@ -556,6 +556,48 @@ class SharedTransition:
         pairs = tuple(torch.triu_indices(dx, dx, device=cols.device))
         return _NativeLayout(cols, beta, betac, kinv.contiguous(), phi_t.contiguous(), up, pairs)
 
+    def native_operands(
+        self, mu: torch.Tensor, Sigma: torch.Tensor, log_phase: torch.Tensor | None = None
+    ) -> tuple:
+        """The arguments of :func:`hgpdm_torch.native.psi2_groups` for the inputs ``N(mu [B,
+        Dx], Sigma [B, Dx, Dx])`` (and the log phase factors ``[B, UL]``): the points, the
+        kernel's layout and each stream's quadratic forms
+        (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic`,
+        :func:`~hgpdm_torch.expectations.rbf_psi1_quadratic`, psi1's constant with the kernel's
+        coefficient)."""
+        lay, b = self._native, mu.shape[0]
+        H, M_a, M_b, const = rbf_psi2_quadratic(self.term, self.term, Sigma)
+        P, const1 = rbf_psi1_quadratic(self.term, Sigma)
+        forms = torch.stack(torch.broadcast_tensors(H, M_a, M_b, P), -3)
+        forms = forms.expand(b, 4, self.dx, self.dx).contiguous()
+        consts = torch.stack(torch.broadcast_tensors(const, const1 + self.coef.log()), -1)
+        phase = None if log_phase is None else log_phase.contiguous()
+        return (
+            self.inputs, lay.cols, mu.contiguous(), forms, consts.expand(b, 2).contiguous(), phase,
+            lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups,
+        )  # fmt: skip
+
+    @functools.cached_property
+    def native_moment_terms(self) -> torch.Tensor:
+        """``[K U + K + 2 Dx + 1]``: what turns the kernel's contraction into the moments of
+        :meth:`moments` (:func:`hgpdm_torch.native.predictive_step`'s ``trans``): phi ``[K,
+        U]``, the process noise of each value ``[K]``, the output scales squared ``[Dx]`` (1
+        where none), the offset ``[Dx]`` (0 where none) and the kernel's coefficient."""
+        K, dx, ref = self.num_values, self.dx, self.phi
+        parts = (
+            self.phi.reshape(-1),
+            self.noise.expand(K),
+            ref.new_ones(dx) if self.scale2 is None else self.scale2,
+            ref.new_zeros(dx) if self.offset is None else self.offset,
+            self.coef.reshape(1),
+        )
+        return torch.cat([t.detach().to(ref) for t in parts]).contiguous()
+
+    def log_phase(self, phase: torch.Tensor) -> torch.Tensor:
+        """``[B, UL]`` the log of each point's phase factor ``-w_p (p - p_i)^2 / 2`` for the
+        streams' phases ``[B]`` (a phase-aware GP only)."""
+        return -0.5 * self.phase_weight * (phase[:, None] - self.phases).pow(2)
+
     def _native_moments(
         self, mu: torch.Tensor, Sigma: torch.Tensor, log_phase: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -569,18 +611,8 @@ class SharedTransition:
         The traces come from the kernel too (its ``out``'s last row), contracted as each row of
         ``T`` is complete.
         """
-        lay, b = self._native, mu.shape[0]
-        K, (i, j) = self.num_values, lay.pairs
-        H, M_a, M_b, const = rbf_psi2_quadratic(self.term, self.term, Sigma)
-        P, const1 = rbf_psi1_quadratic(self.term, Sigma)
-        forms = torch.stack(torch.broadcast_tensors(H, M_a, M_b, P), -3)
-        forms = forms.expand(b, 4, self.dx, self.dx).contiguous()
-        consts = torch.stack(torch.broadcast_tensors(const, const1 + self.coef.log()), -1)
-        phase = None if log_phase is None else log_phase.contiguous()
-        _, out, p1 = native.psi2_groups(
-            self.inputs, lay.cols, mu.contiguous(), forms, consts.expand(b, 2).contiguous(), phase,
-            lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups,
-        )  # fmt: skip
+        b, K, (i, j) = mu.shape[0], self.num_values, self._native.pairs
+        _, out, p1 = native.psi2_groups(*self.native_operands(mu, Sigma, log_phase))
         sums = out[:, :-1, :K].transpose(1, 2)  # [B, K, pairs]
         second = mu.new_empty(b, K, self.dx, self.dx)
         second[:, :, i, j] = sums

@@ -71,13 +71,16 @@ class IntentionBelief:
         cls, log_weights: torch.Tensor, values: torch.Tensor, continuous: bool
     ) -> IntentionBelief:
         """Normalise unnormalised log weights ``[..., K]`` over ``values [K, Dg]``."""
-        log_prob = log_weights - torch.logsumexp(log_weights, -1, keepdim=True)
-        prob = log_prob.exp()
+        total = torch.logsumexp(log_weights, -1, keepdim=True)
+        prob = (log_weights - total).exp()
         if not continuous:
-            return cls(prob, log_prob, values)
-        # centred second moment: E[g^2] - E[g]^2 would cancel for a grid far from 0
+            return cls(prob, log_weights - total, values)
+        # centred second moment: E[g^2] - E[g]^2 would cancel for a grid far from 0; the
+        # moments before log_prob (the same difference again), which keeps a batched online
+        # update's peak memory one [B, K] tensor lower
         mean, cov = mixture_moments(prob, values)
-        return cls(prob, log_prob, values, mean, cov.diagonal(dim1=-2, dim2=-1).sqrt())
+        std = cov.diagonal(dim1=-2, dim2=-1).sqrt()
+        return cls(prob, log_weights - total, values, mean, std)
 
     def credible_set(self, level: float = 0.9) -> torch.Tensor:
         """``[..., K]`` mask of the smallest set of values holding at least ``level`` mass."""

@@ -60,7 +60,7 @@ def jitter(value: float) -> Iterator[None]:
 
 def symmetrize(a: torch.Tensor) -> torch.Tensor:
     """Return ``(a + a^T) / 2`` over the last two dimensions. Shapes: ``[..., n, n]``."""
-    return 0.5 * (a + a.transpose(-1, -2))
+    return (a + a.transpose(-1, -2)).mul_(0.5)  # in place on the sum: one temporary, not two
 
 
 def positive_definite(a: torch.Tensor) -> torch.Tensor:
@@ -69,12 +69,11 @@ def positive_definite(a: torch.Tensor) -> torch.Tensor:
     jitter times the mean variance exists (one batched ``cholesky_ex``, no host synchronisation).
     A covariance that rounding has pushed slightly below zero in one direction passes; one with
     a clearly negative eigenvalue, or NaN/inf entries, does not."""
-    d = a.shape[-1]
     finite = torch.isfinite(a).all(-1).all(-1)
-    sym = symmetrize(torch.where(finite[..., None, None], a, torch.zeros_like(a)))
-    scale = sym.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(a.dtype).tiny)
-    eye = torch.eye(d, dtype=a.dtype, device=a.device)
-    shifted = sym + (_JITTER.get(a.dtype, 1e-6) * scale)[..., None, None] * eye
+    shifted = symmetrize(torch.where(finite[..., None, None], a, 0.0))
+    diag = shifted.diagonal(dim1=-2, dim2=-1)
+    scale = diag.abs().mean(-1).clamp_min(torch.finfo(a.dtype).tiny)
+    diag.add_((_JITTER.get(a.dtype, 1e-6) * scale)[..., None])  # in place: a check's memory
     return finite & (torch.linalg.cholesky_ex(shifted).info == 0)
 
 

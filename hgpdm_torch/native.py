@@ -47,7 +47,9 @@ __all__ = [
     "SOURCE",
     "available",
     "cache_dir",
+    "clear_scratch",
     "exp_",
+    "predictive_step",
     "psi2_groups",
     "scratch",
     "supported",
@@ -59,6 +61,7 @@ SOURCE = Path(__file__).with_name("native_psi2.c")
 #: Largest weight dimension (Dx) the kernel takes; beyond it the torch path runs.
 MAX_D = 8
 _FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fno-math-errno")
+_LIBS = ("-lm",)
 
 
 @functools.cache
@@ -125,7 +128,9 @@ def _library() -> ctypes.CDLL | None:
         return None
     cpu = ",".join(sorted(_cpu_features()))
     key = hashlib.sha256(
-        b"\0".join(s.encode() for s in (SOURCE.read_text(), cc, version, " ".join(_FLAGS), cpu))
+        b"\0".join(
+            s.encode() for s in (SOURCE.read_text(), cc, version, " ".join(_FLAGS + _LIBS), cpu)
+        )
     ).hexdigest()[:16]
     target = cache_dir() / f"native_psi2_{key}.so"
     if not target.exists():
@@ -140,7 +145,10 @@ def _library() -> ctypes.CDLL | None:
             return None
         try:
             run = subprocess.run(
-                [cc, *_FLAGS, "-o", tmp, str(SOURCE)], capture_output=True, text=True, timeout=300
+                [cc, *_FLAGS, "-o", tmp, str(SOURCE), *_LIBS],
+                capture_output=True,
+                text=True,
+                timeout=300,
             )
             if run.returncode != 0:
                 _warn(f"compiling {SOURCE.name} with {cc} failed: {run.stderr.strip()[-500:]}")
@@ -158,6 +166,9 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_exp_f64.restype = None
     lib.hgpdm_psi2_groups_f64.argtypes = [i64] * 6 + [ptr] * 14
     lib.hgpdm_psi2_groups_f64.restype = ctypes.c_int
+    f64 = ctypes.c_double
+    lib.hgpdm_predictive_step_f64.argtypes = [i64] * 9 + [ptr] * 12 + [f64] * 2 + [ptr] * 7
+    lib.hgpdm_predictive_step_f64.restype = ctypes.c_int
     return lib
 
 
@@ -197,8 +208,14 @@ def scratch(numel: int, slot: int = 0) -> torch.Tensor:
         bufs = _scratch.bufs = {}
     buf = bufs.get(slot)
     if buf is None or buf.numel() < numel:
-        buf = bufs[slot] = torch.empty(numel, dtype=torch.float64)
+        buf = bufs[slot] = torch.empty(numel, dtype=torch.float64, device="cpu")
     return buf[:numel]
+
+
+def clear_scratch() -> None:
+    """Free this thread's :func:`scratch` buffers; the next call allocates its own again (so
+    that a measurement of one call's memory counts its work space)."""
+    _scratch.__dict__.pop("bufs", None)
 
 
 def _check(name: str, t: torch.Tensor, shape: tuple[int, ...]) -> int:
@@ -265,6 +282,98 @@ def psi2_groups(
         is complete: in torch, a small-inner-dimension product over ``S U`` rows had cost a
         tenth of the filter's update). Then ``psi1 [S, N]``.
     """
+    dims, ptrs = _contraction(
+        points, cols, mu, forms, const, log_phase, beta, betac, kinv, phi_t, groups
+    )
+    s, U, _, up, d, kp = dims
+    n, pairs = points.shape[0], d * (d + 1) // 2
+    # outputs and work space in this thread's scratch buffers: valid until its next call
+    T = scratch(s * U * up, 0).view(s, U, up)
+    out = scratch(s * (pairs + 1) * kp, 1).view(s, pairs + 1, kp)
+    p1 = scratch(s * n, 3).view(s, n)
+    work = scratch(_work(dims, n), 2)
+    if s:
+        _library().hgpdm_psi2_groups_f64(
+            *dims, *ptrs, T.data_ptr(), out.data_ptr(), p1.data_ptr(), work.data_ptr()
+        )
+    return T, out, p1
+
+
+def predictive_step(
+    contraction: tuple,
+    trans: torch.Tensor,
+    meas: torch.Tensor,
+    rank: int,
+    keep: float,
+    temperature: float,
+    z: torch.Tensor,
+    log_belief: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The online filter's predictive step for S streams in one call (``native_psi2.c``): per
+    stream, :func:`psi2_groups`'s contraction at its state, the transition moments of the K grid
+    values from it, the linear measurement's GP-ADF update of each (``rank`` R its latent span),
+    the belief step ``keep B + E / temperature`` and the moment-matched mixture.
+
+    Args:
+        contraction: :func:`psi2_groups`'s arguments, ``mu [S, D]`` the states' means and the
+            forms those of their covariances.
+        trans: ``[K U + K + 2 D + 1]`` the transition's ``phi [K, U]``, process noise ``[K]``,
+            output scales squared ``[D]``, offset ``[D]`` and kernel coefficient.
+        meas: ``[Dz R + R D + D D + 2 Dz + 2]`` the measurement's ``U [Dz, R]``, ``R [R, D]``,
+            ``Q [D, D]``, offset ``[Dz]``, scale ``[Dz]``, noise and log-scale term.
+        keep: ``1 - forgetting``; temperature: ``T > 0``.
+        z: ``[S, Dz]`` observations (an all-NaN row: missing); log_belief: ``[S, K]``.
+
+    Returns:
+        ``mean [S, D]``, ``cov [S, D, D]``, ``log_belief [S, K]`` and ``status [S]`` (int64: 1
+        where an innovation covariance did not factorise, and that stream's outputs are
+        undefined: the caller's torch path takes it).
+    """
+    dims, ptrs = _contraction(*contraction)
+    s, U, L, up, d, kp = dims
+    n, K, dz = U * L, log_belief.shape[-1], z.shape[-1]
+    if not 1 <= rank <= min(d, dz) or K > kp:
+        raise ValueError(f"rank must be in [1, min(D, Dz)] and K <= Kp, got {rank}, {K} > {kp}")
+    z_ptr, lb_ptr = _check("z", z, (s, dz)), _check("log_belief", log_belief, (s, K))
+    ptrs += [
+        _check("trans", trans, (K * U + K + 2 * d + 1,)),
+        _check("meas", meas, (dz * rank + rank * d + d * d + 2 * dz + 2,)),
+    ]
+    mean, lb = z.new_empty(s, d), z.new_empty(s, K)
+    cov, status = z.new_empty(s, d, d), torch.zeros(s, dtype=torch.int64, device=z.device)
+    pairs = d * (d + 1) // 2
+    tail = U * d + K * (d * d + d + 1) + dz + 3 * rank + 2 * rank * d + 2 * rank * rank
+    work = scratch(_work(dims, n) + U * up + (pairs + 1) * kp + n + tail, 2)
+    if s:
+        _library().hgpdm_predictive_step_f64(
+            *dims, K, dz, rank, *ptrs, float(keep), float(temperature), z_ptr, lb_ptr,
+            mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), status.data_ptr(), work.data_ptr(),
+        )  # fmt: skip
+    return mean, cov, lb, status
+
+
+def _work(dims: tuple[int, ...], n: int) -> int:
+    """Entries of the contraction's work space per call (``native_psi2.c``)."""
+    _, _, L, up, d, _ = dims
+    np_ = L * up
+    return (d + 1) * np_ + d * (d + 1) // 2 * up + (d + 2) * (n + np_)
+
+
+def _contraction(
+    points: torch.Tensor,
+    cols: torch.Tensor,
+    mu: torch.Tensor,
+    forms: torch.Tensor,
+    const: torch.Tensor,
+    log_phase: torch.Tensor | None,
+    beta: torch.Tensor,
+    betac: torch.Tensor,
+    kinv: torch.Tensor,
+    phi_t: torch.Tensor,
+    groups: int,
+) -> tuple[tuple[int, ...], list[int | None]]:
+    """The contraction's sizes ``(S, U, L, Up, D, Kp)`` and its operands' addresses, checked
+    (:func:`psi2_groups`'s arguments); raises where the library is not available."""
     n, d = points.shape
     s, np_, kp = mu.shape[0], cols.shape[0], phi_t.shape[1]
     U = groups
@@ -280,7 +389,7 @@ def psi2_groups(
     low, high = torch.aminmax(cols)  # an index out of range would read outside points
     if int(low) < 0 or int(high) >= n:
         raise ValueError(f"cols must index the {n} points, got values in [{int(low)}, {int(high)}]")
-    up, pairs = np_ // L, d * (d + 1) // 2
+    up = np_ // L
     ptrs = [
         _check("points", points, (n, d)),
         cols.data_ptr(),
@@ -293,26 +402,6 @@ def psi2_groups(
         _check("kinv", kinv, (n, np_)),
         _check("phi_t", phi_t, (up, kp)),
     ]
-    # outputs and work space in this thread's scratch buffers: valid until its next call
-    T = scratch(s * U * up, 0).view(s, U, up)
-    out = scratch(s * (pairs + 1) * kp, 1).view(s, pairs + 1, kp)
-    p1 = scratch(s * n, 3).view(s, n)
-    work = scratch((d + 1) * np_ + pairs * up + (d + 2) * (n + np_), 2)
-    lib = _library()
-    if lib is None:
+    if _library() is None:
         raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
-    if s:
-        lib.hgpdm_psi2_groups_f64(
-            s,
-            U,
-            L,
-            up,
-            d,
-            kp,
-            *ptrs,
-            T.data_ptr(),
-            out.data_ptr(),
-            p1.data_ptr(),
-            work.data_ptr(),
-        )
-    return T, out, p1
+    return (s, U, L, up, d, kp), ptrs

@@ -22,6 +22,7 @@
    column m Up + v is point (v, m); padding columns have zero kinv and betac, so they add
    nothing. */
 #include <immintrin.h>
+#include <math.h>
 #include <stdint.h>
 
 #ifndef __AVX512F__
@@ -213,27 +214,37 @@ INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const 
     hgpdm_exp_f64(N, p1);
 }
 
+/* One stream's psi2 contraction: its exponent factors and psi1 [N] (p1), the group sums
+   T [U, Up] and out [P + 1, Kp] (module comment); work as hgpdm_psi2_groups_f64's. */
+INLINE void one_stream(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp, const double *X,
+                       const int64_t *cols, const double *mu, const double *Q, const double *c,
+                       const double *lp, const double *beta, const double *betac,
+                       const double *kinv, const double *phiT, double *T, double *out,
+                       double *p1, double *work) {
+    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, C = D + 2;
+    double *acc = work, *prow = work + Np, *Su = prow + D * Np, *left = Su + P * Up;
+    double *right = left + N * C;
+    exponent(D, N, Np, X, cols, mu, Q, c, lp, left, right, p1);
+    for (int64_t j = 0; j < (P + 1) * Kp; ++j) out[j] = 0.0;
+    for (int64_t u = 0; u < U; ++u, T += Up) {
+        group_rows(D, L, C, Np, left + u * L * C, right, beta + u * L * D, kinv + u * L * Np, prow,
+                   acc);
+        group_sums(D, L, Up, acc, prow, betac, T, Su);
+        contract(P, Up, Kp, Su, phiT, phiT + u * Kp, out);
+        contract(1, Up, Kp, T, phiT, phiT + u * Kp, out + P * Kp); /* the trace row */
+    }
+}
+
 INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, int64_t Kp,
                         const double *X, const int64_t *cols, const double *mu, const double *Q,
                         const double *c, const double *lp, const double *beta,
                         const double *betac, const double *kinv, const double *phiT, double *T,
                         double *out, double *p1, double *work) {
-    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, C = D + 2;
-    double *acc = work, *prow = work + Np, *Su = prow + D * Np, *left = Su + P * Up;
-    double *right = left + N * C;
-    for (int64_t s = 0; s < S; ++s) {
-        exponent(D, N, Np, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s, lp ? lp + s * N : 0,
-                 left, right, p1 + s * N);
-        double *os = out + s * (P + 1) * Kp, *Tu = T + s * U * Up;
-        for (int64_t j = 0; j < (P + 1) * Kp; ++j) os[j] = 0.0;
-        for (int64_t u = 0; u < U; ++u, Tu += Up) {
-            group_rows(D, L, C, Np, left + u * L * C, right, beta + u * L * D, kinv + u * L * Np,
-                       prow, acc);
-            group_sums(D, L, Up, acc, prow, betac, Tu, Su);
-            contract(P, Up, Kp, Su, phiT, phiT + u * Kp, os);
-            contract(1, Up, Kp, Tu, phiT, phiT + u * Kp, os + P * Kp); /* the trace row */
-        }
-    }
+    const int64_t N = U * L, P = D * (D + 1) / 2;
+    for (int64_t s = 0; s < S; ++s)
+        one_stream(D, U, L, Up, Kp, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s,
+                   lp ? lp + s * N : 0, beta, betac, kinv, phiT, T + s * U * Up,
+                   out + s * (P + 1) * Kp, p1 + s * N, work);
 }
 
 /* Shapes (all C-contiguous; float64 but cols): X [N, D] the points in group order (u, l),
@@ -269,4 +280,230 @@ int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D
     }
     _mm_setcsr(csr);
     return status;
+}
+
+/* ---- The online filter's predictive step, fused with the contraction ----
+
+   hgpdm_torch.inference.intention.compiled: for each stream, the transition moments of the K
+   grid values (SharedTransition.moments), the GP-ADF update of each by the linear measurement
+   (LinearMeasurement.update), the belief step (belief_step) and the moment-matched mixture
+   (mixture_moments), in the order and form of those functions, with nothing of one stream but
+   its state and status left in memory. */
+
+#define LOG_2PI 1.8378770664093454835606594728112353
+
+/* The lower Cholesky factor F of the n x n symmetric A (lower triangle read), row-major; 1
+   where a pivot is not positive or is NaN (the caller's torch path then decides), else 0. */
+static int cholesky(int64_t n, const double *A, double *F) {
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j <= i; ++j) {
+            double s = A[i * n + j];
+            for (int64_t q = 0; q < j; ++q) s -= F[i * n + q] * F[j * n + q];
+            if (i == j) {
+                if (!(s > 0.0)) return 1;
+                F[i * n + i] = sqrt(s);
+            } else {
+                F[i * n + j] = s / F[j * n + j];
+            }
+        }
+    return 0;
+}
+
+/* x [n, m] = F^-1 b for the lower-triangular F [n, n]; b [n, m], row-major. */
+static void forward(int64_t n, int64_t m, const double *F, const double *b, double *x) {
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t j = 0; j < m; ++j) {
+            double s = b[i * m + j];
+            for (int64_t q = 0; q < i; ++q) s -= F[i * n + q] * x[q * m + j];
+            x[i * m + j] = s / F[i * n + i];
+        }
+}
+
+/* The step of one stream from its contraction (p1 [N], out [P + 1, Kp]). trans: phi [K, U],
+   the process noise [K], scale2 [D], offset [D], the kernel's coefficient; meas: U [Dz, R],
+   R [R, D], Q [D, D], offset [Dz], scale [Dz], noise, log_scale2 (LinearMeasurement's). Writes
+   m [D], P [D, D], lb_out [K]; returns 1 where an innovation covariance does not factorise. */
+static int step_tail(const int D, int64_t U, int64_t L, int64_t K, int64_t Kp, int64_t Dz,
+                     int64_t R, const double *p1, const double *beta, const double *out,
+                     const double *trans, const double *meas, double keep, double temp,
+                     const double *z, const double *lb, double *m, double *Pm, double *lb_out,
+                     double *w) {
+    const int64_t P = D * (D + 1) / 2;
+    const double *phi = trans, *noise = phi + K * U, *scale2 = noise + K, *offset = scale2 + D;
+    const double coef = offset[D];
+    const double *Um = meas, *Rm = Um + Dz * R, *Qm = Rm + R * D, *zoff = Qm + D * D;
+    const double *zscale = zoff + Dz, mnoise = zscale[Dz], log_scale2 = zscale[Dz + 1];
+    double *mu_u = w, *means = mu_u + U * D, *covs = means + K * D, *ll = covs + K * D * D;
+    double *zs = ll + K, *zu = zs + Dz, *r = zu + R, *RP = r + R, *S = RP + R * D, *F = S + R * R;
+    double *A = F + R * R, *a = A + R * D;
+    /* the transition's predictive means: psi1 against each group's weights, then phi */
+    for (int64_t u = 0; u < U; ++u)
+        for (int d = 0; d < D; ++d) {
+            double s = 0.0;
+            for (int64_t l = 0; l < L; ++l) s += p1[u * L + l] * beta[(u * L + l) * D + d];
+            mu_u[u * D + d] = s;
+        }
+    int missing = 1;
+    for (int64_t i = 0; i < Dz; ++i) missing &= isnan(z[i]) != 0;
+    for (int64_t i = 0; i < Dz; ++i) zs[i] = missing ? 0.0 : (z[i] - zoff[i]) / zscale[i];
+    double perp = 0.0; /* |z~ - U U^T z~|^2, the same for every k */
+    for (int64_t q = 0; q < R; ++q) {
+        double s = 0.0;
+        for (int64_t i = 0; i < Dz; ++i) s += zs[i] * Um[i * R + q];
+        zu[q] = s;
+    }
+    for (int64_t i = 0; i < Dz; ++i) {
+        double s = 0.0;
+        for (int64_t q = 0; q < R; ++q) s += zu[q] * Um[i * R + q];
+        perp += (zs[i] - s) * (zs[i] - s);
+    }
+    for (int64_t k = 0; k < K; ++k) {
+        double *mk = means + k * D, *Pk = covs + k * D * D;
+        for (int d = 0; d < D; ++d) {
+            double s = 0.0;
+            for (int64_t u = 0; u < U; ++u) s += phi[k * U + u] * mu_u[u * D + d];
+            mk[d] = s;
+        }
+        double var = coef - out[P * Kp + k];
+        var = (var < 0.0 ? 0.0 : var) + noise[k]; /* clamp_min keeps NaN */
+        for (int64_t e = 0, i = 0; i < D; ++i)
+            for (int64_t j = i; j < D; ++j, ++e)
+                Pk[i * D + j] = Pk[j * D + i] = out[e * Kp + k] - mk[i] * mk[j];
+        for (int d = 0; d < D; ++d) {
+            Pk[d * D + d] += var * scale2[d];
+            mk[d] += offset[d];
+        }
+        /* the measurement update at N(mk, Pk) */
+        double v = 0.0;
+        for (int i = 0; i < D; ++i)
+            for (int j = 0; j < D; ++j) v += Qm[i * D + j] * (Pk[i * D + j] + mk[i] * mk[j]);
+        v += mnoise;
+        for (int64_t q = 0; q < R; ++q) {
+            double s = 0.0;
+            for (int d = 0; d < D; ++d) s += mk[d] * Rm[q * D + d];
+            r[q] = zu[q] - s;
+            for (int j = 0; j < D; ++j) {
+                double t = 0.0;
+                for (int d = 0; d < D; ++d) t += Rm[q * D + d] * Pk[d * D + j];
+                RP[q * D + j] = t;
+            }
+        }
+        for (int64_t q = 0; q < R; ++q)
+            for (int64_t o = 0; o < R; ++o) {
+                double s = 0.0;
+                for (int d = 0; d < D; ++d) s += RP[q * D + d] * Rm[o * D + d];
+                S[q * R + o] = s;
+            }
+        for (int64_t q = 0; q < R; ++q)
+            for (int64_t o = 0; o < q; ++o)
+                S[q * R + o] = S[o * R + q] = 0.5 * (S[q * R + o] + S[o * R + q]);
+        for (int64_t q = 0; q < R; ++q) S[q * R + q] += v;
+        if (cholesky(R, S, F)) return 1;
+        forward(R, D, F, RP, A);
+        forward(R, 1, F, r, a);
+        double maha = 0.0, logdet = 0.0;
+        for (int64_t q = 0; q < R; ++q) {
+            maha += a[q] * a[q];
+            logdet += log(fabs(F[q * R + q]));
+        }
+        maha += perp / v;
+        logdet = 2.0 * logdet + (double)(Dz - R) * log(v) + log_scale2;
+        ll[k] = missing ? 0.0 : -0.5 * (maha + logdet + (double)Dz * LOG_2PI);
+        if (!missing) {
+            for (int i = 0; i < D; ++i) {
+                double s = 0.0;
+                for (int64_t q = 0; q < R; ++q) s += A[q * D + i] * a[q];
+                mk[i] += s;
+            }
+            for (int i = 0; i < D; ++i)
+                for (int j = 0; j <= i; ++j) {
+                    double s = 0.0;
+                    for (int64_t q = 0; q < R; ++q) s += A[q * D + i] * A[q * D + j];
+                    Pk[i * D + j] = Pk[j * D + i] = Pk[i * D + j] - s;
+                }
+        }
+    }
+    /* the belief step: B_t = keep B_{t-1} + E_t / T, normalised */
+    double top = -INFINITY;
+    for (int64_t k = 0; k < K; ++k) {
+        lb_out[k] = keep * lb[k] + (missing ? 0.0 : ll[k] / temp);
+        if (lb_out[k] > top || isnan(lb_out[k])) top = lb_out[k];
+    }
+    double total = 0.0;
+    for (int64_t k = 0; k < K; ++k) total += exp(lb_out[k] - top);
+    const double lse = isinf(top) && top < 0 ? top : top + log(total);
+    double *prob = ll; /* the evidence is spent */
+    for (int64_t k = 0; k < K; ++k) {
+        lb_out[k] -= lse;
+        prob[k] = exp(lb_out[k]);
+    }
+    /* the mixture: m = sum_k p_k m_k, P = sum_k p_k (P_k + (m_k - m)(m_k - m)^T) */
+    for (int d = 0; d < D; ++d) {
+        double s = 0.0;
+        for (int64_t k = 0; k < K; ++k) s += prob[k] * means[k * D + d];
+        m[d] = s;
+    }
+    for (int i = 0; i < D; ++i)
+        for (int j = 0; j <= i; ++j) {
+            double s = 0.0, c = 0.0;
+            for (int64_t k = 0; k < K; ++k) {
+                s += prob[k] * (means[k * D + i] - m[i]) * (means[k * D + j] - m[j]);
+                c += prob[k] * covs[k * D * D + i * D + j];
+            }
+            Pm[i * D + j] = Pm[j * D + i] = s + c;
+        }
+    return 0;
+}
+
+INLINE void all_steps(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, int64_t Kp,
+                      int64_t K, int64_t Dz, int64_t R, const double *X, const int64_t *cols,
+                      const double *mu, const double *Q, const double *c, const double *lp,
+                      const double *beta, const double *betac, const double *kinv,
+                      const double *phiT, const double *trans, const double *meas, double keep,
+                      double temp, const double *z, const double *lb, double *m, double *Pm,
+                      double *lb_out, int64_t *status, double *work) {
+    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2;
+    double *T = work + (D + 1) * Np + P * Up + (D + 2) * (N + Np), *out = T + U * Up;
+    double *p1 = out + (P + 1) * Kp, *tail = p1 + N;
+    for (int64_t s = 0; s < S; ++s) {
+        one_stream(D, U, L, Up, Kp, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s,
+                   lp ? lp + s * N : 0, beta, betac, kinv, phiT, T, out, p1, work);
+        status[s] = step_tail(D, U, L, K, Kp, Dz, R, p1, beta, out, trans, meas, keep, temp,
+                              z + s * Dz, lb + s * K, m + s * D, Pm + s * D * D, lb_out + s * K,
+                              tail);
+    }
+}
+
+/* Shapes: the contraction's operands as in hgpdm_psi2_groups_f64 (mu the state means, Q and c
+   the forms of their covariances); K values, Dz observed dims, R = min(D, Dz); trans
+   [K U + K + 2 D + 1] and meas [Dz R + R D + D D + 2 Dz + 2] (step_tail); keep = 1 -
+   forgetting, temp the temperature; z [S, Dz], lb [S, K]; outputs m [S, D], Pm [S, D, D],
+   lb_out [S, K], status [S] (int64: 0, or 1 where the stream's update is left to torch); work
+   [psi2's + U Up + (P + 1) Kp + N + U D + K (D D + D + 1) + Dz + 3 R + 2 R D + 2 R R].
+   Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp,
+                              int64_t K, int64_t Dz, int64_t R, const double *X,
+                              const int64_t *cols, const double *mu, const double *Q,
+                              const double *c, const double *lp, const double *beta,
+                              const double *betac, const double *kinv, const double *phiT,
+                              const double *trans, const double *meas, double keep, double temp,
+                              const double *z, const double *lb, double *m, double *Pm,
+                              double *lb_out, int64_t *status, double *work) {
+    const unsigned int csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_psi2_groups_f64 */
+    int code = 1;
+    switch (D) {
+#define CASE(DD)                                                                               \
+    case DD:                                                                                   \
+        all_steps(DD, S, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, \
+                  trans, meas, keep, temp, z, lb, m, Pm, lb_out, status, work);                \
+        code = 0;                                                                              \
+        break;
+        CASE(1) CASE(2) CASE(3) CASE(4) CASE(5) CASE(6) CASE(7) CASE(8)
+#undef CASE
+    default:
+        break;
+    }
+    _mm_setcsr(csr);
+    return code;
 }

@@ -163,6 +163,15 @@ def test_numerical_failure_restarts_only_that_stream(model, streams, clean, fres
                     return moments(m, P, phase, **options)
 
                 f.transition.moments = failing
+                step = f.compiled_step  # the compiled kernel's whole step, where it runs
+                if step is not None:
+
+                    def failing_step(m, *rest):
+                        if bool((m == 777.0).any()):
+                            raise CholeskyError("injected failure")
+                        return step(m, *rest)
+
+                    f.compiled_step = failing_step
             for stream in targets:
                 _set(stream, *value)(f, t)
 

@@ -78,6 +78,15 @@ class LinearMeasurement:
         self.offset = posterior.offset.to(dtype)
         self.noise = posterior.noise.to(dtype)
 
+    @functools.cached_property
+    def native_terms(self) -> torch.Tensor:
+        """``[Dz k + k Dx + Dx^2 + 2 Dz + 2]``: U, R, Q, the offset, the scale, the noise and
+        ``2 sum log s``, flat (:func:`hgpdm_torch.native.predictive_step`'s ``meas``)."""
+        dz = self.U.shape[0]
+        parts = (self.U, self.R, self.Q, self.offset.expand(dz), self.scale, self.noise,
+                 self.log_scale2)  # fmt: skip
+        return torch.cat([t.reshape(-1) for t in parts]).contiguous()
+
     def operations(self) -> OpCount:
         """Work of :meth:`update` per Gaussian (the floor's count), ``k = min(Dx, Dz)``:
         ``2 Dx^2`` for ``v``, ``2 Dz k`` for the projections of ``z``, ``k Dx`` for ``r``,

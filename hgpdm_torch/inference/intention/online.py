@@ -35,6 +35,7 @@ from ...linalg import symmetrize
 from ...models import GPDM
 from ...observations import DEFAULT_OUTLIER_SD, ObservationCheck
 from ...tiling import OpCount, stream_chunk
+from .compiled import CompiledStep
 from .grid import check_chunk_size, intention_grid
 from .linearisation import expected_log_conditional
 from .measurement import measurement_operations, measurement_update
@@ -286,6 +287,7 @@ class OnlineIntentionFilter(IsolatedStreams):
         meas = model.measurement_posterior()
         self.check = ObservationCheck.from_measurement(meas, options.observations.outlier_sd)
         self.measure = measurement_update(meas, self.dtype)
+        self.compiled_step = CompiledStep.build(self.transition, self.measure, options)
         own = trans.train_inputs.dtype
         if self.dtype != own:
             reference = transition_moments(trans, values, own, transition=path.path, **phased)
@@ -360,8 +362,12 @@ class OnlineIntentionFilter(IsolatedStreams):
         z: torch.Tensor,
         phase: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        observed = ~torch.isnan(z).all(-1)
         p = phase if self.phase else None
+        if self.compiled_step is not None:  # the whole step in one call of the compiled kernel
+            out = self.compiled_step(m, P, log_belief, z, p)
+            if out is not None:
+                return out
+        observed = ~torch.isnan(z).all(-1)
         predictive = self.options.evidence.kind == "predictive"
         if predictive:
             mf, Pf, evidence = self._predictive_step(m, P, z, p)

@@ -182,6 +182,44 @@ class IsolatedStreams:
         failed = torch.zeros_like(broken)
         new = ~started
         num_new = int(new.sum())
+        self._chunks(mean, cov, log_belief, z, new, num_new, failed)
+        if num_new:
+            started |= new & ~torch.isnan(z).all(-1)
+        failed |= ~_usable_state(mean, cov, log_belief)
+        any_failed = bool(failed.any())
+        if any_failed:
+            self._fail(int(torch.nonzero(failed)[0]), "gave a non-finite or indefinite state")
+            self._restart(failed, mean, cov, log_belief, started)
+        for attr, value in (
+            ("mean", mean), ("cov", cov), ("log_belief", log_belief), ("started", started),
+        ):  # fmt: skip
+            getattr(self, attr).copy_(value)
+        del mean, cov, log_belief, started, value  # copied: their memory serves the belief below
+        self.steps += 1
+        reset = broken | failed
+        if any_broken or any_failed:
+            # a stream restarted before its step counts this observation, one that failed not
+            self.steps.copy_(torch.where(broken, 1, self.steps).masked_fill_(failed, 0))
+            self.reset_count += reset
+        self.rejected_count += rejected
+        return flagged_belief(
+            self.log_belief, self.values, self.continuous, single, rejected, reset
+        )
+
+    def _chunks(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        log_belief: torch.Tensor,
+        z: torch.Tensor,
+        new: torch.Tensor,
+        num_new: int,
+        failed: torch.Tensor,
+    ) -> None:
+        """:meth:`update`'s steps and initialisations of ``new [B]`` streams, chunk after chunk,
+        into ``mean``, ``cov`` and ``log_belief`` (``failed [B]`` marks the failing streams); in
+        a method of its own so that its temporaries are gone when the belief is formed."""
+        B = self.batch_size
         # Chunks are fixed ranges of streams and compute every stream of their range, the
         # inactive ones unobserved and discarded: the shapes, and so the rounding, of a stream's
         # update do not depend on which other streams are new, rejected or failing. The step
@@ -211,27 +249,6 @@ class IsolatedStreams:
                         keep = act.view(-1, *([1] * (value.dim() - 1)))
                         value = torch.where(keep, value, target[rows])
                     target[rows] = value
-        if num_new:
-            started |= new & ~torch.isnan(z).all(-1)
-        failed |= ~_usable_state(mean, cov, log_belief)
-        any_failed = bool(failed.any())
-        if any_failed:
-            self._fail(int(torch.nonzero(failed)[0]), "gave a non-finite or indefinite state")
-            self._restart(failed, mean, cov, log_belief, started)
-        for attr, value in (
-            ("mean", mean), ("cov", cov), ("log_belief", log_belief), ("started", started),
-        ):  # fmt: skip
-            getattr(self, attr).copy_(value)
-        self.steps += 1
-        reset = broken | failed
-        if any_broken or any_failed:
-            # a stream restarted before its step counts this observation, one that failed not
-            self.steps.copy_(torch.where(broken, 1, self.steps).masked_fill_(failed, 0))
-            self.reset_count += reset
-        self.rejected_count += rejected
-        return flagged_belief(
-            self.log_belief, self.values, self.continuous, single, rejected, reset
-        )
 
     def _where(self, b: int) -> str:
         return f"z[{b}] (stream {b}, step {int(self.steps[b])})"

@@ -1,0 +1,82 @@
+r"""The online filter's predictive step on the compiled CPU kernel, one call per chunk of streams.
+
+Where :class:`~hgpdm_torch.inference.intention.online.OnlineIntentionFilter` takes the
+predictive evidence (its default), a shared transition GP on the compiled kernel
+(:meth:`~hgpdm_torch.gp_shared.SharedTransition.compiled`) and a linear measurement
+(:class:`~hgpdm_torch.inference.intention.measurement.LinearMeasurement`), its whole step runs
+in :func:`hgpdm_torch.native.predictive_step`: per stream, the ``psi2`` contraction, the K
+transition moments (Eq. 13-15 with Gaussian inputs), their GP-ADF measurement updates (Eq. 25,
+32-35), the belief step (Algorithm 3.2, lines 10-11) and the moment-matched mixture, one stream
+after another. In torch the same step holds ``[S, K, Dx, Dx]`` tensors for a chunk of S streams
+and makes some 200 calls per chunk; here nothing of a stream but its new state leaves the
+kernel, so a chunk needs a few kilobytes per stream and its fixed cost is the quadratic forms'
+set-up.
+
+The torch path stays the reference (the tests compare the two) and takes over whole chunks:
+where the kernel does not run (float32, a gradient, another device,
+:class:`hgpdm_torch.settings.native_kernels` off, the materialised moment path) and where an
+innovation covariance of some stream does not factorise (then the torch path's jitter and the
+filter's isolation of failing streams apply exactly as without the kernel).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ... import native, settings
+from ...gp_shared import SharedTransition
+from .measurement import linear_measurement
+from .options import FilterOptions
+
+__all__ = ["CompiledStep"]
+
+
+class CompiledStep:
+    """``(mean [S, Dx], cov [S, Dx, Dx], log_belief [S, K], z [S, Dz], phase [S] | None) ->
+    (mean, cov, log_belief)`` of the predictive step by the compiled kernel, or ``None`` where
+    the torch path must take the chunk (module docstring). Build with :meth:`build`."""
+
+    def __init__(self, transition: SharedTransition, measure, options: FilterOptions) -> None:
+        linear = linear_measurement(measure)
+        self.transition, self.meas = transition, linear.native_terms
+        self.rank = linear.R.shape[0]
+        self.keep = 1.0 - options.belief.forgetting
+        self.temperature = options.belief.temperature
+
+    @classmethod
+    def build(cls, transition: object, measure, options: FilterOptions) -> CompiledStep | None:
+        """The compiled step of a filter with this transition, measurement update and options,
+        or ``None`` where it cannot run at all (bound evidence, a generic or sparse transition,
+        a measurement GP whose kernel is not linear, no compiled kernel on this machine)."""
+        if (
+            options.evidence.kind != "predictive"
+            or not isinstance(transition, SharedTransition)
+            or linear_measurement(measure) is None
+            or not transition.compiled()
+        ):
+            return None
+        return cls(transition, measure, options)
+
+    def __call__(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        log_belief: torch.Tensor,
+        z: torch.Tensor,
+        phase: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        trans = self.transition
+        if (
+            settings.moment_path.get() != "fused"
+            or not native.usable(mean, cov, log_belief, z)
+            or not trans.compiled()
+        ):
+            return None
+        log_phase = None if phase is None else trans.log_phase(phase.to(mean))
+        new_mean, new_cov, new_belief, status = native.predictive_step(
+            trans.native_operands(mean, cov, log_phase), trans.native_moment_terms, self.meas,
+            self.rank, self.keep, self.temperature, z.contiguous(), log_belief.contiguous(),
+        )  # fmt: skip
+        if bool(status.any()):
+            return None
+        return new_mean, new_cov, new_belief
