@@ -162,6 +162,4 @@ def test_inputs_are_checked(continuous_iddm):
     with pytest.raises(ValueError, match="trans"):
         native.predictive_step(ops, terms[:-1].contiguous(), step.meas, step.rank, 0.8, 1.0, z, lb)
     with pytest.raises(ValueError, match="log_belief"):
-        native.predictive_step(
-            ops, terms, step.meas, step.rank, 0.8, 1.0, z, lb[:3].contiguous()
-        )
+        native.predictive_step(ops, terms, step.meas, step.rank, 0.8, 1.0, z, lb[:3].contiguous())
