@@ -283,7 +283,7 @@ def psi2_groups(
         tenth of the filter's update). Then ``psi1 [S, N]``.
     """
     dims, ptrs = _contraction(
-        points, cols, mu, forms, const, log_phase, beta, betac, kinv, phi_t, groups
+        (points, cols, mu, forms, const, log_phase, beta, betac, kinv, phi_t, groups)
     )
     s, U, _, up, d, kp = dims
     n, pairs = points.shape[0], d * (d + 1) // 2
@@ -329,7 +329,7 @@ def predictive_step(
         where an innovation covariance did not factorise, and that stream's outputs are
         undefined: the caller's torch path takes it).
     """
-    dims, ptrs = _contraction(*contraction)
+    dims, ptrs = _contraction(contraction)
     s, U, L, up, d, kp = dims
     n, K, dz = U * L, log_belief.shape[-1], z.shape[-1]
     if not 1 <= rank <= min(d, dz) or K > kp:
@@ -359,21 +359,10 @@ def _work(dims: tuple[int, ...], n: int) -> int:
     return (d + 1) * np_ + d * (d + 1) // 2 * up + (d + 2) * (n + np_)
 
 
-def _contraction(
-    points: torch.Tensor,
-    cols: torch.Tensor,
-    mu: torch.Tensor,
-    forms: torch.Tensor,
-    const: torch.Tensor,
-    log_phase: torch.Tensor | None,
-    beta: torch.Tensor,
-    betac: torch.Tensor,
-    kinv: torch.Tensor,
-    phi_t: torch.Tensor,
-    groups: int,
-) -> tuple[tuple[int, ...], list[int | None]]:
+def _contraction(args: tuple) -> tuple[tuple[int, ...], list[int | None]]:
     """The contraction's sizes ``(S, U, L, Up, D, Kp)`` and its operands' addresses, checked
-    (:func:`psi2_groups`'s arguments); raises where the library is not available."""
+    (:func:`psi2_groups`'s arguments ``args``); raises where the library is not available."""
+    points, cols, mu, forms, const, log_phase, beta, betac, kinv, phi_t, groups = args
     n, d = points.shape
     s, np_, kp = mu.shape[0], cols.shape[0], phi_t.shape[1]
     U = groups

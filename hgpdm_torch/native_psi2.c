@@ -32,6 +32,20 @@
 #define W 8 /* doubles per AVX-512 register */
 #define MAX_D 8
 #define INLINE static inline __attribute__((always_inline))
+/* CALL(DD) with DD the compile-time constant equal to D (the kernels' loops over D unroll);
+   status 0, or 1 (nothing run) for D outside 1..MAX_D */
+#define FOR_D(D, CALL, status)                                                  \
+    switch (D) {                                                                \
+    case 1: CALL(1); status = 0; break;                                         \
+    case 2: CALL(2); status = 0; break;                                         \
+    case 3: CALL(3); status = 0; break;                                         \
+    case 4: CALL(4); status = 0; break;                                         \
+    case 5: CALL(5); status = 0; break;                                         \
+    case 6: CALL(6); status = 0; break;                                         \
+    case 7: CALL(7); status = 0; break;                                         \
+    case 8: CALL(8); status = 0; break;                                         \
+    default: status = 1; break;                                                 \
+    }
 
 /* 2^(j/16), j = 0..15, each the double nearest the exact value (checked at 200 bits). */
 static const double EXP2_16TH[16] = {
@@ -265,19 +279,11 @@ int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D
        they change a sum by less than 2.3e-308 each */
     const unsigned int csr = _mm_getcsr();
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ */
-    int status = 1;
-    switch (D) {
-#define CASE(DD)                                                                              \
-    case DD:                                                                                  \
-        all_streams(DD, S, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, \
-                    p1, work);                                                                 \
-        status = 0;                                                                           \
-        break;
-        CASE(1) CASE(2) CASE(3) CASE(4) CASE(5) CASE(6) CASE(7) CASE(8)
-#undef CASE
-    default:
-        break;
-    }
+    int status;
+#define PSI2(DD) \
+    all_streams(DD, S, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, p1, work)
+    FOR_D(D, PSI2, status);
+#undef PSI2
     _mm_setcsr(csr);
     return status;
 }
@@ -491,19 +497,12 @@ int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64
                               double *lb_out, int64_t *status, double *work) {
     const unsigned int csr = _mm_getcsr();
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_psi2_groups_f64 */
-    int code = 1;
-    switch (D) {
-#define CASE(DD)                                                                               \
-    case DD:                                                                                   \
-        all_steps(DD, S, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, \
-                  trans, meas, keep, temp, z, lb, m, Pm, lb_out, status, work);                \
-        code = 0;                                                                              \
-        break;
-        CASE(1) CASE(2) CASE(3) CASE(4) CASE(5) CASE(6) CASE(7) CASE(8)
-#undef CASE
-    default:
-        break;
-    }
+    int code;
+#define STEP(DD)                                                                                 \
+    all_steps(DD, S, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, trans, \
+              meas, keep, temp, z, lb, m, Pm, lb_out, status, work)
+    FOR_D(D, STEP, code);
+#undef STEP
     _mm_setcsr(csr);
     return code;
 }
