@@ -591,7 +591,7 @@ class SharedTransition:
             ref.new_zeros(dx) if self.offset is None else self.offset,
             self.coef.reshape(1),
         )
-        return torch.cat([t.detach().to(ref) for t in parts]).contiguous()
+        return torch.cat([t.to(ref) for t in parts]).contiguous()  # a gradient: the torch step
 
     def log_phase(self, phase: torch.Tensor) -> torch.Tensor:
         """``[B, UL]`` the log of each point's phase factor ``-w_p (p - p_i)^2 / 2`` for the

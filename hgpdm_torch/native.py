@@ -293,9 +293,10 @@ def psi2_groups(
     p1 = scratch(s * n, 3).view(s, n)
     work = scratch(_work(dims, n), 2)
     if s:
-        _library().hgpdm_psi2_groups_f64(
+        code = _library().hgpdm_psi2_groups_f64(
             *dims, *ptrs, T.data_ptr(), out.data_ptr(), p1.data_ptr(), work.data_ptr()
         )
+        _ran(code, d)
     return T, out, p1
 
 
@@ -345,11 +346,18 @@ def predictive_step(
     tail = U * d + K * (d * d + d + 1) + dz + 3 * rank + 2 * rank * d + 2 * rank * rank
     work = scratch(_work(dims, n) + U * up + (pairs + 1) * kp + n + tail, 2)
     if s:
-        _library().hgpdm_predictive_step_f64(
+        code = _library().hgpdm_predictive_step_f64(
             *dims, K, dz, rank, *ptrs, float(keep), float(temperature), z_ptr, lb_ptr,
             mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), status.data_ptr(), work.data_ptr(),
         )  # fmt: skip
+        _ran(code, d)
     return mean, cov, lb, status
+
+
+def _ran(code: int, d: int) -> None:
+    """Raise unless the kernel ran (code 0; 1: D outside 1..MAX_D, nothing written)."""
+    if code != 0:
+        raise RuntimeError(f"the compiled kernel did not run (D = {d}, at most {MAX_D})")
 
 
 def _work(dims: tuple[int, ...], n: int) -> int:

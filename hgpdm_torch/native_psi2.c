@@ -496,7 +496,9 @@ int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64
                               const double *z, const double *lb, double *m, double *Pm,
                               double *lb_out, int64_t *status, double *work) {
     const unsigned int csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_psi2_groups_f64 */
+    /* FTZ | DAZ, as in hgpdm_psi2_groups_f64; in the step after the contraction it flushes
+       only values below 2.3e-308 (a belief's probability of such a value counts as 0) */
+    _mm_setcsr(csr | 0x8040);
     int code;
 #define STEP(DD)                                                                                 \
     all_steps(DD, S, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, trans, \

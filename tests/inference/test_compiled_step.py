@@ -28,17 +28,22 @@ pytestmark = pytest.mark.skipif(
 GRID = torch.linspace(-1.2, 1.2, 9)
 
 
-def _state(model, B: int = 6):
-    """A filter of B streams after two real frames each, and a third frame per stream (one
-    missing, one row NaN throughout), with log beliefs that differ between streams."""
-    f = OnlineIntentionFilter(model, GRID, batch_size=B, forgetting=0.3, temperature=1.5)
+def _state(model, B: int = 6, forgetting: float = 0.3, temperature: float = 1.5):
+    """A filter of B streams after two real frames each, and a third frame per stream (stream 1's
+    missing: a NaN row), with log beliefs that differ between streams (stream 0 excludes three
+    values: -inf)."""
+    f = OnlineIntentionFilter(
+        model, GRID, batch_size=B, forgetting=forgetting, temperature=temperature
+    )
     z = torch.stack([s[:3] for s in model.sequences()[:B]])
     for t in range(2):
         f.update(z[:, t])
     frame = z[:, 2].clone()
     frame[1] = math.nan
     gen = torch.Generator().manual_seed(0)
-    log_belief = torch.log_softmax(3 * torch.randn(B, len(GRID), generator=gen), -1).double()
+    log_belief = 3 * torch.randn(B, len(GRID), generator=gen, dtype=torch.float64)
+    log_belief[0, :3] = -math.inf
+    log_belief = torch.log_softmax(log_belief, -1)
     return f, (f.mean.clone(), f.cov.clone(), log_belief, frame, None)
 
 
@@ -50,11 +55,13 @@ def _torch_step(f, args):
         f.compiled_step = step
 
 
-def test_step_equals_the_torch_step(continuous_iddm, gp_rounding):
+@pytest.mark.parametrize("forgetting, temperature", [(0.3, 1.5), (0.0, 1.0)])
+def test_step_equals_the_torch_step(continuous_iddm, gp_rounding, forgetting, temperature):
     """Means, covariances and beliefs of one step: the kernel's, the torch step on the kernel's
     contraction, and the materialised torch path, within one step's rounding of each one's
-    scale (probabilities: of 1); the missing stream only forgets."""
-    f, args = _state(continuous_iddm)
+    scale (probabilities: of 1); the missing stream only forgets; excluded values stay
+    excluded."""
+    f, args = _state(continuous_iddm, forgetting=forgetting, temperature=temperature)
     got = f.compiled_step(*args)
     assert got is not None
     rel = gp_rounding(f.posterior, continuous_iddm.measurement_posterior())
@@ -66,7 +73,8 @@ def test_step_equals_the_torch_step(continuous_iddm, gp_rounding):
         for a, b in zip(got[:2], want[:2], strict=True):
             torch.testing.assert_close(a, b, rtol=rel, atol=rel * float(b.abs().max()))
         torch.testing.assert_close(got[2].exp(), want[2].exp(), rtol=rel, atol=rel)
-    forgot = torch.log_softmax(0.7 * args[2][1], -1)
+    assert torch.isneginf(got[2][0, :3]).all() and torch.isfinite(got[2][0, 3:]).all()
+    forgot = torch.log_softmax((1 - forgetting) * args[2][1], -1)
     torch.testing.assert_close(got[2][1], forgot, rtol=0, atol=8 * torch.finfo(torch.float64).eps)
     torch.testing.assert_close(got[0][1], references[1][0][1], rtol=0, atol=rel)
 
@@ -96,7 +104,9 @@ def test_filter_updates_match_with_and_without_the_kernel(continuous_iddm, gp_ro
 def test_streams_are_independent_and_failures_go_to_torch(
     continuous_iddm, gp_rounding, monkeypatch
 ):
-    """Each stream's results do not depend on the others in its call; an innovation covariance
+    """Each stream's results do not depend on the others in its call (to rounding: the quadratic
+    forms come from batched torch linear algebra, which need not round alike in batches of
+    other sizes on every machine); an innovation covariance
     that does not factorise (a negative measurement noise) sets its stream's status; where any
     status is set the step returns None and the filter's torch step takes the chunk (the same
     update as without the kernel)."""
@@ -141,7 +151,7 @@ def test_streams_are_independent_and_failures_go_to_torch(
 
 def test_built_only_where_it_can_run(continuous_iddm):
     """The bound evidence and the generic transition have no compiled step; with the kernels
-    off (or float32) the step declines at call time."""
+    off, in float32 or under the debugging checks the step declines at call time."""
     assert OnlineIntentionFilter(continuous_iddm, GRID, evidence="bound").compiled_step is None
     generic = OnlineIntentionFilter(continuous_iddm, GRID, transition="generic")
     assert generic.compiled_step is None
@@ -149,6 +159,11 @@ def test_built_only_where_it_can_run(continuous_iddm):
     assert isinstance(f.compiled_step, CompiledStep)
     with settings.native_kernels(False):
         assert f.compiled_step(*args) is None
+    with settings.debug(True):  # the torch step checks its internal Gaussians
+        assert f.compiled_step(*args) is None
+    with settings.native_kernels(False):  # built with the kernels off: it runs once they are on
+        later = OnlineIntentionFilter(continuous_iddm, GRID, batch_size=6)
+    assert later.compiled_step(*args) is not None
     assert f.compiled_step(*(a.float() if a is not None else a for a in args)) is None
 
 

@@ -14,7 +14,8 @@ set-up.
 
 The torch path stays the reference (the tests compare the two) and takes over whole chunks:
 where the kernel does not run (float32, a gradient, another device,
-:class:`hgpdm_torch.settings.native_kernels` off, the materialised moment path) and where an
+:class:`hgpdm_torch.settings.native_kernels` off, the materialised moment path, the checks of
+:class:`hgpdm_torch.settings.debug`) and where an
 innovation covariance of some stream does not factorise (then the torch path's jitter and the
 filter's isolation of failing streams apply exactly as without the kernel).
 """
@@ -46,13 +47,14 @@ class CompiledStep:
     @classmethod
     def build(cls, transition: object, measure, options: FilterOptions) -> CompiledStep | None:
         """The compiled step of a filter with this transition, measurement update and options,
-        or ``None`` where it cannot run at all (bound evidence, a generic or sparse transition,
-        a measurement GP whose kernel is not linear, no compiled kernel on this machine)."""
+        or ``None`` where it cannot run at all (bound evidence, a generic transition, a
+        measurement GP whose kernel is not linear, Dx above the kernel's limit); whether the
+        kernel runs here is decided at each call (settings, dtype, gradients)."""
         if (
             options.evidence.kind != "predictive"
             or not isinstance(transition, SharedTransition)
             or linear_measurement(measure) is None
-            or not transition.compiled()
+            or transition.dx > native.MAX_D
         ):
             return None
         return cls(transition, measure, options)
@@ -68,15 +70,23 @@ class CompiledStep:
         trans = self.transition
         if (
             settings.moment_path.get() != "fused"
-            or not native.usable(mean, cov, log_belief, z)
+            or settings.debug.on()  # the torch step checks its internal Gaussians there
+            or not native.usable(mean, cov, log_belief, z, self.meas, trans.native_moment_terms)
             or not trans.compiled()
         ):
             return None
         log_phase = None if phase is None else trans.log_phase(phase.to(mean))
-        new_mean, new_cov, new_belief, status = native.predictive_step(
-            trans.native_operands(mean, cov, log_phase), trans.native_moment_terms, self.meas,
-            self.rank, self.keep, self.temperature, z.contiguous(), log_belief.contiguous(),
-        )  # fmt: skip
+        # a state that is no covariance raises here as in the torch step (a stream's failure)
+        operands = trans.native_operands(mean, cov, log_phase)
+        try:
+            new_mean, new_cov, new_belief, status = native.predictive_step(
+                operands, trans.native_moment_terms, self.meas, self.rank, self.keep,
+                self.temperature, z.contiguous(), log_belief.contiguous(),
+            )  # fmt: skip
+        except ValueError as err:  # operands that do not fit: a bug, not a stream's failure
+            raise RuntimeError(
+                f"the compiled predictive step's operands do not fit: {err}"
+            ) from err
         if bool(status.any()):
             return None
         return new_mean, new_cov, new_belief
