@@ -564,16 +564,19 @@ class SharedTransition:
         kernel's layout and each stream's quadratic forms
         (:func:`~hgpdm_torch.expectations.rbf_psi2_quadratic`,
         :func:`~hgpdm_torch.expectations.rbf_psi1_quadratic`, psi1's constant with the kernel's
-        coefficient)."""
+        coefficient), computed by :func:`hgpdm_torch.native.rbf_forms`."""
         lay, b = self._native, mu.shape[0]
-        H, M_a, M_b, const = rbf_psi2_quadratic(self.term, self.term, Sigma)
-        P, const1 = rbf_psi1_quadratic(self.term, Sigma)
-        forms = torch.stack(torch.broadcast_tensors(H, M_a, M_b, P), -3)
-        forms = forms.expand(b, 4, self.dx, self.dx).contiguous()
-        consts = torch.stack(torch.broadcast_tensors(const, const1 + self.coef.log()), -1)
+        Sigma = Sigma.expand(b, self.dx, self.dx).contiguous()
+        weight = self.term.weight.contiguous()
+        forms, consts, status = native.rbf_forms(Sigma, weight, float(self.coef))
+        if bool(status.any()):  # not a covariance: torch's forms raise as they would without C
+            H, M_a, M_b, const = rbf_psi2_quadratic(self.term, self.term, Sigma)
+            P, const1 = rbf_psi1_quadratic(self.term, Sigma)
+            forms = torch.stack(torch.broadcast_tensors(H, M_a, M_b, P), -3).contiguous()
+            consts = torch.stack(torch.broadcast_tensors(const, const1 + self.coef.log()), -1)
         phase = None if log_phase is None else log_phase.contiguous()
         return (
-            self.inputs, lay.cols, mu.contiguous(), forms, consts.expand(b, 2).contiguous(), phase,
+            self.inputs, lay.cols, mu.contiguous(), forms, consts.contiguous(), phase,
             lay.beta, lay.betac, lay.kinv, lay.phi_t, self.groups,
         )  # fmt: skip
 

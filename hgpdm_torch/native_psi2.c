@@ -325,6 +325,76 @@ static void forward(int64_t n, int64_t m, const double *F, const double *b, doub
         }
 }
 
+/* The exponents' quadratic forms of one RBF term for an input covariance Sigma [D, D], as
+   hgpdm_torch.expectations.rbf_psi2_quadratic (the term with itself) and rbf_psi1_quadratic
+   compute them, in their order and form: Q [4, D, D] = H, M_a, M_b (= M_a), P and c [2] = the
+   psi2 constant and psi1's with log(coef). B = I + S Sigma S (S = diag(sqrt(w)), the weights
+   2 w for psi2) is at least I, so its factor exists for any covariance; 1 where it does not
+   (a NaN or an indefinite Sigma: the caller's torch path then raises as it would). */
+static int rbf_forms(const int D, const double *Sigma, const double *w, double coef, double *Q,
+                     double *c) {
+    double s[MAX_D], A[MAX_D * MAX_D], F[MAX_D * MAX_D], Fi[MAX_D * MAX_D], Bi[MAX_D * MAX_D];
+    double *H = Q, *Ma = Q + D * D, *Mb = Q + 2 * D * D, *P = Q + 3 * D * D;
+    for (int pass = 0; pass < 2; ++pass) { /* psi2 (weights w + w), then psi1 (w) */
+        for (int a = 0; a < D; ++a) {
+            const double wa = pass == 0 ? w[a] + w[a] : w[a];
+            s[a] = wa > 0.0 ? sqrt(wa) : 0.0;
+        }
+        for (int a = 0; a < D; ++a)
+            for (int b = 0; b < D; ++b)
+                A[a * D + b] = (a == b ? 1.0 : 0.0) + s[a] * Sigma[a * D + b] * s[b];
+        if (cholesky(D, A, F)) return 1;
+        double logdet = 0.0;
+        for (int a = 0; a < D; ++a) logdet += log(fabs(F[a * D + a]));
+        logdet *= 2.0;
+        /* B^-1 = F^-T F^-1 from the inverse of the triangular factor */
+        for (int j = 0; j < D; ++j)
+            for (int i = 0; i < D; ++i) {
+                if (i < j) {
+                    Fi[i * D + j] = 0.0;
+                    continue;
+                }
+                double t = i == j ? 1.0 : 0.0;
+                for (int q = j; q < i; ++q) t -= F[i * D + q] * Fi[q * D + j];
+                Fi[i * D + j] = t / F[i * D + i];
+            }
+        for (int a = 0; a < D; ++a)
+            for (int b = 0; b < D; ++b) {
+                double t = 0.0;
+                for (int q = a > b ? a : b; q < D; ++q) t += Fi[q * D + a] * Fi[q * D + b];
+                Bi[a * D + b] = t;
+            }
+        if (pass == 0) {
+            for (int a = 0; a < D; ++a)
+                for (int b = 0; b < D; ++b) {
+                    const double da = w[a] * (s[a] > 0.0 ? 1.0 / s[a] : 0.0);
+                    const double db = w[b] * (s[b] > 0.0 ? 1.0 / s[b] : 0.0);
+                    const double C = (a == b ? 1.0 : 0.0) - Bi[a * D + b]; /* I - B^-1 */
+                    H[a * D + b] = da * C * db;
+                }
+            for (int a = 0; a < D; ++a)
+                for (int b = 0; b < D; ++b)
+                    Ma[a * D + b] = Mb[a * D + b] = 0.5 * (H[a * D + b] - (a == b ? w[a] : 0.0));
+            c[0] = log(coef * coef) - 0.5 * logdet;
+        } else {
+            for (int a = 0; a < D; ++a)
+                for (int b = 0; b < D; ++b) P[a * D + b] = -0.5 * s[a] * Bi[a * D + b] * s[b];
+            c[1] = -0.5 * logdet + log(coef);
+        }
+    }
+    return 0;
+}
+
+/* rbf_forms for S covariances Sigma [S, D, D]: Q [S, 4, D, D], c [S, 2], status [S] (int64).
+   Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+int hgpdm_rbf_forms_f64(int64_t S, int64_t D, const double *Sigma, const double *w, double coef,
+                        double *Q, double *c, int64_t *status) {
+    if (D < 1 || D > MAX_D) return 1;
+    for (int64_t k = 0; k < S; ++k)
+        status[k] = rbf_forms((int)D, Sigma + k * D * D, w, coef, Q + k * 4 * D * D, c + 2 * k);
+    return 0;
+}
+
 /* The step of one stream from its contraction (p1 [N], out [P + 1, Kp]). trans: phi [K, U],
    the process noise [K], scale2 [D], offset [D], the kernel's coefficient; meas: U [Dz, R],
    R [R, D], Q [D, D], offset [Dz], scale [Dz], noise, log_scale2 (LinearMeasurement's). Writes

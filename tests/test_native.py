@@ -177,6 +177,37 @@ def test_group_sums_equal_the_dense_formulas(U, L, D, K, phase):
 
 
 @needs_kernel
+@pytest.mark.parametrize("D", [1, 3, 4, 8])
+def test_rbf_forms_equal_the_torch_forms(D, generator):
+    """The kernel's quadratic forms of psi2 and psi1 against
+    :func:`~hgpdm_torch.expectations.rbf_psi2_quadratic` and ``rbf_psi1_quadratic`` (a zero
+    weight included, coef != 1), within the rounding of a D x D Cholesky factor and inverse of
+    ``B = I + S Sigma S`` (``B >= I``: relative error a few ``D eps cond(B)`` of the forms'
+    scale); a NaN covariance sets its stream's status only."""
+    from hgpdm_torch.expectations import Term, rbf_psi1_quadratic, rbf_psi2_quadratic
+
+    S = 5
+    A = torch.randn(S, D, D, generator=generator, dtype=torch.float64)
+    Sigma = A @ A.mT / D + 0.05 * torch.eye(D, dtype=torch.float64)
+    w = torch.rand(D, generator=generator, dtype=torch.float64) * 3
+    w[0] = 0.0  # an unused column
+    coef = 1.7
+    term = Term("rbf", torch.tensor(coef, dtype=torch.float64), w, None)
+    forms, consts, status = native.rbf_forms(Sigma, w, coef)
+    assert not status.any()
+    H, M_a, M_b, const = rbf_psi2_quadratic(term, term, Sigma)
+    P, const1 = rbf_psi1_quadratic(term, Sigma)
+    cond = float(torch.linalg.cond(torch.eye(D) + 6 * Sigma).max())
+    rel = 16 * D * EPS * cond
+    for got, want in zip(forms.unbind(1), (H, M_a, M_b, P), strict=True):
+        torch.testing.assert_close(got, want, rtol=rel, atol=rel * float(want.abs().max()))
+    want = torch.stack([const, const1 + math.log(coef)], -1)
+    torch.testing.assert_close(consts, want, rtol=rel, atol=rel)
+    Sigma[2] = math.nan
+    assert native.rbf_forms(Sigma, w, coef)[2].tolist() == [0, 0, 1, 0, 0]
+
+
+@needs_kernel
 def test_threads_use_their_own_buffers():
     """The outputs live in per-thread scratch buffers: four threads at once (ctypes releases the
     GIL) give each what it gives alone, bit for bit (the same code on the same inputs)."""
