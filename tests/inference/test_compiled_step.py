@@ -128,6 +128,10 @@ def test_streams_are_independent_and_failures_go_to_torch(
     rel = gp_rounding(f.posterior)
     for a, b in zip(values, alone, strict=True):
         torch.testing.assert_close(a[keep], b, rtol=rel, atol=rel * float(b.abs().max()))
+    bad = P.clone()
+    bad[2] = math.nan  # not a covariance: the kernel's forms decline, torch's raise as before
+    with pytest.raises(ValueError, match="NaN"):
+        trans.native_operands(m, bad)
     negative = step.meas.clone()
     negative[-2] = -1e6  # the measurement noise: S = R P R^T + v I with v < 0
     assert call(slice(None), negative)[-1].tolist() == [1] * 6
