@@ -528,7 +528,7 @@ class SharedTransition:
         """Whether :meth:`_native_moments` runs on these inputs
         (:func:`hgpdm_torch.native.usable`: float64 on the CPU, none of them and none of the GP's
         points and weights recording a gradient; Dx within the kernel's limit)."""
-        weights = (self.inputs, self.kinv, self.beta, self.beta_rows, self.phi)
+        weights = (self.inputs, self.kinv, self.beta, self.beta_rows, self.phi, self.term.weight)
         return self.dx <= native.MAX_D and native.usable(*inputs, *weights)
 
     def compiled(self) -> bool:
@@ -569,7 +569,7 @@ class SharedTransition:
         Sigma = Sigma.expand(b, self.dx, self.dx).contiguous()
         weight = self.term.weight.contiguous()
         forms, consts, status = native.rbf_forms(Sigma, weight, float(self.coef))
-        if bool(status.any()):  # not a covariance: torch's forms raise as they would without C
+        if bool(status.any()):  # not a covariance: torch's forms raise or add jitter, as before
             H, M_a, M_b, const = rbf_psi2_quadratic(self.term, self.term, Sigma)
             P, const1 = rbf_psi1_quadratic(self.term, Sigma)
             forms = torch.stack(torch.broadcast_tensors(H, M_a, M_b, P), -3).contiguous()

@@ -256,8 +256,8 @@ def rbf_forms(
     Returns:
         ``forms [S, 4, D, D]`` (``H``, ``M_a``, ``M_b``, ``P``) and ``const [S, 2]`` (psi2's
         ``c`` and psi1's ``c_1 + log coef``): :func:`psi2_groups`'s operands; and ``status
-        [S]`` (int64: 1 where ``I + S Sigma S`` did not factorise, a covariance with NaN or a
-        clearly negative eigenvalue: that stream's forms are undefined, and torch's raise).
+        [S]`` (int64: 1 where a covariance has a NaN or inf entry or ``I + S Sigma S`` did not
+        factorise: that stream's forms are undefined; torch's raise there, or add jitter).
     """
     s, d = Sigma.shape[0], weight.shape[0]
     sigma_ptr = _check("Sigma", Sigma, (s, d, d))

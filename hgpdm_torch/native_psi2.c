@@ -329,12 +329,15 @@ static void forward(int64_t n, int64_t m, const double *F, const double *b, doub
    hgpdm_torch.expectations.rbf_psi2_quadratic (the term with itself) and rbf_psi1_quadratic
    compute them, in their order and form: Q [4, D, D] = H, M_a, M_b (= M_a), P and c [2] = the
    psi2 constant and psi1's with log(coef). B = I + S Sigma S (S = diag(sqrt(w)), the weights
-   2 w for psi2) is at least I, so its factor exists for any covariance; 1 where it does not
-   (a NaN or an indefinite Sigma: the caller's torch path then raises as it would). */
+   2 w for psi2) is at least I, so its factor exists for any covariance; 1 where Sigma has a NaN
+   or inf entry or B does not factorise (the caller's torch path then raises, or adds its
+   jitter, as it would without this function). */
 static int rbf_forms(const int D, const double *Sigma, const double *w, double coef, double *Q,
                      double *c) {
     double s[MAX_D], A[MAX_D * MAX_D], F[MAX_D * MAX_D], Fi[MAX_D * MAX_D], Bi[MAX_D * MAX_D];
     double *H = Q, *Ma = Q + D * D, *Mb = Q + 2 * D * D, *P = Q + 3 * D * D;
+    for (int a = 0; a < D * D; ++a) /* torch's factor refuses any NaN or inf, both triangles */
+        if (!isfinite(Sigma[a])) return 1;
     for (int pass = 0; pass < 2; ++pass) { /* psi2 (weights w + w), then psi1 (w) */
         for (int a = 0; a < D; ++a) {
             const double wa = pass == 0 ? w[a] + w[a] : w[a];

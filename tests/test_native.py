@@ -204,7 +204,9 @@ def test_rbf_forms_equal_the_torch_forms(D, generator):
     want = torch.stack([const, const1 + math.log(coef)], -1)
     torch.testing.assert_close(consts, want, rtol=rel, atol=rel)
     Sigma[2] = math.nan
-    assert native.rbf_forms(Sigma, w, coef)[2].tolist() == [0, 0, 1, 0, 0]
+    Sigma[3] = torch.eye(D, dtype=torch.float64)
+    Sigma[3, 0, -1] = math.inf  # above the diagonal, which a Cholesky factor never reads
+    assert native.rbf_forms(Sigma, w, coef)[2].tolist() == [0, 0, 1, 1, 0]
 
 
 @needs_kernel
