@@ -175,6 +175,14 @@ def _library() -> ctypes.CDLL | None:
     return lib
 
 
+def _loaded() -> ctypes.CDLL:
+    """The compiled library; ``RuntimeError`` where it is not available."""
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
+    return lib
+
+
 def available() -> bool:
     """Whether the kernel runs here: a supported CPU, :class:`~hgpdm_torch.settings.native_kernels`
     on, and a compiled library (built on the first call; a warning if it cannot be)."""
@@ -233,9 +241,7 @@ def exp_(t: torch.Tensor) -> torch.Tensor:
     """``t.exp_()`` by the kernel's exponential (within 2 ulp; ``inf`` beyond 709.78, 0 below
     -745.13, NaN kept); ``t`` a contiguous float64 CPU tensor. Returns ``t``."""
     ptr = _check("t", t, tuple(t.shape))
-    lib = _library()
-    if lib is None:
-        raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
+    lib = _loaded()
     lib.hgpdm_exp_f64(t.numel(), ptr)
     return t
 
@@ -265,9 +271,7 @@ def rbf_forms(
     forms = Sigma.new_empty(s, 4, d, d)
     const = Sigma.new_empty(s, 2)
     status = torch.zeros(s, dtype=torch.int64, device=Sigma.device)
-    lib = _library()
-    if lib is None:
-        raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
+    lib = _loaded()
     if s:
         code = lib.hgpdm_rbf_forms_f64(
             s, d, sigma_ptr, w_ptr, float(coef), forms.data_ptr(), const.data_ptr(),
@@ -333,7 +337,7 @@ def psi2_groups(
     p1 = scratch(s * n, 3).view(s, n)
     work = scratch(_work(dims, n), 2)
     if s:
-        code = _library().hgpdm_psi2_groups_f64(
+        code = _loaded().hgpdm_psi2_groups_f64(
             *dims, *ptrs, T.data_ptr(), out.data_ptr(), p1.data_ptr(), work.data_ptr()
         )
         _ran(code, d)
@@ -386,7 +390,7 @@ def predictive_step(
     tail = U * d + K * (d * d + d + 1) + dz + 3 * rank + 2 * rank * d + 2 * rank * rank
     work = scratch(_work(dims, n) + U * up + (pairs + 1) * kp + n + tail, 2)
     if s:
-        code = _library().hgpdm_predictive_step_f64(
+        code = _loaded().hgpdm_predictive_step_f64(
             *dims, K, dz, rank, *ptrs, float(keep), float(temperature), z_ptr, lb_ptr,
             mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), status.data_ptr(), work.data_ptr(),
         )  # fmt: skip
@@ -439,6 +443,5 @@ def _contraction(args: tuple) -> tuple[tuple[int, ...], list[int | None]]:
         _check("kinv", kinv, (n, np_)),
         _check("phi_t", phi_t, (up, kp)),
     ]
-    if _library() is None:
-        raise RuntimeError("hgpdm_torch.native is not available here: check native.available()")
+    _loaded()
     return (s, U, L, up, d, kp), ptrs

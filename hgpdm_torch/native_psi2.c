@@ -1,7 +1,7 @@
 /* Fused psi2 contractions for hgpdm_torch.native (AVX-512, float64).
 
    Compiled on first use by hgpdm_torch/native.py with the machine's C compiler and
-   -O3 -march=native; loaded with ctypes. Two entry points:
+   -O3 -march=native; loaded with ctypes. Four entry points:
 
    - hgpdm_exp_f64: exp of an array in place, within 2 ulp (see exp8);
    - hgpdm_psi2_groups_f64: for each stream s of the shared transition GP,
@@ -15,7 +15,11 @@
      registers and never stored (left and right, O(N D) per stream, are built from the stream's
      quadratic form in the work space): one pass over the N x N block instead of the
      exponential, the weighted sums and the K^-1 product each reading and writing it; S of one
-     group is contracted with phi while it is in the L1 cache.
+     group is contracted with phi while it is in the L1 cache;
+   - hgpdm_rbf_forms_f64: each stream's quadratic forms of psi2 and psi1 (rbf_forms);
+   - hgpdm_predictive_step_f64: the online filter's whole predictive step per stream, the
+     contraction fused with the transition moments, measurement update, belief step and
+     mixture that consume it (step_tail).
 
    Layout: points (training inputs) in group order (u, l), N = U L (padding points have zero
    weights). The columns are in the order (m, v), v padded to Up (a multiple of 8), Np = L Up:

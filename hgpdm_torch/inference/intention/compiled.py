@@ -9,15 +9,15 @@ transition moments (Eq. 13-15 with Gaussian inputs), their GP-ADF measurement up
 32-35), the belief step (Algorithm 3.2, lines 10-11) and the moment-matched mixture, one stream
 after another. In torch the same step holds ``[S, K, Dx, Dx]`` tensors for a chunk of S streams
 and makes some 200 calls per chunk; here nothing of a stream but its new state leaves the
-kernel, so a chunk needs a few kilobytes per stream and its fixed cost is the quadratic forms'
-set-up.
+kernel, so a chunk needs a few kilobytes per stream and its fixed cost is two calls into the
+kernel (the streams' quadratic forms, :func:`hgpdm_torch.native.rbf_forms`, then the step).
 
 The torch path stays the reference (the tests compare the two) and takes over whole chunks:
 where the kernel does not run (float32, a gradient, another device,
 :class:`hgpdm_torch.settings.native_kernels` off, the materialised moment path, the checks of
-:class:`hgpdm_torch.settings.debug`) and where an
-innovation covariance of some stream does not factorise (then the torch path's jitter and the
-filter's isolation of failing streams apply exactly as without the kernel).
+:class:`hgpdm_torch.settings.debug`) and where an innovation covariance of some stream does not
+factorise (then the torch path's jitter and the filter's isolation of failing streams apply
+exactly as without the kernel).
 """
 
 from __future__ import annotations
