@@ -49,6 +49,9 @@ __all__ = [
     "cache_dir",
     "clear_scratch",
     "exp_",
+    "particle_block",
+    "particle_shared",
+    "particles",
     "predictive_step",
     "psi2_groups",
     "rbf_forms",
@@ -172,6 +175,10 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_predictive_step_f64.restype = ctypes.c_int
     lib.hgpdm_rbf_forms_f64.argtypes = [i64, i64, ptr, ptr, f64, ptr, ptr, ptr]
     lib.hgpdm_rbf_forms_f64.restype = ctypes.c_int
+    lib.hgpdm_mcp_shared_f64.argtypes = [i64] * 8 + [ptr] * 15
+    lib.hgpdm_mcp_shared_f64.restype = ctypes.c_int
+    lib.hgpdm_mcp_particles_f64.argtypes = [i64] * 5 + [ptr] * 5 + [f64] * 2 + [ptr] * 7
+    lib.hgpdm_mcp_particles_f64.restype = ctypes.c_int
     return lib
 
 
@@ -387,7 +394,7 @@ def predictive_step(
     mean, lb = z.new_empty(s, d), z.new_empty(s, K)
     cov, status = z.new_empty(s, d, d), torch.zeros(s, dtype=torch.int64, device=z.device)
     pairs = d * (d + 1) // 2
-    tail = U * d + K * (d * d + d + 1) + dz + 3 * rank + 2 * rank * d + 2 * rank * rank
+    tail = U * d + K * (d * d + d + 2) + d + dz + 3 * rank + 2 * rank * d + 3 * rank * rank
     work = scratch(_work(dims, n) + U * up + (pairs + 1) * kp + n + tail, 2)
     if s:
         code = _loaded().hgpdm_predictive_step_f64(
@@ -396,6 +403,114 @@ def predictive_step(
         )  # fmt: skip
         _ran(code, d)
     return mean, cov, lb, status
+
+
+def particle_block(d: int, dz: int, rank: int) -> int:
+    """Entries of one grid value's block of :func:`particle_shared`'s state."""
+    return d + 2 * d * d + rank * d + rank * rank + rank + 2 + dz + dz * dz
+
+
+def particle_shared(
+    contraction: tuple, trans: torch.Tensor, meas: torch.Tensor, rank: int, K: int, dz: int
+) -> tuple[torch.Tensor, bool]:
+    """What all Monte-Carlo particles of one belief share (``native_psi2.c``): the K transition
+    moments at the belief (:func:`psi2_groups`'s contraction at one input), the linear
+    measurement's factors at each (as :func:`predictive_step` forms them) and the Cholesky
+    factor of each next observation's covariance (as
+    :meth:`~hgpdm_torch.inference.intention.measurement.LinearMeasurement.moments` forms it).
+
+    Args:
+        contraction: :func:`psi2_groups`'s arguments for the one belief (``mu [1, D]``).
+        trans, meas, rank: as for :func:`predictive_step`.
+        K: grid values; dz: observed dims.
+
+    Returns:
+        ``shared [K, particle_block(D, Dz, rank)]`` (per value ``m``, ``P``, ``P - A^T A``,
+        ``A``, ``G = F^-1``, ``c``, ``1 / v``, the log-determinant, ``mz``, ``Lz``) and whether
+        it is defined (``False`` where a covariance did not factorise: the caller's torch path
+        takes over).
+    """
+    dims, ptrs = _contraction(contraction)
+    s, U, L, up, d, kp = dims
+    n, pairs = U * L, d * (d + 1) // 2
+    if s != 1 or not 1 <= rank <= min(d, dz) or K > kp:
+        raise ValueError(
+            f"particle_shared takes one belief, 1 <= rank <= min(D, Dz) and K <= Kp; got "
+            f"{s} beliefs, rank {rank}, K = {K} > {kp}"
+        )
+    ptrs += [
+        _check("trans", trans, (K * U + K + 2 * d + 1,)),
+        _check("meas", meas, (dz * rank + rank * d + d * d + 2 * dz + 2,)),
+    ]
+    shared = trans.new_empty(K, particle_block(d, dz, rank))
+    status = torch.zeros(1, dtype=torch.int64, device="cpu")
+    tail = U * d + K * (d * d + d) + rank * d + 2 * rank * rank + 2 * d * dz + dz * dz
+    work = scratch(_work(dims, n) + U * up + (pairs + 1) * kp + n + tail, 2)
+    code = _loaded().hgpdm_mcp_shared_f64(
+        U, L, up, d, kp, K, dz, rank, *ptrs, shared.data_ptr(), status.data_ptr(),
+        work.data_ptr(),
+    )  # fmt: skip
+    _ran(code, d)
+    return shared, not bool(status[0])
+
+
+def particles(
+    shared: torch.Tensor,
+    meas: torch.Tensor,
+    dims: tuple[int, int, int],
+    center: torch.Tensor,
+    limit: torch.Tensor,
+    log_belief: torch.Tensor,
+    keep: float,
+    temperature: float,
+    draws: torch.Tensor | None,
+    noise: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The online filter's update of one belief (its :func:`particle_shared` state) on I
+    observations (``native_psi2.c``): particle i observes ``z = mz_g + Lz_g noise_i`` for
+    ``g = draws[i]``, or ``z = noise_i`` where ``draws`` is ``None``; a ``z`` that the filter's
+    :class:`~hgpdm_torch.observations.ObservationCheck` would not use (``center``, ``limit``
+    ``[Dz]``) is a prediction-only step, as in the filter.
+
+    Args:
+        shared: ``[K, particle_block(D, Dz, R)]``; meas: as for :func:`predictive_step`.
+        dims: ``(D, Dz, R)``.
+        center, limit: ``[Dz]``; log_belief: ``[K]`` normalised.
+        keep, temperature: as for :func:`predictive_step`.
+        draws: ``[I]`` int64 grid values in ``0 .. K - 1``, or ``None``.
+        noise: ``[I, Dz]`` standard normal draws, or the observations.
+
+    Returns:
+        ``mean [I, D]``, ``cov [I, D, D]``, ``log_belief [I, K]`` and the observations ``z [I,
+        Dz]``.
+    """
+    d, dz, rank = dims
+    K, num = log_belief.shape[0], noise.shape[0]
+    ptrs = [
+        _check("shared", shared, (K, particle_block(d, dz, rank))),
+        _check("meas", meas, (dz * rank + rank * d + d * d + 2 * dz + 2,)),
+        _check("center", center, (dz,)),
+        _check("limit", limit, (dz,)),
+        _check("log_belief", log_belief, (K,)),
+    ]
+    g_ptr = None
+    if draws is not None:
+        if draws.dtype != torch.int64 or draws.shape != (num,) or not draws.is_contiguous():
+            raise TypeError(f"draws must be a contiguous int64 tensor [{num}]")
+        if num and not 0 <= int(draws.min()) <= int(draws.max()) < K:
+            raise ValueError(f"draws must be grid values in 0 .. {K - 1}")
+        g_ptr = draws.data_ptr()
+    noise_ptr = _check("noise", noise, (num, dz))
+    mean, cov, lb = noise.new_empty(num, d), noise.new_empty(num, d, d), noise.new_empty(num, K)
+    z = noise.new_empty(num, dz)
+    lanes = 8  # native_psi2.c's LANES
+    work = scratch(dz + lanes * (2 * dz + 2 * rank + 1 + 4 * K + K * d + d + d * d), 4)
+    code = _loaded().hgpdm_mcp_particles_f64(
+        num, d, K, dz, rank, *ptrs, float(keep), float(temperature), g_ptr, noise_ptr,
+        mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), z.data_ptr(), work.data_ptr(),
+    )  # fmt: skip
+    _ran(code, d)
+    return mean, cov, lb, z
 
 
 def _ran(code: int, d: int) -> None:

@@ -329,6 +329,20 @@ static void forward(int64_t n, int64_t m, const double *F, const double *b, doub
         }
 }
 
+/* Fi [n, n] = F^-1 for the lower-triangular F [n, n] (zeros above the diagonal). */
+static void tri_inverse(int64_t n, const double *F, double *Fi) {
+    for (int64_t j = 0; j < n; ++j)
+        for (int64_t i = 0; i < n; ++i) {
+            if (i < j) {
+                Fi[i * n + j] = 0.0;
+                continue;
+            }
+            double t = i == j ? 1.0 : 0.0;
+            for (int64_t q = j; q < i; ++q) t -= F[i * n + q] * Fi[q * n + j];
+            Fi[i * n + j] = t / F[i * n + i];
+        }
+}
+
 /* The exponents' quadratic forms of one RBF term for an input covariance Sigma [D, D], as
    hgpdm_torch.expectations.rbf_psi2_quadratic (the term with itself) and rbf_psi1_quadratic
    compute them, in their order and form: Q [4, D, D] = H, M_a, M_b (= M_a), P and c [2] = the
@@ -354,17 +368,7 @@ static int rbf_forms(const int D, const double *Sigma, const double *w, double c
         double logdet = 0.0;
         for (int a = 0; a < D; ++a) logdet += log(fabs(F[a * D + a]));
         logdet *= 2.0;
-        /* B^-1 = F^-T F^-1 from the inverse of the triangular factor */
-        for (int j = 0; j < D; ++j)
-            for (int i = 0; i < D; ++i) {
-                if (i < j) {
-                    Fi[i * D + j] = 0.0;
-                    continue;
-                }
-                double t = i == j ? 1.0 : 0.0;
-                for (int q = j; q < i; ++q) t -= F[i * D + q] * Fi[q * D + j];
-                Fi[i * D + j] = t / F[i * D + i];
-            }
+        tri_inverse(D, F, Fi); /* B^-1 = F^-T F^-1 */
         for (int a = 0; a < D; ++a)
             for (int b = 0; b < D; ++b) {
                 double t = 0.0;
@@ -402,44 +406,23 @@ int hgpdm_rbf_forms_f64(int64_t S, int64_t D, const double *Sigma, const double 
     return 0;
 }
 
-/* The step of one stream from its contraction (p1 [N], out [P + 1, Kp]). trans: phi [K, U],
-   the process noise [K], scale2 [D], offset [D], the kernel's coefficient; meas: U [Dz, R],
-   R [R, D], Q [D, D], offset [Dz], scale [Dz], noise, log_scale2 (LinearMeasurement's). Writes
-   m [D], P [D, D], lb_out [K]; returns 1 where an innovation covariance does not factorise. */
-static int step_tail(const int D, int64_t U, int64_t L, int64_t K, int64_t Kp, int64_t Dz,
-                     int64_t R, const double *p1, const double *beta, const double *out,
-                     const double *trans, const double *meas, double keep, double temp,
-                     const double *z, const double *lb, double *m, double *Pm, double *lb_out,
-                     double *w) {
+/* The transition's K predictive moments from one stream's contraction (p1 [N], out [P + 1,
+   Kp]), as SharedTransition.moments forms them. trans: phi [K, U], the process noise [K],
+   scale2 [D], offset [D], the kernel's coefficient. Writes means [K, D] and covs [K, D, D];
+   mu_u [U D] is work. */
+static void transition_moments(const int D, int64_t U, int64_t L, int64_t K, int64_t Kp,
+                               const double *p1, const double *beta, const double *out,
+                               const double *trans, double *means, double *covs, double *mu_u) {
     const int64_t P = D * (D + 1) / 2;
     const double *phi = trans, *noise = phi + K * U, *scale2 = noise + K, *offset = scale2 + D;
     const double coef = offset[D];
-    const double *Um = meas, *Rm = Um + Dz * R, *Qm = Rm + R * D, *zoff = Qm + D * D;
-    const double *zscale = zoff + Dz, mnoise = zscale[Dz], log_scale2 = zscale[Dz + 1];
-    double *mu_u = w, *means = mu_u + U * D, *covs = means + K * D, *ll = covs + K * D * D;
-    double *zs = ll + K, *zu = zs + Dz, *r = zu + R, *RP = r + R, *S = RP + R * D, *F = S + R * R;
-    double *A = F + R * R, *a = A + R * D;
-    /* the transition's predictive means: psi1 against each group's weights, then phi */
+    /* psi1 against each group's weights, then phi */
     for (int64_t u = 0; u < U; ++u)
         for (int d = 0; d < D; ++d) {
             double s = 0.0;
             for (int64_t l = 0; l < L; ++l) s += p1[u * L + l] * beta[(u * L + l) * D + d];
             mu_u[u * D + d] = s;
         }
-    int missing = 1;
-    for (int64_t i = 0; i < Dz; ++i) missing &= isnan(z[i]) != 0;
-    for (int64_t i = 0; i < Dz; ++i) zs[i] = missing ? 0.0 : (z[i] - zoff[i]) / zscale[i];
-    double perp = 0.0; /* |z~ - U U^T z~|^2, the same for every k */
-    for (int64_t q = 0; q < R; ++q) {
-        double s = 0.0;
-        for (int64_t i = 0; i < Dz; ++i) s += zs[i] * Um[i * R + q];
-        zu[q] = s;
-    }
-    for (int64_t i = 0; i < Dz; ++i) {
-        double s = 0.0;
-        for (int64_t q = 0; q < R; ++q) s += zu[q] * Um[i * R + q];
-        perp += (zs[i] - s) * (zs[i] - s);
-    }
     for (int64_t k = 0; k < K; ++k) {
         double *mk = means + k * D, *Pk = covs + k * D * D;
         for (int d = 0; d < D; ++d) {
@@ -456,85 +439,221 @@ static int step_tail(const int D, int64_t U, int64_t L, int64_t K, int64_t Kp, i
             Pk[d * D + d] += var * scale2[d];
             mk[d] += offset[d];
         }
-        /* the measurement update at N(mk, Pk) */
-        double v = 0.0;
-        for (int i = 0; i < D; ++i)
-            for (int j = 0; j < D; ++j) v += Qm[i * D + j] * (Pk[i * D + j] + mk[i] * mk[j]);
-        v += mnoise;
-        for (int64_t q = 0; q < R; ++q) {
+    }
+}
+
+/* The linear measurement (LinearMeasurement.update; meas: U [Dz, R], R [R, D], Q [D, D],
+   offset [Dz], scale [Dz], noise, log_scale2) at N(mk, Pk), the parts that do not depend on
+   z: with v = tr(Q (Pk + mk mk^T)) + noise and F = chol(R Pk R^T + v I), A = F^-1 R Pk
+   [R, D], G = F^-1 [R, R], c = G R mk [R], iv = 1 / v and the innovation covariance's
+   log-determinant; RP [R, D], S and F [R, R] are work. 1 where the covariance does not
+   factorise. */
+static int meas_factors(const int D, int64_t Dz, int64_t R, const double *meas, const double *mk,
+                        const double *Pk, double *A, double *G, double *c, double *iv,
+                        double *logdet, double *RP, double *S, double *F) {
+    const double *Rm = meas + Dz * R, *Qm = Rm + R * D, *zscale = Qm + D * D + Dz;
+    const double mnoise = zscale[Dz], log_scale2 = zscale[Dz + 1];
+    double v = 0.0;
+    for (int i = 0; i < D; ++i)
+        for (int j = 0; j < D; ++j) v += Qm[i * D + j] * (Pk[i * D + j] + mk[i] * mk[j]);
+    v += mnoise;
+    for (int64_t q = 0; q < R; ++q)
+        for (int j = 0; j < D; ++j) {
+            double t = 0.0;
+            for (int d = 0; d < D; ++d) t += Rm[q * D + d] * Pk[d * D + j];
+            RP[q * D + j] = t;
+        }
+    for (int64_t q = 0; q < R; ++q)
+        for (int64_t o = 0; o < R; ++o) {
             double s = 0.0;
-            for (int d = 0; d < D; ++d) s += mk[d] * Rm[q * D + d];
-            r[q] = zu[q] - s;
-            for (int j = 0; j < D; ++j) {
-                double t = 0.0;
-                for (int d = 0; d < D; ++d) t += Rm[q * D + d] * Pk[d * D + j];
-                RP[q * D + j] = t;
-            }
+            for (int d = 0; d < D; ++d) s += RP[q * D + d] * Rm[o * D + d];
+            S[q * R + o] = s;
         }
+    for (int64_t q = 0; q < R; ++q)
+        for (int64_t o = 0; o < q; ++o)
+            S[q * R + o] = S[o * R + q] = 0.5 * (S[q * R + o] + S[o * R + q]);
+    for (int64_t q = 0; q < R; ++q) S[q * R + q] += v;
+    if (cholesky(R, S, F)) return 1;
+    forward(R, D, F, RP, A);
+    tri_inverse(R, F, G);
+    double ld = 0.0;
+    for (int64_t q = 0; q < R; ++q) {
+        ld += log(fabs(F[q * R + q]));
+        double t = 0.0; /* (R mk)_q, then G against it */
+        for (int d = 0; d < D; ++d) t += mk[d] * Rm[q * D + d];
+        S[q] = t;
+    }
+    for (int64_t q = 0; q < R; ++q) {
+        double t = 0.0;
+        for (int64_t o = 0; o <= q; ++o) t += G[q * R + o] * S[o];
+        c[q] = t;
+    }
+    *logdet = 2.0 * ld + (double)(Dz - R) * log(v) + log_scale2;
+    *iv = 1.0 / v;
+    return 0;
+}
+
+/* Whether z [Dz] is missing (all NaN). */
+static int all_nan(int64_t Dz, const double *z) {
+    int missing = 1;
+    for (int64_t i = 0; i < Dz; ++i) missing &= isnan(z[i]) != 0;
+    return missing;
+}
+
+/* Lanes: the observations of a block of nl particles (or one stream's, nl = 1), each quantity
+   stored lane-last ([..., nl]) so that the loops over lanes run in vector registers. */
+#define LANES 8
+
+/* z [Dz, nl] in the measurement's scaled units z~ = (z - offset) / scale (0 in a missing
+   lane), projected on its latent span: zu = U^T z~ [R, nl], and the squared norm of the rest
+   perp = |z~ - U U^T z~|^2 [nl] (the same for every value); zs [Dz, nl] is work. */
+INLINE void project(const int D, int64_t Dz, int64_t R, const int nl,
+                    const double *restrict meas, const double *restrict z,
+                    const int *restrict missing, double *restrict zs, double *restrict zu,
+                    double *restrict perp) {
+    const double *Um = meas, *zoff = meas + Dz * R + R * D + D * D, *zscale = zoff + Dz;
+    for (int64_t i = 0; i < Dz; ++i)
+        for (int p = 0; p < nl; ++p)
+            zs[i * nl + p] = missing[p] ? 0.0 : (z[i * nl + p] - zoff[i]) / zscale[i];
+    for (int64_t q = 0; q < R; ++q) {
+        double t[LANES] = {0.0};
+        for (int64_t i = 0; i < Dz; ++i)
+            for (int p = 0; p < nl; ++p) t[p] += zs[i * nl + p] * Um[i * R + q];
+        for (int p = 0; p < nl; ++p) zu[q * nl + p] = t[p];
+    }
+    double t[LANES] = {0.0};
+    for (int64_t i = 0; i < Dz; ++i) {
+        double u[LANES] = {0.0};
         for (int64_t q = 0; q < R; ++q)
-            for (int64_t o = 0; o < R; ++o) {
-                double s = 0.0;
-                for (int d = 0; d < D; ++d) s += RP[q * D + d] * Rm[o * D + d];
-                S[q * R + o] = s;
-            }
+            for (int p = 0; p < nl; ++p) u[p] += zu[q * nl + p] * Um[i * R + q];
+        for (int p = 0; p < nl; ++p) {
+            const double r = zs[i * nl + p] - u[p];
+            t[p] += r * r;
+        }
+    }
+    for (int p = 0; p < nl; ++p) perp[p] = t[p];
+}
+
+/* The evidence ll [nl] = log N(z | mk, Pk) of observed z (zu [R, nl], perp [nl] from project;
+   A, G, c, iv, logdet from meas_factors) and the posterior means m_out [D, nl] = mk + A^T a,
+   a = F^-1 (zu - R mk) = G zu - c ([R, nl], work). */
+INLINE void condition(const int D, int64_t Dz, int64_t R, const int nl,
+                      const double *restrict A, const double *restrict G,
+                      const double *restrict c, double iv, double logdet,
+                      const double *restrict mk, const double *restrict zu,
+                      const double *restrict perp, double *restrict m_out,
+                      double *restrict ll, double *restrict a) {
+    for (int p = 0; p < nl; ++p) ll[p] = perp[p] * iv;
+    for (int64_t q = 0; q < R; ++q) {
+        double *aq = a + q * nl;
+        for (int p = 0; p < nl; ++p) aq[p] = -c[q];
+        for (int64_t o = 0; o <= q; ++o)
+            for (int p = 0; p < nl; ++p) aq[p] += G[q * R + o] * zu[o * nl + p];
+        for (int p = 0; p < nl; ++p) ll[p] += aq[p] * aq[p];
+    }
+    for (int i = 0; i < D; ++i) {
+        double t[LANES] = {0.0};
         for (int64_t q = 0; q < R; ++q)
-            for (int64_t o = 0; o < q; ++o)
-                S[q * R + o] = S[o * R + q] = 0.5 * (S[q * R + o] + S[o * R + q]);
-        for (int64_t q = 0; q < R; ++q) S[q * R + q] += v;
-        if (cholesky(R, S, F)) return 1;
-        forward(R, D, F, RP, A);
-        forward(R, 1, F, r, a);
-        double maha = 0.0, logdet = 0.0;
-        for (int64_t q = 0; q < R; ++q) {
-            maha += a[q] * a[q];
-            logdet += log(fabs(F[q * R + q]));
+            for (int p = 0; p < nl; ++p) t[p] += A[q * D + i] * a[q * nl + p];
+        for (int p = 0; p < nl; ++p) m_out[i * nl + p] = mk[i] + t[p];
+    }
+    for (int p = 0; p < nl; ++p) ll[p] = -0.5 * (ll[p] + logdet + (double)Dz * LOG_2PI);
+}
+
+/* The posterior covariance Pk - A^T A in place (lower triangle formed, mirrored). */
+static void downdate(const int D, int64_t R, const double *A, double *Pk) {
+    for (int i = 0; i < D; ++i)
+        for (int j = 0; j <= i; ++j) {
+            double s = 0.0;
+            for (int64_t q = 0; q < R; ++q) s += A[q * D + i] * A[q * D + j];
+            Pk[i * D + j] = Pk[j * D + i] = Pk[i * D + j] - s;
         }
-        maha += perp / v;
-        logdet = 2.0 * logdet + (double)(Dz - R) * log(v) + log_scale2;
-        ll[k] = missing ? 0.0 : -0.5 * (maha + logdet + (double)Dz * LOG_2PI);
-        if (!missing) {
-            for (int i = 0; i < D; ++i) {
-                double s = 0.0;
-                for (int64_t q = 0; q < R; ++q) s += A[q * D + i] * a[q];
-                mk[i] += s;
-            }
-            for (int i = 0; i < D; ++i)
-                for (int j = 0; j <= i; ++j) {
-                    double s = 0.0;
-                    for (int64_t q = 0; q < R; ++q) s += A[q * D + i] * A[q * D + j];
-                    Pk[i * D + j] = Pk[j * D + i] = Pk[i * D + j] - s;
-                }
+}
+
+/* The belief step B_t = keep B_{t-1} + E_t / T (lb, evidence ll [K, nl]; none where
+   missing[p]), normalised into lb_out [K, nl], and the moment-matched mixture of the K
+   Gaussians under it, m = sum_k p_k m_k and P = sum_k p_k (P_k + (m_k - m)(m_k - m)^T): means
+   [K, D, nl], the k-th covariance at post + k cstride, or at prior + k cstride in a missing
+   lane; m [D, nl], Pm [D, D, nl]; prob [K, nl] is work. */
+INLINE void belief_mixture(const int D, int64_t K, const int nl, double keep, double temp,
+                           const double *restrict lb, const double *restrict ll,
+                           const int *restrict missing, const double *restrict means,
+                           const double *post, const double *prior, int64_t cstride,
+                           double *restrict m, double *restrict Pm, double *restrict lb_out,
+                           double *restrict prob) {
+    double top[LANES], total[LANES];
+    for (int p = 0; p < nl; ++p) top[p] = -INFINITY;
+    for (int64_t k = 0; k < K; ++k)
+        for (int p = 0; p < nl; ++p) {
+            const double b = keep * lb[k * nl + p] + (missing[p] ? 0.0 : ll[k * nl + p] / temp);
+            lb_out[k * nl + p] = b;
+            top[p] = b > top[p] || isnan(b) ? b : top[p];
         }
-    }
-    /* the belief step: B_t = keep B_{t-1} + E_t / T, normalised */
-    double top = -INFINITY;
-    for (int64_t k = 0; k < K; ++k) {
-        lb_out[k] = keep * lb[k] + (missing ? 0.0 : ll[k] / temp);
-        if (lb_out[k] > top || isnan(lb_out[k])) top = lb_out[k];
-    }
-    double total = 0.0;
-    for (int64_t k = 0; k < K; ++k) total += exp(lb_out[k] - top);
-    const double lse = isinf(top) && top < 0 ? top : top + log(total);
-    double *prob = ll; /* the evidence is spent */
-    for (int64_t k = 0; k < K; ++k) {
-        lb_out[k] -= lse;
-        prob[k] = exp(lb_out[k]);
-    }
-    /* the mixture: m = sum_k p_k m_k, P = sum_k p_k (P_k + (m_k - m)(m_k - m)^T) */
+    for (int64_t k = 0; k < K; ++k)
+        for (int p = 0; p < nl; ++p) prob[k * nl + p] = lb_out[k * nl + p] - top[p];
+    hgpdm_exp_f64(K * nl, prob); /* p_k = exp(B_k - top) / sum_j exp(B_j - top) */
+    for (int p = 0; p < nl; ++p) total[p] = 0.0;
+    for (int64_t k = 0; k < K; ++k)
+        for (int p = 0; p < nl; ++p) total[p] += prob[k * nl + p];
+    for (int p = 0; p < nl; ++p) /* the log normaliser, in top */
+        top[p] = isinf(top[p]) && top[p] < 0 ? top[p] : top[p] + log(total[p]);
+    for (int64_t k = 0; k < K; ++k)
+        for (int p = 0; p < nl; ++p) {
+            lb_out[k * nl + p] -= top[p];
+            prob[k * nl + p] /= total[p];
+        }
     for (int d = 0; d < D; ++d) {
-        double s = 0.0;
-        for (int64_t k = 0; k < K; ++k) s += prob[k] * means[k * D + d];
-        m[d] = s;
+        double t[LANES] = {0.0};
+        for (int64_t k = 0; k < K; ++k)
+            for (int p = 0; p < nl; ++p) t[p] += prob[k * nl + p] * means[(k * D + d) * nl + p];
+        for (int p = 0; p < nl; ++p) m[d * nl + p] = t[p];
     }
     for (int i = 0; i < D; ++i)
         for (int j = 0; j <= i; ++j) {
-            double s = 0.0, c = 0.0;
+            double t[LANES] = {0.0}, c[LANES] = {0.0}, cq[LANES] = {0.0};
             for (int64_t k = 0; k < K; ++k) {
-                s += prob[k] * (means[k * D + i] - m[i]) * (means[k * D + j] - m[j]);
-                c += prob[k] * covs[k * D * D + i * D + j];
+                const double *mk = means + k * D * nl, *w = prob + k * nl;
+                const double vp = post[k * cstride + i * D + j];
+                const double vq = prior[k * cstride + i * D + j];
+                for (int p = 0; p < nl; ++p) {
+                    t[p] += w[p] * (mk[i * nl + p] - m[i * nl + p]) * (mk[j * nl + p] - m[j * nl + p]);
+                    c[p] += w[p] * vp;
+                    cq[p] += w[p] * vq;
+                }
             }
-            Pm[i * D + j] = Pm[j * D + i] = s + c;
+            for (int p = 0; p < nl; ++p)
+                Pm[(i * D + j) * nl + p] = Pm[(j * D + i) * nl + p] = t[p] + (missing[p] ? cq[p] : c[p]);
         }
+}
+
+/* The step of one stream from its contraction (p1 [N], out [P + 1, Kp]): the transition
+   moments, the GP-ADF update of each by the linear measurement, the belief step and the
+   mixture (trans and meas as in transition_moments and meas_factors). Writes m [D], P [D, D],
+   lb_out [K]; returns 1 where an innovation covariance does not factorise. */
+static int step_tail(const int D, int64_t U, int64_t L, int64_t K, int64_t Kp, int64_t Dz,
+                     int64_t R, const double *p1, const double *beta, const double *out,
+                     const double *trans, const double *meas, double keep, double temp,
+                     const double *z, const double *lb, double *m, double *Pm, double *lb_out,
+                     double *w) {
+    double *mu_u = w, *means = mu_u + U * D, *covs = means + K * D, *ll = covs + K * D * D;
+    double *zs = ll + K, *zu = zs + Dz, *c = zu + R, *a = c + R, *RP = a + R, *A = RP + R * D;
+    double *S = A + R * D, *F = S + R * R, *G = F + R * R, *prob = G + R * R, *mo = prob + K;
+    transition_moments(D, U, L, K, Kp, p1, beta, out, trans, means, covs, mu_u);
+    const int missing = all_nan(Dz, z);
+    double perp;
+    project(D, Dz, R, 1, meas, z, &missing, zs, zu, &perp);
+    for (int64_t k = 0; k < K; ++k) {
+        double *mk = means + k * D, *Pk = covs + k * D * D, iv, logdet;
+        if (meas_factors(D, Dz, R, meas, mk, Pk, A, G, c, &iv, &logdet, RP, S, F)) return 1;
+        ll[k] = 0.0;
+        if (!missing) {
+            condition(D, Dz, R, 1, A, G, c, iv, logdet, mk, zu, &perp, mo, ll + k, a);
+            for (int d = 0; d < D; ++d) mk[d] = mo[d];
+            downdate(D, R, A, Pk);
+        }
+    }
+    belief_mixture(D, K, 1, keep, temp, lb, ll, &missing, means, covs, covs, D * D, m, Pm,
+                   lb_out, prob);
     return 0;
 }
 
@@ -562,7 +681,7 @@ INLINE void all_steps(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, 
    [K U + K + 2 D + 1] and meas [Dz R + R D + D D + 2 Dz + 2] (step_tail); keep = 1 -
    forgetting, temp the temperature; z [S, Dz], lb [S, K]; outputs m [S, D], Pm [S, D, D],
    lb_out [S, K], status [S] (int64: 0, or 1 where the stream's update is left to torch); work
-   [psi2's + U Up + (P + 1) Kp + N + U D + K (D D + D + 1) + Dz + 3 R + 2 R D + 2 R R].
+   [psi2's + U Up + (P + 1) Kp + N + U D + K (D D + D + 2) + D + Dz + 3 R + 2 R D + 3 R R].
    Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
 int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp,
                               int64_t K, int64_t Dz, int64_t R, const double *X,
@@ -583,5 +702,185 @@ int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64
     FOR_D(D, STEP, code);
 #undef STEP
     _mm_setcsr(csr);
+    return code;
+}
+
+/* ---- Monte-Carlo planning's particles (hgpdm_torch.decision.mcp) ----
+
+   Every particle of a decision starts from one belief: the K transition moments, the
+   measurement's factors at each (meas_factors) and the K distributions of the next
+   observation are computed once (hgpdm_mcp_shared_f64); a particle then costs its draw, its
+   observation's check, the conditioning of the K predictions on it (condition), the belief
+   step and the mixture (hgpdm_mcp_particles_f64): the online step's own algebra.
+
+   Each value's block of the shared state, BLOCK(D, Dz, R) entries: the prediction m [D] and
+   P [D, D], the posterior covariance P - A^T A [D, D], A [R, D], G [R, R], c [R], 1 / v, the
+   log-determinant (meas_factors), and the observation's mean mz [Dz] and the lower Cholesky
+   factor Lz [Dz, Dz] of its covariance Sz, as LinearMeasurement.moments forms
+   them (W = (U R)^T diag(scale), mz = W^T m + offset, Sz = sym(W^T P W) + v diag(scale^2)). */
+#define BLOCK(D, Dz, R) \
+    ((D) + 2 * (D) * (D) + (R) * (D) + (R) * (R) + (R) + 2 + (Dz) + (Dz) * (Dz))
+
+INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp, int64_t K,
+                      int64_t Dz, int64_t R, const double *X, const int64_t *cols,
+                      const double *mu, const double *Q, const double *c, const double *lp,
+                      const double *beta, const double *betac, const double *kinv,
+                      const double *phiT, const double *trans, const double *meas,
+                      double *shared, double *work) {
+    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, B = BLOCK(D, Dz, R);
+    double *T = work + (D + 1) * Np + P * Up + (D + 2) * (N + Np), *out = T + U * Up;
+    double *p1 = out + (P + 1) * Kp, *mu_u = p1 + N, *means = mu_u + U * D;
+    double *covs = means + K * D, *RP = covs + K * D * D, *S = RP + R * D, *F = S + R * R;
+    double *Wm = F + R * R;
+    double *cross = Wm + D * Dz, *Sz = cross + D * Dz;
+    const double *Um = meas, *Rm = Um + Dz * R, *zoff = Rm + R * D + D * D, *zscale = zoff + Dz;
+    one_stream(D, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, p1, work);
+    transition_moments(D, U, L, K, Kp, p1, beta, out, trans, means, covs, mu_u);
+    for (int d = 0; d < D; ++d) /* W = (U R)^T diag(scale) [D, Dz] */
+        for (int64_t i = 0; i < Dz; ++i) {
+            double s = 0.0;
+            for (int64_t q = 0; q < R; ++q) s += Um[i * R + q] * Rm[q * D + d];
+            Wm[d * Dz + i] = s * zscale[i];
+        }
+    for (int64_t k = 0; k < K; ++k) {
+        double *m = shared + k * B, *Pp = m + D, *Pq = Pp + D * D, *A = Pq + D * D;
+        double *G = A + R * D, *c = G + R * R, *iv = c + R, *logdet = iv + 1, *mz = logdet + 1;
+        double *Lz = mz + Dz;
+        for (int d = 0; d < D; ++d) m[d] = means[k * D + d];
+        for (int e = 0; e < D * D; ++e) Pp[e] = Pq[e] = covs[k * D * D + e];
+        if (meas_factors(D, Dz, R, meas, m, Pp, A, G, c, iv, logdet, RP, S, F)) return 1;
+        downdate(D, R, A, Pq);
+        for (int64_t i = 0; i < Dz; ++i) {
+            double s = 0.0;
+            for (int d = 0; d < D; ++d) s += m[d] * Wm[d * Dz + i];
+            mz[i] = s + zoff[i];
+        }
+        for (int d = 0; d < D; ++d) /* P W [D, Dz] */
+            for (int64_t i = 0; i < Dz; ++i) {
+                double s = 0.0;
+                for (int e = 0; e < D; ++e) s += Pp[d * D + e] * Wm[e * Dz + i];
+                cross[d * Dz + i] = s;
+            }
+        for (int64_t i = 0; i < Dz; ++i)
+            for (int64_t j = 0; j < Dz; ++j) {
+                double s = 0.0;
+                for (int d = 0; d < D; ++d) s += Wm[d * Dz + i] * cross[d * Dz + j];
+                Sz[i * Dz + j] = s;
+            }
+        for (int64_t i = 0; i < Dz; ++i) {
+            for (int64_t j = 0; j < i; ++j)
+                Sz[i * Dz + j] = Sz[j * Dz + i] = 0.5 * (Sz[i * Dz + j] + Sz[j * Dz + i]);
+            Sz[i * Dz + i] += zscale[i] * zscale[i] / *iv;
+        }
+        for (int64_t e = 0; e < Dz * Dz; ++e) Lz[e] = 0.0;
+        if (cholesky(Dz, Sz, Lz)) return 1;
+    }
+    return 0;
+}
+
+/* The shared state of the particles of one belief (mu [D] its mean, Q and c the forms of its
+   covariance, lp [N] or NULL; the contraction's other operands as in hgpdm_psi2_groups_f64,
+   trans and meas as in hgpdm_predictive_step_f64): shared [K, BLOCK(D, Dz, R)]; status 1
+   where an innovation covariance does not factorise (the caller's torch path then takes the
+   decision); work [psi2's + U Up + (P + 1) Kp + N + U D + K (D D + D) + R D + 2 R R + 2 D Dz +
+   Dz Dz]. Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+int hgpdm_mcp_shared_f64(int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp, int64_t K,
+                         int64_t Dz, int64_t R, const double *X, const int64_t *cols,
+                         const double *mu, const double *Q, const double *c, const double *lp,
+                         const double *beta, const double *betac, const double *kinv,
+                         const double *phiT, const double *trans, const double *meas,
+                         double *shared, int64_t *status, double *work) {
+    const unsigned int csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_predictive_step_f64 */
+    int code;
+#define SHARED(DD)                                                                               \
+    *status = mcp_shared(DD, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv,   \
+                         phiT, trans, meas, shared, work)
+    FOR_D(D, SHARED, code);
+#undef SHARED
+    _mm_setcsr(csr);
+    return code;
+}
+
+/* I particles of the belief whose shared state is shared [K, BLOCK(D, Dz, R)] (lb [K] its
+   normalised log-belief): particle i observes z = mz_g + Lz_g eps_i for g = g[i] (eps [I, Dz]),
+   or z = eps_i where g is NULL; a z outside |z - center| <= limit or not finite (center,
+   limit [Dz]: the filter's ObservationCheck) is treated as missing, as the filter treats it.
+   Particles go in blocks of LANES (a short last block repeats its first particle). Writes
+   mean [I, D], cov [I, D, D], lb_out [I, K] and the observations zo [I, Dz]; work
+   [PARTICLE_WORK(D, K, Dz, R)]. Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+#define PARTICLE_WORK(D, K, Dz, R) \
+    ((Dz) + LANES * (2 * (Dz) + 2 * (R) + 1 + 4 * (K) + (K) * (D) + (D) + (D) * (D)))
+INLINE void mcp_particles(const int D, int64_t I, int64_t K, int64_t Dz, int64_t R,
+                          const double *shared, const double *meas, const double *center,
+                          const double *limit, const double *lb, double keep, double temp,
+                          const int64_t *g, const double *eps, double *mean, double *cov,
+                          double *lb_out, double *zo, double *work) {
+    const int64_t B = BLOCK(D, Dz, R);
+    double *zp = work, *z = zp + Dz, *zs = z + Dz * LANES, *zu = zs + Dz * LANES;
+    double *perp = zu + R * LANES, *a = perp + LANES;
+    double *lbl = a + R * LANES, *ll = lbl + K * LANES, *lbo = ll + K * LANES;
+    double *means = lbo + K * LANES, *m = means + K * D * LANES, *Pm = m + D * LANES;
+    double *prob = Pm + D * D * LANES;
+    int missing[LANES];
+    for (int64_t k = 0; k < K; ++k) /* the shared belief in every lane */
+        for (int p = 0; p < LANES; ++p) lbl[k * LANES + p] = lb[k];
+    for (int64_t i0 = 0; i0 < I; i0 += LANES) {
+        for (int p = 0; p < LANES; ++p) { /* z = mz_g + Lz_g eps */
+            const int64_t i = i0 + p < I ? i0 + p : i0;
+            const double *e = eps + i * Dz;
+            if (g) {
+                const double *mz = shared + g[i] * B + D + 2 * D * D + R * D + R * R + R + 2;
+                const double *Lz = mz + Dz;
+                for (int64_t j = 0; j < Dz; ++j) {
+                    double t = mz[j];
+                    for (int64_t q = 0; q <= j; ++q) t += Lz[j * Dz + q] * e[q];
+                    zp[j] = t;
+                }
+                e = zp;
+            }
+            int bad = 0;
+            for (int64_t j = 0; j < Dz; ++j) {
+                bad |= !(isfinite(e[j]) && fabs(e[j] - center[j]) <= limit[j]);
+                z[j * LANES + p] = e[j];
+                zo[i * Dz + j] = e[j];
+            }
+            missing[p] = bad;
+        }
+        project(D, Dz, R, LANES, meas, z, missing, zs, zu, perp);
+        for (int64_t k = 0; k < K; ++k) {
+            const double *mk = shared + k * B, *A = mk + D + 2 * D * D, *G = A + R * D;
+            const double *c = G + R * R;
+            double *mo = means + k * D * LANES, *lk = ll + k * LANES;
+            condition(D, Dz, R, LANES, A, G, c, c[R], c[R + 1], mk, zu, perp, mo, lk, a);
+            for (int p = 0; p < LANES; ++p) /* a missing lane keeps the prediction */
+                if (missing[p]) {
+                    lk[p] = 0.0;
+                    for (int d = 0; d < D; ++d) mo[d * LANES + p] = mk[d];
+                }
+        }
+        /* the posterior covariances, or the predictions' in a missing lane */
+        belief_mixture(D, K, LANES, keep, temp, lbl, ll, missing, means, shared + D + D * D,
+                       shared + D, B, m, Pm, lbo, prob);
+        for (int p = 0; p < LANES && i0 + p < I; ++p) {
+            const int64_t i = i0 + p;
+            for (int d = 0; d < D; ++d) mean[i * D + d] = m[d * LANES + p];
+            for (int e = 0; e < D * D; ++e) cov[i * D * D + e] = Pm[e * LANES + p];
+            for (int64_t k = 0; k < K; ++k) lb_out[i * K + k] = lbo[k * LANES + p];
+        }
+    }
+}
+
+int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t R,
+                            const double *shared, const double *meas, const double *center,
+                            const double *limit, const double *lb, double keep, double temp,
+                            const int64_t *g, const double *eps, double *mean, double *cov,
+                            double *lb_out, double *zo, double *work) {
+    int code;
+#define PARTICLES(DD)                                                                            \
+    mcp_particles(DD, I, K, Dz, R, shared, meas, center, limit, lb, keep, temp, g, eps, mean,    \
+                  cov, lb_out, zo, work)
+    FOR_D(D, PARTICLES, code);
+#undef PARTICLES
     return code;
 }

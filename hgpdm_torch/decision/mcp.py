@@ -211,6 +211,16 @@ class _Shared:
     phase: torch.Tensor | None  # [1] frame index of x_t for a phase-aware IDDM
 
 
+@dataclass(frozen=True)
+class _CompiledShared:
+    """Per-decision quantities shared by all particles, in the compiled kernel's layout
+    (:meth:`~hgpdm_torch.inference.intention.compiled.CompiledStep.particle_shared`)."""
+
+    prob: torch.Tensor  # [K]
+    log_prob: torch.Tensor  # [K]
+    state: torch.Tensor  # [K, block]
+
+
 def _randn(
     shape: tuple[int, ...] | torch.Size, generator: torch.Generator | None, like: torch.Tensor
 ) -> torch.Tensor:
@@ -328,6 +338,8 @@ class ParticleProjector:
         self.measurement = model.measurement_posterior()
         # the filter's transition GP (sparse where the filter's is)
         self.transition = belief_filter.posterior if sampling == "points" else None
+        # the filter's compiled step, whose kernel draws and updates the particles where it runs
+        self._compiled = belief_filter.compiled_step if sampling == "moments" else None
         # the observation's index pairs a <= b and the factor of y_a y_b in a quadratic form
         a, b = torch.triu_indices(*(2 * [belief_filter.obs_dim]), device=belief_filter.mu0.device)
         self._pairs, self._upper = (a, b), a * belief_filter.obs_dim + b
@@ -343,7 +355,26 @@ class ParticleProjector:
         particles = self._particles(self._shared(self._check_belief(belief)), num, generator)
         return tuple(v.contiguous() for v in particles)
 
-    def _particles(self, shared: _Shared, num: int, generator: torch.Generator | None):
+    def _draw(
+        self, prob: torch.Tensor, num: int, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The particles' intentions ``g [I] ~ prob`` and, for ``sampling="moments"``, their
+        observations' standard normal draws ``[I, Dz, 1]`` (``None`` for ``"points"``)."""
+        draw_on = prob.device if generator is None else generator.device
+        g = torch.multinomial(prob.to(draw_on), num, replacement=True, generator=generator)
+        g = g.to(prob.device)  # [I]
+        if self.sampling != "moments":
+            return g, None
+        return g, _randn((num, self.filter.obs_dim, 1), generator, prob)
+
+    def _particles(
+        self, shared: _Shared | _CompiledShared, num: int, generator: torch.Generator | None
+    ):
+        if isinstance(shared, _CompiledShared):  # drawn as below, then the kernel's update
+            g, eps = self._draw(shared.prob, num, generator)
+            return self._compiled.particles(
+                shared.state, shared.log_prob, self.filter.check, g, eps.view(num, -1)
+            )[:3]
         z = self._sample_observations(shared, num, generator)
         usable = self.filter.check.usable(z)
         return self._update(shared, z, None if bool(usable.all()) else ~usable)
@@ -383,12 +414,19 @@ class ParticleProjector:
         log_prob = belief.log_prob - torch.logsumexp(belief.log_prob, -1)
         return Belief(belief.mean, belief.cov, log_prob, phase)
 
-    def _shared(self, belief: Belief) -> _Shared:
-        """The K predictions and their joints with ``z_{t+1}``, computed once per decision."""
+    def _shared(self, belief: Belief) -> _Shared | _CompiledShared:
+        """The K predictions and their joints with ``z_{t+1}``, computed once per decision (by
+        the compiled kernel where it runs)."""
         f = self.filter
         m = belief.mean.to(f.dtype)[None]
         P = belief.cov.to(f.dtype)[None]
         phase = None if belief.phase is None else m.new_full((1,), float(belief.phase))
+        if self._compiled is not None:
+            log_prob = belief.log_prob.to(f.dtype)
+            log_prob = log_prob - torch.logsumexp(log_prob, -1)
+            state = self._compiled.particle_shared(m[0], P[0], log_prob, phase)
+            if state is not None:
+                return _CompiledShared(log_prob.exp(), log_prob, state)
         mean, cov, _ = f.transition.moments(m, P, phase, cross=False)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
         linear = linear_measurement(f.measure)
@@ -437,13 +475,8 @@ class ParticleProjector:
     ) -> torch.Tensor:
         """``z^i_{t+1} [I, Dz]`` (Algorithm 4.2, lines 3-5)."""
         f = self.filter
-        prob = shared.prob
-        draw_on = prob.device if generator is None else generator.device
-        g = torch.multinomial(prob.to(draw_on), num, replacement=True, generator=generator)
-        g = g.to(prob.device)  # [I]
-        dz = shared.z_mean.shape[-1]
+        g, eps = self._draw(shared.prob, num, generator)
         if self.sampling == "moments":
-            eps = _randn((num, dz, 1), generator, shared.z_mean)
             mean = shared.z_mean.index_select(0, g)[..., None]
             return torch.baddbmm(mean, shared.z_chol.index_select(0, g), eps)[..., 0]
         dx = shared.mean.shape[0]
@@ -477,16 +510,22 @@ class ParticleProjector:
         """
         shared = self._shared(self._check_belief(belief))
         z = as_observations(z, min_ndim=2)
-        if z.dim() != 2 or z.shape[1] != shared.z_mean.shape[-1]:
+        if z.dim() != 2 or z.shape[1] != self.filter.obs_dim:
             raise ValueError(
-                f"z must have shape [I, Dz] with Dz = {shared.z_mean.shape[-1]} columns, got "
+                f"z must have shape [I, Dz] with Dz = {self.filter.obs_dim} columns, got "
                 f"{tuple(z.shape)}"
             )
         missing, rejected = self.filter.check.classify(z)
         if self.filter.options.observations.strict and bool(rejected.any()):
             i = int(torch.nonzero(rejected)[0])
             raise bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
-        update = self._update(shared, z.to(shared.z_mean.dtype), missing | rejected)
+        z = z.to(self.filter.dtype)
+        if isinstance(shared, _CompiledShared):  # the kernel checks each row as classify did
+            update = self._compiled.particles(
+                shared.state, shared.log_prob, self.filter.check, None, z.contiguous()
+            )[:3]
+        else:
+            update = self._update(shared, z, missing | rejected)
         return ParticleUpdate(*(v.contiguous() for v in update), rejected)
 
     def _update(
@@ -596,16 +635,20 @@ class MonteCarloPlanner(ParticleProjector):
         :class:`~hgpdm_torch.inference.intention.measurement.LinearMeasurement`, else the GP's,
         :func:`~hgpdm_torch.moments.input_operations`), their Cholesky factors, gains and
         precisions (``K (Dz^3 / 2 + Dz^2 Dx + Dz Dx^2)``). Per particle: the drawn observation
-        (``Dz^2``), its conditioning on all K (``P = Dz (Dz + 1) / 2`` pair products ``y_a
-        y_b``, ``K Dx Dz`` for the means, ``K (P + Dz)`` for the quadratic forms), the belief
-        and mixture
-        (``2 K Dx^2 + K Dx``, ``K`` exponentials), the features (``features.operations(1)``
-        where the feature map has one, e.g.
-        :meth:`~hgpdm_torch.decision.basis.RadialBasis.operations`) and the values
-        (``F A`` for F features and A actions).
+        and its conditioning on all K, the belief and mixture (``2 K Dx^2 + K Dx``, ``K``
+        exponentials), the features (``features.operations(1)`` where the feature map has one,
+        e.g. :meth:`~hgpdm_torch.decision.basis.RadialBasis.operations`) and the values (``F
+        A`` for F features and A actions). The draw and the conditioning are counted as the
+        path that runs does them: where the compiled kernel runs (a linear measurement, float64
+        on the CPU), the factor's lower triangle (``P = Dz (Dz + 1) / 2``) and the filter's own
+        update on the measurement's span of rank ``k`` (``2 Dz + 2 Dz k`` to project ``z``,
+        then ``k (k + 1) / 2 + k + k Dx`` per value); else a full ``Dz^2`` product and the
+        observation space (``P`` pair products ``y_a y_b``, ``K Dx Dz`` for the means, ``K (P
+        + Dz)`` for the quadratic forms).
         """
         num = self.num_particles if num is None else num
         f, meas = self.filter, self.measurement
+        compiled = self._compiled is not None and self._compiled.runs(f.mu0)
         K, dx, dz = f.num_values, f.mu0.shape[0], meas.output_dim
         shared = f.transition.operations(1, cross=False)
         if linear_measurement(f.measure) is not None:
@@ -620,7 +663,12 @@ class MonteCarloPlanner(ParticleProjector):
         features = count(1) if callable(count) else OpCount()
         a, phi = self.q.weights.shape
         pairs = dz * (dz + 1) // 2
-        madds = dz * dz + pairs + K * (dx * dz + pairs + dz) + 2 * K * dx * dx + K * dx
+        if compiled:  # the factor's lower triangle, then the rank-k conditioning
+            k = min(dx, dz)
+            condition = pairs + 2 * dz + 2 * dz * k + K * (k * (k + 1) // 2 + k + k * dx)
+        else:  # a full Dz x Dz product, then the observation space
+            condition = dz * dz + pairs + K * (dx * dz + pairs + dz)
+        madds = condition + 2 * K * dx * dx + K * dx
         one = OpCount(exps=K, madds=madds)
         return shared + (one + features + OpCount(madds=phi * a)) * num
 

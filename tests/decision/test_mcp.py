@@ -19,7 +19,7 @@ import torch
 from scipy import stats
 from torch.utils.flop_counter import FlopCounterMode
 
-from hgpdm_torch import settings
+from hgpdm_torch import native, settings
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import LinearQ, lspi
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner
@@ -35,6 +35,14 @@ LENGTH, FIRST = 8, 3  # observations per movement; decisions after observations 
 @pytest.fixture(scope="module")
 def model(continuous_iddm) -> IDDM:
     return continuous_iddm
+
+
+@pytest.fixture(params=[True, False], ids=["compiled", "torch"])
+def kernels(request):
+    """The compiled kernels on (the particles drawn and updated in C where they run) or off
+    (every step in torch) for the test."""
+    with settings.native_kernels(request.param):
+        yield request.param
 
 
 def _movements(model, num, gen):
@@ -208,12 +216,15 @@ def test_bad_particle_observations_are_missing_like_in_the_filter(
 
 def test_moment_sampling_matches_the_literal_chain(model, pipeline):
     """With a linear measurement kernel the mean and covariance of z_{t+1} depend only on the first
-    two moments of x_{t+1}, which moment matching gets exactly: both samplers agree in them."""
+    two moments of x_{t+1}, which moment matching gets exactly: both samplers agree in them (the
+    torch samplers; the compiled kernel's draws are tested against the filter's predictive
+    distribution in test_projection_estimates_the_value_of_waiting)."""
     f, basis, q, states = pipeline
     belief = _belief(states, 5, 0)
     fast = MonteCarloPlanner(model, f, q, basis)
     slow = MonteCarloPlanner(model, f, q, basis, sampling="points")
-    shared = fast._shared(belief)
+    with settings.native_kernels(False):
+        shared = fast._shared(belief)
     n = 20000
     za = fast._sample_observations(shared, n, torch.Generator().manual_seed(1))
     zb = slow._sample_observations(shared, n, torch.Generator().manual_seed(2))
@@ -224,17 +235,27 @@ def test_moment_sampling_matches_the_literal_chain(model, pipeline):
     assert ((ca - cb).abs() / scale).max() < 0.06  # ~ 4 SE of a correlation at n = 20000
 
 
-def _record(planner, name):
-    """Wrap ``planner.<name>`` so that every output it returns is appended to the list returned."""
+def _record_draws(planner, monkeypatch):
+    """The observations each batch of particles saw, ``[I, Dz]`` per batch, whichever path drew
+    them: the torch sampler's output or the compiled kernel's (which returns them too)."""
     calls = []
-    method = getattr(planner, name)
+    sample = planner._sample_observations
 
-    def wrapper(*args, **kwargs):
-        out = method(*args, **kwargs)
+    def torch_path(*args, **kwargs):
+        out = sample(*args, **kwargs)
         calls.append(out)
         return out
 
-    setattr(planner, name, wrapper)
+    monkeypatch.setattr(planner, "_sample_observations", torch_path)
+    if planner._compiled is not None:
+        particles = planner._compiled.particles
+
+        def compiled(*args, **kwargs):
+            out = particles(*args, **kwargs)
+            calls.append(out[3])
+            return out
+
+        monkeypatch.setattr(planner._compiled, "particles", compiled)
     return calls
 
 
@@ -243,14 +264,17 @@ def _stop_value(basis, q, vectors):
     return (basis(vectors) @ q.weights[1:].T).max(-1).values
 
 
-def test_projection_values_each_particle_with_the_online_filter(model, pipeline):
+def test_projection_values_each_particle_with_the_online_filter(
+    model, pipeline, kernels, monkeypatch
+):
     """Algorithm 4.2 particle by particle: each sampled observation, filtered by a single-stream
     OnlineIntentionFilter and valued by the stopping values, gives that particle's reward, and
-    the mean over the same particles is the planner's Q(theta, wait)."""
+    the mean over the same particles is the planner's Q(theta, wait); with the compiled kernels
+    (particles drawn and updated in C where they run) and without (all in torch)."""
     f, basis, q, states = pipeline
     planner = MonteCarloPlanner(model, f, q, basis, num_particles=150, chunk_size=64)
     belief = _belief(states, 2, 1)
-    drawn = _record(planner, "_sample_observations")
+    drawn = _record_draws(planner, monkeypatch)
     r = planner.project(belief, generator=torch.Generator().manual_seed(5))
     z = torch.cat(drawn)
     assert [len(c) for c in drawn] == [150] and r.shape == (150,)  # one batch: no interval
@@ -316,7 +340,7 @@ def _predictive(f, belief):
     return prob.numpy(), torch.stack(ms).numpy(), torch.stack(Ss).numpy()
 
 
-def test_projection_estimates_the_value_of_waiting(model, pipeline):
+def test_projection_estimates_the_value_of_waiting(model, pipeline, kernels, monkeypatch):
     """The sampled observations follow the filter's predictive mixture (KS test of the
     probability integral transform along several directions, and its covariance), and the
     planner's Q(theta, wait)
@@ -327,7 +351,7 @@ def test_projection_estimates_the_value_of_waiting(model, pipeline):
     belief = _belief(states, 2, 1)
     prob, m, S = _predictive(f, belief)
     n = 20000
-    drawn = _record(planner, "_sample_observations")
+    drawn = _record_draws(planner, monkeypatch)
     r = planner.project(belief, n, generator=torch.Generator().manual_seed(7))
     z = torch.cat(drawn).numpy()
     rng = np.random.default_rng(3)
@@ -511,21 +535,33 @@ def test_planner_does_not_depend_on_the_default_dtype(model, pipeline):
 
 
 def test_operation_count_covers_the_particles_products(model, pipeline):
-    """The floor's per-particle count (``operations``, less the features and the values)
-    against the multiply-adds of the particles' matrix products (``torch.utils.flop_counter``:
-    the drawn observation, the gains, the quadratic forms and the covariances), most of their
-    work; an overcount, such as all Dz^2 pair products counted, fails the upper bound."""
+    """The floor's per-particle count (``operations``, less the features and the values) of the
+    torch path against the multiply-adds of the particles' matrix products
+    (``torch.utils.flop_counter``: the drawn observation, the gains, the quadratic forms and the
+    covariances), most of their work; an overcount, such as all Dz^2 pair products counted,
+    fails the upper bound. The compiled path's count differs from it by the conditioning alone,
+    in the measurement's span of rank k = min(Dx, Dz) instead of the observation space."""
     f, basis, q, states = pipeline
     planner = MonteCarloPlanner(model, f, q, basis)
-    shared = planner._shared(planner._check_belief(_belief(states, 2, 1)))
     n = 400
-    with FlopCounterMode(display=False) as counter:
-        planner._particles(shared, n, torch.Generator().manual_seed(0))
+    k, dx, dz = f.num_values, f.mu0.shape[0], f.obs_dim
+    pairs, r = dz * (dz + 1) // 2, min(dx, dz)
+
+    def particle():
+        one = planner.operations(n + 1).madds - planner.operations(n).madds
+        return one - basis.operations(1).madds - q.weights.numel()
+
+    with settings.native_kernels(False):
+        shared = planner._shared(planner._check_belief(_belief(states, 2, 1)))
+        with FlopCounterMode(display=False) as counter:
+            planner._particles(shared, n, torch.Generator().manual_seed(0))
+        torch_path = particle()
     products = counter.get_total_flops() / 2 / n
-    one = planner.operations(n + 1).madds - planner.operations(n).madds
-    particle = one - basis.operations(1).madds - q.weights.numel()
     # what the counter does not see: the pair products y_a y_b and the mixture's elementwise
     # sums (the mean and the spread), exactly
-    k, dx, dz = f.num_values, f.mu0.shape[0], f.obs_dim
-    assert products == particle - (dz * (dz + 1) // 2 + k * dx * dx + k * dx)
-    assert products > 0.75 * particle
+    assert products == torch_path - (pairs + k * dx * dx + k * dx)
+    assert products > 0.75 * torch_path
+    if native.available():
+        observation_space = dz * dz + pairs + k * (dx * dz + pairs + dz)
+        rank_space = pairs + 2 * dz + 2 * dz * r + k * (r * (r + 1) // 2 + r + r * dx)
+        assert particle() == torch_path - observation_space + rank_space

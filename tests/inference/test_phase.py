@@ -14,6 +14,7 @@ import math
 import pytest
 import torch
 
+from hgpdm_torch import settings
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.mcp import Belief, ParticleProjector
 from hgpdm_torch.gp import GPPosterior
@@ -247,7 +248,8 @@ def test_particles_replay_the_filter_at_the_beliefs_phase(data, gp_rounding):
     other = projector.step(Belief(belief.mean, belief.cov, belief.log_prob, 0), z)
     assert (other.log_prob - log_prob).abs().max() > 1e-3
     points = ParticleProjector(model, f, sampling="points")
-    shared = projector._shared(projector._check_belief(belief))
+    with settings.native_kernels(False):  # the torch samplers (the kernel's: test_mcp)
+        shared = projector._shared(projector._check_belief(belief))
     n = 20000
     za = projector._sample_observations(shared, n, torch.Generator().manual_seed(1))
     zb = points._sample_observations(shared, n, torch.Generator().manual_seed(2))

@@ -26,6 +26,7 @@ import torch
 
 from ... import native, settings
 from ...gp_shared import SharedTransition
+from ...observations import ObservationCheck
 from .measurement import linear_measurement
 from .options import FilterOptions
 
@@ -40,7 +41,7 @@ class CompiledStep:
     def __init__(self, transition: SharedTransition, measure, options: FilterOptions) -> None:
         linear = linear_measurement(measure)
         self.transition, self.meas = transition, linear.native_terms
-        self.rank = linear.R.shape[0]
+        self.rank, self.dz = linear.R.shape[0], linear.U.shape[0]
         self.keep = 1.0 - options.belief.forgetting
         self.temperature = options.belief.temperature
 
@@ -68,12 +69,7 @@ class CompiledStep:
         phase: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
         trans = self.transition
-        if (
-            settings.moment_path.get() != "fused"
-            or settings.debug.on()  # the torch step checks its internal Gaussians there
-            or not native.usable(mean, cov, log_belief, z, self.meas, trans.native_moment_terms)
-            or not trans.compiled()
-        ):
+        if not self.runs(mean, cov, log_belief, z):
             return None
         log_phase = None if phase is None else trans.log_phase(phase.to(mean))
         # a state that is no covariance raises here as in the torch step (a stream's failure)
@@ -90,3 +86,58 @@ class CompiledStep:
         if bool(status.any()):
             return None
         return new_mean, new_cov, new_belief
+
+    def runs(self, *tensors: torch.Tensor) -> bool:
+        """Whether the kernel takes these operands now (module docstring): the settings, and the
+        operands (with the transition's and the measurement's terms) float64 on the CPU without
+        a gradient."""
+        trans = self.transition
+        return (
+            settings.moment_path.get() == "fused"
+            and not settings.debug.on()  # the torch step checks its internal Gaussians there
+            and native.usable(*tensors, self.meas, trans.native_moment_terms)
+            and trans.compiled()
+        )
+
+    def particle_shared(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        log_belief: torch.Tensor,
+        phase: torch.Tensor | None,
+    ) -> torch.Tensor | None:
+        """What every Monte-Carlo particle of the belief ``mean [Dx]``, ``cov [Dx, Dx]``,
+        ``log_belief [K]`` (``phase [1]`` for a phase-aware IDDM) shares
+        (:func:`hgpdm_torch.native.particle_shared`), or ``None`` where the torch path must take
+        the decision (as for a chunk of :meth:`__call__`)."""
+        if not self.runs(mean, cov, log_belief):
+            return None
+        trans = self.transition
+        log_phase = None if phase is None else trans.log_phase(phase.to(mean))
+        operands = trans.native_operands(mean[None], cov[None], log_phase)
+        shared, defined = native.particle_shared(
+            operands, trans.native_moment_terms, self.meas, self.rank, log_belief.shape[0],
+            self.dz,
+        )  # fmt: skip
+        return shared if defined else None
+
+    def particles(
+        self,
+        shared: torch.Tensor,
+        log_belief: torch.Tensor,
+        check: ObservationCheck,
+        draws: torch.Tensor | None,
+        noise: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The predictive step of the belief behind ``shared`` (:meth:`particle_shared`;
+        ``log_belief [K]`` normalised) on I observations, ``z = mz_g + Lz_g noise_i`` for the
+        grid values ``draws [I]``, or ``z = noise [I, Dz]`` where ``draws`` is ``None``; a ``z``
+        that ``check`` would not use is a prediction-only step. Returns ``mean [I, Dx]``, ``cov
+        [I, Dx, Dx]``, ``log_belief [I, K]`` and the observations ``z [I, Dz]``
+        (:func:`hgpdm_torch.native.particles`)."""
+        dims = (self.transition.dx, self.dz, self.rank)
+        center, limit = (t.to(noise) for t in (check.center, check.limit))
+        return native.particles(
+            shared, self.meas, dims, center, limit, log_belief, self.keep, self.temperature,
+            draws, noise,
+        )  # fmt: skip

@@ -1,0 +1,159 @@
+"""Monte-Carlo planning's particles on the compiled kernel
+(:meth:`~hgpdm_torch.inference.intention.compiled.CompiledStep.particle_shared` and
+:meth:`~hgpdm_torch.inference.intention.compiled.CompiledStep.particles`) against the same
+particles in torch.
+
+Both paths start from the same contraction of the belief's ``psi2`` and draw the same intentions
+and normal deviates from the generator; the kernel conditions each particle's K predictions in
+the measurement's span (the online filter's own form), torch in the observation space. The two
+are the same algebra rounded differently: they differ by the rounding of one filter step
+(``gp_rounding``, as the planner against the filter in ``test_phase``). The per-particle oracle
+(the online filter, stream by stream) and the predictive distribution of the draws are in
+``test_mcp``, which runs them with the kernels on and off. Where the kernel does not run, the
+tests skip.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from hgpdm_torch import native, settings
+from hgpdm_torch.decision.lspi import LinearQ
+from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner, ParticleProjector
+from hgpdm_torch.decision.stopping import belief_vector
+from hgpdm_torch.inference.intention import OnlineIntentionFilter
+
+pytestmark = pytest.mark.skipif(
+    not native.available(),
+    reason="the compiled kernel does not run here: it needs an x86-64 CPU with AVX-512F and a C "
+    "compiler (native.available() is False)",
+)
+
+GRID = torch.linspace(-1.2, 1.2, 9)
+
+
+def _belief(model, inducing=None):
+    """A filter after three frames of a training movement, and its belief."""
+    f = OnlineIntentionFilter(model, GRID, forgetting=0.2, inducing=inducing)
+    for z in model.sequences()[4][:3]:
+        f.update(z)
+    return f, Belief.from_filter(f)
+
+
+def _torch_path(projector, monkeypatch):
+    """The same projector with its particles in torch (the kernel's contraction kept)."""
+    monkeypatch.setattr(projector, "_compiled", None)
+
+
+@pytest.mark.parametrize("inducing", [None, 30])
+def test_particles_equal_the_torch_particles(continuous_iddm, gp_rounding, inducing, monkeypatch):
+    """Drawn particles (the same generator) and given observations (a missing row, a row with
+    inf, a partly NaN row, an implausible one: treated as missing and flagged, as in torch):
+    means, covariances and beliefs of both paths agree within a step's rounding; the kernel
+    draws the observations torch draws."""
+    f, belief = _belief(continuous_iddm, inducing)
+    projector = ParticleProjector(continuous_iddm, f)
+    rel = gp_rounding(f.posterior, continuous_iddm.measurement_posterior())
+    shared = projector._shared(projector._check_belief(belief))
+    assert type(shared).__name__ == "_CompiledShared"
+    got = projector.sample_beliefs(belief, 300, torch.Generator().manual_seed(2))
+    g, eps = projector._draw(shared.prob, 300, torch.Generator().manual_seed(2))
+    z = projector._compiled.particles(shared.state, shared.log_prob, f.check, g, eps[..., 0])[3]
+    z_rows = torch.cat([z[:8], z[:1].expand(4, -1).clone()])
+    z_rows[8] = math.nan  # missing
+    z_rows[9, 0] = math.inf  # bad: treated as missing, flagged
+    z_rows[10, 1] = math.nan  # partly NaN: bad
+    z_rows[11, 2] = 1e6  # implausible: bad
+    stepped = projector.step(belief, z_rows)
+    _torch_path(projector, monkeypatch)
+    want = projector.sample_beliefs(belief, 300, torch.Generator().manual_seed(2))
+    with settings.native_kernels(False):  # the torch draws
+        drawn = projector._sample_observations(
+            projector._shared(projector._check_belief(belief)), 300,
+            torch.Generator().manual_seed(2),
+        )  # fmt: skip
+    torch.testing.assert_close(z, drawn, rtol=rel, atol=rel * float(drawn.abs().max()))
+    reference = projector.step(belief, z_rows)
+    assert stepped.rejected.tolist() == [False] * 9 + [True] * 3
+    assert torch.equal(stepped.rejected, reference.rejected)
+    for a, b in (*zip(got, want, strict=True), *zip(stepped[:3], reference[:3], strict=True)):
+        if b.shape[-1] == len(GRID) and b.dim() == 2:  # log-beliefs: as probabilities
+            a, b = a.exp(), b.exp()
+        torch.testing.assert_close(a, b, rtol=rel, atol=rel * float(b.abs().max()))
+    # the missing and the bad rows only forget, and keep the prediction's spread
+    forget = torch.log_softmax(0.8 * shared.log_prob, -1)
+    for i in (8, 9, 10, 11):
+        torch.testing.assert_close(stepped.log_prob[i], forget, rtol=0, atol=1e-14)
+        torch.testing.assert_close(stepped.cov[i], stepped.cov[8], rtol=0, atol=0)
+
+
+def test_decisions_equal_the_torch_decisions(continuous_iddm, gp_rounding, monkeypatch):
+    """A whole decision (Algorithm 4.3 with and without early termination): the same action,
+    particles used and, within a step's rounding of the values, the same value of waiting."""
+    f, belief = _belief(continuous_iddm)
+    features = len(belief.vector())
+    weights = torch.randn(4, features, generator=torch.Generator().manual_seed(0),
+                          dtype=torch.float64)  # fmt: skip
+    planner = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), lambda v: v)
+    rel = gp_rounding(f.posterior, continuous_iddm.measurement_posterior())
+
+    def decisions():
+        out = []
+        for early in (True, False):
+            gen = torch.Generator().manual_seed(9)
+            out.append(planner.decide(belief, early_stop=early, generator=gen))
+        return out
+
+    got = decisions()
+    _torch_path(planner, monkeypatch)
+    for a, b in zip(got, decisions(), strict=True):
+        assert (a.action, a.particles) == (b.action, b.particles)
+        scale = float(weights.abs().sum(1).max()) * float(belief_vector(
+            belief.mean, belief.cov, belief.log_prob.exp()).abs().max() + 10.0)  # fmt: skip
+        assert a.q_wait == pytest.approx(b.q_wait, abs=rel * scale)
+
+
+def test_the_torch_path_takes_over_where_the_kernel_does_not_run(continuous_iddm, monkeypatch):
+    """The torch particles where the kernel may not run (kernels off, debug checks, the literal
+    sampler; float32 and other devices are refused by native.usable, as for the filter's step)
+    and where a belief's shared factors do not factorise in the kernel (a negative measurement
+    noise)."""
+    f, belief = _belief(continuous_iddm)
+    projector = ParticleProjector(continuous_iddm, f)
+
+    def kind():
+        return type(projector._shared(projector._check_belief(belief))).__name__
+
+    assert kind() == "_CompiledShared"
+    with settings.native_kernels(False):
+        assert kind() == "_Shared"
+    with settings.debug():
+        assert kind() == "_Shared"
+    assert ParticleProjector(continuous_iddm, f, sampling="points")._compiled is None
+    compiled = projector._compiled
+    meas = compiled.meas.clone()
+    meas[-2] = -1e3  # the noise: no innovation covariance factorises
+    monkeypatch.setattr(compiled, "meas", meas)
+    assert compiled.particle_shared(belief.mean, belief.cov, belief.log_prob, None) is None
+
+
+def test_particle_inputs_are_checked(continuous_iddm):
+    """Grid values outside 0 .. K - 1 and operands of another dtype or shape are refused before
+    the kernel reads them."""
+    f, belief = _belief(continuous_iddm)
+    projector = ParticleProjector(continuous_iddm, f)
+    shared = projector._shared(projector._check_belief(belief))
+    compiled = projector._compiled
+    noise = torch.zeros(3, f.obs_dim, dtype=torch.float64)
+    args = (shared.state, shared.log_prob, f.check)
+    with pytest.raises(ValueError, match="grid values"):
+        compiled.particles(*args, torch.tensor([0, len(GRID), 1]), noise)
+    with pytest.raises(TypeError, match="int64"):
+        compiled.particles(*args, torch.tensor([0, 1, 1], dtype=torch.int32), noise)
+    with pytest.raises(ValueError, match="noise"):
+        compiled.particles(*args, None, noise[:, :2].contiguous())
+    with pytest.raises(TypeError, match="float64"):
+        compiled.particles(*args, None, noise.float())
