@@ -15,6 +15,10 @@ a shared machine is closer to what an idle core gives than the wall time:
 - ``shared``: the per-decision work every particle shares (K moment-matched predictions and
   their joints with z);
 - ``full``: :meth:`MonteCarloPlanner.decide` with all 500 particles (``early_stop=False``);
+  where the compiled kernel runs (:mod:`hgpdm_torch.native`), the shared part and the particles'
+  update are its; ``kernels off`` the same decisions with
+  :class:`hgpdm_torch.settings.native_kernels` off (all in torch, as on a machine without the
+  kernel), in the same process;
 - ``early``: with Student-t early termination (confidence 0.99, checks every 100 particles),
   and the mean particles used;
 - ``points``: ``full`` with the literal sampling chain of Algorithm 4.2 (GP predictions at the
@@ -42,6 +46,7 @@ from functools import partial
 import torch
 
 from benchmarks._common import FLOAT32_NOISE, Options, measure_rates, parse_options, peak_bytes
+from hgpdm_torch import settings
 from hgpdm_torch.datasets import targeted_movements
 from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import lspi
@@ -147,6 +152,7 @@ def run(
             "shared cpu [ms]",
             "full wall [ms]",
             "full cpu [ms]",
+            "kernels off cpu [ms]",
             "early cpu [ms]",
             "particles used",
             "points cpu [ms]",
@@ -175,6 +181,8 @@ def run(
             planner.decide(states[0], generator=gen)  # warm-up
             _, shared = _mean_time(opts, planner._shared, states, repeats)
             full = _mean_time(opts, full_run, states, repeats)
+            with settings.native_kernels(False):  # every step in torch, as without a compiler
+                _, off = _mean_time(opts, full_run, states, repeats)
             used = [early_run(s).particles for s in states]
             _, early = _mean_time(opts, early_run, states, repeats)
             _, points = _mean_time(opts, points_run, states, repeats)
@@ -188,6 +196,7 @@ def run(
                 "shared cpu [ms]": shared,
                 "full wall [ms]": full[0],
                 "full cpu [ms]": full[1],
+                "kernels off cpu [ms]": off,
                 "early cpu [ms]": early,
                 "particles used": sum(used) / len(used),
                 "points cpu [ms]": points,

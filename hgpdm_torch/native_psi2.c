@@ -876,11 +876,15 @@ int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t
                             const double *limit, const double *lb, double keep, double temp,
                             const int64_t *g, const double *eps, double *mean, double *cov,
                             double *lb_out, double *zo, double *work) {
+    const unsigned int csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_predictive_step_f64: a belief's
+                                 probabilities of values far from the data are subnormal */
     int code;
 #define PARTICLES(DD)                                                                            \
     mcp_particles(DD, I, K, Dz, R, shared, meas, center, limit, lb, keep, temp, g, eps, mean,    \
                   cov, lb_out, zo, work)
     FOR_D(D, PARTICLES, code);
 #undef PARTICLES
+    _mm_setcsr(csr);
     return code;
 }

@@ -29,7 +29,12 @@ only by its observation, and conditioning a Gaussian on it is linear:
 ``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)`` with a shared covariance ``P_g - C_g S_g^-1 C_g^T``
 and the evidence ``log N(z^i | m^z_g, S_g)``. All particles of a chunk (without early
 termination, up to :data:`BATCH` or ``chunk_size`` of them) are advanced in one batched
-update, stored with the particles last.
+update, stored with the particles last. Where the filter's compiled step runs (a shared
+transition and a linear measurement, float64 on a CPU with the kernel:
+:class:`~hgpdm_torch.inference.intention.compiled.CompiledStep`), the shared part and the
+particles' draws and updates are the kernel's, in the filter's own form of the update (on the
+measurement's latent span); the intentions and normal deviates are drawn by torch from the same
+generator either way, so both paths see the same observations.
 
 Particles draw ``z^i`` either from the moment-matched ``N(m^z_g, S_g)`` (``sampling="moments"``,
 the fast default, consistent with the filter's own approximation) or literally as Algorithm 4.2
