@@ -465,7 +465,7 @@ def particles(
     temperature: float,
     draws: torch.Tensor | None,
     noise: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The online filter's update of one belief (its :func:`particle_shared` state) on I
     observations (``native_psi2.c``): particle i observes ``z = mz_g + Lz_g noise_i`` for
     ``g = draws[i]``, or ``z = noise_i`` where ``draws`` is ``None``; a ``z`` that the filter's

@@ -608,6 +608,8 @@ INLINE void belief_mixture(const int D, int64_t K, const int nl, double keep, do
             for (int p = 0; p < nl; ++p) t[p] += prob[k * nl + p] * means[(k * D + d) * nl + p];
         for (int p = 0; p < nl; ++p) m[d * nl + p] = t[p];
     }
+    int some_missing = 0; /* the predictions' covariances are summed only where a lane needs them */
+    for (int p = 0; p < nl; ++p) some_missing |= missing[p];
     for (int i = 0; i < D; ++i)
         for (int j = 0; j <= i; ++j) {
             double t[LANES] = {0.0}, c[LANES] = {0.0}, cq[LANES] = {0.0};
@@ -618,8 +620,9 @@ INLINE void belief_mixture(const int D, int64_t K, const int nl, double keep, do
                 for (int p = 0; p < nl; ++p) {
                     t[p] += w[p] * (mk[i * nl + p] - m[i * nl + p]) * (mk[j * nl + p] - m[j * nl + p]);
                     c[p] += w[p] * vp;
-                    cq[p] += w[p] * vq;
                 }
+                if (some_missing)
+                    for (int p = 0; p < nl; ++p) cq[p] += w[p] * vq;
             }
             for (int p = 0; p < nl; ++p)
                 Pm[(i * D + j) * nl + p] = Pm[(j * D + i) * nl + p] = t[p] + (missing[p] ? cq[p] : c[p]);

@@ -524,13 +524,13 @@ class ParticleProjector:
         if self.filter.options.observations.strict and bool(rejected.any()):
             i = int(torch.nonzero(rejected)[0])
             raise bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
-        z = z.to(self.filter.dtype)
-        if isinstance(shared, _CompiledShared):  # the kernel checks each row as classify did
+        if isinstance(shared, _CompiledShared):  # the rows classify found bad set to NaN
+            z = z.to(self.filter.dtype).masked_fill((missing | rejected)[:, None], math.nan)
             update = self._compiled.particles(
-                shared.state, shared.log_prob, self.filter.check, None, z.contiguous()
+                shared.state, shared.log_prob, None, None, z.contiguous()
             )[:3]
         else:
-            update = self._update(shared, z, missing | rejected)
+            update = self._update(shared, z.to(self.filter.dtype), missing | rejected)
         return ParticleUpdate(*(v.contiguous() for v in update), rejected)
 
     def _update(
@@ -639,7 +639,9 @@ class MonteCarloPlanner(ParticleProjector):
         (``Dx^2 (Dz + 2) + Dz^2 Dx`` each through the filter's
         :class:`~hgpdm_torch.inference.intention.measurement.LinearMeasurement`, else the GP's,
         :func:`~hgpdm_torch.moments.input_operations`), their Cholesky factors, gains and
-        precisions (``K (Dz^3 / 2 + Dz^2 Dx + Dz Dx^2)``). Per particle: the drawn observation
+        precisions (``K (Dz^3 / 2 + Dz^2 Dx + Dz Dx^2)``; where the compiled kernel runs, the
+        factor ``K Dz^3 / 6`` and the measurement's factors in its span of rank ``k``, ``K (k
+        Dx^2 + 2 k^2 Dx + k^3 / 3)``). Per particle: the drawn observation
         and its conditioning on all K, the belief and mixture (``2 K Dx^2 + K Dx``, ``K``
         exponentials), the features (``features.operations(1)`` where the feature map has one,
         e.g. :meth:`~hgpdm_torch.decision.basis.RadialBasis.operations`) and the values (``F
@@ -655,6 +657,7 @@ class MonteCarloPlanner(ParticleProjector):
         f, meas = self.filter, self.measurement
         compiled = self._compiled is not None and self._compiled.runs(f.mu0)
         K, dx, dz = f.num_values, f.mu0.shape[0], meas.output_dim
+        k = min(dx, dz)  # the measurement's rank where the compiled kernel runs
         shared = f.transition.operations(1, cross=False)
         if linear_measurement(f.measure) is not None:
             shared = shared + OpCount(madds=K * (2 * dx * dx + dx * dx * dz + dz * dz * dx))
@@ -663,13 +666,16 @@ class MonteCarloPlanner(ParticleProjector):
             terms = split_terms(leaves, meas.train_inputs, None, meas.input_dim)
             n = meas.train_inputs.shape[0]
             shared = shared + input_operations(terms, n, dz, inputs=K) * K
-        shared = shared + OpCount(madds=K * (dz**3 / 2 + dz * dz * dx + dz * dx * dx))
+        if compiled:  # the observation's factor, and the measurement's factors in the span
+            factors = dz**3 / 6 + k * dx * dx + 2 * k * k * dx + k**3 / 3
+        else:  # the factor, its inverse and the gains in the observation space
+            factors = dz**3 / 2 + dz * dz * dx + dz * dx * dx
+        shared = shared + OpCount(madds=K * factors)
         count = getattr(self.features, "operations", None)
         features = count(1) if callable(count) else OpCount()
         a, phi = self.q.weights.shape
         pairs = dz * (dz + 1) // 2
         if compiled:  # the factor's lower triangle, then the rank-k conditioning
-            k = min(dx, dz)
             condition = pairs + 2 * dz + 2 * dz * k + K * (k * (k + 1) // 2 + k + k * dx)
         else:  # a full Dz x Dz product, then the observation space
             condition = dz * dz + pairs + K * (dx * dz + pairs + dz)

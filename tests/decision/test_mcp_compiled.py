@@ -157,3 +157,37 @@ def test_particle_inputs_are_checked(continuous_iddm):
         compiled.particles(*args, None, noise[:, :2].contiguous())
     with pytest.raises(TypeError, match="float64"):
         compiled.particles(*args, None, noise.float())
+
+
+def test_step_uses_the_filters_classification_of_each_row(continuous_iddm, monkeypatch):
+    """``step`` classifies each row in the observations' own dtype (as the filter does) and the
+    kernel follows it: a float32 row at the edge of the outlier limit that float32 accepts and
+    float64 would refuse is used on both paths, and its update is the torch path's."""
+    f = OnlineIntentionFilter(continuous_iddm, GRID, forgetting=0.2, outlier_sd=3.0)
+    for z in continuous_iddm.sequences()[4][:3]:
+        f.update(z)
+    belief = Belief.from_filter(f)
+    projector = ParticleProjector(continuous_iddm, f)
+    row = continuous_iddm.sequences()[4][3].to(torch.float32)
+    # float32 values around the limit in each channel, until one that float32 accepts and
+    # float64 refuses (the float32 check rounds the centre, the limit and the difference)
+    found = False
+    for channel in range(row.shape[0]):
+        edge = (f.check.center[channel] + f.check.limit[channel]).to(torch.float32)
+        for step in range(-64, 64):
+            row[channel] = edge + step * torch.finfo(torch.float32).eps * edge.abs()
+            if bool(f.check.usable(row)) and not bool(f.check.usable(row.double())):
+                found = True
+                break
+        if found:
+            break
+        row[channel] = continuous_iddm.sequences()[4][3][channel]
+    if not found:
+        pytest.skip("no float32 value rounds inside this model's limits")
+    z = torch.stack([row, row - 1e-3])
+    got = projector.step(belief, z)
+    assert not bool(got.rejected.any())
+    _torch_path(projector, monkeypatch)
+    want = projector.step(belief, z)
+    for a, b in zip(got[:3], want[:3], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6 * float(b.abs().max()))

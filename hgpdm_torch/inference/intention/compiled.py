@@ -22,6 +22,8 @@ exactly as without the kernel).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ... import native, settings
@@ -125,18 +127,23 @@ class CompiledStep:
         self,
         shared: torch.Tensor,
         log_belief: torch.Tensor,
-        check: ObservationCheck,
+        check: ObservationCheck | None,
         draws: torch.Tensor | None,
         noise: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The predictive step of the belief behind ``shared`` (:meth:`particle_shared`;
         ``log_belief [K]`` normalised) on I observations, ``z = mz_g + Lz_g noise_i`` for the
         grid values ``draws [I]``, or ``z = noise [I, Dz]`` where ``draws`` is ``None``; a ``z``
-        that ``check`` would not use is a prediction-only step. Returns ``mean [I, Dx]``, ``cov
-        [I, Dx, Dx]``, ``log_belief [I, K]`` and the observations ``z [I, Dz]``
-        (:func:`hgpdm_torch.native.particles`)."""
+        that ``check`` would not use (with ``check=None``: that is not finite, for
+        observations the caller has checked and whose bad rows it has set to NaN) is a
+        prediction-only step. Returns ``mean [I, Dx]``, ``cov [I, Dx, Dx]``, ``log_belief [I,
+        K]`` and the observations ``z [I, Dz]`` (:func:`hgpdm_torch.native.particles`)."""
         dims = (self.transition.dx, self.dz, self.rank)
-        center, limit = (t.to(noise) for t in (check.center, check.limit))
+        center, limit = noise.new_zeros(self.dz), noise.new_full((self.dz,), math.inf)
+        if check is not None:  # finiteness alone where the check has no outlier threshold
+            center = check.center.to(noise)
+            if check.outlier_sd is not None:
+                limit = check.limit.to(noise)
         return native.particles(
             shared, self.meas, dims, center, limit, log_belief, self.keep, self.temperature,
             draws, noise,
