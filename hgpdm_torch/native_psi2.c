@@ -442,6 +442,27 @@ static void transition_moments(const int D, int64_t U, int64_t L, int64_t K, int
     }
 }
 
+/* out [n, n] = sym(M P M^T) for M [n, D] and a symmetric P [D, D], as (M P) M^T with the two
+   triangles averaged; MP [n, D] is work. */
+static void congruence(const int D, int64_t n, const double *M, const double *P, double *MP,
+                       double *out) {
+    for (int64_t i = 0; i < n; ++i)
+        for (int j = 0; j < D; ++j) {
+            double t = 0.0;
+            for (int d = 0; d < D; ++d) t += M[i * D + d] * P[d * D + j];
+            MP[i * D + j] = t;
+        }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t o = 0; o < n; ++o) {
+            double t = 0.0;
+            for (int d = 0; d < D; ++d) t += MP[i * D + d] * M[o * D + d];
+            out[i * n + o] = t;
+        }
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t o = 0; o < i; ++o)
+            out[i * n + o] = out[o * n + i] = 0.5 * (out[i * n + o] + out[o * n + i]);
+}
+
 /* The linear measurement (LinearMeasurement.update; meas: U [Dz, R], R [R, D], Q [D, D],
    offset [Dz], scale [Dz], noise, log_scale2) at N(mk, Pk), the parts that do not depend on
    z: with v = tr(Q (Pk + mk mk^T)) + noise and F = chol(R Pk R^T + v I), A = F^-1 R Pk
@@ -457,21 +478,7 @@ static int meas_factors(const int D, int64_t Dz, int64_t R, const double *meas, 
     for (int i = 0; i < D; ++i)
         for (int j = 0; j < D; ++j) v += Qm[i * D + j] * (Pk[i * D + j] + mk[i] * mk[j]);
     v += mnoise;
-    for (int64_t q = 0; q < R; ++q)
-        for (int j = 0; j < D; ++j) {
-            double t = 0.0;
-            for (int d = 0; d < D; ++d) t += Rm[q * D + d] * Pk[d * D + j];
-            RP[q * D + j] = t;
-        }
-    for (int64_t q = 0; q < R; ++q)
-        for (int64_t o = 0; o < R; ++o) {
-            double s = 0.0;
-            for (int d = 0; d < D; ++d) s += RP[q * D + d] * Rm[o * D + d];
-            S[q * R + o] = s;
-        }
-    for (int64_t q = 0; q < R; ++q)
-        for (int64_t o = 0; o < q; ++o)
-            S[q * R + o] = S[o * R + q] = 0.5 * (S[q * R + o] + S[o * R + q]);
+    congruence(D, R, Rm, Pk, RP, S);
     for (int64_t q = 0; q < R; ++q) S[q * R + q] += v;
     if (cholesky(R, S, F)) return 1;
     forward(R, D, F, RP, A);
@@ -739,11 +746,11 @@ INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp,
     const double *Um = meas, *Rm = Um + Dz * R, *zoff = Rm + R * D + D * D, *zscale = zoff + Dz;
     one_stream(D, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, p1, work);
     transition_moments(D, U, L, K, Kp, p1, beta, out, trans, means, covs, mu_u);
-    for (int d = 0; d < D; ++d) /* W = (U R)^T diag(scale) [D, Dz] */
-        for (int64_t i = 0; i < Dz; ++i) {
+    for (int64_t i = 0; i < Dz; ++i) /* W^T = diag(scale) U R [Dz, D] */
+        for (int d = 0; d < D; ++d) {
             double s = 0.0;
             for (int64_t q = 0; q < R; ++q) s += Um[i * R + q] * Rm[q * D + d];
-            Wm[d * Dz + i] = s * zscale[i];
+            Wm[i * D + d] = s * zscale[i];
         }
     for (int64_t k = 0; k < K; ++k) {
         double *m = shared + k * B, *Pp = m + D, *Pq = Pp + D * D, *A = Pq + D * D;
@@ -755,26 +762,11 @@ INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp,
         downdate(D, R, A, Pq);
         for (int64_t i = 0; i < Dz; ++i) {
             double s = 0.0;
-            for (int d = 0; d < D; ++d) s += m[d] * Wm[d * Dz + i];
+            for (int d = 0; d < D; ++d) s += m[d] * Wm[i * D + d];
             mz[i] = s + zoff[i];
         }
-        for (int d = 0; d < D; ++d) /* P W [D, Dz] */
-            for (int64_t i = 0; i < Dz; ++i) {
-                double s = 0.0;
-                for (int e = 0; e < D; ++e) s += Pp[d * D + e] * Wm[e * Dz + i];
-                cross[d * Dz + i] = s;
-            }
-        for (int64_t i = 0; i < Dz; ++i)
-            for (int64_t j = 0; j < Dz; ++j) {
-                double s = 0.0;
-                for (int d = 0; d < D; ++d) s += Wm[d * Dz + i] * cross[d * Dz + j];
-                Sz[i * Dz + j] = s;
-            }
-        for (int64_t i = 0; i < Dz; ++i) {
-            for (int64_t j = 0; j < i; ++j)
-                Sz[i * Dz + j] = Sz[j * Dz + i] = 0.5 * (Sz[i * Dz + j] + Sz[j * Dz + i]);
-            Sz[i * Dz + i] += zscale[i] * zscale[i] / *iv;
-        }
+        congruence(D, Dz, Wm, Pp, cross, Sz); /* W^T P W */
+        for (int64_t i = 0; i < Dz; ++i) Sz[i * Dz + i] += zscale[i] * zscale[i] / *iv;
         for (int64_t e = 0; e < Dz * Dz; ++e) Lz[e] = 0.0;
         if (cholesky(Dz, Sz, Lz)) return 1;
     }
