@@ -421,8 +421,11 @@ def particle_shared(
 
     Args:
         contraction: :func:`psi2_groups`'s arguments for the one belief (``mu [1, D]``).
-        trans, meas, rank: as for :func:`predictive_step`.
-        K: grid values; dz: observed dims.
+        trans: as for :func:`predictive_step`.
+        meas: as for :func:`predictive_step`.
+        rank: as for :func:`predictive_step`.
+        K: grid values.
+        dz: observed dims.
 
     Returns:
         ``shared [K, particle_block(D, Dz, rank)]`` (per value ``m``, ``P``, ``P - A^T A``,
@@ -473,10 +476,14 @@ def particles(
     ``[Dz]``) is a prediction-only step, as in the filter.
 
     Args:
-        shared: ``[K, particle_block(D, Dz, R)]``; meas: as for :func:`predictive_step`.
+        shared: ``[K, particle_block(D, Dz, R)]``.
+        meas: as for :func:`predictive_step`.
         dims: ``(D, Dz, R)``.
-        center, limit: ``[Dz]``; log_belief: ``[K]`` normalised.
-        keep, temperature: as for :func:`predictive_step`.
+        center: ``[Dz]``, the check's centre.
+        limit: ``[Dz]``, its limit (``inf``: finiteness alone).
+        log_belief: ``[K]`` normalised.
+        keep: as for :func:`predictive_step`.
+        temperature: as for :func:`predictive_step`.
         draws: ``[I]`` int64 grid values in ``0 .. K - 1``, or ``None``.
         noise: ``[I, Dz]`` standard normal draws, or the observations.
 

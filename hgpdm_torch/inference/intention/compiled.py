@@ -12,6 +12,11 @@ and makes some 200 calls per chunk; here nothing of a stream but its new state l
 kernel, so a chunk needs a few kilobytes per stream and its fixed cost is two calls into the
 kernel (the streams' quadratic forms, :func:`hgpdm_torch.native.rbf_forms`, then the step).
 
+Monte-Carlo planning's particles replay this step from one belief
+(:class:`~hgpdm_torch.decision.mcp.ParticleProjector`): :meth:`CompiledStep.particle_shared`
+computes what they share once per decision and :meth:`CompiledStep.particles` draws and updates
+a chunk of them with the same C functions.
+
 The torch path stays the reference (the tests compare the two) and takes over whole chunks:
 where the kernel does not run (float32, a gradient, another device,
 :class:`hgpdm_torch.settings.native_kernels` off, the materialised moment path, the checks of
