@@ -641,11 +641,11 @@ class MonteCarloPlanner(ParticleProjector):
         :func:`~hgpdm_torch.moments.input_operations`), their Cholesky factors, gains and
         precisions (``K (Dz^3 / 2 + Dz^2 Dx + Dz Dx^2)``; where the compiled kernel runs, the
         factor ``K Dz^3 / 6`` and the measurement's factors in its span of rank ``k``, ``K (k
-        Dx^2 + 2 k^2 Dx + k^3 / 3)``). Per particle: the drawn observation
-        and its conditioning on all K, the belief and mixture (``2 K Dx^2 + K Dx``, ``K``
-        exponentials), the features (``features.operations(1)`` where the feature map has one,
-        e.g. :meth:`~hgpdm_torch.decision.basis.RadialBasis.operations`) and the values (``F
-        A`` for F features and A actions). The draw and the conditioning are counted as the
+        Dx^2 + 2 k^2 Dx + k^3 / 3)``). Per particle: the drawn observation and its conditioning
+        on all K, the belief and mixture (``2 K Dx^2 + K Dx``, ``K`` exponentials), the
+        features (``features.operations(1)`` where the feature map has one, e.g.
+        :meth:`~hgpdm_torch.decision.basis.RadialBasis.operations`) and the values (``F A``
+        for F features and A actions). The draw and the conditioning are counted as the
         path that runs does them: where the compiled kernel runs (a linear measurement, float64
         on the CPU), the factor's lower triangle (``P = Dz (Dz + 1) / 2``) and the filter's own
         update on the measurement's span of rank ``k`` (``2 Dz + 2 Dz k`` to project ``z``,
