@@ -55,6 +55,7 @@ __all__ = [
     "predictive_step",
     "psi2_groups",
     "rbf_forms",
+    "rbf_values",
     "scratch",
     "supported",
     "usable",
@@ -179,6 +180,8 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_mcp_shared_f64.restype = ctypes.c_int
     lib.hgpdm_mcp_particles_f64.argtypes = [i64] * 5 + [ptr] * 5 + [f64] * 2 + [ptr] * 7
     lib.hgpdm_mcp_particles_f64.restype = ctypes.c_int
+    lib.hgpdm_rbf_values_f64.argtypes = [i64] * 6 + [ptr] * 6 + [f64] + [ptr] * 3
+    lib.hgpdm_rbf_values_f64.restype = ctypes.c_int
     return lib
 
 
@@ -518,6 +521,58 @@ def particles(
     )  # fmt: skip
     _ran(code, d)
     return mean, cov, lb, z
+
+
+def rbf_values(
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    log_prob: torch.Tensor,
+    basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
+    weights: torch.Tensor,
+) -> torch.Tensor:
+    """Linear values of radial basis features of I beliefs' vectors (``native_psi2.c``), as
+    :func:`~hgpdm_torch.decision.stopping.belief_vector`,
+    :class:`~hgpdm_torch.decision.basis.RadialBasis` and
+    :meth:`~hgpdm_torch.decision.lspi.LinearQ.values` compute them one after another: the
+    vector ``[mean, upper triangle of cov, exp(log_prob)]`` (``F`` entries), standardised, its
+    features ``exp(-eta |z - c|^2)`` for the C centres (then 1 where ``bias``) and their
+    products with the weights.
+
+    Args:
+        mean: ``[I, D]``.
+        cov: ``[I, D, D]``.
+        log_prob: ``[I, K]``.
+        basis: the fitted basis's ``(mean [F], std [F], centres [C, F], eta, bias)``.
+        weights: ``[A, C + bias]``.
+
+    Returns:
+        ``[I, A]``.
+    """
+    num, d = mean.shape
+    K = log_prob.shape[-1]
+    mu, sd, centres, eta, bias = basis
+    c, f = centres.shape
+    a = weights.shape[0]
+    if f != d + d * (d + 1) // 2 + K:
+        raise ValueError(f"centres must have F = {d + d * (d + 1) // 2 + K} columns, got {f}")
+    ptrs = [
+        _check("mean", mean, (num, d)),
+        _check("cov", cov, (num, d, d)),
+        _check("log_prob", log_prob, (num, K)),
+        _check("basis mean", mu, (f,)),
+        _check("basis std", sd, (f,)),
+        _check("centres", centres, (c, f)),
+    ]
+    w_ptr = _check("weights", weights, (a, c + int(bias)))
+    out = mean.new_empty(num, a)
+    lanes = 8  # native_psi2.c's LANES
+    work = scratch(c + f + lanes * (f + c + 1), 5)
+    if num:
+        _loaded().hgpdm_rbf_values_f64(
+            num, d, K, c, a, int(bias), *ptrs, float(eta), w_ptr, out.data_ptr(),
+            work.data_ptr(),
+        )  # fmt: skip
+    return out
 
 
 def _ran(code: int, d: int) -> None:

@@ -1,7 +1,7 @@
 /* Fused psi2 contractions for hgpdm_torch.native (AVX-512, float64).
 
    Compiled on first use by hgpdm_torch/native.py with the machine's C compiler and
-   -O3 -march=native; loaded with ctypes. Four entry points:
+   -O3 -march=native; loaded with ctypes. Seven entry points:
 
    - hgpdm_exp_f64: exp of an array in place, within 2 ulp (see exp8);
    - hgpdm_psi2_groups_f64: for each stream s of the shared transition GP,
@@ -19,7 +19,11 @@
    - hgpdm_rbf_forms_f64: each stream's quadratic forms of psi2 and psi1 (rbf_forms);
    - hgpdm_predictive_step_f64: the online filter's whole predictive step per stream, the
      contraction fused with the transition moments, measurement update, belief step and
-     mixture that consume it (step_tail).
+     mixture that consume it (step_tail);
+   - hgpdm_mcp_shared_f64 and hgpdm_mcp_particles_f64: Monte-Carlo planning's particles of one
+     belief, what they share once, then their draws and the same step (mcp_particles);
+   - hgpdm_rbf_values_f64: the planner's default values of beliefs (belief vectors, radial
+     basis features, linear values).
 
    Layout: points (training inputs) in group order (u, l), N = U L (padding points have zero
    weights). The columns are in the order (m, v), v padded to Up (a multiple of 8), Np = L Up:
@@ -882,4 +886,79 @@ int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t
 #undef PARTICLES
     _mm_setcsr(csr);
     return code;
+}
+
+/* ---- The planner's default values of beliefs (hgpdm_torch.decision: belief_vector, RadialBasis,
+   LinearQ) ----
+
+   For each of I beliefs (mean [I, D], cov [I, D, D], lb [I, K]): the vector v = [mean, the
+   upper triangle of cov row by row, exp(lb)] (F = D + D (D + 1) / 2 + K), standardised
+   z = (v - mu) / sd, the features phi_c = exp(min(0, -eta (|z|^2 + |c|^2) + 2 eta z.c)) of the
+   C centres [C, F] (then a constant 1 where bias), and out [I, A] = phi Wq^T (Wq [A, C + bias]),
+   as those three compute them; beliefs in blocks of LANES (a short last block repeats its
+   first belief). work [C + F + LANES (F + C + 1)]. */
+int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, int64_t bias,
+                         const double *mean, const double *cov, const double *lb,
+                         const double *mu, const double *sd, const double *centres, double eta,
+                         const double *Wq, double *out, double *work) {
+    const int64_t F = D + D * (D + 1) / 2 + K, CB = C + bias;
+    double *cn = work, *v = cn + C, *z = v + F, *e = z + F * LANES, *zn = e + C * LANES;
+    const unsigned int csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ: the features of far centres are subnormal */
+    for (int64_t c = 0; c < C; ++c) {
+        double s = 0.0;
+        for (int64_t f = 0; f < F; ++f) s += centres[c * F + f] * centres[c * F + f];
+        cn[c] = s;
+    }
+    for (int64_t i0 = 0; i0 < I; i0 += LANES) {
+        for (int p = 0; p < LANES; ++p) {
+            const int64_t i = i0 + p < I ? i0 + p : i0;
+            int64_t f = 0;
+            for (int64_t a = 0; a < D; ++a) v[f++] = mean[i * D + a];
+            for (int64_t a = 0; a < D; ++a)
+                for (int64_t b = a; b < D; ++b) v[f++] = cov[(i * D + a) * D + b];
+            for (int64_t k = 0; k < K; ++k) v[f + k] = lb[i * K + k];
+            hgpdm_exp_f64(K, v + f);
+            for (f = 0; f < F; ++f) z[f * LANES + p] = v[f];
+        }
+        __m512d norm = _mm512_setzero_pd();
+        for (int64_t f = 0; f < F; ++f) {
+            const __m512d zf = _mm512_div_pd(
+                _mm512_sub_pd(_mm512_loadu_pd(z + f * LANES), _mm512_set1_pd(mu[f])),
+                _mm512_set1_pd(sd[f]));
+            _mm512_storeu_pd(z + f * LANES, zf);
+            norm = _mm512_fmadd_pd(zf, zf, norm);
+        }
+        /* the exponents, four centres at a time (independent chains of FMAs over F) */
+        const __m512d meta = _mm512_set1_pd(-eta);
+        const __m512d twice = _mm512_set1_pd(2.0 * eta), zero = _mm512_setzero_pd();
+        for (int64_t c0 = 0; c0 < C; c0 += 4) {
+            const int64_t nc = C - c0 < 4 ? C - c0 : 4;
+            __m512d acc[4] = {zero, zero, zero, zero};
+            for (int64_t f = 0; f < F; ++f) {
+                const __m512d zf = _mm512_loadu_pd(z + f * LANES);
+                for (int64_t j = 0; j < nc; ++j)
+                    acc[j] = _mm512_fmadd_pd(_mm512_set1_pd(centres[(c0 + j) * F + f]), zf, acc[j]);
+            }
+            for (int64_t j = 0; j < nc; ++j) {
+                const __m512d x = _mm512_add_pd(
+                    _mm512_mul_pd(meta, _mm512_add_pd(norm, _mm512_set1_pd(cn[c0 + j]))),
+                    _mm512_mul_pd(twice, acc[j]));
+                /* min(0, x) is x where x is NaN: clamp_max keeps NaN */
+                _mm512_storeu_pd(e + (c0 + j) * LANES, _mm512_min_pd(zero, x));
+            }
+        }
+        hgpdm_exp_f64(C * LANES, e);
+        for (int64_t a = 0; a < A; ++a) {
+            __m512d t = zero;
+            for (int64_t c = 0; c < C; ++c)
+                t = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), _mm512_set1_pd(Wq[a * CB + c]),
+                                    t);
+            if (bias) t = _mm512_add_pd(t, _mm512_set1_pd(Wq[a * CB + C]));
+            _mm512_storeu_pd(zn, t);
+            for (int p = 0; p < LANES && i0 + p < I; ++p) out[(i0 + p) * A + a] = zn[p];
+        }
+    }
+    _mm_setcsr(csr);
+    return 0;
 }

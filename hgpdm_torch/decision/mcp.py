@@ -65,7 +65,7 @@ from typing import NamedTuple
 import torch
 from scipy import stats
 
-from .. import settings
+from .. import native, settings
 from ..expectations import kernel_leaves, split_terms
 from ..gaussian import conditional, log_density_terms, mixture_moments
 from ..inference.intention import OnlineIntentionFilter
@@ -75,6 +75,7 @@ from ..models import GPDM
 from ..moments import input_operations
 from ..tiling import OpCount
 from ..validation import as_observations, as_tensor, bad_observation, check_choice
+from .basis import RadialBasis
 from .lspi import LinearQ
 from .stopping import WAIT, belief_vector, belief_vector_unchecked
 
@@ -624,11 +625,32 @@ class MonteCarloPlanner(ParticleProjector):
         self.rule = EarlyStopping(num_particles, confidence, min_particles, chunk_size)
         self.q, self.features = q, features
         self.vectorize = vectorize or belief_vector_unchecked
+        # the default belief vectors and radial basis: their values by the compiled kernel
+        self._basis = features if type(features) is RadialBasis and vectorize is None else None
         self.num_particles, self.min_particles = num_particles, min_particles
         self.chunk_size, self.confidence = chunk_size, confidence
 
-    def _stop_values(self, vectors: torch.Tensor) -> torch.Tensor:
-        return self.q.values(self.features(vectors))[..., WAIT + 1 :]
+    def _values(
+        self, mean: torch.Tensor, cov: torch.Tensor, log_prob: torch.Tensor
+    ) -> torch.Tensor:
+        """LSPI's values ``[I, 1 + S]`` of I beliefs (``mean [I, Dx]``, ``cov [I, Dx, Dx]``,
+        ``log_prob [I, K]``): by the compiled kernel for the default belief vectors and a fitted
+        :class:`~hgpdm_torch.decision.basis.RadialBasis` where it runs
+        (:func:`hgpdm_torch.native.rbf_values`), else ``vectorize``, ``features`` and ``q`` in
+        torch."""
+        basis, weights = self._basis, self.q.weights
+        if basis is not None and basis.centres is not None:
+            terms = (mean, cov, log_prob, basis.mean, basis.std, basis.centres, weights)
+            features = mean.shape[-1] * (mean.shape[-1] + 3) // 2 + log_prob.shape[-1]
+            if (
+                basis.centres.shape[-1] == features
+                and all(t.is_contiguous() for t in terms)
+                and native.usable(*terms)
+            ):
+                parameters = (basis.mean, basis.std, basis.centres, basis.eta, basis.bias)
+                return native.rbf_values(mean, cov, log_prob, parameters, weights)
+        vectors = self.vectorize(mean, cov, log_prob.exp()).to(self.filter.dtype)
+        return self.q.values(self.features(vectors))
 
     def operations(self, num: int | None = None) -> OpCount:
         """Work of one :meth:`decide` with ``num`` particles (default ``num_particles``; the
@@ -694,8 +716,7 @@ class MonteCarloPlanner(ParticleProjector):
             sizes = [min(batch, num - start) for start in range(0, num, batch)]
             return torch.cat([self._project(shared, n, generator, can_wait_next) for n in sizes])
         mean, cov, log_prob = self._particles(shared, num, generator)
-        values = self.q.values(self.features(self.vectorize(mean, cov, log_prob.exp())))
-        return particle_value(values, self.wait_value, can_wait_next)
+        return particle_value(self._values(mean, cov, log_prob), self.wait_value, can_wait_next)
 
     def project(
         self, belief: Belief, num: int | None = None, *, generator: torch.Generator | None = None,
@@ -744,8 +765,8 @@ class MonteCarloPlanner(ParticleProjector):
             generator: random generator.
         """
         belief = self._check_belief(belief)
-        vector = self.vectorize(belief.mean, belief.cov, belief.log_prob.exp())
-        q_stop = self._stop_values(vector.to(self.filter.dtype))
+        values = self._values(belief.mean[None], belief.cov[None], belief.log_prob[None])
+        q_stop = values[0, WAIT + 1 :]
         if not can_wait:
             return self.rule.choose(q_stop, None, can_wait=False)
         shared = self._shared(belief)

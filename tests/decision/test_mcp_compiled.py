@@ -21,6 +21,7 @@ import pytest
 import torch
 
 from hgpdm_torch import native, settings
+from hgpdm_torch.decision.basis import RadialBasis
 from hgpdm_torch.decision.lspi import LinearQ
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner, ParticleProjector
 from hgpdm_torch.decision.stopping import belief_vector
@@ -191,3 +192,41 @@ def test_step_uses_the_filters_classification_of_each_row(continuous_iddm, monke
     want = projector.step(belief, z)
     for a, b in zip(got[:3], want[:3], strict=True):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6 * float(b.abs().max()))
+
+
+@pytest.mark.parametrize("bias", [False, True])
+def test_default_values_equal_torchs(continuous_iddm, bias, monkeypatch):
+    """The particles' LSPI values for the default belief vectors and a fitted RadialBasis, by the
+    kernel and by belief_vector, RadialBasis and LinearQ in torch: the same up to the rounding of
+    the exponents (each a sum of F ~ 20 products of standardised coordinates, |exponent| up to
+    ~50: 1e-13 absolute, through exp and a product with weights of sum ~ 10)."""
+    f, belief = _belief(continuous_iddm)
+    projector = ParticleProjector(continuous_iddm, f)
+    mean, cov, log_prob = projector.sample_beliefs(belief, 203, torch.Generator().manual_seed(1))
+    vectors = belief_vector(mean, cov, log_prob.exp())
+    basis = RadialBasis(40, bias=bias, seed=0).fit(vectors)
+    gen = torch.Generator().manual_seed(3)
+    weights = torch.randn(4, basis.num_features, generator=gen, dtype=torch.float64)
+    planner = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis)
+    assert planner._basis is basis
+    got = planner._values(mean, cov, log_prob)
+    want = LinearQ(weights).values(basis(vectors))
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12 * float(weights.abs().sum(1).max()))
+    monkeypatch.setattr(planner, "_basis", None)  # and whole decisions agree
+    for early in (False, True):
+        a = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis).decide(
+            belief, early_stop=early, generator=torch.Generator().manual_seed(4)
+        )
+        b = planner.decide(belief, early_stop=early, generator=torch.Generator().manual_seed(4))
+        assert (a.action, a.particles) == (b.action, b.particles)
+        assert a.q_wait == pytest.approx(b.q_wait, abs=1e-12)
+    # a feature map of another kind, or other belief vectors, take the torch path
+    assert (
+        MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), lambda v: basis(v))._basis is None
+    )
+    assert (
+        MonteCarloPlanner(
+            continuous_iddm, f, LinearQ(weights), basis, vectorize=belief_vector
+        )._basis
+        is None
+    )
