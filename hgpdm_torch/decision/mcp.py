@@ -625,8 +625,6 @@ class MonteCarloPlanner(ParticleProjector):
         self.rule = EarlyStopping(num_particles, confidence, min_particles, chunk_size)
         self.q, self.features = q, features
         self.vectorize = vectorize or belief_vector_unchecked
-        # the default belief vectors and radial basis: their values by the compiled kernel
-        self._basis = features if type(features) is RadialBasis and vectorize is None else None
         self.num_particles, self.min_particles = num_particles, min_particles
         self.chunk_size, self.confidence = chunk_size, confidence
 
@@ -638,8 +636,14 @@ class MonteCarloPlanner(ParticleProjector):
         :class:`~hgpdm_torch.decision.basis.RadialBasis` where it runs
         (:func:`hgpdm_torch.native.rbf_values`), else ``vectorize``, ``features`` and ``q`` in
         torch."""
-        basis, weights = self._basis, self.q.weights
-        if basis is not None and basis.centres is not None:
+        basis, weights = self.features, self.q.weights
+        # decided at each call: the attributes may have been replaced since construction
+        if (
+            type(basis) is RadialBasis
+            and self.vectorize is belief_vector_unchecked
+            and type(self.q) is LinearQ
+            and basis.centres is not None
+        ):
             terms = (mean, cov, log_prob, basis.mean, basis.std, basis.centres, weights)
             features = mean.shape[-1] * (mean.shape[-1] + 3) // 2 + log_prob.shape[-1]
             if (
@@ -648,7 +652,9 @@ class MonteCarloPlanner(ParticleProjector):
                 and native.usable(*terms)
             ):
                 parameters = (basis.mean, basis.std, basis.centres, basis.eta, basis.bias)
-                return native.rbf_values(mean, cov, log_prob, parameters, weights)
+                values = native.rbf_values(mean, cov, log_prob, parameters, weights)
+                if bool(torch.isfinite(values).all()):  # else torch's checks raise, as before
+                    return values
         vectors = self.vectorize(mean, cov, log_prob.exp()).to(self.filter.dtype)
         return self.q.values(self.features(vectors))
 

@@ -208,11 +208,11 @@ def test_default_values_equal_torchs(continuous_iddm, bias, monkeypatch):
     gen = torch.Generator().manual_seed(3)
     weights = torch.randn(4, basis.num_features, generator=gen, dtype=torch.float64)
     planner = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis)
-    assert planner._basis is basis
     got = planner._values(mean, cov, log_prob)
     want = LinearQ(weights).values(basis(vectors))
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12 * float(weights.abs().sum(1).max()))
-    monkeypatch.setattr(planner, "_basis", None)  # and whole decisions agree
+    # another vectorize (the same vectors, checked) takes the torch path: whole decisions agree
+    monkeypatch.setattr(planner, "vectorize", belief_vector)
     for early in (False, True):
         a = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis).decide(
             belief, early_stop=early, generator=torch.Generator().manual_seed(4)
@@ -220,13 +220,24 @@ def test_default_values_equal_torchs(continuous_iddm, bias, monkeypatch):
         b = planner.decide(belief, early_stop=early, generator=torch.Generator().manual_seed(4))
         assert (a.action, a.particles) == (b.action, b.particles)
         assert a.q_wait == pytest.approx(b.q_wait, abs=1e-12)
-    # a feature map of another kind, or other belief vectors, take the torch path
-    assert (
-        MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), lambda v: basis(v))._basis is None
+    # the path is chosen at each call: a feature map, belief vectors or values replaced after
+    # construction are used (here each doubles or shifts the values: the kernel's would not)
+    fresh = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis)
+    monkeypatch.setattr(fresh, "features", lambda v: 2.0 * basis(v))
+    torch.testing.assert_close(fresh._values(mean, cov, log_prob), 2.0 * want)
+    fresh = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis)
+    monkeypatch.setattr(fresh, "vectorize", lambda m, c, p: belief_vector(m, c, p) + 1.0)
+    torch.testing.assert_close(
+        fresh._values(mean, cov, log_prob), LinearQ(weights).values(basis(vectors + 1.0))
     )
-    assert (
-        MonteCarloPlanner(
-            continuous_iddm, f, LinearQ(weights), basis, vectorize=belief_vector
-        )._basis
-        is None
-    )
+
+    class Shifted(LinearQ):
+        def values(self, phi):
+            return super().values(phi) + 1.0
+
+    fresh = MonteCarloPlanner(continuous_iddm, f, Shifted(weights), basis)
+    torch.testing.assert_close(fresh._values(mean, cov, log_prob), want + 1.0)
+    # a non-finite belief raises torch's error, as without the kernel
+    fresh = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        fresh._values(mean.clone().fill_(math.nan), cov, log_prob)
