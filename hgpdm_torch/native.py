@@ -66,6 +66,7 @@ SOURCE = Path(__file__).with_name("native_psi2.c")
 #: Largest weight dimension (Dx) the kernel takes; beyond it the torch path runs.
 MAX_D = 8
 _FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fno-math-errno")
+_LANES = 8  # native_psi2.c's LANES: particles per block
 _LIBS = ("-lm",)
 
 
@@ -385,20 +386,14 @@ def predictive_step(
         undefined: the caller's torch path takes it).
     """
     dims, ptrs = _contraction(contraction)
-    s, U, L, up, d, kp = dims
-    n, K, dz = U * L, log_belief.shape[-1], z.shape[-1]
-    if not 1 <= rank <= min(d, dz) or K > kp:
-        raise ValueError(f"rank must be in [1, min(D, Dz)] and K <= Kp, got {rank}, {K} > {kp}")
+    s, U, _, _, d, _ = dims
+    K, dz = log_belief.shape[-1], z.shape[-1]
     z_ptr, lb_ptr = _check("z", z, (s, dz)), _check("log_belief", log_belief, (s, K))
-    ptrs += [
-        _check("trans", trans, (K * U + K + 2 * d + 1,)),
-        _check("meas", meas, (dz * rank + rank * d + d * d + 2 * dz + 2,)),
-    ]
+    tail = U * d + K * (d * d + d + 2) + d + dz + 3 * rank + 2 * rank * d + 3 * rank * rank
+    step_ptrs, work = _step_operands(dims, trans, meas, rank, K, dz, tail)
+    ptrs += step_ptrs
     mean, lb = z.new_empty(s, d), z.new_empty(s, K)
     cov, status = z.new_empty(s, d, d), torch.zeros(s, dtype=torch.int64, device=z.device)
-    pairs = d * (d + 1) // 2
-    tail = U * d + K * (d * d + d + 2) + d + dz + 3 * rank + 2 * rank * d + 3 * rank * rank
-    work = scratch(_work(dims, n) + U * up + (pairs + 1) * kp + n + tail, 2)
     if s:
         code = _loaded().hgpdm_predictive_step_f64(
             *dims, K, dz, rank, *ptrs, float(keep), float(temperature), z_ptr, lb_ptr,
@@ -438,20 +433,13 @@ def particle_shared(
     """
     dims, ptrs = _contraction(contraction)
     s, U, L, up, d, kp = dims
-    n, pairs = U * L, d * (d + 1) // 2
-    if s != 1 or not 1 <= rank <= min(d, dz) or K > kp:
-        raise ValueError(
-            f"particle_shared takes one belief, 1 <= rank <= min(D, Dz) and K <= Kp; got "
-            f"{s} beliefs, rank {rank}, K = {K} > {kp}"
-        )
-    ptrs += [
-        _check("trans", trans, (K * U + K + 2 * d + 1,)),
-        _check("meas", meas, (dz * rank + rank * d + d * d + 2 * dz + 2,)),
-    ]
+    if s != 1:
+        raise ValueError(f"particle_shared takes one belief, got {s}")
+    tail = U * d + K * (d * d + d) + rank * d + 2 * rank * rank + 2 * d * dz + dz * dz
+    step_ptrs, work = _step_operands(dims, trans, meas, rank, K, dz, tail)
+    ptrs += step_ptrs
     shared = trans.new_empty(K, particle_block(d, dz, rank))
     status = torch.zeros(1, dtype=torch.int64, device="cpu")
-    tail = U * d + K * (d * d + d) + rank * d + 2 * rank * rank + 2 * d * dz + dz * dz
-    work = scratch(_work(dims, n) + U * up + (pairs + 1) * kp + n + tail, 2)
     code = _loaded().hgpdm_mcp_shared_f64(
         U, L, up, d, kp, K, dz, rank, *ptrs, shared.data_ptr(), status.data_ptr(),
         work.data_ptr(),
@@ -498,7 +486,7 @@ def particles(
     K, num = log_belief.shape[0], noise.shape[0]
     ptrs = [
         _check("shared", shared, (K, particle_block(d, dz, rank))),
-        _check("meas", meas, (dz * rank + rank * d + d * d + 2 * dz + 2,)),
+        _check("meas", meas, (_meas_size(d, dz, rank),)),
         _check("center", center, (dz,)),
         _check("limit", limit, (dz,)),
         _check("log_belief", log_belief, (K,)),
@@ -513,8 +501,7 @@ def particles(
     noise_ptr = _check("noise", noise, (num, dz))
     mean, cov, lb = noise.new_empty(num, d), noise.new_empty(num, d, d), noise.new_empty(num, K)
     z = noise.new_empty(num, dz)
-    lanes = 8  # native_psi2.c's LANES
-    work = scratch(dz + lanes * (2 * dz + 2 * rank + 1 + 4 * K + K * d + d + d * d), 4)
+    work = scratch(dz + _LANES * (2 * dz + 2 * rank + 1 + 4 * K + K * d + d + d * d), 4)
     code = _loaded().hgpdm_mcp_particles_f64(
         num, d, K, dz, rank, *ptrs, float(keep), float(temperature), g_ptr, noise_ptr,
         mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), z.data_ptr(), work.data_ptr(),
@@ -565,14 +552,35 @@ def rbf_values(
     ]
     w_ptr = _check("weights", weights, (a, c + int(bias)))
     out = mean.new_empty(num, a)
-    lanes = 8  # native_psi2.c's LANES
-    work = scratch(c + f + lanes * (f + c + 1), 5)
+    work = scratch(c + f + _LANES * (f + c + 1), 5)
     if num:
         _loaded().hgpdm_rbf_values_f64(
             num, d, K, c, a, int(bias), *ptrs, float(eta), w_ptr, out.data_ptr(),
             work.data_ptr(),
         )  # fmt: skip
     return out
+
+
+def _meas_size(d: int, dz: int, rank: int) -> int:
+    """Entries of a linear measurement's terms (:func:`predictive_step`'s ``meas``)."""
+    return dz * rank + rank * d + d * d + 2 * dz + 2
+
+
+def _step_operands(
+    dims: tuple[int, ...], trans: torch.Tensor, meas: torch.Tensor, rank: int, K: int, dz: int,
+    tail: int,
+) -> tuple[list[int], torch.Tensor]:  # fmt: skip
+    """The transition's and the measurement's terms, checked, and the work space of a step after
+    the contraction (``tail`` entries beyond the contraction's outputs)."""
+    _, U, L, up, d, kp = dims
+    if not 1 <= rank <= min(d, dz) or K > kp:
+        raise ValueError(f"rank must be in [1, min(D, Dz)] and K <= Kp, got {rank}, {K} > {kp}")
+    ptrs = [
+        _check("trans", trans, (K * U + K + 2 * d + 1,)),
+        _check("meas", meas, (_meas_size(d, dz, rank),)),
+    ]
+    n = U * L
+    return ptrs, scratch(_work(dims, n) + U * up + (d * (d + 1) // 2 + 1) * kp + n + tail, 2)
 
 
 def _ran(code: int, d: int) -> None:

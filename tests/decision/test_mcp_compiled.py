@@ -241,3 +241,55 @@ def test_default_values_equal_torchs(continuous_iddm, bias, monkeypatch):
     fresh = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights), basis)
     with pytest.raises(ValueError, match="NaN or inf"):
         fresh._values(mean.clone().fill_(math.nan), cov, log_prob)
+
+
+def test_rank_space_conditioning_and_its_count(continuous_iddm, gp_rounding):
+    """The kernel's conditioning written out in torch from its shared state (``z~ = (z -
+    offset) / scale``, ``zu = U^T z~``, the residual off U's span, ``a = G zu - c``, ``m + A^T
+    a``, the log-density, then the filter's belief step and mixture): the same particles as
+    the kernel's; and its matrix products, counted by ``torch.utils.flop_counter``, are the
+    floor's per-particle conditioning less its elementwise terms (the scaling and the
+    residual's squares, ``2 Dz``; the Mahalanobis squares, ``K k``) and with G dense (``K k^2``
+    where the count has its triangle, ``K k (k + 1) / 2``)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from hgpdm_torch.gaussian import mixture_moments
+    from hgpdm_torch.inference.intention.measurement import linear_measurement
+    from hgpdm_torch.intention_belief import belief_step
+
+    f, belief = _belief(continuous_iddm)
+    vector = belief.vector()
+    planner = MonteCarloPlanner(
+        continuous_iddm, f, LinearQ(torch.zeros(4, len(vector))), lambda v: v
+    )
+    shared = planner._shared(planner._check_belief(belief))
+    g, eps = planner._draw(shared.prob, 64, torch.Generator().manual_seed(5))
+    mean, cov, log_prob, z = planner._compiled.particles(
+        shared.state, shared.log_prob, f.check, g, eps[..., 0]
+    )
+    linear = linear_measurement(f.measure)
+    K, dx, dz, k = len(GRID), f.mu0.shape[0], f.obs_dim, linear.R.shape[0]
+    sizes = (dx, dx * dx, dx * dx, k * dx, k * k, k, 1, 1, dz, dz * dz)
+    m, P, Ppost, A, G, c, iv, logdet, _, _ = shared.state.split(sizes, -1)
+    A, G = A.view(K, k, dx), G.view(K, k, k)
+    n = z.shape[0]
+    with FlopCounterMode(display=False) as counter:
+        zs = (z - linear.offset) / linear.scale
+        zu = zs @ linear.U
+        perp = (zs - zu @ linear.U.T).pow(2).sum(-1)
+        a = torch.einsum("kqo,io->ikq", G, zu) - c
+        means = m + torch.einsum("ikq,kqd->ikd", a, A)
+    maha = a.pow(2).sum(-1) + perp[:, None] * iv[:, 0]
+    evidence = -0.5 * (maha + logdet[:, 0] + dz * math.log(2 * math.pi))
+    options = f.options.belief
+    new = belief_step(shared.log_prob.expand(n, K), evidence, torch.ones(n, dtype=torch.bool),
+                      options.forgetting, options.temperature)  # fmt: skip
+    want_mean, want_cov = mixture_moments(new.exp(), means, Ppost.view(K, dx, dx))
+    rel = gp_rounding(f.posterior, continuous_iddm.measurement_posterior())
+    for got, want in ((mean, want_mean), (cov, want_cov), (log_prob.exp(), new.exp())):
+        torch.testing.assert_close(got, want, rtol=rel, atol=rel * float(want.abs().max()))
+
+    products = counter.get_total_flops() / 2 / n
+    one = planner.operations(n + 1).madds - planner.operations(n).madds
+    conditioning = one - planner.q.weights.numel() - (2 * K * dx * dx + K * dx) - dz * (dz + 1) // 2
+    assert products == conditioning - 2 * dz - K * k - K * k * (k + 1) // 2 + K * k * k
