@@ -389,7 +389,7 @@ def predictive_step(
     s, U, _, _, d, _ = dims
     K, dz = log_belief.shape[-1], z.shape[-1]
     z_ptr, lb_ptr = _check("z", z, (s, dz)), _check("log_belief", log_belief, (s, K))
-    tail = U * d + K * (d * d + d + 2) + d + dz + 3 * rank + 2 * rank * d + 3 * rank * rank
+    tail = U * d + K * (d * d + d + 2) + d + dz + 2 * rank + 2 * rank * d + 3 * rank * rank
     step_ptrs, work = _step_operands(dims, trans, meas, rank, K, dz, tail)
     ptrs += step_ptrs
     mean, lb = z.new_empty(s, d), z.new_empty(s, K)
@@ -501,7 +501,7 @@ def particles(
     noise_ptr = _check("noise", noise, (num, dz))
     mean, cov, lb = noise.new_empty(num, d), noise.new_empty(num, d, d), noise.new_empty(num, K)
     z = noise.new_empty(num, dz)
-    work = scratch(dz + _LANES * (2 * dz + 2 * rank + 1 + 4 * K + K * d + d + d * d), 4)
+    work = scratch(dz + _LANES * (2 * dz + rank + 1 + 4 * K + K * d + d + d * d), 4)
     code = _loaded().hgpdm_mcp_particles_f64(
         num, d, K, dz, rank, *ptrs, float(keep), float(temperature), g_ptr, noise_ptr,
         mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), z.data_ptr(), work.data_ptr(),

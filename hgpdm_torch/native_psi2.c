@@ -512,63 +512,77 @@ static int all_nan(int64_t Dz, const double *z) {
 }
 
 /* Lanes: the observations of a block of nl particles (or one stream's, nl = 1), each quantity
-   stored lane-last ([..., nl]) so that the loops over lanes run in vector registers. */
-#define LANES 8
+   stored lane-last ([..., nl]) and held in one vector register (lv_load / lv_store: lanes at
+   and above nl read 0 and are not written); missing is a mask, bit p set where lane p's
+   observation is missing. */
+#define LANES W
+#define LANE_MASK(nl) ((__mmask8)((1u << (nl)) - 1u))
+#define SET1 _mm512_set1_pd
+
+INLINE __m512d lv_load(const int nl, const double *x) {
+    return nl == W ? _mm512_loadu_pd(x) : _mm512_maskz_loadu_pd(LANE_MASK(nl), x);
+}
+
+INLINE void lv_store(const int nl, double *x, __m512d v) {
+    if (nl == W)
+        _mm512_storeu_pd(x, v);
+    else
+        _mm512_mask_storeu_pd(x, LANE_MASK(nl), v);
+}
 
 /* z [Dz, nl] in the measurement's scaled units z~ = (z - offset) / scale (0 in a missing
    lane), projected on its latent span: zu = U^T z~ [R, nl], and the squared norm of the rest
    perp = |z~ - U U^T z~|^2 [nl] (the same for every value); zs [Dz, nl] is work. */
 INLINE void project(const int D, int64_t Dz, int64_t R, const int nl,
-                    const double *restrict meas, const double *restrict z,
-                    const int *restrict missing, double *restrict zs, double *restrict zu,
-                    double *restrict perp) {
+                    const double *restrict meas, const double *restrict z, __mmask8 missing,
+                    double *restrict zs, double *restrict zu, double *restrict perp) {
     const double *Um = meas, *zoff = meas + Dz * R + R * D + D * D, *zscale = zoff + Dz;
     for (int64_t i = 0; i < Dz; ++i)
-        for (int p = 0; p < nl; ++p)
-            zs[i * nl + p] = missing[p] ? 0.0 : (z[i * nl + p] - zoff[i]) / zscale[i];
+        lv_store(nl, zs + i * nl,
+                 _mm512_maskz_div_pd((__mmask8)~missing,
+                                     _mm512_sub_pd(lv_load(nl, z + i * nl), SET1(zoff[i])),
+                                     SET1(zscale[i])));
     for (int64_t q = 0; q < R; ++q) {
-        double t[LANES] = {0.0};
+        __m512d t = _mm512_setzero_pd();
         for (int64_t i = 0; i < Dz; ++i)
-            for (int p = 0; p < nl; ++p) t[p] += zs[i * nl + p] * Um[i * R + q];
-        for (int p = 0; p < nl; ++p) zu[q * nl + p] = t[p];
+            t = _mm512_fmadd_pd(lv_load(nl, zs + i * nl), SET1(Um[i * R + q]), t);
+        lv_store(nl, zu + q * nl, t);
     }
-    double t[LANES] = {0.0};
+    __m512d t = _mm512_setzero_pd();
     for (int64_t i = 0; i < Dz; ++i) {
-        double u[LANES] = {0.0};
+        __m512d u = _mm512_setzero_pd();
         for (int64_t q = 0; q < R; ++q)
-            for (int p = 0; p < nl; ++p) u[p] += zu[q * nl + p] * Um[i * R + q];
-        for (int p = 0; p < nl; ++p) {
-            const double r = zs[i * nl + p] - u[p];
-            t[p] += r * r;
-        }
+            u = _mm512_fmadd_pd(lv_load(nl, zu + q * nl), SET1(Um[i * R + q]), u);
+        const __m512d r = _mm512_sub_pd(lv_load(nl, zs + i * nl), u);
+        t = _mm512_fmadd_pd(r, r, t);
     }
-    for (int p = 0; p < nl; ++p) perp[p] = t[p];
+    lv_store(nl, perp, t);
 }
 
 /* The evidence ll [nl] = log N(z | mk, Pk) of observed z (zu [R, nl], perp [nl] from project;
    A, G, c, iv, logdet from meas_factors) and the posterior means m_out [D, nl] = mk + A^T a,
-   a = F^-1 (zu - R mk) = G zu - c ([R, nl], work). */
+   a = F^-1 (zu - R mk) = G zu - c [R, nl]. */
 INLINE void condition(const int D, int64_t Dz, int64_t R, const int nl,
                       const double *restrict A, const double *restrict G,
                       const double *restrict c, double iv, double logdet,
                       const double *restrict mk, const double *restrict zu,
                       const double *restrict perp, double *restrict m_out,
-                      double *restrict ll, double *restrict a) {
-    for (int p = 0; p < nl; ++p) ll[p] = perp[p] * iv;
-    for (int64_t q = 0; q < R; ++q) {
-        double *aq = a + q * nl;
-        for (int p = 0; p < nl; ++p) aq[p] = -c[q];
+                      double *restrict ll) {
+    __m512d a[MAX_D], l = _mm512_mul_pd(lv_load(nl, perp), SET1(iv));
+    for (int64_t q = 0; q < R; ++q) { /* R <= D <= MAX_D */
+        __m512d aq = SET1(-c[q]);
         for (int64_t o = 0; o <= q; ++o)
-            for (int p = 0; p < nl; ++p) aq[p] += G[q * R + o] * zu[o * nl + p];
-        for (int p = 0; p < nl; ++p) ll[p] += aq[p] * aq[p];
+            aq = _mm512_fmadd_pd(SET1(G[q * R + o]), lv_load(nl, zu + o * nl), aq);
+        a[q] = aq;
+        l = _mm512_fmadd_pd(aq, aq, l);
     }
     for (int i = 0; i < D; ++i) {
-        double t[LANES] = {0.0};
-        for (int64_t q = 0; q < R; ++q)
-            for (int p = 0; p < nl; ++p) t[p] += A[q * D + i] * a[q * nl + p];
-        for (int p = 0; p < nl; ++p) m_out[i * nl + p] = mk[i] + t[p];
+        __m512d t = _mm512_setzero_pd();
+        for (int64_t q = 0; q < R; ++q) t = _mm512_fmadd_pd(SET1(A[q * D + i]), a[q], t);
+        lv_store(nl, m_out + i * nl, _mm512_add_pd(SET1(mk[i]), t));
     }
-    for (int p = 0; p < nl; ++p) ll[p] = -0.5 * (ll[p] + logdet + (double)Dz * LOG_2PI);
+    l = _mm512_add_pd(_mm512_add_pd(l, SET1(logdet)), SET1((double)Dz * LOG_2PI));
+    lv_store(nl, ll, _mm512_mul_pd(SET1(-0.5), l));
 }
 
 /* The posterior covariance Pk - A^T A in place (lower triangle formed, mirrored). */
@@ -581,62 +595,69 @@ static void downdate(const int D, int64_t R, const double *A, double *Pk) {
         }
 }
 
-/* The belief step B_t = keep B_{t-1} + E_t / T (lb, evidence ll [K, nl]; none where
-   missing[p]), normalised into lb_out [K, nl], and the moment-matched mixture of the K
-   Gaussians under it, m = sum_k p_k m_k and P = sum_k p_k (P_k + (m_k - m)(m_k - m)^T): means
-   [K, D, nl], the k-th covariance at post + k cstride, or at prior + k cstride in a missing
-   lane; m [D, nl], Pm [D, D, nl]; prob [K, nl] is work. */
+/* The belief step B_t = keep B_{t-1} + E_t / T (lb, evidence ll [K, nl]; none in a missing
+   lane), normalised into lb_out [K, nl], and the moment-matched mixture of the K Gaussians
+   under it, m = sum_k p_k m_k and P = sum_k p_k (P_k + (m_k - m)(m_k - m)^T): means [K, D, nl]
+   (overwritten by m_k - m), the k-th covariance at post + k cstride, or at prior + k cstride
+   in a missing lane; m [D, nl], Pm [D, D, nl]; prob [K, nl] is work. */
 INLINE void belief_mixture(const int D, int64_t K, const int nl, double keep, double temp,
                            const double *restrict lb, const double *restrict ll,
-                           const int *restrict missing, const double *restrict means,
-                           const double *post, const double *prior, int64_t cstride,
-                           double *restrict m, double *restrict Pm, double *restrict lb_out,
+                           __mmask8 missing, double *restrict means, const double *post,
+                           const double *prior, int64_t cstride, double *restrict m,
+                           double *restrict Pm, double *restrict lb_out,
                            double *restrict prob) {
-    double top[LANES], total[LANES];
-    for (int p = 0; p < nl; ++p) top[p] = -INFINITY;
-    for (int64_t k = 0; k < K; ++k)
-        for (int p = 0; p < nl; ++p) {
-            const double b = keep * lb[k * nl + p] + (missing[p] ? 0.0 : ll[k * nl + p] / temp);
-            lb_out[k * nl + p] = b;
-            top[p] = b > top[p] || isnan(b) ? b : top[p];
-        }
-    for (int64_t k = 0; k < K; ++k)
-        for (int p = 0; p < nl; ++p) prob[k * nl + p] = lb_out[k * nl + p] - top[p];
-    hgpdm_exp_f64(K * nl, prob); /* p_k = exp(B_k - top) / sum_j exp(B_j - top) */
-    for (int p = 0; p < nl; ++p) total[p] = 0.0;
-    for (int64_t k = 0; k < K; ++k)
-        for (int p = 0; p < nl; ++p) total[p] += prob[k * nl + p];
-    for (int p = 0; p < nl; ++p) /* the log normaliser, in top */
-        top[p] = isinf(top[p]) && top[p] < 0 ? top[p] : top[p] + log(total[p]);
-    for (int64_t k = 0; k < K; ++k)
-        for (int p = 0; p < nl; ++p) {
-            lb_out[k * nl + p] -= top[p];
-            prob[k * nl + p] /= total[p];
-        }
-    for (int d = 0; d < D; ++d) {
-        double t[LANES] = {0.0};
-        for (int64_t k = 0; k < K; ++k)
-            for (int p = 0; p < nl; ++p) t[p] += prob[k * nl + p] * means[(k * D + d) * nl + p];
-        for (int p = 0; p < nl; ++p) m[d * nl + p] = t[p];
+    const __mmask8 seen = (__mmask8)~missing;
+    __m512d top = SET1(-INFINITY), total = _mm512_setzero_pd();
+    for (int64_t k = 0; k < K; ++k) {
+        const __m512d e = _mm512_maskz_div_pd(seen, lv_load(nl, ll + k * nl), SET1(temp));
+        const __m512d b = _mm512_fmadd_pd(SET1(keep), lv_load(nl, lb + k * nl), e);
+        lv_store(nl, lb_out + k * nl, b);
+        const __mmask8 up = _mm512_cmp_pd_mask(b, top, _CMP_GT_OQ) |
+                            _mm512_cmp_pd_mask(b, b, _CMP_UNORD_Q); /* NaN propagates */
+        top = _mm512_mask_blend_pd(up, top, b);
     }
-    int some_missing = 0; /* the predictions' covariances are summed only where a lane needs them */
-    for (int p = 0; p < nl; ++p) some_missing |= missing[p];
+    for (int64_t k = 0; k < K; ++k) { /* p_k = exp(B_k - top) / sum_j exp(B_j - top) */
+        const __m512d e = exp8(_mm512_sub_pd(lv_load(nl, lb_out + k * nl), top));
+        lv_store(nl, prob + k * nl, e);
+        total = _mm512_add_pd(total, e);
+    }
+    double tp[W], tt[W]; /* the log normaliser, in top */
+    _mm512_storeu_pd(tp, top);
+    _mm512_storeu_pd(tt, total);
+    for (int p = 0; p < nl; ++p) tp[p] = isinf(tp[p]) && tp[p] < 0 ? tp[p] : tp[p] + log(tt[p]);
+    top = _mm512_loadu_pd(tp);
+    for (int64_t k = 0; k < K; ++k) {
+        lv_store(nl, lb_out + k * nl, _mm512_sub_pd(lv_load(nl, lb_out + k * nl), top));
+        lv_store(nl, prob + k * nl, _mm512_div_pd(lv_load(nl, prob + k * nl), total));
+    }
+    __m512d mv[MAX_D];
+    for (int d = 0; d < D; ++d) {
+        __m512d t = _mm512_setzero_pd();
+        for (int64_t k = 0; k < K; ++k)
+            t = _mm512_fmadd_pd(lv_load(nl, prob + k * nl), lv_load(nl, means + (k * D + d) * nl), t);
+        mv[d] = t;
+        lv_store(nl, m + d * nl, t);
+    }
+    for (int64_t k = 0; k < K; ++k)
+        for (int d = 0; d < D; ++d) {
+            double *x = means + (k * D + d) * nl;
+            lv_store(nl, x, _mm512_sub_pd(lv_load(nl, x), mv[d]));
+        }
     for (int i = 0; i < D; ++i)
         for (int j = 0; j <= i; ++j) {
-            double t[LANES] = {0.0}, c[LANES] = {0.0}, cq[LANES] = {0.0};
+            __m512d t = _mm512_setzero_pd(), c = t, cq = t;
             for (int64_t k = 0; k < K; ++k) {
-                const double *mk = means + k * D * nl, *w = prob + k * nl;
-                const double vp = post[k * cstride + i * D + j];
-                const double vq = prior[k * cstride + i * D + j];
-                for (int p = 0; p < nl; ++p) {
-                    t[p] += w[p] * (mk[i * nl + p] - m[i * nl + p]) * (mk[j * nl + p] - m[j * nl + p]);
-                    c[p] += w[p] * vp;
-                }
-                if (some_missing)
-                    for (int p = 0; p < nl; ++p) cq[p] += w[p] * vq;
+                const __m512d w = lv_load(nl, prob + k * nl);
+                const double *dk = means + k * D * nl;
+                t = _mm512_fmadd_pd(_mm512_mul_pd(w, lv_load(nl, dk + i * nl)),
+                                    lv_load(nl, dk + j * nl), t);
+                c = _mm512_fmadd_pd(w, SET1(post[k * cstride + i * D + j]), c);
+                /* the predictions' covariances only where a lane needs them */
+                if (missing) cq = _mm512_fmadd_pd(w, SET1(prior[k * cstride + i * D + j]), cq);
             }
-            for (int p = 0; p < nl; ++p)
-                Pm[(i * D + j) * nl + p] = Pm[(j * D + i) * nl + p] = t[p] + (missing[p] ? cq[p] : c[p]);
+            const __m512d v = _mm512_add_pd(t, _mm512_mask_blend_pd(missing, c, cq));
+            lv_store(nl, Pm + (i * D + j) * nl, v);
+            lv_store(nl, Pm + (j * D + i) * nl, v);
         }
 }
 
@@ -650,23 +671,23 @@ static int step_tail(const int D, int64_t U, int64_t L, int64_t K, int64_t Kp, i
                      const double *z, const double *lb, double *m, double *Pm, double *lb_out,
                      double *w) {
     double *mu_u = w, *means = mu_u + U * D, *covs = means + K * D, *ll = covs + K * D * D;
-    double *zs = ll + K, *zu = zs + Dz, *c = zu + R, *a = c + R, *RP = a + R, *A = RP + R * D;
+    double *zs = ll + K, *zu = zs + Dz, *c = zu + R, *RP = c + R, *A = RP + R * D;
     double *S = A + R * D, *F = S + R * R, *G = F + R * R, *prob = G + R * R, *mo = prob + K;
     transition_moments(D, U, L, K, Kp, p1, beta, out, trans, means, covs, mu_u);
-    const int missing = all_nan(Dz, z);
+    const __mmask8 missing = (__mmask8)all_nan(Dz, z);
     double perp;
-    project(D, Dz, R, 1, meas, z, &missing, zs, zu, &perp);
+    project(D, Dz, R, 1, meas, z, missing, zs, zu, &perp);
     for (int64_t k = 0; k < K; ++k) {
         double *mk = means + k * D, *Pk = covs + k * D * D, iv, logdet;
         if (meas_factors(D, Dz, R, meas, mk, Pk, A, G, c, &iv, &logdet, RP, S, F)) return 1;
         ll[k] = 0.0;
         if (!missing) {
-            condition(D, Dz, R, 1, A, G, c, iv, logdet, mk, zu, &perp, mo, ll + k, a);
+            condition(D, Dz, R, 1, A, G, c, iv, logdet, mk, zu, &perp, mo, ll + k);
             for (int d = 0; d < D; ++d) mk[d] = mo[d];
             downdate(D, R, A, Pk);
         }
     }
-    belief_mixture(D, K, 1, keep, temp, lb, ll, &missing, means, covs, covs, D * D, m, Pm,
+    belief_mixture(D, K, 1, keep, temp, lb, ll, missing, means, covs, covs, D * D, m, Pm,
                    lb_out, prob);
     return 0;
 }
@@ -695,7 +716,7 @@ INLINE void all_steps(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, 
    [K U + K + 2 D + 1] and meas [Dz R + R D + D D + 2 Dz + 2] (step_tail); keep = 1 -
    forgetting, temp the temperature; z [S, Dz], lb [S, K]; outputs m [S, D], Pm [S, D, D],
    lb_out [S, K], status [S] (int64: 0, or 1 where the stream's update is left to torch); work
-   [psi2's + U Up + (P + 1) Kp + N + U D + K (D D + D + 2) + D + Dz + 3 R + 2 R D + 3 R R].
+   [psi2's + U Up + (P + 1) Kp + N + U D + K (D D + D + 2) + D + Dz + 2 R + 2 R D + 3 R R].
    Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
 int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp,
                               int64_t K, int64_t Dz, int64_t R, const double *X,
@@ -730,7 +751,7 @@ int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64
    Each value's block of the shared state, BLOCK(D, Dz, R) entries: the prediction m [D] and
    P [D, D], the posterior covariance P - A^T A [D, D], A [R, D], G [R, R], c [R], 1 / v, the
    log-determinant (meas_factors), and the observation's mean mz [Dz] and the lower Cholesky
-   factor Lz [Dz, Dz] of its covariance Sz, as LinearMeasurement.moments forms
+   factor Lz of its covariance Sz, stored transposed (Lz^T [Dz, Dz]), as LinearMeasurement.moments forms
    them (W = (U R)^T diag(scale), mz = W^T m + offset, Sz = sym(W^T P W) + v diag(scale^2)). */
 #define BLOCK(D, Dz, R) \
     ((D) + 2 * (D) * (D) + (R) * (D) + (R) * (R) + (R) + 2 + (Dz) + (Dz) * (Dz))
@@ -773,6 +794,11 @@ INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp,
         for (int64_t i = 0; i < Dz; ++i) Sz[i * Dz + i] += zscale[i] * zscale[i] / *iv;
         for (int64_t e = 0; e < Dz * Dz; ++e) Lz[e] = 0.0;
         if (cholesky(Dz, Sz, Lz)) return 1;
+        for (int64_t i = 0; i < Dz; ++i) /* stored transposed: a particle's draw reads rows */
+            for (int64_t j = 0; j < i; ++j) {
+                Lz[j * Dz + i] = Lz[i * Dz + j];
+                Lz[i * Dz + j] = 0.0;
+            }
     }
     return 0;
 }
@@ -809,7 +835,7 @@ int hgpdm_mcp_shared_f64(int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp
    mean [I, D], cov [I, D, D], lb_out [I, K] and the observations zo [I, Dz]; work
    [PARTICLE_WORK(D, K, Dz, R)]. Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
 #define PARTICLE_WORK(D, K, Dz, R) \
-    ((Dz) + LANES * (2 * (Dz) + 2 * (R) + 1 + 4 * (K) + (K) * (D) + (D) + (D) * (D)))
+    ((Dz) + LANES * (2 * (Dz) + (R) + 1 + 4 * (K) + (K) * (D) + (D) + (D) * (D)))
 INLINE void mcp_particles(const int D, int64_t I, int64_t K, int64_t Dz, int64_t R,
                           const double *shared, const double *meas, const double *center,
                           const double *limit, const double *lb, double keep, double temp,
@@ -817,24 +843,29 @@ INLINE void mcp_particles(const int D, int64_t I, int64_t K, int64_t Dz, int64_t
                           double *lb_out, double *zo, double *work) {
     const int64_t B = BLOCK(D, Dz, R);
     double *zp = work, *z = zp + Dz, *zs = z + Dz * LANES, *zu = zs + Dz * LANES;
-    double *perp = zu + R * LANES, *a = perp + LANES;
-    double *lbl = a + R * LANES, *ll = lbl + K * LANES, *lbo = ll + K * LANES;
+    double *perp = zu + R * LANES;
+    double *lbl = perp + LANES, *ll = lbl + K * LANES, *lbo = ll + K * LANES;
     double *means = lbo + K * LANES, *m = means + K * D * LANES, *Pm = m + D * LANES;
     double *prob = Pm + D * D * LANES;
-    int missing[LANES];
     for (int64_t k = 0; k < K; ++k) /* the shared belief in every lane */
         for (int p = 0; p < LANES; ++p) lbl[k * LANES + p] = lb[k];
     for (int64_t i0 = 0; i0 < I; i0 += LANES) {
+        __mmask8 missing = 0;
         for (int p = 0; p < LANES; ++p) { /* z = mz_g + Lz_g eps */
             const int64_t i = i0 + p < I ? i0 + p : i0;
             const double *e = eps + i * Dz;
-            if (g) {
+            if (g) { /* Lz eps as a sum of Lz's columns (rows of Lz^T), eight rows of z at a time */
                 const double *mz = shared + g[i] * B + D + 2 * D * D + R * D + R * R + R + 2;
-                const double *Lz = mz + Dz;
-                for (int64_t j = 0; j < Dz; ++j) {
-                    double t = mz[j];
-                    for (int64_t q = 0; q <= j; ++q) t += Lz[j * Dz + q] * e[q];
-                    zp[j] = t;
+                const double *LzT = mz + Dz;
+                for (int64_t j0 = 0; j0 < Dz; j0 += W) {
+                    const __mmask8 k = Dz - j0 < W ? (__mmask8)((1u << (Dz - j0)) - 1u) : 0xFF;
+                    const int64_t top = Dz - j0 < W ? Dz : j0 + W; /* LzT[q, j] = 0 for j < q */
+                    __m512d t = _mm512_setzero_pd();
+                    for (int64_t q = 0; q < top; ++q)
+                        t = _mm512_fmadd_pd(_mm512_set1_pd(e[q]),
+                                            _mm512_maskz_loadu_pd(k, LzT + q * Dz + j0), t);
+                    _mm512_mask_storeu_pd(zp + j0, k,
+                                          _mm512_add_pd(_mm512_maskz_loadu_pd(k, mz + j0), t));
                 }
                 e = zp;
             }
@@ -844,19 +875,20 @@ INLINE void mcp_particles(const int D, int64_t I, int64_t K, int64_t Dz, int64_t
                 z[j * LANES + p] = e[j];
                 zo[i * Dz + j] = e[j];
             }
-            missing[p] = bad;
+            missing |= (__mmask8)(bad << p);
         }
         project(D, Dz, R, LANES, meas, z, missing, zs, zu, perp);
         for (int64_t k = 0; k < K; ++k) {
             const double *mk = shared + k * B, *A = mk + D + 2 * D * D, *G = A + R * D;
             const double *c = G + R * R;
             double *mo = means + k * D * LANES, *lk = ll + k * LANES;
-            condition(D, Dz, R, LANES, A, G, c, c[R], c[R + 1], mk, zu, perp, mo, lk, a);
-            for (int p = 0; p < LANES; ++p) /* a missing lane keeps the prediction */
-                if (missing[p]) {
-                    lk[p] = 0.0;
-                    for (int d = 0; d < D; ++d) mo[d * LANES + p] = mk[d];
-                }
+            condition(D, Dz, R, LANES, A, G, c, c[R], c[R + 1], mk, zu, perp, mo, lk);
+            if (missing) { /* a missing lane keeps the prediction */
+                _mm512_storeu_pd(lk, _mm512_maskz_mov_pd((__mmask8)~missing, _mm512_loadu_pd(lk)));
+                for (int d = 0; d < D; ++d)
+                    _mm512_storeu_pd(mo + d * LANES, _mm512_mask_blend_pd(
+                                         missing, _mm512_loadu_pd(mo + d * LANES), SET1(mk[d])));
+            }
         }
         /* the posterior covariances, or the predictions' in a missing lane */
         belief_mixture(D, K, LANES, keep, temp, lbl, ll, missing, means, shared + D + D * D,
