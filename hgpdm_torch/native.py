@@ -552,7 +552,7 @@ def rbf_values(
     ]
     w_ptr = _check("weights", weights, (a, c + int(bias)))
     out = mean.new_empty(num, a)
-    work = scratch(c + f + _LANES * (f + c + 1), 5)
+    work = scratch(c + _LANES * (f + c + 1), 5)
     if num:
         _loaded().hgpdm_rbf_values_f64(
             num, d, K, c, a, int(bias), *ptrs, float(eta), w_ptr, out.data_ptr(),
@@ -593,7 +593,7 @@ def _work(dims: tuple[int, ...], n: int) -> int:
     """Entries of the contraction's work space per call (``native_psi2.c``)."""
     _, _, L, up, d, _ = dims
     np_ = L * up
-    return (d + 1) * np_ + d * (d + 1) // 2 * up + (d + 2) * (n + np_)
+    return (d + 1) * np_ + d * (d + 1) // 2 * up + (d + 1) * (n + np_)
 
 
 def _contraction(args: tuple) -> tuple[tuple[int, ...], list[int | None]]:

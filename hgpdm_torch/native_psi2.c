@@ -11,8 +11,8 @@
        and in the row after the pairs the trace out[s, P, k] = sum_{u, v} phi[k, u] phi[k, v]
        T[s, u, v] (tr(K^-1 psi2) of value k), contracted as each row of T is complete, and
        psi1[s, i] on the way,
-     psi2[s] = exp(left[s] @ right[s]) evaluated eight columns of one group's rows at a time in
-     registers and never stored (left and right, O(N D) per stream, are built from the stream's
+     psi2[s] = exp(d_i^T H d_j + r_i + s_j) (exponent) evaluated eight columns of one group's
+     rows at a time in registers and never stored (left and right, O(N D) per stream, are built from the stream's
      quadratic form in the work space): one pass over the N x N block instead of the
      exponential, the weighted sums and the K^-1 product each reading and writing it; S of one
      group is contracted with phi while it is in the L1 cache;
@@ -112,9 +112,12 @@ INLINE void group_rows(const int D, int64_t L, int64_t C, int64_t Np, const doub
         for (int64_t l = 0; l < L; ++l) {
             const double *li = lu + l * C;
             __m512d e = _mm512_mul_pd(_mm512_set1_pd(li[0]), _mm512_loadu_pd(right + j));
-            for (int64_t c = 1; c < C; ++c)
+            for (int c = 1; c < D; ++c)
                 e = _mm512_fmadd_pd(_mm512_set1_pd(li[c]), _mm512_loadu_pd(right + c * Np + j), e);
-            e = exp8(e);
+            /* r_i, then s_j: additions (not products by 1), off the FMA units that the
+               exponential keeps busy */
+            e = _mm512_add_pd(e, _mm512_set1_pd(li[D]));
+            e = exp8(_mm512_add_pd(e, _mm512_loadu_pd(right + D * Np + j)));
             a = _mm512_fmadd_pd(e, _mm512_loadu_pd(ku + l * Np + j), a);
             for (int d = 0; d < D; ++d)
                 P[d] = _mm512_fmadd_pd(_mm512_set1_pd(bu[l * D + d]), e, P[d]);
@@ -189,16 +192,17 @@ static void contract(int64_t P, int64_t Up, int64_t Kp, const double *Su, const 
         }
 }
 
-/* The exponent of psi2 for one stream as left [N, C] @ right [C, Np] (C = D + 2), and the log
-   of psi1 [N], from the quadratic forms of hgpdm_torch.expectations (rbf_psi2_quadratic,
-   rbf_psi1_quadratic): with d = x - mu, left_i = [d_i^T H, d_i^T Ma d_i + c + lp_i, 1],
-   right_j = [d_j; 1; d_j^T Mb d_j + lp_j] for column j's point cols[j], and
+/* The exponent of psi2 for one stream, d_i^T H d_j + r_i + s_j, as the factors left [N, C]
+   and right [C, Np] (C = D + 1; group_rows forms the product and adds the last entries), and
+   the log of psi1 [N], from the quadratic forms of hgpdm_torch.expectations
+   (rbf_psi2_quadratic, rbf_psi1_quadratic): with d = x - mu, left_i = [d_i^T H, r_i = d_i^T Ma
+   d_i + c + lp_i], right_j = [d_j; s_j = d_j^T Mb d_j + lp_j] for column j's point cols[j], and
    p1_i = d_i^T P d_i + c1 + lp_i; lp the log phase factors, or none. O((N + Np) D^2), in the
    work space: no O(N D) tensor per stream leaves the kernel. */
 INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const int64_t *cols,
                      const double *mu, const double *Q, const double *c, const double *lp,
                      double *left, double *right, double *p1) {
-    const int C = D + 2;
+    const int C = D + 1;
     const double *H = Q, *Ma = Q + D * D, *Mb = Q + 2 * D * D, *P = Q + 3 * D * D;
     double d[MAX_D];
     for (int64_t i = 0; i < N; ++i) {
@@ -217,7 +221,6 @@ INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const 
             one += q * d[a];
         }
         left[i * C + D] = row;
-        left[i * C + D + 1] = 1.0;
         p1[i] = one;
     }
     for (int64_t j = 0; j < Np; ++j) {
@@ -230,8 +233,7 @@ INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const 
             col += m * d[a];
             right[a * Np + j] = d[a];
         }
-        right[D * Np + j] = 1.0;
-        right[(D + 1) * Np + j] = col;
+        right[D * Np + j] = col;
     }
     hgpdm_exp_f64(N, p1);
 }
@@ -243,7 +245,7 @@ INLINE void one_stream(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp
                        const double *lp, const double *beta, const double *betac,
                        const double *kinv, const double *phiT, double *T, double *out,
                        double *p1, double *work) {
-    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, C = D + 2;
+    const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, C = D + 1;
     double *acc = work, *prow = work + Np, *Su = prow + D * Np, *left = Su + P * Up;
     double *right = left + N * C;
     exponent(D, N, Np, X, cols, mu, Q, c, lp, left, right, p1);
@@ -274,7 +276,7 @@ INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up
    Mb, P), c [S, 2] (c, c1), lp [S, N] or NULL, beta [N, D], betac [D, Np], kinv [N, Np],
    phiT [Up, Kp] (phi[k, v]; zero at padding v and k >= K, Kp a multiple of 8), T [S, U, Up],
    out [S, D (D + 1) / 2 + 1, Kp], p1 [S, N] (psi1 = exp(d^T P d + c1 + lp)),
-   work [(D + 1) Np + D (D + 1) / 2 Up + (D + 2) (N + Np)]. Returns 0, or 1 for D outside
+   work [(D + 1) Np + D (D + 1) / 2 Up + (D + 1) (N + Np)]. Returns 0, or 1 for D outside
    1..MAX_D (nothing written). */
 int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp,
                           const double *X, const int64_t *cols, const double *mu,
@@ -700,7 +702,7 @@ INLINE void all_steps(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, 
                       double temp, const double *z, const double *lb, double *m, double *Pm,
                       double *lb_out, int64_t *status, double *work) {
     const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2;
-    double *T = work + (D + 1) * Np + P * Up + (D + 2) * (N + Np), *out = T + U * Up;
+    double *T = work + (D + 1) * Np + P * Up + (D + 1) * (N + Np), *out = T + U * Up;
     double *p1 = out + (P + 1) * Kp, *tail = p1 + N;
     for (int64_t s = 0; s < S; ++s) {
         one_stream(D, U, L, Up, Kp, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s,
@@ -763,7 +765,7 @@ INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp,
                       const double *phiT, const double *trans, const double *meas,
                       double *shared, double *work) {
     const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, B = BLOCK(D, Dz, R);
-    double *T = work + (D + 1) * Np + P * Up + (D + 2) * (N + Np), *out = T + U * Up;
+    double *T = work + (D + 1) * Np + P * Up + (D + 1) * (N + Np), *out = T + U * Up;
     double *p1 = out + (P + 1) * Kp, *mu_u = p1 + N, *means = mu_u + U * D;
     double *covs = means + K * D, *RP = covs + K * D * D, *S = RP + R * D, *F = S + R * R;
     double *Wm = F + R * R;
@@ -928,13 +930,33 @@ int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t
    z = (v - mu) / sd, the features phi_c = exp(min(0, -eta (|z|^2 + |c|^2) + 2 eta z.c)) of the
    C centres [C, F] (then a constant 1 where bias), and out [I, A] = phi Wq^T (Wq [A, C + bias]),
    as those three compute them; beliefs in blocks of LANES (a short last block repeats its
-   first belief). work [C + F + LANES (F + C + 1)]. */
+   first belief). work [C + LANES (F + C + 1)]. */
+/* The exponents of NC centres (from c0) for a block of lanes: e[c, lanes] = min(0, -eta (|z|^2
+   + |c|^2) + 2 eta z.c), z [F, LANES] the standardised vectors (norm their |z|^2), with NC
+   independent chains of FMAs over F held in registers; then their exponentials. */
+INLINE void centre_exponents(const int NC, int64_t F, int64_t c0, const double *z, __m512d norm,
+                             const double *centres, const double *cn, double eta, double *e) {
+    __m512d acc[8];
+    for (int j = 0; j < NC; ++j) acc[j] = _mm512_setzero_pd();
+    for (int64_t f = 0; f < F; ++f) {
+        const __m512d zf = _mm512_loadu_pd(z + f * LANES);
+        for (int j = 0; j < NC; ++j)
+            acc[j] = _mm512_fmadd_pd(SET1(centres[(c0 + j) * F + f]), zf, acc[j]);
+    }
+    for (int j = 0; j < NC; ++j) {
+        const __m512d x = _mm512_add_pd(_mm512_mul_pd(SET1(-eta), _mm512_add_pd(norm, SET1(cn[c0 + j]))),
+                                        _mm512_mul_pd(SET1(2.0 * eta), acc[j]));
+        /* min(0, x) is x where x is NaN: clamp_max keeps NaN */
+        _mm512_storeu_pd(e + (c0 + j) * LANES, exp8(_mm512_min_pd(_mm512_setzero_pd(), x)));
+    }
+}
+
 int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, int64_t bias,
                          const double *mean, const double *cov, const double *lb,
                          const double *mu, const double *sd, const double *centres, double eta,
                          const double *Wq, double *out, double *work) {
     const int64_t F = D + D * (D + 1) / 2 + K, CB = C + bias;
-    double *cn = work, *v = cn + C, *z = v + F, *e = z + F * LANES, *zn = e + C * LANES;
+    double *cn = work, *z = cn + C, *e = z + F * LANES, *zn = e + C * LANES;
     const unsigned int csr = _mm_getcsr();
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ: the features of far centres are subnormal */
     for (int64_t c = 0; c < C; ++c) {
@@ -942,52 +964,47 @@ int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, 
         for (int64_t f = 0; f < F; ++f) s += centres[c * F + f] * centres[c * F + f];
         cn[c] = s;
     }
+    const __m512i lane = _mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0);
     for (int64_t i0 = 0; i0 < I; i0 += LANES) {
-        for (int p = 0; p < LANES; ++p) {
-            const int64_t i = i0 + p < I ? i0 + p : i0;
-            int64_t f = 0;
-            for (int64_t a = 0; a < D; ++a) v[f++] = mean[i * D + a];
-            for (int64_t a = 0; a < D; ++a)
-                for (int64_t b = a; b < D; ++b) v[f++] = cov[(i * D + a) * D + b];
-            for (int64_t k = 0; k < K; ++k) v[f + k] = lb[i * K + k];
-            hgpdm_exp_f64(K, v + f);
-            for (f = 0; f < F; ++f) z[f * LANES + p] = v[f];
-        }
+        /* the block's beliefs (a short last block repeats its first), gathered lane-last */
+        const __mmask8 live = I - i0 < LANES ? LANE_MASK(I - i0) : 0xFF;
+        const __m512i row = _mm512_maskz_mov_epi64(live, lane);
+        const __m512i im = _mm512_mullo_epi64(row, _mm512_set1_epi64(D));
+        const __m512i ic = _mm512_mullo_epi64(row, _mm512_set1_epi64(D * D));
+        const __m512i ik = _mm512_mullo_epi64(row, _mm512_set1_epi64(K));
+        int64_t f = 0;
+        for (int64_t a = 0; a < D; ++a, ++f)
+            _mm512_storeu_pd(z + f * LANES, _mm512_i64gather_pd(im, mean + i0 * D + a, 8));
+        for (int64_t a = 0; a < D; ++a)
+            for (int64_t b = a; b < D; ++b, ++f)
+                _mm512_storeu_pd(z + f * LANES,
+                                 _mm512_i64gather_pd(ic, cov + i0 * D * D + a * D + b, 8));
+        for (int64_t k = 0; k < K; ++k, ++f)
+            _mm512_storeu_pd(z + f * LANES, exp8(_mm512_i64gather_pd(ik, lb + i0 * K + k, 8)));
         __m512d norm = _mm512_setzero_pd();
-        for (int64_t f = 0; f < F; ++f) {
-            const __m512d zf = _mm512_div_pd(
-                _mm512_sub_pd(_mm512_loadu_pd(z + f * LANES), _mm512_set1_pd(mu[f])),
-                _mm512_set1_pd(sd[f]));
+        for (f = 0; f < F; ++f) {
+            const __m512d zf = _mm512_div_pd(_mm512_sub_pd(_mm512_loadu_pd(z + f * LANES), SET1(mu[f])),
+                                             SET1(sd[f]));
             _mm512_storeu_pd(z + f * LANES, zf);
             norm = _mm512_fmadd_pd(zf, zf, norm);
         }
-        /* the exponents, four centres at a time (independent chains of FMAs over F) */
-        const __m512d meta = _mm512_set1_pd(-eta);
-        const __m512d twice = _mm512_set1_pd(2.0 * eta), zero = _mm512_setzero_pd();
-        for (int64_t c0 = 0; c0 < C; c0 += 4) {
-            const int64_t nc = C - c0 < 4 ? C - c0 : 4;
-            __m512d acc[4] = {zero, zero, zero, zero};
-            for (int64_t f = 0; f < F; ++f) {
-                const __m512d zf = _mm512_loadu_pd(z + f * LANES);
-                for (int64_t j = 0; j < nc; ++j)
-                    acc[j] = _mm512_fmadd_pd(_mm512_set1_pd(centres[(c0 + j) * F + f]), zf, acc[j]);
-            }
-            for (int64_t j = 0; j < nc; ++j) {
-                const __m512d x = _mm512_add_pd(
-                    _mm512_mul_pd(meta, _mm512_add_pd(norm, _mm512_set1_pd(cn[c0 + j]))),
-                    _mm512_mul_pd(twice, acc[j]));
-                /* min(0, x) is x where x is NaN: clamp_max keeps NaN */
-                _mm512_storeu_pd(e + (c0 + j) * LANES, _mm512_min_pd(zero, x));
-            }
-        }
-        hgpdm_exp_f64(C * LANES, e);
-        for (int64_t a = 0; a < A; ++a) {
-            __m512d t = zero;
-            for (int64_t c = 0; c < C; ++c)
-                t = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), _mm512_set1_pd(Wq[a * CB + c]),
-                                    t);
-            if (bias) t = _mm512_add_pd(t, _mm512_set1_pd(Wq[a * CB + C]));
-            _mm512_storeu_pd(zn, t);
+        int64_t c0 = 0; /* the features' exponentials, eight centres at a time, then the rest */
+        for (; c0 + 8 <= C; c0 += 8) centre_exponents(8, F, c0, z, norm, centres, cn, eta, e);
+        if (c0 + 4 <= C) centre_exponents(4, F, c0, z, norm, centres, cn, eta, e), c0 += 4;
+        if (c0 + 2 <= C) centre_exponents(2, F, c0, z, norm, centres, cn, eta, e), c0 += 2;
+        if (c0 < C) centre_exponents(1, F, c0, z, norm, centres, cn, eta, e);
+        for (int64_t a = 0; a < A; ++a) { /* four partial sums over the centres */
+            const double *wa = Wq + a * CB;
+            __m512d t[4] = {_mm512_setzero_pd(), _mm512_setzero_pd(), _mm512_setzero_pd(),
+                            _mm512_setzero_pd()};
+            int64_t c = 0;
+            for (; c + 4 <= C; c += 4)
+                for (int j = 0; j < 4; ++j)
+                    t[j] = _mm512_fmadd_pd(_mm512_loadu_pd(e + (c + j) * LANES), SET1(wa[c + j]), t[j]);
+            for (; c < C; ++c) t[0] = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), SET1(wa[c]), t[0]);
+            __m512d v = _mm512_add_pd(_mm512_add_pd(t[0], t[1]), _mm512_add_pd(t[2], t[3]));
+            if (bias) v = _mm512_add_pd(v, SET1(wa[C]));
+            _mm512_storeu_pd(zn, v);
             for (int p = 0; p < LANES && i0 + p < I; ++p) out[(i0 + p) * A + a] = zn[p];
         }
     }
