@@ -29,6 +29,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import hashlib
+import math
 import os
 import platform
 import shutil
@@ -57,6 +58,7 @@ __all__ = [
     "rbf_forms",
     "rbf_values",
     "scratch",
+    "standard_normal",
     "supported",
     "usable",
 ]
@@ -183,6 +185,8 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_mcp_particles_f64.restype = ctypes.c_int
     lib.hgpdm_rbf_values_f64.argtypes = [i64] * 6 + [ptr] * 6 + [f64] + [ptr] * 3
     lib.hgpdm_rbf_values_f64.restype = ctypes.c_int
+    lib.hgpdm_normal_f64.argtypes = [i64, ptr, ptr]
+    lib.hgpdm_normal_f64.restype = ctypes.c_int
     return lib
 
 
@@ -255,6 +259,24 @@ def exp_(t: torch.Tensor) -> torch.Tensor:
     lib = _loaded()
     lib.hgpdm_exp_f64(t.numel(), ptr)
     return t
+
+
+def standard_normal(
+    shape: tuple[int, ...] | torch.Size, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """``torch.randn(shape, generator=generator, dtype=torch.float64)`` on the CPU, from the
+    same uniforms and in the same Box-Muller form (``native_psi2.c``), with the logarithm, sine
+    and cosine vectorised: each draw within a few ulp of torch's (which calls libm per draw, 17
+    ns a draw here against 5 ns), and the generator left in the same state. Fewer than 16
+    draws (where torch draws them one by one) are torch's own.
+    """
+    n = math.prod(shape)
+    if n < 16:
+        return torch.randn(shape, generator=generator, dtype=torch.float64)
+    u = torch.rand(n + (16 if n % 16 else 0), generator=generator, dtype=torch.float64)
+    out = torch.empty(shape, dtype=torch.float64)
+    _ran(_loaded().hgpdm_normal_f64(n, u.data_ptr(), out.data_ptr()), 1)
+    return out
 
 
 def rbf_forms(

@@ -101,6 +101,100 @@ void hgpdm_exp_f64(int64_t n, double *x) {
     }
 }
 
+/* ---- Standard normal draws (torch.randn's form; hgpdm_torch.native.standard_normal) ---- */
+
+/* log of 8 lanes of positive normal x: x = 2^k m with m in [sqrt(1/2), sqrt(2)) (getexp and
+   getmant, then halved where above sqrt(2)), f = m - 1, s = f / (2 + f) and
+   log x = k ln2 + f - (f^2 / 2 - s (f^2 / 2 + R(s^2))), R the degree-14 even minimax
+   polynomial of fdlibm's e_log.c (error below 2^-58.45 on |s| < 0.1716); ln2 in two parts,
+   the first of 32 bits (k ln2_hi exact for |k| < 2^20). Within 1 ulp (test_native). */
+INLINE __m512d log8(__m512d x) {
+    __m512d m = _mm512_getmant_pd(x, _MM_MANT_NORM_1_2, _MM_MANT_SIGN_zero);
+    __m512d k = _mm512_getexp_pd(x);
+    const __mmask8 big = _mm512_cmp_pd_mask(m, _mm512_set1_pd(0x1.6a09e667f3bcdp+0), _CMP_GT_OQ);
+    m = _mm512_mask_mul_pd(m, big, m, _mm512_set1_pd(0.5));
+    k = _mm512_mask_add_pd(k, big, k, _mm512_set1_pd(1.0));
+    const __m512d f = _mm512_sub_pd(m, _mm512_set1_pd(1.0));
+    const __m512d s = _mm512_div_pd(f, _mm512_add_pd(_mm512_set1_pd(2.0), f));
+    const __m512d z = _mm512_mul_pd(s, s), w = _mm512_mul_pd(z, z);
+    __m512d t1 = _mm512_fmadd_pd(w, _mm512_set1_pd(1.531383769920937332e-01),
+                                 _mm512_set1_pd(2.222219843214978396e-01));
+    t1 = _mm512_mul_pd(w, _mm512_fmadd_pd(w, t1, _mm512_set1_pd(3.999999999940941908e-01)));
+    __m512d t2 = _mm512_fmadd_pd(w, _mm512_set1_pd(1.479819860511658591e-01),
+                                 _mm512_set1_pd(1.818357216161805012e-01));
+    t2 = _mm512_fmadd_pd(w, t2, _mm512_set1_pd(2.857142874366239149e-01));
+    t2 = _mm512_mul_pd(z, _mm512_fmadd_pd(w, t2, _mm512_set1_pd(6.666666666666735130e-01)));
+    const __m512d R = _mm512_add_pd(t2, t1);
+    const __m512d hfsq = _mm512_mul_pd(_mm512_set1_pd(0.5), _mm512_mul_pd(f, f));
+    const __m512d inner = _mm512_fmadd_pd(s, _mm512_add_pd(hfsq, R),
+                                          _mm512_mul_pd(k, _mm512_set1_pd(1.90821492927058770002e-10)));
+    return _mm512_fmsub_pd(k, _mm512_set1_pd(6.93147180369123816490e-01),
+                           _mm512_sub_pd(_mm512_sub_pd(hfsq, inner), f));
+}
+
+/* sin and cos of 8 lanes of x in [0, 2 pi]: x = n pi/2 + r (n = round(x 2/pi); pi/2 in two
+   parts, each product fused, |r| <= pi/4 + 2^-50), the polynomials of fdlibm's k_sin.c and
+   k_cos.c on r (degree 13 and 14), and the quadrant's swap and signs. Within 1 ulp
+   (test_native). */
+INLINE void sincos8(__m512d x, __m512d *sin_out, __m512d *cos_out) {
+    const __m512d n = _mm512_roundscale_pd(_mm512_mul_pd(x, _mm512_set1_pd(0x1.45f306dc9c883p-1)),
+                                           _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    __m512d r = _mm512_fnmadd_pd(n, _mm512_set1_pd(0x1.921fb54442d18p+0), x);
+    r = _mm512_fnmadd_pd(n, _mm512_set1_pd(0x1.1a62633145c07p-54), r);
+    const __m512d z = _mm512_mul_pd(r, r), one = _mm512_set1_pd(1.0);
+    __m512d p = _mm512_fmadd_pd(z, _mm512_set1_pd(1.58969099521155010221e-10),
+                                _mm512_set1_pd(-2.50507602534068634195e-08));
+    p = _mm512_fmadd_pd(z, p, _mm512_set1_pd(2.75573137070700676789e-06));
+    p = _mm512_fmadd_pd(z, p, _mm512_set1_pd(-1.98412698298579493134e-04));
+    p = _mm512_fmadd_pd(z, p, _mm512_set1_pd(8.33333333332248946124e-03));
+    p = _mm512_fmadd_pd(z, p, _mm512_set1_pd(-1.66666666666666324348e-01));
+    const __m512d sr = _mm512_fmadd_pd(_mm512_mul_pd(z, r), p, r); /* sin r */
+    __m512d q = _mm512_fmadd_pd(z, _mm512_set1_pd(-1.13596475577881948265e-11),
+                                _mm512_set1_pd(2.08757232129817482790e-09));
+    q = _mm512_fmadd_pd(z, q, _mm512_set1_pd(-2.75573143513906633035e-07));
+    q = _mm512_fmadd_pd(z, q, _mm512_set1_pd(2.48015872894767294178e-05));
+    q = _mm512_fmadd_pd(z, q, _mm512_set1_pd(-1.38888888888741095749e-03));
+    q = _mm512_mul_pd(z, _mm512_fmadd_pd(z, q, _mm512_set1_pd(4.16666666666666019037e-02)));
+    const __m512d hz = _mm512_mul_pd(_mm512_set1_pd(0.5), z), w = _mm512_sub_pd(one, hz);
+    /* cos r = w + ((1 - w) - hz + z q): 1 - hz's rounding error recovered */
+    const __m512d cr = _mm512_add_pd(
+        w, _mm512_fmadd_pd(z, q, _mm512_sub_pd(_mm512_sub_pd(one, w), hz)));
+    const __m512i quad = _mm512_and_epi64(_mm512_cvtpd_epi64(n), _mm512_set1_epi64(3));
+    const __mmask8 swap = _mm512_test_epi64_mask(quad, _mm512_set1_epi64(1));
+    const __mmask8 neg_sin = _mm512_test_epi64_mask(quad, _mm512_set1_epi64(2));
+    const __mmask8 neg_cos = _mm512_test_epi64_mask(
+        _mm512_add_epi64(quad, _mm512_set1_epi64(1)), _mm512_set1_epi64(2));
+    const __m512d sv = _mm512_mask_blend_pd(swap, sr, cr), cv = _mm512_mask_blend_pd(swap, cr, sr);
+    const __m512d zero = _mm512_setzero_pd();
+    *sin_out = _mm512_mask_sub_pd(sv, neg_sin, zero, sv);
+    *cos_out = _mm512_mask_sub_pd(cv, neg_cos, zero, cv);
+}
+
+/* Sixteen standard normal draws out[0..15] from sixteen uniforms u in [0, 1): for j < 8,
+   with rho = sqrt(-2 log(1 - u[j])) and theta = 2 pi u[j + 8], out[j] = rho cos theta and
+   out[j + 8] = rho sin theta (torch's normal_fill_16). */
+INLINE void normal16(const double *u, double *out) {
+    const __m512d u1 = _mm512_sub_pd(_mm512_set1_pd(1.0), _mm512_loadu_pd(u));
+    const __m512d theta = _mm512_mul_pd(_mm512_set1_pd(2.0 * 0x1.921fb54442d18p+1),
+                                        _mm512_loadu_pd(u + 8));
+    const __m512d rho = _mm512_sqrt_pd(_mm512_mul_pd(_mm512_set1_pd(-2.0), log8(u1)));
+    __m512d sn, cs;
+    sincos8(theta, &sn, &cs);
+    _mm512_storeu_pd(out, _mm512_mul_pd(rho, cs));
+    _mm512_storeu_pd(out + 8, _mm512_mul_pd(rho, sn));
+}
+
+/* n >= 16 standard normal draws out [n] from the uniforms u [n + (16 if n % 16 else 0)] in
+   [0, 1), as torch.randn forms them (float64, n >= 16): blocks of sixteen (normal16), and where
+   n is not a multiple of 16 the last sixteen draws again from the sixteen uniforms after the
+   n. Returns 0, or 1 for n < 16 (nothing written). */
+int hgpdm_normal_f64(int64_t n, const double *u, double *out) {
+    if (n < 16) return 1;
+    for (int64_t i = 0; i + 16 <= n; i += 16) normal16(u + i, out + i);
+    if (n % 16) normal16(u + n, out + n - 16);
+    return 0;
+}
+
 /* The L rows of group u against all Np columns: acc[j] = sum_l psi2 kinv and
    prow[a, j] = sum_l beta[(u, l), a] psi2, eight columns at a time in registers. */
 INLINE void group_rows(const int D, int64_t L, int64_t C, int64_t Np, const double *lu,

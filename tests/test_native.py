@@ -1,7 +1,7 @@
 """The compiled CPU kernel (:mod:`hgpdm_torch.native`) against independent references.
 
 - its exponential against mpmath at 200 bits (within 2 ulp; 0, inf and NaN where IEEE-754 puts
-  them);
+  them), its normal draws against mpmath's Box-Muller values of torch's uniforms;
 - its group sums of ``psi2 = exp(left @ right)`` against the dense formulas in torch, within a
   first-order rounding bound of both (the exponent's products, the exponential, the sums);
 - one warning and the torch path where no compiler is found or the build fails;
@@ -74,6 +74,49 @@ def test_exp_specials_and_tail():
     native.exp_(buf[:13])
     assert torch.equal(buf[:13], torch.ones(13, dtype=torch.float64))
     assert torch.equal(buf[13:], torch.zeros(3, dtype=torch.float64))
+
+
+@needs_kernel
+@pytest.mark.parametrize("n", [16, 4096 + 7])
+def test_standard_normal_within_five_ulp_of_torchs_form(n):
+    """``standard_normal`` against the exact Box-Muller values of the uniforms torch draws
+    (mpmath at 120 bits): ``rho cos theta`` and ``rho sin theta`` within 5 ulp (its log, sine
+    and cosine within 1 ulp each, the square root and the product within half an ulp: 2.5
+    units of 2^-53 relative, up to 5 ulp where the result lies low in its binade), n % 16 != 0
+    drawing the last sixteen again; torch's own draws within 2 ulp of the same values (so that a
+    wrong form or order would show), the generator left where torch leaves it, and fewer than
+    16 draws torch's exactly."""
+    gen, twin = torch.Generator().manual_seed(n), torch.Generator().manual_seed(n)
+    ours, theirs = (
+        native.standard_normal((n,), gen),
+        torch.randn(n, generator=twin, dtype=torch.float64),
+    )
+    assert torch.equal(gen.get_state(), twin.get_state())
+    uniforms = torch.rand(
+        n + (16 if n % 16 else 0), generator=torch.Generator().manual_seed(n), dtype=torch.float64
+    ).tolist()
+    mpmath.mp.prec = 120
+    starts = list(range(0, n - 15, 16)) + ([n] if n % 16 else [])
+    tail = n - 16 if n % 16 else n  # the repeated last block writes the last sixteen draws
+    for start in starts:
+        base = min(start, n - 16)
+        for j in range(8):
+            rho = mpmath.sqrt(-2 * mpmath.log(1 - mpmath.mpf(uniforms[start + j])))
+            theta = mpmath.mpf(2.0 * math.pi * uniforms[start + j + 8])
+            for k, exact in (
+                (base + j, rho * mpmath.cos(theta)),
+                (base + j + 8, rho * mpmath.sin(theta)),
+            ):
+                if start < n and k >= tail:
+                    continue  # drawn again by the last block
+                unit = math.ulp(float(exact))
+                assert abs(mpmath.mpf(float(ours[k])) - exact) <= 5 * unit, k
+                assert abs(mpmath.mpf(float(theirs[k])) - exact) <= 2 * unit, k
+    small = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    assert torch.equal(
+        native.standard_normal((3, 5), small[0]),
+        torch.randn(3, 5, generator=small[1], dtype=torch.float64),
+    )
 
 
 def _problem(streams: int, U: int, L: int, D: int, K: int, gen: torch.Generator, phase=False):
