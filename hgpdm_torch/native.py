@@ -52,6 +52,7 @@ __all__ = [
     "exp_",
     "particle_block",
     "particle_shared",
+    "particle_values",
     "particles",
     "predictive_step",
     "psi2_groups",
@@ -185,6 +186,10 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_mcp_particles_f64.restype = ctypes.c_int
     lib.hgpdm_rbf_values_f64.argtypes = [i64] * 6 + [ptr] * 6 + [f64] + [ptr] * 3
     lib.hgpdm_rbf_values_f64.restype = ctypes.c_int
+    lib.hgpdm_mcp_values_f64.argtypes = (
+        [i64] * 5 + [ptr] * 5 + [f64] * 2 + [ptr] * 2 + [i64] * 3 + [ptr] * 3 + [f64] + [ptr] * 3
+    )
+    lib.hgpdm_mcp_values_f64.restype = ctypes.c_int
     lib.hgpdm_normal_f64.argtypes = [i64, ptr, ptr]
     lib.hgpdm_normal_f64.restype = ctypes.c_int
     return lib
@@ -505,6 +510,77 @@ def particles(
         Dz]``.
     """
     d, dz, rank = dims
+    args = _particle_args(
+        shared, meas, dims, center, limit, log_belief, keep, temperature, draws, noise
+    )
+    num, K = noise.shape[0], log_belief.shape[0]
+    mean, cov, lb = noise.new_empty(num, d), noise.new_empty(num, d, d), noise.new_empty(num, K)
+    z = noise.new_empty(num, dz)
+    work = scratch(_particle_work(d, K, dz, rank), 4)
+    code = _loaded().hgpdm_mcp_particles_f64(
+        *args, mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), z.data_ptr(), work.data_ptr()
+    )
+    _ran(code, d)
+    return mean, cov, lb, z
+
+
+def particle_values(
+    shared: torch.Tensor,
+    meas: torch.Tensor,
+    dims: tuple[int, int, int],
+    center: torch.Tensor,
+    limit: torch.Tensor,
+    log_belief: torch.Tensor,
+    keep: float,
+    temperature: float,
+    draws: torch.Tensor | None,
+    noise: torch.Tensor,
+    basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
+    weights: torch.Tensor,
+) -> torch.Tensor:
+    """:func:`rbf_values` of the beliefs :func:`particles` would return (``native_psi2.c``, one
+    call: the particles' means, covariances and probabilities stay in the kernel's work space),
+    the vectors' probabilities the mixture's normalised weights (``exp`` of the log-belief
+    within a few ulp).
+
+    Args:
+        shared, meas, dims, center, limit, log_belief, keep, temperature, draws, noise: as for
+            :func:`particles`.
+        basis: as for :func:`rbf_values`.
+        weights: as for :func:`rbf_values`.
+
+    Returns:
+        ``[I, A]``.
+    """
+    d, dz, rank = dims
+    args = _particle_args(
+        shared, meas, dims, center, limit, log_belief, keep, temperature, draws, noise
+    )
+    K = log_belief.shape[0]
+    c, f, a, bias, basis_args = _basis_args(basis, weights, d, K)
+    out = noise.new_empty(noise.shape[0], a)
+    work = scratch(_particle_work(d, K, dz, rank) + c + _LANES * (f + c + 1), 4)
+    code = _loaded().hgpdm_mcp_values_f64(
+        *args, c, a, bias, *basis_args, out.data_ptr(), work.data_ptr()
+    )
+    _ran(code, d)
+    return out
+
+
+def _particle_args(
+    shared: torch.Tensor,
+    meas: torch.Tensor,
+    dims: tuple[int, int, int],
+    center: torch.Tensor,
+    limit: torch.Tensor,
+    log_belief: torch.Tensor,
+    keep: float,
+    temperature: float,
+    draws: torch.Tensor | None,
+    noise: torch.Tensor,
+) -> list:
+    """The particle kernels' arguments up to their outputs, checked (:func:`particles`)."""
+    d, dz, rank = dims
     K, num = log_belief.shape[0], noise.shape[0]
     ptrs = [
         _check("shared", shared, (K, particle_block(d, dz, rank))),
@@ -521,15 +597,12 @@ def particles(
             raise ValueError(f"draws must be grid values in 0 .. {K - 1}")
         g_ptr = draws.data_ptr()
     noise_ptr = _check("noise", noise, (num, dz))
-    mean, cov, lb = noise.new_empty(num, d), noise.new_empty(num, d, d), noise.new_empty(num, K)
-    z = noise.new_empty(num, dz)
-    work = scratch(dz + _LANES * (2 * dz + rank + 1 + 4 * K + K * d + d + d * d), 4)
-    code = _loaded().hgpdm_mcp_particles_f64(
-        num, d, K, dz, rank, *ptrs, float(keep), float(temperature), g_ptr, noise_ptr,
-        mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), z.data_ptr(), work.data_ptr(),
-    )  # fmt: skip
-    _ran(code, d)
-    return mean, cov, lb, z
+    return [num, d, K, dz, rank, *ptrs, float(keep), float(temperature), g_ptr, noise_ptr]
+
+
+def _particle_work(d: int, K: int, dz: int, rank: int) -> int:
+    """``native_psi2.c``'s PARTICLE_WORK: a block of particles' quantities, lane-last."""
+    return dz + _LANES * (2 * dz + rank + 1 + 4 * K + K * d + d + d * d)
 
 
 def rbf_values(
@@ -559,28 +632,42 @@ def rbf_values(
     """
     num, d = mean.shape
     K = log_prob.shape[-1]
+    c, f, a, bias, basis_args = _basis_args(basis, weights, d, K)
+    ptrs = [
+        _check("mean", mean, (num, d)),
+        _check("cov", cov, (num, d, d)),
+        _check("log_prob", log_prob, (num, K)),
+    ]
+    out = mean.new_empty(num, a)
+    work = scratch(c + _LANES * (f + c + 1), 5)
+    if num:
+        _loaded().hgpdm_rbf_values_f64(
+            num, d, K, c, a, bias, *ptrs, *basis_args, out.data_ptr(), work.data_ptr()
+        )
+    return out
+
+
+def _basis_args(
+    basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
+    weights: torch.Tensor,
+    d: int,
+    K: int,
+) -> tuple[int, int, int, int, list]:
+    """The basis's and the weights' sizes ``(C, F, A, bias)`` and the values kernels' arguments
+    ``mu, sd, centres, eta, Wq``, checked (:func:`rbf_values`)."""
     mu, sd, centres, eta, bias = basis
     c, f = centres.shape
     a = weights.shape[0]
     if f != d + d * (d + 1) // 2 + K:
         raise ValueError(f"centres must have F = {d + d * (d + 1) // 2 + K} columns, got {f}")
     ptrs = [
-        _check("mean", mean, (num, d)),
-        _check("cov", cov, (num, d, d)),
-        _check("log_prob", log_prob, (num, K)),
         _check("basis mean", mu, (f,)),
         _check("basis std", sd, (f,)),
         _check("centres", centres, (c, f)),
+        float(eta),
+        _check("weights", weights, (a, c + int(bias))),
     ]
-    w_ptr = _check("weights", weights, (a, c + int(bias)))
-    out = mean.new_empty(num, a)
-    work = scratch(c + _LANES * (f + c + 1), 5)
-    if num:
-        _loaded().hgpdm_rbf_values_f64(
-            num, d, K, c, a, int(bias), *ptrs, float(eta), w_ptr, out.data_ptr(),
-            work.data_ptr(),
-        )  # fmt: skip
-    return out
+    return c, f, a, int(bias), ptrs
 
 
 def _meas_size(d: int, dz: int, rank: int) -> int:

@@ -923,81 +923,105 @@ int hgpdm_mcp_shared_f64(int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp
     return code;
 }
 
-/* I particles of the belief whose shared state is shared [K, BLOCK(D, Dz, R)] (lb [K] its
+/* The particles of one belief whose shared state is shared [K, BLOCK(D, Dz, R)] (lb [K] its
    normalised log-belief): particle i observes z = mz_g + Lz_g eps_i for g = g[i] (eps [I, Dz]),
    or z = eps_i where g is NULL; a z outside |z - center| <= limit or not finite (center,
    limit [Dz]: the filter's ObservationCheck) is treated as missing, as the filter treats it.
-   Particles go in blocks of LANES (a short last block repeats its first particle). Writes
-   mean [I, D], cov [I, D, D], lb_out [I, K] and the observations zo [I, Dz]; work
-   [PARTICLE_WORK(D, K, Dz, R)]. Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+   They go in blocks of LANES (a short last block repeats its first particle); zo [I, Dz], where
+   not NULL, receives the observations. The work space, PARTICLE_WORK(D, K, Dz, R) entries,
+   holds a block's quantities lane-last. */
 #define PARTICLE_WORK(D, K, Dz, R) \
     ((Dz) + LANES * (2 * (Dz) + (R) + 1 + 4 * (K) + (K) * (D) + (D) + (D) * (D)))
-INLINE void mcp_particles(const int D, int64_t I, int64_t K, int64_t Dz, int64_t R,
-                          const double *shared, const double *meas, const double *center,
-                          const double *limit, const double *lb, double keep, double temp,
-                          const int64_t *g, const double *eps, double *mean, double *cov,
-                          double *lb_out, double *zo, double *work) {
-    const int64_t B = BLOCK(D, Dz, R);
-    double *zp = work, *z = zp + Dz, *zs = z + Dz * LANES, *zu = zs + Dz * LANES;
-    double *perp = zu + R * LANES;
-    double *lbl = perp + LANES, *ll = lbl + K * LANES, *lbo = ll + K * LANES;
-    double *means = lbo + K * LANES, *m = means + K * D * LANES, *Pm = m + D * LANES;
-    double *prob = Pm + D * D * LANES;
+typedef struct {
+    int64_t I, K, Dz, R;
+    const double *shared, *meas, *center, *limit;
+    double keep, temp;
+    const int64_t *g;
+    const double *eps;
+    double *zo;
+    double *zp, *z, *zs, *zu, *perp, *lbl, *ll, *lbo, *means, *m, *Pm, *prob; /* work */
+} Particles;
+
+INLINE void particles_init(const int D, Particles *pt, const double *lb, double *work) {
+    const int64_t K = pt->K, Dz = pt->Dz, R = pt->R;
+    pt->zp = work, pt->z = pt->zp + Dz, pt->zs = pt->z + Dz * LANES;
+    pt->zu = pt->zs + Dz * LANES, pt->perp = pt->zu + R * LANES;
+    pt->lbl = pt->perp + LANES, pt->ll = pt->lbl + K * LANES, pt->lbo = pt->ll + K * LANES;
+    pt->means = pt->lbo + K * LANES, pt->m = pt->means + K * D * LANES;
+    pt->Pm = pt->m + D * LANES, pt->prob = pt->Pm + D * D * LANES;
     for (int64_t k = 0; k < K; ++k) /* the shared belief in every lane */
-        for (int p = 0; p < LANES; ++p) lbl[k * LANES + p] = lb[k];
+        _mm512_storeu_pd(pt->lbl + k * LANES, SET1(lb[k]));
+}
+
+/* The block of particles i0 .. i0 + LANES - 1: their draws and checks, the conditioning of the
+   K predictions, the belief step and the mixture, leaving m [D, LANES], Pm [D, D, LANES],
+   lbo [K, LANES] and the normalised probabilities prob [K, LANES] in the work space. */
+INLINE void particle_block(const int D, const Particles *pt, int64_t i0) {
+    const int64_t I = pt->I, K = pt->K, Dz = pt->Dz, R = pt->R, B = BLOCK(D, Dz, R);
+    const double *shared = pt->shared;
+    double *zp = pt->zp, *z = pt->z;
+    __mmask8 missing = 0;
+    for (int p = 0; p < LANES; ++p) { /* z = mz_g + Lz_g eps */
+        const int64_t i = i0 + p < I ? i0 + p : i0;
+        const double *e = pt->eps + i * Dz;
+        if (pt->g) { /* Lz eps as a sum of Lz's columns (rows of Lz^T), eight rows of z at a time */
+            const double *mz = shared + pt->g[i] * B + D + 2 * D * D + R * D + R * R + R + 2;
+            const double *LzT = mz + Dz;
+            for (int64_t j0 = 0; j0 < Dz; j0 += W) {
+                const __mmask8 k = Dz - j0 < W ? LANE_MASK(Dz - j0) : 0xFF;
+                const int64_t top = Dz - j0 < W ? Dz : j0 + W; /* LzT[q, j] = 0 for j < q */
+                __m512d t = _mm512_setzero_pd();
+                for (int64_t q = 0; q < top; ++q)
+                    t = _mm512_fmadd_pd(SET1(e[q]), _mm512_maskz_loadu_pd(k, LzT + q * Dz + j0), t);
+                _mm512_mask_storeu_pd(zp + j0, k, _mm512_add_pd(_mm512_maskz_loadu_pd(k, mz + j0), t));
+            }
+            e = zp;
+        }
+        int bad = 0;
+        for (int64_t j = 0; j < Dz; ++j) {
+            bad |= !(isfinite(e[j]) && fabs(e[j] - pt->center[j]) <= pt->limit[j]);
+            z[j * LANES + p] = e[j];
+        }
+        if (pt->zo && i0 + p < I)
+            for (int64_t j = 0; j < Dz; ++j) pt->zo[i * Dz + j] = e[j];
+        missing |= (__mmask8)(bad << p);
+    }
+    project(D, Dz, R, LANES, pt->meas, z, missing, pt->zs, pt->zu, pt->perp);
+    for (int64_t k = 0; k < K; ++k) {
+        const double *mk = shared + k * B, *A = mk + D + 2 * D * D, *G = A + R * D;
+        const double *c = G + R * R;
+        double *mo = pt->means + k * D * LANES, *lk = pt->ll + k * LANES;
+        condition(D, Dz, R, LANES, A, G, c, c[R], c[R + 1], mk, pt->zu, pt->perp, mo, lk);
+        if (missing) { /* a missing lane keeps the prediction */
+            _mm512_storeu_pd(lk, _mm512_maskz_mov_pd((__mmask8)~missing, _mm512_loadu_pd(lk)));
+            for (int d = 0; d < D; ++d)
+                _mm512_storeu_pd(mo + d * LANES, _mm512_mask_blend_pd(
+                                     missing, _mm512_loadu_pd(mo + d * LANES), SET1(mk[d])));
+        }
+    }
+    /* the posterior covariances, or the predictions' in a missing lane */
+    belief_mixture(D, K, LANES, pt->keep, pt->temp, pt->lbl, pt->ll, missing, pt->means,
+                   shared + D + D * D, shared + D, B, pt->m, pt->Pm, pt->lbo, pt->prob);
+}
+
+INLINE void mcp_particles(const int D, Particles *pt, const double *lb, double *mean,
+                          double *cov, double *lb_out, double *work) {
+    const int64_t I = pt->I, K = pt->K;
+    particles_init(D, pt, lb, work);
     for (int64_t i0 = 0; i0 < I; i0 += LANES) {
-        __mmask8 missing = 0;
-        for (int p = 0; p < LANES; ++p) { /* z = mz_g + Lz_g eps */
-            const int64_t i = i0 + p < I ? i0 + p : i0;
-            const double *e = eps + i * Dz;
-            if (g) { /* Lz eps as a sum of Lz's columns (rows of Lz^T), eight rows of z at a time */
-                const double *mz = shared + g[i] * B + D + 2 * D * D + R * D + R * R + R + 2;
-                const double *LzT = mz + Dz;
-                for (int64_t j0 = 0; j0 < Dz; j0 += W) {
-                    const __mmask8 k = Dz - j0 < W ? (__mmask8)((1u << (Dz - j0)) - 1u) : 0xFF;
-                    const int64_t top = Dz - j0 < W ? Dz : j0 + W; /* LzT[q, j] = 0 for j < q */
-                    __m512d t = _mm512_setzero_pd();
-                    for (int64_t q = 0; q < top; ++q)
-                        t = _mm512_fmadd_pd(_mm512_set1_pd(e[q]),
-                                            _mm512_maskz_loadu_pd(k, LzT + q * Dz + j0), t);
-                    _mm512_mask_storeu_pd(zp + j0, k,
-                                          _mm512_add_pd(_mm512_maskz_loadu_pd(k, mz + j0), t));
-                }
-                e = zp;
-            }
-            int bad = 0;
-            for (int64_t j = 0; j < Dz; ++j) {
-                bad |= !(isfinite(e[j]) && fabs(e[j] - center[j]) <= limit[j]);
-                z[j * LANES + p] = e[j];
-                zo[i * Dz + j] = e[j];
-            }
-            missing |= (__mmask8)(bad << p);
-        }
-        project(D, Dz, R, LANES, meas, z, missing, zs, zu, perp);
-        for (int64_t k = 0; k < K; ++k) {
-            const double *mk = shared + k * B, *A = mk + D + 2 * D * D, *G = A + R * D;
-            const double *c = G + R * R;
-            double *mo = means + k * D * LANES, *lk = ll + k * LANES;
-            condition(D, Dz, R, LANES, A, G, c, c[R], c[R + 1], mk, zu, perp, mo, lk);
-            if (missing) { /* a missing lane keeps the prediction */
-                _mm512_storeu_pd(lk, _mm512_maskz_mov_pd((__mmask8)~missing, _mm512_loadu_pd(lk)));
-                for (int d = 0; d < D; ++d)
-                    _mm512_storeu_pd(mo + d * LANES, _mm512_mask_blend_pd(
-                                         missing, _mm512_loadu_pd(mo + d * LANES), SET1(mk[d])));
-            }
-        }
-        /* the posterior covariances, or the predictions' in a missing lane */
-        belief_mixture(D, K, LANES, keep, temp, lbl, ll, missing, means, shared + D + D * D,
-                       shared + D, B, m, Pm, lbo, prob);
+        particle_block(D, pt, i0);
         for (int p = 0; p < LANES && i0 + p < I; ++p) {
             const int64_t i = i0 + p;
-            for (int d = 0; d < D; ++d) mean[i * D + d] = m[d * LANES + p];
-            for (int e = 0; e < D * D; ++e) cov[i * D * D + e] = Pm[e * LANES + p];
-            for (int64_t k = 0; k < K; ++k) lb_out[i * K + k] = lbo[k * LANES + p];
+            for (int d = 0; d < D; ++d) mean[i * D + d] = pt->m[d * LANES + p];
+            for (int e = 0; e < D * D; ++e) cov[i * D * D + e] = pt->Pm[e * LANES + p];
+            for (int64_t k = 0; k < K; ++k) lb_out[i * K + k] = pt->lbo[k * LANES + p];
         }
     }
 }
 
+/* Writes mean [I, D], cov [I, D, D], lb_out [I, K] and the observations zo [I, Dz] of the I
+   particles (Particles); work [PARTICLE_WORK(D, K, Dz, R)]. Returns 0, or 1 for D outside
+   1..MAX_D (nothing written). */
 int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t R,
                             const double *shared, const double *meas, const double *center,
                             const double *limit, const double *lb, double keep, double temp,
@@ -1006,10 +1030,9 @@ int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t
     const unsigned int csr = _mm_getcsr();
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_predictive_step_f64: a belief's
                                  probabilities of values far from the data are subnormal */
+    Particles pt = {I, K, Dz, R, shared, meas, center, limit, keep, temp, g, eps, zo};
     int code;
-#define PARTICLES(DD)                                                                            \
-    mcp_particles(DD, I, K, Dz, R, shared, meas, center, limit, lb, keep, temp, g, eps, mean,    \
-                  cov, lb_out, zo, work)
+#define PARTICLES(DD) mcp_particles(DD, &pt, lb, mean, cov, lb_out, work)
     FOR_D(D, PARTICLES, code);
 #undef PARTICLES
     _mm_setcsr(csr);
@@ -1019,45 +1042,93 @@ int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t
 /* ---- The planner's default values of beliefs (hgpdm_torch.decision: belief_vector, RadialBasis,
    LinearQ) ----
 
-   For each of I beliefs (mean [I, D], cov [I, D, D], lb [I, K]): the vector v = [mean, the
-   upper triangle of cov row by row, exp(lb)] (F = D + D (D + 1) / 2 + K), standardised
-   z = (v - mu) / sd, the features phi_c = exp(min(0, -eta (|z|^2 + |c|^2) + 2 eta z.c)) of the
-   C centres [C, F] (then a constant 1 where bias), and out [I, A] = phi Wq^T (Wq [A, C + bias]),
-   as those three compute them; beliefs in blocks of LANES (a short last block repeats its
-   first belief). work [C + LANES (F + C + 1)]. */
-/* The exponents of NC centres (from c0) for a block of lanes: e[c, lanes] = min(0, -eta (|z|^2
-   + |c|^2) + 2 eta z.c), z [F, LANES] the standardised vectors (norm their |z|^2), with NC
-   independent chains of FMAs over F held in registers; then their exponentials. */
-INLINE void centre_exponents(const int NC, int64_t F, int64_t c0, const double *z, __m512d norm,
-                             const double *centres, const double *cn, double eta, double *e) {
-    __m512d acc[8];
-    for (int j = 0; j < NC; ++j) acc[j] = _mm512_setzero_pd();
-    for (int64_t f = 0; f < F; ++f) {
-        const __m512d zf = _mm512_loadu_pd(z + f * LANES);
-        for (int j = 0; j < NC; ++j)
-            acc[j] = _mm512_fmadd_pd(SET1(centres[(c0 + j) * F + f]), zf, acc[j]);
-    }
-    for (int j = 0; j < NC; ++j) {
-        const __m512d x = _mm512_add_pd(_mm512_mul_pd(SET1(-eta), _mm512_add_pd(norm, SET1(cn[c0 + j]))),
-                                        _mm512_mul_pd(SET1(2.0 * eta), acc[j]));
-        /* min(0, x) is x where x is NaN: clamp_max keeps NaN */
-        _mm512_storeu_pd(e + (c0 + j) * LANES, exp8(_mm512_min_pd(_mm512_setzero_pd(), x)));
+   For each belief (mean [D], cov [D, D], probabilities p [K]): the vector v = [mean, the upper
+   triangle of cov row by row, p] (F = D + D (D + 1) / 2 + K), standardised z = (v - mu) / sd,
+   the features phi_c = exp(min(0, -eta (|z|^2 + |c|^2) + 2 eta z.c)) of the C centres [C, F]
+   (then a constant 1 where bias), and its values phi Wq^T (Wq [A, C + bias]), as those three
+   compute them; beliefs in blocks of LANES. The work space, VALUES_WORK(C, F) entries, holds
+   the centres' squared norms and a block's quantities lane-last. */
+#define VALUES_WORK(C, F) ((C) + LANES * ((F) + (C) + 1))
+typedef struct {
+    int64_t F, C, A, bias;
+    const double *mu, *sd, *centres, *Wq;
+    double eta;
+    double *cn, *z, *e, *zn; /* work; z [F, LANES] receives a block's vectors v */
+} Values;
+
+INLINE void values_init(Values *vl, double *work) {
+    const int64_t C = vl->C, F = vl->F;
+    vl->cn = work, vl->z = work + C, vl->e = vl->z + F * LANES, vl->zn = vl->e + C * LANES;
+    for (int64_t c = 0; c < C; ++c) {
+        double s = 0.0;
+        for (int64_t f = 0; f < F; ++f) s += vl->centres[c * F + f] * vl->centres[c * F + f];
+        vl->cn[c] = s;
     }
 }
 
+/* The exponents of NC centres (from c0) for a block of lanes: e[c, lanes] = min(0, -eta (|z|^2
+   + |c|^2) + 2 eta z.c), z [F, LANES] the standardised vectors (norm their |z|^2), with NC
+   independent chains of FMAs over F held in registers; then their exponentials. */
+INLINE void centre_exponents(const int NC, const Values *vl, int64_t c0, __m512d norm) {
+    const int64_t F = vl->F;
+    __m512d acc[8];
+    for (int j = 0; j < NC; ++j) acc[j] = _mm512_setzero_pd();
+    for (int64_t f = 0; f < F; ++f) {
+        const __m512d zf = _mm512_loadu_pd(vl->z + f * LANES);
+        for (int j = 0; j < NC; ++j)
+            acc[j] = _mm512_fmadd_pd(SET1(vl->centres[(c0 + j) * F + f]), zf, acc[j]);
+    }
+    for (int j = 0; j < NC; ++j) {
+        const __m512d x = _mm512_add_pd(
+            _mm512_mul_pd(SET1(-vl->eta), _mm512_add_pd(norm, SET1(vl->cn[c0 + j]))),
+            _mm512_mul_pd(SET1(2.0 * vl->eta), acc[j]));
+        /* min(0, x) is x where x is NaN: clamp_max keeps NaN */
+        _mm512_storeu_pd(vl->e + (c0 + j) * LANES, exp8(_mm512_min_pd(_mm512_setzero_pd(), x)));
+    }
+}
+
+/* The values out [I, A] of the block of beliefs i0 .. whose vectors are in vl->z. */
+INLINE void block_values(const Values *vl, int64_t i0, int64_t I, double *out) {
+    const int64_t F = vl->F, C = vl->C, A = vl->A, CB = C + vl->bias;
+    __m512d norm = _mm512_setzero_pd();
+    for (int64_t f = 0; f < F; ++f) {
+        const __m512d zf = _mm512_div_pd(_mm512_sub_pd(_mm512_loadu_pd(vl->z + f * LANES), SET1(vl->mu[f])),
+                                         SET1(vl->sd[f]));
+        _mm512_storeu_pd(vl->z + f * LANES, zf);
+        norm = _mm512_fmadd_pd(zf, zf, norm);
+    }
+    int64_t c0 = 0; /* the features' exponentials, eight centres at a time, then the rest */
+    for (; c0 + 8 <= C; c0 += 8) centre_exponents(8, vl, c0, norm);
+    if (c0 + 4 <= C) centre_exponents(4, vl, c0, norm), c0 += 4;
+    if (c0 + 2 <= C) centre_exponents(2, vl, c0, norm), c0 += 2;
+    if (c0 < C) centre_exponents(1, vl, c0, norm);
+    for (int64_t a = 0; a < A; ++a) { /* four partial sums over the centres */
+        const double *wa = vl->Wq + a * CB, *e = vl->e;
+        __m512d t[4] = {_mm512_setzero_pd(), _mm512_setzero_pd(), _mm512_setzero_pd(),
+                        _mm512_setzero_pd()};
+        int64_t c = 0;
+        for (; c + 4 <= C; c += 4)
+            for (int j = 0; j < 4; ++j)
+                t[j] = _mm512_fmadd_pd(_mm512_loadu_pd(e + (c + j) * LANES), SET1(wa[c + j]), t[j]);
+        for (; c < C; ++c) t[0] = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), SET1(wa[c]), t[0]);
+        __m512d v = _mm512_add_pd(_mm512_add_pd(t[0], t[1]), _mm512_add_pd(t[2], t[3]));
+        if (vl->bias) v = _mm512_add_pd(v, SET1(wa[C]));
+        _mm512_storeu_pd(vl->zn, v);
+        for (int p = 0; p < LANES && i0 + p < I; ++p) out[(i0 + p) * A + a] = vl->zn[p];
+    }
+}
+
+/* The values out [I, A] of I beliefs (mean [I, D], cov [I, D, D], lb [I, K] log-probabilities,
+   exponentiated here) with the basis mu, sd [F], centres [C, F], eta and the weights Wq
+   [A, C + bias]; a short last block repeats its first belief. work [VALUES_WORK(C, F)]. */
 int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, int64_t bias,
                          const double *mean, const double *cov, const double *lb,
                          const double *mu, const double *sd, const double *centres, double eta,
                          const double *Wq, double *out, double *work) {
-    const int64_t F = D + D * (D + 1) / 2 + K, CB = C + bias;
-    double *cn = work, *z = cn + C, *e = z + F * LANES, *zn = e + C * LANES;
     const unsigned int csr = _mm_getcsr();
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ: the features of far centres are subnormal */
-    for (int64_t c = 0; c < C; ++c) {
-        double s = 0.0;
-        for (int64_t f = 0; f < F; ++f) s += centres[c * F + f] * centres[c * F + f];
-        cn[c] = s;
-    }
+    Values vl = {D + D * (D + 1) / 2 + K, C, A, bias, mu, sd, centres, Wq, eta};
+    values_init(&vl, work);
     const __m512i lane = _mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0);
     for (int64_t i0 = 0; i0 < I; i0 += LANES) {
         /* the block's beliefs (a short last block repeats its first), gathered lane-last */
@@ -1066,6 +1137,7 @@ int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, 
         const __m512i im = _mm512_mullo_epi64(row, _mm512_set1_epi64(D));
         const __m512i ic = _mm512_mullo_epi64(row, _mm512_set1_epi64(D * D));
         const __m512i ik = _mm512_mullo_epi64(row, _mm512_set1_epi64(K));
+        double *z = vl.z;
         int64_t f = 0;
         for (int64_t a = 0; a < D; ++a, ++f)
             _mm512_storeu_pd(z + f * LANES, _mm512_i64gather_pd(im, mean + i0 * D + a, 8));
@@ -1075,33 +1147,50 @@ int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, 
                                  _mm512_i64gather_pd(ic, cov + i0 * D * D + a * D + b, 8));
         for (int64_t k = 0; k < K; ++k, ++f)
             _mm512_storeu_pd(z + f * LANES, exp8(_mm512_i64gather_pd(ik, lb + i0 * K + k, 8)));
-        __m512d norm = _mm512_setzero_pd();
-        for (f = 0; f < F; ++f) {
-            const __m512d zf = _mm512_div_pd(_mm512_sub_pd(_mm512_loadu_pd(z + f * LANES), SET1(mu[f])),
-                                             SET1(sd[f]));
-            _mm512_storeu_pd(z + f * LANES, zf);
-            norm = _mm512_fmadd_pd(zf, zf, norm);
-        }
-        int64_t c0 = 0; /* the features' exponentials, eight centres at a time, then the rest */
-        for (; c0 + 8 <= C; c0 += 8) centre_exponents(8, F, c0, z, norm, centres, cn, eta, e);
-        if (c0 + 4 <= C) centre_exponents(4, F, c0, z, norm, centres, cn, eta, e), c0 += 4;
-        if (c0 + 2 <= C) centre_exponents(2, F, c0, z, norm, centres, cn, eta, e), c0 += 2;
-        if (c0 < C) centre_exponents(1, F, c0, z, norm, centres, cn, eta, e);
-        for (int64_t a = 0; a < A; ++a) { /* four partial sums over the centres */
-            const double *wa = Wq + a * CB;
-            __m512d t[4] = {_mm512_setzero_pd(), _mm512_setzero_pd(), _mm512_setzero_pd(),
-                            _mm512_setzero_pd()};
-            int64_t c = 0;
-            for (; c + 4 <= C; c += 4)
-                for (int j = 0; j < 4; ++j)
-                    t[j] = _mm512_fmadd_pd(_mm512_loadu_pd(e + (c + j) * LANES), SET1(wa[c + j]), t[j]);
-            for (; c < C; ++c) t[0] = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), SET1(wa[c]), t[0]);
-            __m512d v = _mm512_add_pd(_mm512_add_pd(t[0], t[1]), _mm512_add_pd(t[2], t[3]));
-            if (bias) v = _mm512_add_pd(v, SET1(wa[C]));
-            _mm512_storeu_pd(zn, v);
-            for (int p = 0; p < LANES && i0 + p < I; ++p) out[(i0 + p) * A + a] = zn[p];
-        }
+        block_values(&vl, i0, I, out);
     }
     _mm_setcsr(csr);
     return 0;
+}
+
+INLINE void mcp_values(const int D, Particles *pt, Values *vl, const double *lb, double *out,
+                       double *work) {
+    const int64_t I = pt->I, K = pt->K;
+    particles_init(D, pt, lb, work);
+    values_init(vl, work + PARTICLE_WORK(D, K, pt->Dz, pt->R));
+    for (int64_t i0 = 0; i0 < I; i0 += LANES) {
+        particle_block(D, pt, i0);
+        double *z = vl->z; /* the block's belief vectors, lane-last already */
+        int64_t f = 0;
+        for (int a = 0; a < D; ++a, ++f) _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->m + a * LANES));
+        for (int a = 0; a < D; ++a)
+            for (int b = a; b < D; ++b, ++f)
+                _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->Pm + (a * D + b) * LANES));
+        for (int64_t k = 0; k < K; ++k, ++f)
+            _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->prob + k * LANES));
+        block_values(vl, i0, I, out);
+    }
+}
+
+/* The values out [I, A] of the I particles' beliefs (Particles; the arguments up to eps as in
+   hgpdm_mcp_particles_f64), as hgpdm_rbf_values_f64 forms them from the particles' means,
+   covariances and normalised probabilities (basis and weights as there), without the particles
+   leaving the work space [PARTICLE_WORK(D, K, Dz, R) + VALUES_WORK(C, F)]. Returns 0, or 1 for
+   D outside 1..MAX_D (nothing written). */
+int hgpdm_mcp_values_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t R,
+                         const double *shared, const double *meas, const double *center,
+                         const double *limit, const double *lb, double keep, double temp,
+                         const int64_t *g, const double *eps, int64_t C, int64_t A, int64_t bias,
+                         const double *mu, const double *sd, const double *centres, double eta,
+                         const double *Wq, double *out, double *work) {
+    const unsigned int csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_mcp_particles_f64 */
+    Particles pt = {I, K, Dz, R, shared, meas, center, limit, keep, temp, g, eps, 0};
+    Values vl = {D + D * (D + 1) / 2 + K, C, A, bias, mu, sd, centres, Wq, eta};
+    int code;
+#define VALUES(DD) mcp_values(DD, &pt, &vl, lb, out, work)
+    FOR_D(D, VALUES, code);
+#undef VALUES
+    _mm_setcsr(csr);
+    return code;
 }

@@ -22,19 +22,17 @@ on top of LSPI's policy (a rollout with LSPI's values at the leaves). Algorithm 
 sampling as soon as a Student-t confidence interval of the mean sampled reward lies entirely
 above (wait) or below (stop) the best stopping value.
 
-Where the speed comes from (docs/design/speed.md#particles-share-the-beliefs-predictions): every
-particle starts from the same belief, so the K per-intention predictions ``q(x_{t+1} | g)`` and
-their moment-matched joints with ``z_{t+1}`` are computed once per decision. A particle differs
-only by its observation, and conditioning a Gaussian on it is linear:
-``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)`` with a shared covariance ``P_g - C_g S_g^-1 C_g^T``
-and the evidence ``log N(z^i | m^z_g, S_g)``. All particles of a chunk (without early
-termination, up to :data:`BATCH` or ``chunk_size`` of them) are advanced in one batched
-update, stored with the particles last. Where the filter's compiled step runs (a shared
+Where the speed comes from (docs/design/speed.md#particles-share-the-beliefs-predictions): the
+K predictions ``q(x_{t+1} | g)`` of the belief and their joints with ``z_{t+1}`` are computed
+once per decision; a particle's conditioning on its observation is linear,
+``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)``, with a shared covariance and the evidence
+``log N(z^i | m^z_g, S_g)``. A chunk's particles (up to :data:`BATCH` or ``chunk_size``) are
+advanced in one batched update, stored with the particles last. Where the filter's compiled step runs (a shared
 transition and a linear measurement, float64 on a CPU with the kernel:
-:class:`~hgpdm_torch.inference.intention.compiled.CompiledStep`), the shared part and the
-particles' draws and updates are the kernel's, in the filter's own form of the update (on the
-measurement's latent span); the intentions and normal deviates are drawn by torch from the same
-generator either way, so both paths see the same observations.
+:class:`~hgpdm_torch.inference.intention.compiled.CompiledStep`), the shared part, the
+particles' updates (the filter's own form) and, for a fitted RadialBasis and LinearQ, their
+values are the kernel's, the particles never leaving it. The intentions and uniforms are drawn
+by torch from the generator either way (normals: :func:`hgpdm_torch.native.standard_normal`).
 
 Particles draw ``z^i`` either from the moment-matched ``N(m^z_g, S_g)`` (``sampling="moments"``,
 the fast default, consistent with the filter's own approximation) or literally as Algorithm 4.2
@@ -50,8 +48,7 @@ with ``strict=True``, raises); sampled particles are checked the same way (never
 particle's update is affine in its (checked) observation, with factors shared by all particles,
 so it cannot fail on its own; where the shared factors of a belief fail, the call raises.
 
-Shapes: ``I`` particles, ``K`` intention values, ``Dx`` latent, ``Dz`` observed, ``S`` stopping
-actions.
+Shapes: ``I`` particles, ``K`` intention values, ``Dx`` latent, ``Dz`` observed, ``S`` stops.
 """
 
 from __future__ import annotations
@@ -231,14 +228,18 @@ def _randn(
     shape: tuple[int, ...] | torch.Size, generator: torch.Generator | None, like: torch.Tensor
 ) -> torch.Tensor:
     """Standard normal draws of ``shape`` in ``like``'s dtype and on its device, drawn on the
-    generator's device: a seeded CPU generator gives the same particles on every device. In
-    float64 on the CPU by :func:`hgpdm_torch.native.standard_normal` where the kernel is
-    available (torch's draws within a few ulp, a third of the time)."""
+    generator's device (a seeded CPU generator: the same particles on every device); on the CPU
+    in float64 by :func:`hgpdm_torch.native.standard_normal` where the kernel is available."""
     draw_on = like.device if generator is None else generator.device
     if draw_on.type == "cpu" and like.dtype == torch.float64 and native.available():
         return native.standard_normal(shape, generator).to(like.device)
     out = torch.randn(shape, generator=generator, dtype=like.dtype, device=draw_on)
     return out.to(like.device)
+
+
+def _kernel_takes(*tensors: torch.Tensor) -> bool:
+    """Whether the compiled kernel takes these tensors as they are (contiguous, usable)."""
+    return all(t.is_contiguous() for t in tensors) and native.usable(*tensors)
 
 
 class EarlyStopping:
@@ -381,13 +382,17 @@ class ParticleProjector:
         self, shared: _Shared | _CompiledShared, num: int, generator: torch.Generator | None
     ):
         if isinstance(shared, _CompiledShared):  # drawn as below, then the kernel's update
-            g, eps = self._draw(shared.prob, num, generator)
-            return self._compiled.particles(
-                shared.state, shared.log_prob, self.filter.check, g, eps.view(num, -1)
-            )[:3]
+            return self._compiled.particles(*self._compiled_args(shared, num, generator))[:3]
         z = self._sample_observations(shared, num, generator)
         usable = self.filter.check.usable(z)
         return self._update(shared, z, None if bool(usable.all()) else ~usable)
+
+    def _compiled_args(
+        self, shared: _CompiledShared, num: int, generator: torch.Generator | None
+    ) -> tuple:
+        """The compiled kernel's particle arguments: the shared state and ``num`` draws."""
+        g, eps = self._draw(shared.prob, num, generator)
+        return shared.state, shared.log_prob, self.filter.check, g, eps.view(num, -1)
 
     # ----- Algorithm 4.2: particle projection -------------------------------------------------
 
@@ -632,33 +637,33 @@ class MonteCarloPlanner(ParticleProjector):
         self.num_particles, self.min_particles = num_particles, min_particles
         self.chunk_size, self.confidence = chunk_size, confidence
 
+    def _native_basis(self, dx: int, K: int) -> tuple | None:
+        """The fitted :class:`~hgpdm_torch.decision.basis.RadialBasis`'s parameters and
+        :class:`~hgpdm_torch.decision.lspi.LinearQ`'s weights as the compiled values take them
+        (:func:`hgpdm_torch.native.rbf_values`), for beliefs of ``dx`` dims and ``K`` values;
+        ``None`` where ``vectorize``, ``features`` and ``q`` run in torch (decided at each call:
+        the attributes may have been replaced since construction)."""
+        basis, weights = self.features, self.q.weights
+        default = self.vectorize is belief_vector_unchecked and type(self.q) is LinearQ
+        if not default or type(basis) is not RadialBasis or basis.centres is None:
+            return None
+        terms = (basis.mean, basis.std, basis.centres, weights)
+        if basis.centres.shape[-1] != dx * (dx + 3) // 2 + K or not _kernel_takes(*terms):
+            return None
+        return (basis.mean, basis.std, basis.centres, basis.eta, basis.bias), weights
+
     def _values(
         self, mean: torch.Tensor, cov: torch.Tensor, log_prob: torch.Tensor
     ) -> torch.Tensor:
         """LSPI's values ``[I, 1 + S]`` of I beliefs (``mean [I, Dx]``, ``cov [I, Dx, Dx]``,
-        ``log_prob [I, K]``): by the compiled kernel for the default belief vectors and a fitted
-        :class:`~hgpdm_torch.decision.basis.RadialBasis` where it runs
+        ``log_prob [I, K]``): by the compiled kernel where :meth:`_native_basis` allows
         (:func:`hgpdm_torch.native.rbf_values`), else ``vectorize``, ``features`` and ``q`` in
         torch."""
-        basis, weights = self.features, self.q.weights
-        # decided at each call: the attributes may have been replaced since construction
-        if (
-            type(basis) is RadialBasis
-            and self.vectorize is belief_vector_unchecked
-            and type(self.q) is LinearQ
-            and basis.centres is not None
-        ):
-            terms = (mean, cov, log_prob, basis.mean, basis.std, basis.centres, weights)
-            features = mean.shape[-1] * (mean.shape[-1] + 3) // 2 + log_prob.shape[-1]
-            if (
-                basis.centres.shape[-1] == features
-                and all(t.is_contiguous() for t in terms)
-                and native.usable(*terms)
-            ):
-                parameters = (basis.mean, basis.std, basis.centres, basis.eta, basis.bias)
-                values = native.rbf_values(mean, cov, log_prob, parameters, weights)
-                if bool(torch.isfinite(values).all()):  # else torch's checks raise, as before
-                    return values
+        parameters = self._native_basis(mean.shape[-1], log_prob.shape[-1])
+        if parameters is not None and _kernel_takes(mean, cov, log_prob):
+            values = native.rbf_values(mean, cov, log_prob, *parameters)
+            if bool(torch.isfinite(values).all()):  # else torch's checks raise, as before
+                return values
         vectors = self.vectorize(mean, cov, log_prob.exp()).to(self.filter.dtype)
         return self.q.values(self.features(vectors))
 
@@ -719,13 +724,21 @@ class MonteCarloPlanner(ParticleProjector):
         self, shared: _Shared, num: int, generator: torch.Generator | None, can_wait_next: bool
     ) -> torch.Tensor:
         """Values ``[num]`` of ``num`` particles, drawn and advanced in batches of up to
-        :data:`BATCH` (or ``chunk_size``, if larger) particles (at I = 500 one batch takes 0.7
-        of the time of five of 100: their small operations' overhead)."""
+        :data:`BATCH` (or ``chunk_size``, if larger) particles."""
         batch = max(BATCH, self.chunk_size)  # an accelerator's chunk may be all particles
         if num > batch:
             sizes = [min(batch, num - start) for start in range(0, num, batch)]
             return torch.cat([self._project(shared, n, generator, can_wait_next) for n in sizes])
-        mean, cov, log_prob = self._particles(shared, num, generator)
+        if isinstance(shared, _CompiledShared):  # the values in the same call where they can be
+            args = self._compiled_args(shared, num, generator)
+            parameters = self._native_basis(self.filter.mu0.shape[0], shared.log_prob.shape[0])
+            if parameters is not None:
+                values = self._compiled.particle_values(*args, *parameters)
+                if bool(torch.isfinite(values).all()):  # else torch's checks raise, as before
+                    return particle_value(values, self.wait_value, can_wait_next)
+            mean, cov, log_prob = self._compiled.particles(*args)[:3]
+        else:
+            mean, cov, log_prob = self._particles(shared, num, generator)
         return particle_value(self._values(mean, cov, log_prob), self.wait_value, can_wait_next)
 
     def project(

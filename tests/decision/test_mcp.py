@@ -237,7 +237,8 @@ def test_moment_sampling_matches_the_literal_chain(model, pipeline):
 
 def _record_draws(planner, monkeypatch):
     """The observations each batch of particles saw, ``[I, Dz]`` per batch, whichever path drew
-    them: the torch sampler's output or the compiled kernel's (which returns them too)."""
+    them: the torch sampler's output or, for the compiled kernel's draws, the observations its
+    particles return for the same arguments (those of its values too)."""
     calls = []
     sample = planner._sample_observations
 
@@ -248,14 +249,14 @@ def _record_draws(planner, monkeypatch):
 
     monkeypatch.setattr(planner, "_sample_observations", torch_path)
     if planner._compiled is not None:
-        particles = planner._compiled.particles
+        draw = planner._compiled_args
 
         def compiled(*args, **kwargs):
-            out = particles(*args, **kwargs)
-            calls.append(out[3])
+            out = draw(*args, **kwargs)
+            calls.append(planner._compiled.particles(*out)[3])
             return out
 
-        monkeypatch.setattr(planner._compiled, "particles", compiled)
+        monkeypatch.setattr(planner, "_compiled_args", compiled)
     return calls
 
 

@@ -243,6 +243,43 @@ def test_default_values_equal_torchs(continuous_iddm, bias, monkeypatch):
         fresh._values(mean.clone().fill_(math.nan), cov, log_prob)
 
 
+def test_particle_values_are_the_values_of_the_particles(continuous_iddm, monkeypatch):
+    """The particles' values in one call (``particle_values``) against ``rbf_values`` of the
+    beliefs ``particles`` returns for the same arguments (drawn; given, with missing, inf,
+    partly-NaN and implausible rows): the same but for the vectors' probabilities, the
+    mixture's normalised weights instead of exp of the normalised log-belief (a few ulp of
+    each, through the exponent's sum of F ~ 20 products: the bound of the test above). A
+    non-finite value sends the decision through the particles and torch's values."""
+    f = OnlineIntentionFilter(continuous_iddm, GRID, forgetting=0.2, outlier_sd=3.0)
+    for z in continuous_iddm.sequences()[4][:3]:
+        f.update(z)
+    belief = Belief.from_filter(f)
+    projector = ParticleProjector(continuous_iddm, f)
+    mean, cov, log_prob = projector.sample_beliefs(belief, 203, torch.Generator().manual_seed(1))
+    basis = RadialBasis(40, bias=True, seed=0).fit(belief_vector(mean, cov, log_prob.exp()))
+    weights = torch.randn(4, basis.num_features, generator=torch.Generator().manual_seed(3))
+    planner = MonteCarloPlanner(continuous_iddm, f, LinearQ(weights.double()), basis)
+    shared = planner._shared(planner._check_belief(belief))
+    parameters = planner._native_basis(f.mu0.shape[0], len(GRID))
+    compiled, tol = planner._compiled, 1e-12 * float(weights.abs().sum(1).max())
+    drawn = planner._compiled_args(shared, 203, torch.Generator().manual_seed(2))
+    observed = continuous_iddm.sequences()[4][3:16].clone()
+    observed[1], observed[2, 0], observed[3, 1] = math.nan, math.inf, math.nan
+    observed[4, 0] = f.check.center[0] + 2 * f.check.limit[0]
+    given = (shared.state, shared.log_prob, f.check, None, observed.contiguous())
+    for args in (drawn, given):
+        got = compiled.particle_values(*args, *parameters)
+        want = planner._values(*compiled.particles(*args)[:3])
+        torch.testing.assert_close(got, want, rtol=0, atol=tol)
+    decided = planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(4))
+    monkeypatch.setattr(
+        compiled, "particle_values", lambda *a: torch.full((500, 4), math.nan, dtype=torch.float64)
+    )
+    again = planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(4))
+    assert (again.action, again.particles) == (decided.action, decided.particles)
+    assert again.q_wait == pytest.approx(decided.q_wait, abs=tol)
+
+
 def test_rank_space_conditioning_and_its_count(continuous_iddm, gp_rounding):
     """The kernel's conditioning written out in torch from its shared state (``z~ = (z -
     offset) / scale``, ``zu = U^T z~``, the residual off U's span, ``a = G zu - c``, ``m + A^T

@@ -143,13 +143,39 @@ class CompiledStep:
         observations the caller has checked and whose bad rows it has set to NaN) is a
         prediction-only step. Returns ``mean [I, Dx]``, ``cov [I, Dx, Dx]``, ``log_belief [I,
         K]`` and the observations ``z [I, Dz]`` (:func:`hgpdm_torch.native.particles`)."""
+        return native.particles(*self._particle_args(shared, log_belief, check, draws, noise))
+
+    def particle_values(
+        self,
+        shared: torch.Tensor,
+        log_belief: torch.Tensor,
+        check: ObservationCheck | None,
+        draws: torch.Tensor | None,
+        noise: torch.Tensor,
+        basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
+        weights: torch.Tensor,
+    ) -> torch.Tensor:
+        """The values ``[I, A]`` of the beliefs :meth:`particles` would return, by the radial
+        basis ``basis`` and the linear weights ``weights`` in one call
+        (:func:`hgpdm_torch.native.particle_values`)."""
+        args = self._particle_args(shared, log_belief, check, draws, noise)
+        return native.particle_values(*args, basis, weights)
+
+    def _particle_args(
+        self,
+        shared: torch.Tensor,
+        log_belief: torch.Tensor,
+        check: ObservationCheck | None,
+        draws: torch.Tensor | None,
+        noise: torch.Tensor,
+    ) -> tuple:
         dims = (self.transition.dx, self.dz, self.rank)
         center, limit = noise.new_zeros(self.dz), noise.new_full((self.dz,), math.inf)
         if check is not None:  # finiteness alone where the check has no outlier threshold
             center = check.center.to(noise)
             if check.outlier_sd is not None:
                 limit = check.limit.to(noise)
-        return native.particles(
+        return (
             shared, self.meas, dims, center, limit, log_belief, self.keep, self.temperature,
             draws, noise,
         )  # fmt: skip
