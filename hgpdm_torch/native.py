@@ -180,7 +180,7 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_predictive_step_f64.restype = ctypes.c_int
     lib.hgpdm_rbf_forms_f64.argtypes = [i64, i64, ptr, ptr, f64, ptr, ptr, ptr]
     lib.hgpdm_rbf_forms_f64.restype = ctypes.c_int
-    lib.hgpdm_mcp_shared_f64.argtypes = [i64] * 8 + [ptr] * 15
+    lib.hgpdm_mcp_shared_f64.argtypes = [i64] * 8 + [ptr] * 14
     lib.hgpdm_mcp_shared_f64.restype = ctypes.c_int
     lib.hgpdm_mcp_particles_f64.argtypes = [i64] * 5 + [ptr] * 5 + [f64] * 2 + [ptr] * 7
     lib.hgpdm_mcp_particles_f64.restype = ctypes.c_int
@@ -466,13 +466,13 @@ def particle_shared(
     step_ptrs, work = _step_operands(dims, trans, meas, rank, K, dz, tail)
     ptrs += step_ptrs
     shared = trans.new_empty(K, particle_block(d, dz, rank))
-    status = torch.zeros(1, dtype=torch.int64, device="cpu")
     code = _loaded().hgpdm_mcp_shared_f64(
-        U, L, up, d, kp, K, dz, rank, *ptrs, shared.data_ptr(), status.data_ptr(),
-        work.data_ptr(),
-    )  # fmt: skip
+        U, L, up, d, kp, K, dz, rank, *ptrs, shared.data_ptr(), work.data_ptr()
+    )
+    if code == 2:  # a covariance did not factorise
+        return shared, False
     _ran(code, d)
-    return shared, not bool(status[0])
+    return shared, True
 
 
 def particles(
@@ -705,6 +705,22 @@ def _work(dims: tuple[int, ...], n: int) -> int:
     return (d + 1) * np_ + d * (d + 1) // 2 * up + (d + 1) * (n + np_)
 
 
+_RANGES: dict[tuple[int, int], tuple[torch.Tensor, int, int]] = {}
+
+
+def _index_range(index: torch.Tensor) -> tuple[int, int]:
+    """The smallest and largest entry of ``index``, once per tensor and in-place version (a
+    model's column layout, checked at every call, changes only with the model)."""
+    key = (id(index), index._version)
+    hit = _RANGES.get(key)
+    if hit is None or hit[0] is not index:  # the stored tensor keeps its id from being reused
+        low, high = torch.aminmax(index)
+        if len(_RANGES) >= 16:
+            _RANGES.clear()
+        hit = _RANGES[key] = (index, int(low), int(high))
+    return hit[1], hit[2]
+
+
 def _contraction(args: tuple) -> tuple[tuple[int, ...], list[int | None]]:
     """The contraction's sizes ``(S, U, L, Up, D, Kp)`` and its operands' addresses, checked
     (:func:`psi2_groups`'s arguments ``args``); raises where the library is not available."""
@@ -721,9 +737,9 @@ def _contraction(args: tuple) -> tuple[tuple[int, ...], list[int | None]]:
         )
     if cols.dtype != torch.int64 or cols.device.type != "cpu" or not cols.is_contiguous():
         raise TypeError(f"cols must be a contiguous int64 CPU tensor, got {cols.dtype}")
-    low, high = torch.aminmax(cols)  # an index out of range would read outside points
-    if int(low) < 0 or int(high) >= n:
-        raise ValueError(f"cols must index the {n} points, got values in [{int(low)}, {int(high)}]")
+    low, high = _index_range(cols)  # an index out of range would read outside points
+    if low < 0 or high >= n:
+        raise ValueError(f"cols must index the {n} points, got values in [{low}, {high}]")
     up = np_ // L
     ptrs = [
         _check("points", points, (n, d)),

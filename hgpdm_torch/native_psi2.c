@@ -901,26 +901,26 @@ INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp,
 
 /* The shared state of the particles of one belief (mu [D] its mean, Q and c the forms of its
    covariance, lp [N] or NULL; the contraction's other operands as in hgpdm_psi2_groups_f64,
-   trans and meas as in hgpdm_predictive_step_f64): shared [K, BLOCK(D, Dz, R)]; status 1
-   where an innovation covariance does not factorise (the caller's torch path then takes the
-   decision); work [psi2's + U Up + (P + 1) Kp + N + U D + K (D D + D) + R D + 2 R R + 2 D Dz +
-   Dz Dz]. Returns 0, or 1 for D outside 1..MAX_D (nothing written). */
+   trans and meas as in hgpdm_predictive_step_f64): shared [K, BLOCK(D, Dz, R)]; work [psi2's +
+   U Up + (P + 1) Kp + N + U D + K (D D + D) + R D + 2 R R + 2 D Dz + Dz Dz]. Returns 0; 1 for D
+   outside 1..MAX_D (nothing written); 2 where an innovation covariance does not factorise
+   (the caller's torch path then takes the decision). */
 int hgpdm_mcp_shared_f64(int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp, int64_t K,
                          int64_t Dz, int64_t R, const double *X, const int64_t *cols,
                          const double *mu, const double *Q, const double *c, const double *lp,
                          const double *beta, const double *betac, const double *kinv,
                          const double *phiT, const double *trans, const double *meas,
-                         double *shared, int64_t *status, double *work) {
+                         double *shared, double *work) {
     const unsigned int csr = _mm_getcsr();
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_predictive_step_f64 */
-    int code;
+    int code, failed = 0;
 #define SHARED(DD)                                                                               \
-    *status = mcp_shared(DD, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv,   \
-                         phiT, trans, meas, shared, work)
+    failed = mcp_shared(DD, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv,    \
+                        phiT, trans, meas, shared, work)
     FOR_D(D, SHARED, code);
 #undef SHARED
     _mm_setcsr(csr);
-    return code;
+    return code ? code : 2 * failed;
 }
 
 /* The particles of one belief whose shared state is shared [K, BLOCK(D, Dz, R)] (lb [K] its

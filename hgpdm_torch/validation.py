@@ -90,11 +90,16 @@ _INT_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
 
 
 def check_finite(t: torch.Tensor, name: str, *, allow_nan: bool = False) -> None:
-    """Raise ``ValueError`` if ``t`` holds inf (or NaN, unless ``allow_nan``)."""
+    """Raise ``ValueError`` if ``t`` holds inf (or NaN, unless ``allow_nan``).
+
+    Without NaN allowed, a finite sum of ``t`` settles it in one reduction (NaN or inf in any
+    entry makes every summation order NaN or inf); only a sum that is not finite (a bad entry,
+    or finite entries that overflow it) is looked at entry by entry.
+    """
     if allow_nan:
         if bool(torch.isinf(t).any()):
             raise ValueError(f"{name} contains inf; expected finite values (NaN marks missing)")
-    elif not bool(torch.isfinite(t).all()):
+    elif not math.isfinite(float(t.detach().sum())) and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} contains NaN or inf; expected finite values")
 
 

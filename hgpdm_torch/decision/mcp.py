@@ -27,8 +27,8 @@ K predictions ``q(x_{t+1} | g)`` of the belief and their joints with ``z_{t+1}``
 once per decision; a particle's conditioning on its observation is linear,
 ``mu^i_g = m_g + C_g S_g^-1 (z^i - m^z_g)``, with a shared covariance and the evidence
 ``log N(z^i | m^z_g, S_g)``. A chunk's particles (up to :data:`BATCH` or ``chunk_size``) are
-advanced in one batched update, stored with the particles last. Where the filter's compiled step runs (a shared
-transition and a linear measurement, float64 on a CPU with the kernel:
+advanced in one batched update, stored with the particles last. Where the filter's compiled
+step runs (a shared transition and a linear measurement, float64 on a CPU with the kernel:
 :class:`~hgpdm_torch.inference.intention.compiled.CompiledStep`), the shared part, the
 particles' updates (the filter's own form) and, for a fitted RadialBasis and LinearQ, their
 values are the kernel's, the particles never leaving it. The intentions and uniforms are drawn
@@ -433,15 +433,14 @@ class ParticleProjector:
         """The K predictions and their joints with ``z_{t+1}``, computed once per decision (by
         the compiled kernel where it runs)."""
         f = self.filter
-        m = belief.mean.to(f.dtype)[None]
-        P = belief.cov.to(f.dtype)[None]
+        m, P = belief.mean.to(f.dtype), belief.cov.to(f.dtype)
         phase = None if belief.phase is None else m.new_full((1,), float(belief.phase))
-        if self._compiled is not None:
+        if self._compiled is not None:  # the belief as _check_belief normalised it
             log_prob = belief.log_prob.to(f.dtype)
-            log_prob = log_prob - torch.logsumexp(log_prob, -1)
-            state = self._compiled.particle_shared(m[0], P[0], log_prob, phase)
+            state = self._compiled.particle_shared(m, P, log_prob, phase)
             if state is not None:
                 return _CompiledShared(log_prob.exp(), log_prob, state)
+        m, P = m[None], P[None]
         mean, cov, _ = f.transition.moments(m, P, phase, cross=False)  # [1, K, Dx(, Dx)]
         mean, cov = mean[0], cov[0]
         linear = linear_measurement(f.measure)
@@ -662,7 +661,7 @@ class MonteCarloPlanner(ParticleProjector):
         parameters = self._native_basis(mean.shape[-1], log_prob.shape[-1])
         if parameters is not None and _kernel_takes(mean, cov, log_prob):
             values = native.rbf_values(mean, cov, log_prob, *parameters)
-            if bool(torch.isfinite(values).all()):  # else torch's checks raise, as before
+            if math.isfinite(float(values.sum())):  # all finite; else torch's checks raise
                 return values
         vectors = self.vectorize(mean, cov, log_prob.exp()).to(self.filter.dtype)
         return self.q.values(self.features(vectors))
@@ -734,7 +733,7 @@ class MonteCarloPlanner(ParticleProjector):
             parameters = self._native_basis(self.filter.mu0.shape[0], shared.log_prob.shape[0])
             if parameters is not None:
                 values = self._compiled.particle_values(*args, *parameters)
-                if bool(torch.isfinite(values).all()):  # else torch's checks raise, as before
+                if math.isfinite(float(values.sum())):  # all finite; else torch's checks raise
                     return particle_value(values, self.wait_value, can_wait_next)
             mean, cov, log_prob = self._compiled.particles(*args)[:3]
         else:
