@@ -187,7 +187,16 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_rbf_values_f64.argtypes = [i64] * 6 + [ptr] * 6 + [f64] + [ptr] * 3
     lib.hgpdm_rbf_values_f64.restype = ctypes.c_int
     lib.hgpdm_mcp_values_f64.argtypes = (
-        [i64] * 5 + [ptr] * 5 + [f64] * 2 + [ptr] * 2 + [i64] * 3 + [ptr] * 3 + [f64] + [ptr] * 3
+        [i64] * 5
+        + [ptr] * 5
+        + [f64] * 2
+        + [ptr] * 2
+        + [i64] * 3
+        + [ptr] * 3
+        + [f64]
+        + [ptr]
+        + [i64]
+        + [ptr] * 2
     )
     lib.hgpdm_mcp_values_f64.restype = ctypes.c_int
     lib.hgpdm_normal_f64.argtypes = [i64, ptr, ptr]
@@ -537,20 +546,23 @@ def particle_values(
     noise: torch.Tensor,
     basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
     weights: torch.Tensor,
+    first: int,
 ) -> torch.Tensor:
-    """:func:`rbf_values` of the beliefs :func:`particles` would return (``native_psi2.c``, one
-    call: the particles' means, covariances and probabilities stay in the kernel's work space),
-    the vectors' probabilities the mixture's normalised weights (``exp`` of the log-belief
-    within a few ulp).
+    """Each particle's best value over the actions ``first .. A - 1`` of :func:`rbf_values` of
+    the beliefs :func:`particles` would return (``native_psi2.c``, one call: the particles'
+    means, covariances and probabilities stay in the kernel's work space), the vectors'
+    probabilities the mixture's normalised weights (``exp`` of the log-belief within a few
+    ulp); NaN where one of the values is NaN.
 
     Args:
         shared, meas, dims, center, limit, log_belief, keep, temperature, draws, noise: as for
             :func:`particles`.
         basis: as for :func:`rbf_values`.
         weights: as for :func:`rbf_values`.
+        first: the first action of the maximum, in ``0 .. A - 1``.
 
     Returns:
-        ``[I, A]``.
+        ``[I]``.
     """
     d, dz, rank = dims
     args = _particle_args(
@@ -558,10 +570,12 @@ def particle_values(
     )
     K = log_belief.shape[0]
     c, f, a, bias, basis_args = _basis_args(basis, weights, d, K)
-    out = noise.new_empty(noise.shape[0], a)
+    if not 0 <= first < a:
+        raise ValueError(f"first must be an action in 0 .. {a - 1}, got {first}")
+    out = noise.new_empty(noise.shape[0])
     work = scratch(_particle_work(d, K, dz, rank) + c + _LANES * (f + c + 1), 4)
     code = _loaded().hgpdm_mcp_values_f64(
-        *args, c, a, bias, *basis_args, out.data_ptr(), work.data_ptr()
+        *args, c, a, bias, *basis_args, first, out.data_ptr(), work.data_ptr()
     )
     _ran(code, d)
     return out

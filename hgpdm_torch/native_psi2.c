@@ -1087,8 +1087,10 @@ INLINE void centre_exponents(const int NC, const Values *vl, int64_t c0, __m512d
     }
 }
 
-/* The values out [I, A] of the block of beliefs i0 .. whose vectors are in vl->z. */
-INLINE void block_values(const Values *vl, int64_t i0, int64_t I, double *out) {
+/* The values out [I, A] of the block of beliefs i0 .. whose vectors are in vl->z; with first
+   >= 0, each belief's best value over the actions first .. A - 1 instead, out [I] (NaN where
+   one of them is NaN, as torch's max). */
+INLINE void block_values(const Values *vl, int64_t i0, int64_t I, int64_t first, double *out) {
     const int64_t F = vl->F, C = vl->C, A = vl->A, CB = C + vl->bias;
     __m512d norm = _mm512_setzero_pd();
     for (int64_t f = 0; f < F; ++f) {
@@ -1102,7 +1104,8 @@ INLINE void block_values(const Values *vl, int64_t i0, int64_t I, double *out) {
     if (c0 + 4 <= C) centre_exponents(4, vl, c0, norm), c0 += 4;
     if (c0 + 2 <= C) centre_exponents(2, vl, c0, norm), c0 += 2;
     if (c0 < C) centre_exponents(1, vl, c0, norm);
-    for (int64_t a = 0; a < A; ++a) { /* four partial sums over the centres */
+    __m512d best = SET1(-INFINITY);
+    for (int64_t a = first < 0 ? 0 : first; a < A; ++a) { /* four partial sums over the centres */
         const double *wa = vl->Wq + a * CB, *e = vl->e;
         __m512d t[4] = {_mm512_setzero_pd(), _mm512_setzero_pd(), _mm512_setzero_pd(),
                         _mm512_setzero_pd()};
@@ -1113,8 +1116,16 @@ INLINE void block_values(const Values *vl, int64_t i0, int64_t I, double *out) {
         for (; c < C; ++c) t[0] = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), SET1(wa[c]), t[0]);
         __m512d v = _mm512_add_pd(_mm512_add_pd(t[0], t[1]), _mm512_add_pd(t[2], t[3]));
         if (vl->bias) v = _mm512_add_pd(v, SET1(wa[C]));
+        if (first >= 0) { /* max(v, best) keeps best where v is NaN: the NaN is blended in */
+            best = _mm512_mask_blend_pd(_mm512_cmp_pd_mask(v, v, _CMP_UNORD_Q), _mm512_max_pd(v, best), v);
+            continue;
+        }
         _mm512_storeu_pd(vl->zn, v);
         for (int p = 0; p < LANES && i0 + p < I; ++p) out[(i0 + p) * A + a] = vl->zn[p];
+    }
+    if (first >= 0) {
+        _mm512_storeu_pd(vl->zn, best);
+        for (int p = 0; p < LANES && i0 + p < I; ++p) out[i0 + p] = vl->zn[p];
     }
 }
 
@@ -1147,14 +1158,14 @@ int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, 
                                  _mm512_i64gather_pd(ic, cov + i0 * D * D + a * D + b, 8));
         for (int64_t k = 0; k < K; ++k, ++f)
             _mm512_storeu_pd(z + f * LANES, exp8(_mm512_i64gather_pd(ik, lb + i0 * K + k, 8)));
-        block_values(&vl, i0, I, out);
+        block_values(&vl, i0, I, -1, out);
     }
     _mm_setcsr(csr);
     return 0;
 }
 
-INLINE void mcp_values(const int D, Particles *pt, Values *vl, const double *lb, double *out,
-                       double *work) {
+INLINE void mcp_values(const int D, Particles *pt, Values *vl, const double *lb, int64_t first,
+                       double *out, double *work) {
     const int64_t I = pt->I, K = pt->K;
     particles_init(D, pt, lb, work);
     values_init(vl, work + PARTICLE_WORK(D, K, pt->Dz, pt->R));
@@ -1168,27 +1179,28 @@ INLINE void mcp_values(const int D, Particles *pt, Values *vl, const double *lb,
                 _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->Pm + (a * D + b) * LANES));
         for (int64_t k = 0; k < K; ++k, ++f)
             _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->prob + k * LANES));
-        block_values(vl, i0, I, out);
+        block_values(vl, i0, I, first, out);
     }
 }
 
-/* The values out [I, A] of the I particles' beliefs (Particles; the arguments up to eps as in
-   hgpdm_mcp_particles_f64), as hgpdm_rbf_values_f64 forms them from the particles' means,
-   covariances and normalised probabilities (basis and weights as there), without the particles
-   leaving the work space [PARTICLE_WORK(D, K, Dz, R) + VALUES_WORK(C, F)]. Returns 0, or 1 for
-   D outside 1..MAX_D (nothing written). */
+/* Each of the I particles' best value over the actions first .. A - 1, out [I] (block_values),
+   of their beliefs (Particles; the arguments up to eps as in hgpdm_mcp_particles_f64) as
+   hgpdm_rbf_values_f64 values them, from the particles' means, covariances and normalised
+   probabilities (basis and weights as there), without the particles leaving the work space
+   [PARTICLE_WORK(D, K, Dz, R) + VALUES_WORK(C, F)]. Returns 0, or 1 for D outside 1..MAX_D
+   (nothing written). */
 int hgpdm_mcp_values_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t R,
                          const double *shared, const double *meas, const double *center,
                          const double *limit, const double *lb, double keep, double temp,
                          const int64_t *g, const double *eps, int64_t C, int64_t A, int64_t bias,
                          const double *mu, const double *sd, const double *centres, double eta,
-                         const double *Wq, double *out, double *work) {
+                         const double *Wq, int64_t first, double *out, double *work) {
     const unsigned int csr = _mm_getcsr();
     _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_mcp_particles_f64 */
     Particles pt = {I, K, Dz, R, shared, meas, center, limit, keep, temp, g, eps, 0};
     Values vl = {D + D * (D + 1) / 2 + K, C, A, bias, mu, sd, centres, Wq, eta};
     int code;
-#define VALUES(DD) mcp_values(DD, &pt, &vl, lb, out, work)
+#define VALUES(DD) mcp_values(DD, &pt, &vl, lb, first, out, work)
     FOR_D(D, VALUES, code);
 #undef VALUES
     _mm_setcsr(csr);

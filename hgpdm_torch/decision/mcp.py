@@ -101,13 +101,16 @@ WAIT_VALUES = ("lspi", "stop")
 
 
 def particle_value(q_values: torch.Tensor, wait_value: str, can_wait_next: bool) -> torch.Tensor:
-    """The value ``[...]`` of particles of the next belief from their LSPI values
-    ``q_values [..., 1 + S]`` (waiting first): the best stopping value, or with
-    ``wait_value="lspi"`` and waiting allowed at the next step, the best of all actions."""
+    """The value ``[...]`` of particles from their LSPI values ``q_values [..., 1 + S]``
+    (waiting first): the best stopping value, or with ``wait_value="lspi"`` and waiting allowed
+    at the next step, the best of all actions."""
+    return q_values[..., _first_action(wait_value, can_wait_next) :].max(-1).values
+
+
+def _first_action(wait_value: str, can_wait_next: bool) -> int:
+    """The first of the actions whose best value a particle takes (waiting is action 0)."""
     check_choice(wait_value, "wait_value", WAIT_VALUES)
-    if wait_value == "lspi" and can_wait_next:
-        return q_values.max(-1).values
-    return q_values[..., WAIT + 1 :].max(-1).values
+    return 0 if wait_value == "lspi" and can_wait_next else WAIT + 1
 
 
 def _check_filter(belief_filter: object) -> None:
@@ -139,13 +142,9 @@ class Belief:
         """The current belief of stream ``stream`` of an online filter (copied; with its phase
         for a phase-aware IDDM)."""
         _check_filter(belief_filter)
-        phase = int(belief_filter.steps[stream]) - 1 if belief_filter.phase else None
-        return cls(
-            belief_filter.mean[stream].clone(),
-            belief_filter.cov[stream].clone(),
-            belief_filter.log_belief[stream].clone(),
-            phase,
-        )
+        f, s = belief_filter, stream
+        phase = int(f.steps[s]) - 1 if f.phase else None
+        return cls(f.mean[s].clone(), f.cov[s].clone(), f.log_belief[s].clone(), phase)
 
     def vector(self) -> torch.Tensor:
         """``[F]`` belief vector (:func:`~hgpdm_torch.decision.stopping.belief_vector`)."""
@@ -731,10 +730,11 @@ class MonteCarloPlanner(ParticleProjector):
         if isinstance(shared, _CompiledShared):  # the values in the same call where they can be
             args = self._compiled_args(shared, num, generator)
             parameters = self._native_basis(self.filter.mu0.shape[0], shared.log_prob.shape[0])
-            if parameters is not None:
-                values = self._compiled.particle_values(*args, *parameters)
-                if math.isfinite(float(values.sum())):  # all finite; else torch's checks raise
-                    return particle_value(values, self.wait_value, can_wait_next)
+            if parameters is not None:  # each particle's best value
+                first = _first_action(self.wait_value, can_wait_next)
+                best = self._compiled.particle_values(*args, *parameters, first)
+                if math.isfinite(float(best.sum())):  # all finite; else torch's checks raise
+                    return best
             mean, cov, log_prob = self._compiled.particles(*args)[:3]
         else:
             mean, cov, log_prob = self._particles(shared, num, generator)

@@ -268,12 +268,18 @@ def test_particle_values_are_the_values_of_the_particles(continuous_iddm, monkey
     observed[4, 0] = f.check.center[0] + 2 * f.check.limit[0]
     given = (shared.state, shared.log_prob, f.check, None, observed.contiguous())
     for args in (drawn, given):
-        got = compiled.particle_values(*args, *parameters)
-        want = planner._values(*compiled.particles(*args)[:3])
-        torch.testing.assert_close(got, want, rtol=0, atol=tol)
+        values = planner._values(*compiled.particles(*args)[:3])
+        for first in (0, 1, 3):
+            got = compiled.particle_values(*args, *parameters, first)
+            want = values[:, first:].max(-1).values
+            torch.testing.assert_close(got, want, rtol=0, atol=tol)
+        spoilt = parameters[1].clone()  # a NaN weight of action 2 spoils only its maxima
+        spoilt[2, 0] = math.nan
+        assert bool(compiled.particle_values(*args, parameters[0], spoilt, 0).isnan().all())
+        assert compiled.particle_values(*args, parameters[0], spoilt, 3).isfinite().all()
     decided = planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(4))
     monkeypatch.setattr(
-        compiled, "particle_values", lambda *a: torch.full((500, 4), math.nan, dtype=torch.float64)
+        compiled, "particle_values", lambda *a: torch.full((500,), math.nan, dtype=torch.float64)
     )
     again = planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(4))
     assert (again.action, again.particles) == (decided.action, decided.particles)

@@ -154,12 +154,13 @@ class CompiledStep:
         noise: torch.Tensor,
         basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
         weights: torch.Tensor,
+        first: int,
     ) -> torch.Tensor:
-        """The values ``[I, A]`` of the beliefs :meth:`particles` would return, by the radial
-        basis ``basis`` and the linear weights ``weights`` in one call
-        (:func:`hgpdm_torch.native.particle_values`)."""
+        """The best value ``[I]`` over the actions ``first ..`` of each belief :meth:`particles`
+        would return, by the radial basis ``basis`` and the linear weights ``weights``, in one
+        call (:func:`hgpdm_torch.native.particle_values`)."""
         args = self._particle_args(shared, log_belief, check, draws, noise)
-        return native.particle_values(*args, basis, weights)
+        return native.particle_values(*args, basis, weights, first)
 
     def _particle_args(
         self,
