@@ -29,7 +29,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import hashlib
-import math
 import os
 import platform
 import shutil
@@ -48,6 +47,7 @@ __all__ = [
     "SOURCE",
     "available",
     "cache_dir",
+    "categorical_normal",
     "clear_scratch",
     "exp_",
     "particle_block",
@@ -59,7 +59,6 @@ __all__ = [
     "rbf_forms",
     "rbf_values",
     "scratch",
-    "standard_normal",
     "supported",
     "usable",
 ]
@@ -201,6 +200,8 @@ def _library() -> ctypes.CDLL | None:
     lib.hgpdm_mcp_values_f64.restype = ctypes.c_int
     lib.hgpdm_normal_f64.argtypes = [i64, ptr, ptr]
     lib.hgpdm_normal_f64.restype = ctypes.c_int
+    lib.hgpdm_draws_f64.argtypes = [i64, i64, ptr, i64, ptr, ptr, ptr, ptr]
+    lib.hgpdm_draws_f64.restype = ctypes.c_int
     return lib
 
 
@@ -275,22 +276,42 @@ def exp_(t: torch.Tensor) -> torch.Tensor:
     return t
 
 
-def standard_normal(
-    shape: tuple[int, ...] | torch.Size, generator: torch.Generator | None = None
-) -> torch.Tensor:
-    """``torch.randn(shape, generator=generator, dtype=torch.float64)`` on the CPU, from the
-    same uniforms and in the same Box-Muller form (``native_psi2.c``), with the logarithm, sine
-    and cosine vectorised: each draw within a few ulp of torch's (which calls libm per draw, 17
-    ns a draw here against 5 ns), and the generator left in the same state. Fewer than 16
-    draws (where torch draws them one by one) are torch's own.
+def categorical_normal(
+    prob: torch.Tensor, num: int, dz: int, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.multinomial(prob, num, replacement=True, generator=generator)`` and then
+    ``torch.randn(num, dz, generator=generator, dtype=torch.float64)`` (``native_psi2.c``) from
+    one draw of torch's uniforms, in torch's forms: the same grid values (its cumulative
+    distribution and bisection, in float64) and normals (its Box-Muller form, with the log, sine
+    and cosine vectorised: within a few ulp of torch's, which calls libm per draw, 17 ns a draw
+    here against 5 ns), the generator left where torch's two calls leave it. One draw or fewer
+    than 16 normals (which torch draws another way): torch's own two calls.
+
+    Args:
+        prob: ``[K]`` float64 CPU, non-negative with a positive sum (normalised here; else
+            ``ValueError``, the uniforms drawn).
+        num: draws.
+        dz: normals per draw.
+        generator: a CPU generator, or ``None`` for torch's default.
+
+    Returns:
+        ``g [num]`` int64 in ``0 .. K - 1`` and ``eps [num, dz]``.
     """
-    n = math.prod(shape)
-    if n < 16:
-        return torch.randn(shape, generator=generator, dtype=torch.float64)
-    u = torch.rand(n + (16 if n % 16 else 0), generator=generator, dtype=torch.float64)
-    out = torch.empty(shape, dtype=torch.float64)
-    _ran(_loaded().hgpdm_normal_f64(n, u.data_ptr(), out.data_ptr()), 1)
-    return out
+    n = num * dz
+    if n < 16 or num < 2:  # torch draws one value, or fewer than 16 normals, another way
+        g = torch.multinomial(prob, num, replacement=True, generator=generator)
+        return g, torch.randn(num, dz, generator=generator, dtype=torch.float64)
+    K = prob.shape[0]
+    ptr = _check("prob", prob, (K,))
+    u = torch.rand(num + n + (16 if n % 16 else 0), generator=generator, dtype=torch.float64)
+    g, eps = torch.empty(num, dtype=torch.int64), torch.empty(num, dz, dtype=torch.float64)
+    code = _loaded().hgpdm_draws_f64(
+        num, K, ptr, n, u.data_ptr(), g.data_ptr(), eps.data_ptr(), scratch(K, 6).data_ptr()
+    )
+    if code == 1:
+        raise ValueError("prob must be non-negative and finite with a positive sum")
+    _ran(code, 1)
+    return g, eps
 
 
 def rbf_forms(
@@ -607,7 +628,8 @@ def _particle_args(
     if draws is not None:
         if draws.dtype != torch.int64 or draws.shape != (num,) or not draws.is_contiguous():
             raise TypeError(f"draws must be a contiguous int64 tensor [{num}]")
-        if num and not 0 <= int(draws.min()) <= int(draws.max()) < K:
+        low, high = torch.aminmax(draws) if num else (0, 0)
+        if not 0 <= int(low) <= int(high) < K:
             raise ValueError(f"draws must be grid values in 0 .. {K - 1}")
         g_ptr = draws.data_ptr()
     noise_ptr = _check("noise", noise, (num, dz))

@@ -195,6 +195,38 @@ int hgpdm_normal_f64(int64_t n, const double *u, double *out) {
     return 0;
 }
 
+/* I categorical draws g [I] from prob [K] as torch.multinomial draws them with replacement in
+   float64 (the running sum's cumulative distribution over its total, its last entry set to 1;
+   each draw the first entry not below its uniform, by bisection), then n >= 16 standard normal
+   draws eps [n] (hgpdm_normal_f64), from the uniforms u [I + n + (16 if n % 16 else 0)] that
+   torch would draw for the two in that order. cdf [K] is work. Returns 0; 1 where prob has a
+   negative or non-finite entry or no positive total (nothing written); 2 for n < 16. */
+int hgpdm_draws_f64(int64_t I, int64_t K, const double *prob, int64_t n, const double *u,
+                    int64_t *g, double *eps, double *cdf) {
+    if (n < 16) return 2;
+    double total = 0.0;
+    for (int64_t k = 0; k < K; ++k) {
+        if (!(prob[k] >= 0.0) || !isfinite(prob[k])) return 1;
+        total += prob[k];
+        cdf[k] = total;
+    }
+    if (!(total > 0.0)) return 1;
+    for (int64_t k = 0; k < K; ++k) cdf[k] /= total;
+    cdf[K - 1] = 1.0;
+    for (int64_t i = 0; i < I; ++i) {
+        int64_t lo = 0, hi = K;
+        while (hi > lo) {
+            const int64_t mid = lo + (hi - lo) / 2;
+            if (cdf[mid] < u[i])
+                lo = mid + 1;
+            else
+                hi = mid;
+        }
+        g[i] = lo;
+    }
+    return hgpdm_normal_f64(n, u + I, eps);
+}
+
 /* The L rows of group u against all Np columns: acc[j] = sum_l psi2 kinv and
    prow[a, j] = sum_l beta[(u, l), a] psi2, eight columns at a time in registers. */
 INLINE void group_rows(const int D, int64_t L, int64_t C, int64_t Np, const double *lu,

@@ -1,7 +1,8 @@
 """The compiled CPU kernel (:mod:`hgpdm_torch.native`) against independent references.
 
 - its exponential against mpmath at 200 bits (within 2 ulp; 0, inf and NaN where IEEE-754 puts
-  them), its normal draws against mpmath's Box-Muller values of torch's uniforms;
+  them), its categorical and normal draws against torch's (and mpmath's Box-Muller values of
+  torch's uniforms);
 - its group sums of ``psi2 = exp(left @ right)`` against the dense formulas in torch, within a
   first-order rounding bound of both (the exponent's products, the exponential, the sums);
 - one warning and the torch path where no compiler is found or the build fails;
@@ -77,28 +78,30 @@ def test_exp_specials_and_tail():
 
 
 @needs_kernel
-@pytest.mark.parametrize("n", [16, 4096 + 7])
-def test_standard_normal_within_five_ulp_of_torchs_form(n):
-    """``standard_normal`` against the exact Box-Muller values of the uniforms torch draws
-    (mpmath at 120 bits): ``rho cos theta`` and ``rho sin theta`` within 5 ulp (its log, sine
-    and cosine within 1 ulp each, the square root and the product within half an ulp: 2.5
-    units of 2^-53 relative, up to 5 ulp where the result lies low in its binade), n % 16 != 0
-    drawing the last sixteen again; torch's own draws within 2 ulp of the same values (so that a
-    wrong form or order would show), the generator left where torch leaves it, and fewer than
-    16 draws torch's exactly."""
-    gen, twin = torch.Generator().manual_seed(n), torch.Generator().manual_seed(n)
-    ours, theirs = (
-        native.standard_normal((n,), gen),
-        torch.randn(n, generator=twin, dtype=torch.float64),
-    )
+@pytest.mark.parametrize(("num", "dz"), [(2, 8), (587, 7)])
+def test_categorical_normal_are_torchs_draws(num, dz):
+    """``categorical_normal`` against torch's two calls from the same generator: the grid values
+    exactly (a distribution with zero entries, not normalised), the generator left in the same
+    state, and each normal against the exact Box-Muller value of the uniform torch draws for it
+    (mpmath at 120 bits): within 5 ulp (its log, sine and cosine within 1 ulp each, the square
+    root and the product within half an ulp: 2.5 units of 2^-53 relative, up to 5 ulp where the
+    result lies low in its binade), where n = num dz is not a multiple of 16 the last sixteen
+    drawn again; torch's own normals within 2 ulp of the same values (so that a wrong form or
+    order would show)."""
+    prob = torch.tensor([0.3, 0.0, 1.2, 0.05, 0.0, 0.7], dtype=torch.float64)
+    gen, twin = torch.Generator().manual_seed(num), torch.Generator().manual_seed(num)
+    g, ours = native.categorical_normal(prob, num, dz, gen)
+    assert torch.equal(g, torch.multinomial(prob, num, replacement=True, generator=twin))
+    theirs = torch.randn(num, dz, generator=twin, dtype=torch.float64).reshape(-1)
     assert torch.equal(gen.get_state(), twin.get_state())
-    uniforms = torch.rand(
-        n + (16 if n % 16 else 0), generator=torch.Generator().manual_seed(n), dtype=torch.float64
-    ).tolist()
+    ours, n = ours.reshape(-1), num * dz
+    replay = torch.Generator().manual_seed(num)
+    torch.rand(num, generator=replay, dtype=torch.float64)  # the grid values' uniforms
+    uniforms = torch.rand(n + (16 if n % 16 else 0), generator=replay, dtype=torch.float64)
+    uniforms = uniforms.tolist()
     mpmath.mp.prec = 120
-    starts = list(range(0, n - 15, 16)) + ([n] if n % 16 else [])
     tail = n - 16 if n % 16 else n  # the repeated last block writes the last sixteen draws
-    for start in starts:
+    for start in list(range(0, n - 15, 16)) + ([n] if n % 16 else []):
         base = min(start, n - 16)
         for j in range(8):
             rho = mpmath.sqrt(-2 * mpmath.log(1 - mpmath.mpf(uniforms[start + j])))
@@ -112,11 +115,22 @@ def test_standard_normal_within_five_ulp_of_torchs_form(n):
                 unit = math.ulp(float(exact))
                 assert abs(mpmath.mpf(float(ours[k])) - exact) <= 5 * unit, k
                 assert abs(mpmath.mpf(float(theirs[k])) - exact) <= 2 * unit, k
-    small = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
-    assert torch.equal(
-        native.standard_normal((3, 5), small[0]),
-        torch.randn(3, 5, generator=small[1], dtype=torch.float64),
-    )
+
+
+@needs_kernel
+def test_categorical_normal_few_draws_and_bad_distributions():
+    """One draw or fewer than 16 normals (which torch draws another way) are torch's own draws;
+    a negative, NaN or all-zero distribution is refused (its uniforms drawn, nothing
+    returned)."""
+    gen, twin = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    prob = torch.tensor([0.5, 0.2, 0.3], dtype=torch.float64)
+    for num, dz in ((3, 5), (1, 20)):
+        g, eps = native.categorical_normal(prob, num, dz, gen)
+        assert torch.equal(g, torch.multinomial(prob, num, replacement=True, generator=twin))
+        assert torch.equal(eps, torch.randn(num, dz, generator=twin, dtype=torch.float64))
+    for bad in ([0.5, -0.1], [0.5, math.nan], [0.0, 0.0]):
+        with pytest.raises(ValueError, match="prob must be"):
+            native.categorical_normal(torch.tensor(bad, dtype=torch.float64), 10, 4, gen)
 
 
 def _problem(streams: int, U: int, L: int, D: int, K: int, gen: torch.Generator, phase=False):

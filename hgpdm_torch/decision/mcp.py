@@ -31,8 +31,8 @@ advanced in one batched update, stored with the particles last. Where the filter
 step runs (a shared transition and a linear measurement, float64 on a CPU with the kernel:
 :class:`~hgpdm_torch.inference.intention.compiled.CompiledStep`), the shared part, the
 particles' updates (the filter's own form) and, for a fitted RadialBasis and LinearQ, their
-values are the kernel's, the particles never leaving it. The intentions and uniforms are drawn
-by torch from the generator either way (normals: :func:`hgpdm_torch.native.standard_normal`).
+values are the kernel's, the particles never leaving it. The intentions and normal deviates
+are torch's from the generator either way (by :func:`hgpdm_torch.native.categorical_normal`).
 
 Particles draw ``z^i`` either from the moment-matched ``N(m^z_g, S_g)`` (``sampling="moments"``,
 the fast default, consistent with the filter's own approximation) or literally as Algorithm 4.2
@@ -227,11 +227,8 @@ def _randn(
     shape: tuple[int, ...] | torch.Size, generator: torch.Generator | None, like: torch.Tensor
 ) -> torch.Tensor:
     """Standard normal draws of ``shape`` in ``like``'s dtype and on its device, drawn on the
-    generator's device (a seeded CPU generator: the same particles on every device); on the CPU
-    in float64 by :func:`hgpdm_torch.native.standard_normal` where the kernel is available."""
+    generator's device: a seeded CPU generator gives the same particles on every device."""
     draw_on = like.device if generator is None else generator.device
-    if draw_on.type == "cpu" and like.dtype == torch.float64 and native.available():
-        return native.standard_normal(shape, generator).to(like.device)
     out = torch.randn(shape, generator=generator, dtype=like.dtype, device=draw_on)
     return out.to(like.device)
 
@@ -371,9 +368,13 @@ class ParticleProjector:
         """The particles' intentions ``g [I] ~ prob`` and, for ``sampling="moments"``, their
         observations' standard normal draws ``[I, Dz, 1]`` (``None`` for ``"points"``)."""
         draw_on = prob.device if generator is None else generator.device
+        moments = self.sampling == "moments"
+        if moments and draw_on.type == prob.device.type == "cpu" and _kernel_takes(prob):
+            g, eps = native.categorical_normal(prob, num, self.filter.obs_dim, generator)
+            return g, eps[..., None]  # torch's draws of the two below, from one call
         g = torch.multinomial(prob.to(draw_on), num, replacement=True, generator=generator)
         g = g.to(prob.device)  # [I]
-        if self.sampling != "moments":
+        if not moments:
             return g, None
         return g, _randn((num, self.filter.obs_dim, 1), generator, prob)
 
@@ -425,7 +426,7 @@ class ParticleProjector:
         ):
             raise ValueError(f"belief.phase must be an int >= 0, got {phase!r}")
         # Stop values and projected values must read the same histogram: normalise once here.
-        log_prob = belief.log_prob - torch.logsumexp(belief.log_prob, -1)
+        log_prob = torch.log_softmax(belief.log_prob, -1)  # log p - logsumexp(log p), fused
         return Belief(belief.mean, belief.cov, log_prob, phase)
 
     def _shared(self, belief: Belief) -> _Shared | _CompiledShared:

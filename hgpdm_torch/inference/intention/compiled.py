@@ -171,11 +171,11 @@ class CompiledStep:
         noise: torch.Tensor,
     ) -> tuple:
         dims = (self.transition.dx, self.dz, self.rank)
-        center, limit = noise.new_zeros(self.dz), noise.new_full((self.dz,), math.inf)
-        if check is not None:  # finiteness alone where the check has no outlier threshold
-            center = check.center.to(noise)
-            if check.outlier_sd is not None:
-                limit = check.limit.to(noise)
+        center = noise.new_zeros(self.dz) if check is None else check.center.to(noise)
+        if check is not None and check.outlier_sd is not None:
+            limit = check.limit.to(noise)
+        else:  # finiteness alone where there is no outlier threshold
+            limit = noise.new_full((self.dz,), math.inf)
         return (
             shared, self.meas, dims, center, limit, log_belief, self.keep, self.temperature,
             draws, noise,
