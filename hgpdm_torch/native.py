@@ -300,11 +300,12 @@ def categorical_normal(
     n = num * dz
     if n < 16 or num < 2:  # torch draws one value, or fewer than 16 normals, another way
         g = torch.multinomial(prob, num, replacement=True, generator=generator)
-        return g, torch.randn(num, dz, generator=generator, dtype=torch.float64)
+        return g, torch.randn(num, dz, generator=generator, dtype=torch.float64, device="cpu")
     K = prob.shape[0]
     ptr = _check("prob", prob, (K,))
-    u = torch.rand(num + n + (16 if n % 16 else 0), generator=generator, dtype=torch.float64)
-    g, eps = torch.empty(num, dtype=torch.int64), torch.empty(num, dz, dtype=torch.float64)
+    f64 = {"dtype": torch.float64, "device": "cpu"}  # whatever torch's default device
+    u = torch.rand(num + n + (16 if n % 16 else 0), generator=generator, **f64)
+    g, eps = torch.empty(num, dtype=torch.int64, device="cpu"), torch.empty(num, dz, **f64)
     code = _loaded().hgpdm_draws_f64(
         num, K, ptr, n, u.data_ptr(), g.data_ptr(), eps.data_ptr(), scratch(K, 6).data_ptr()
     )

@@ -1,7 +1,7 @@
 /* Fused psi2 contractions for hgpdm_torch.native (AVX-512, float64).
 
    Compiled on first use by hgpdm_torch/native.py with the machine's C compiler and
-   -O3 -march=native; loaded with ctypes. Seven entry points:
+   -O3 -march=native; loaded with ctypes. Ten entry points:
 
    - hgpdm_exp_f64: exp of an array in place, within 2 ulp (see exp8);
    - hgpdm_psi2_groups_f64: for each stream s of the shared transition GP,
@@ -12,18 +12,22 @@
        T[s, u, v] (tr(K^-1 psi2) of value k), contracted as each row of T is complete, and
        psi1[s, i] on the way,
      psi2[s] = exp(d_i^T H d_j + r_i + s_j) (exponent) evaluated eight columns of one group's
-     rows at a time in registers and never stored (left and right, O(N D) per stream, are built from the stream's
-     quadratic form in the work space): one pass over the N x N block instead of the
-     exponential, the weighted sums and the K^-1 product each reading and writing it; S of one
-     group is contracted with phi while it is in the L1 cache;
+     rows at a time in registers and never stored (its factors, O(N D) per stream, are built
+     from the stream's quadratic form in the work space): one pass over the N x N block
+     instead of the exponential, the weighted sums and the K^-1 product each reading and
+     writing it; S of one group is contracted with phi while it is in the L1 cache;
    - hgpdm_rbf_forms_f64: each stream's quadratic forms of psi2 and psi1 (rbf_forms);
    - hgpdm_predictive_step_f64: the online filter's whole predictive step per stream, the
      contraction fused with the transition moments, measurement update, belief step and
      mixture that consume it (step_tail);
    - hgpdm_mcp_shared_f64 and hgpdm_mcp_particles_f64: Monte-Carlo planning's particles of one
-     belief, what they share once, then their draws and the same step (mcp_particles);
+     belief, what they share once, then their draws and the same step (particle_block);
    - hgpdm_rbf_values_f64: the planner's default values of beliefs (belief vectors, radial
-     basis features, linear values).
+     basis features, linear values; block_values);
+   - hgpdm_mcp_values_f64: the particles' step and their values in one pass, each particle's
+     best value the only output;
+   - hgpdm_normal_f64 and hgpdm_draws_f64: torch.randn's normals (Box-Muller, vectorised log and
+     sincos) and torch.multinomial's draws from torch's own uniforms.
 
    Layout: points (training inputs) in group order (u, l), N = U L (padding points have zero
    weights). The columns are in the order (m, v), v padded to Up (a multiple of 8), Np = L Up:
@@ -126,8 +130,8 @@ INLINE __m512d log8(__m512d x) {
     t2 = _mm512_mul_pd(z, _mm512_fmadd_pd(w, t2, _mm512_set1_pd(6.666666666666735130e-01)));
     const __m512d R = _mm512_add_pd(t2, t1);
     const __m512d hfsq = _mm512_mul_pd(_mm512_set1_pd(0.5), _mm512_mul_pd(f, f));
-    const __m512d inner = _mm512_fmadd_pd(s, _mm512_add_pd(hfsq, R),
-                                          _mm512_mul_pd(k, _mm512_set1_pd(1.90821492927058770002e-10)));
+    const __m512d klo = _mm512_mul_pd(k, _mm512_set1_pd(1.90821492927058770002e-10));
+    const __m512d inner = _mm512_fmadd_pd(s, _mm512_add_pd(hfsq, R), klo);
     return _mm512_fmsub_pd(k, _mm512_set1_pd(6.93147180369123816490e-01),
                            _mm512_sub_pd(_mm512_sub_pd(hfsq, inner), f));
 }
@@ -762,7 +766,8 @@ INLINE void belief_mixture(const int D, int64_t K, const int nl, double keep, do
     for (int d = 0; d < D; ++d) {
         __m512d t = _mm512_setzero_pd();
         for (int64_t k = 0; k < K; ++k)
-            t = _mm512_fmadd_pd(lv_load(nl, prob + k * nl), lv_load(nl, means + (k * D + d) * nl), t);
+            t = _mm512_fmadd_pd(lv_load(nl, prob + k * nl),
+                                lv_load(nl, means + (k * D + d) * nl), t);
         mv[d] = t;
         lv_store(nl, m + d * nl, t);
     }
@@ -879,8 +884,9 @@ int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64
    Each value's block of the shared state, BLOCK(D, Dz, R) entries: the prediction m [D] and
    P [D, D], the posterior covariance P - A^T A [D, D], A [R, D], G [R, R], c [R], 1 / v, the
    log-determinant (meas_factors), and the observation's mean mz [Dz] and the lower Cholesky
-   factor Lz of its covariance Sz, stored transposed (Lz^T [Dz, Dz]), as LinearMeasurement.moments forms
-   them (W = (U R)^T diag(scale), mz = W^T m + offset, Sz = sym(W^T P W) + v diag(scale^2)). */
+   factor Lz of its covariance Sz, stored transposed (Lz^T [Dz, Dz]), as
+   LinearMeasurement.moments forms them (W = (U R)^T diag(scale), mz = W^T m + offset,
+   Sz = sym(W^T P W) + v diag(scale^2)). */
 #define BLOCK(D, Dz, R) \
     ((D) + 2 * (D) * (D) + (R) * (D) + (R) * (R) + (R) + 2 + (Dz) + (Dz) * (Dz))
 
@@ -1005,7 +1011,8 @@ INLINE void particle_block(const int D, const Particles *pt, int64_t i0) {
                 __m512d t = _mm512_setzero_pd();
                 for (int64_t q = 0; q < top; ++q)
                     t = _mm512_fmadd_pd(SET1(e[q]), _mm512_maskz_loadu_pd(k, LzT + q * Dz + j0), t);
-                _mm512_mask_storeu_pd(zp + j0, k, _mm512_add_pd(_mm512_maskz_loadu_pd(k, mz + j0), t));
+                t = _mm512_add_pd(_mm512_maskz_loadu_pd(k, mz + j0), t);
+                _mm512_mask_storeu_pd(zp + j0, k, t);
             }
             e = zp;
         }
@@ -1126,8 +1133,8 @@ INLINE void block_values(const Values *vl, int64_t i0, int64_t I, int64_t first,
     const int64_t F = vl->F, C = vl->C, A = vl->A, CB = C + vl->bias;
     __m512d norm = _mm512_setzero_pd();
     for (int64_t f = 0; f < F; ++f) {
-        const __m512d zf = _mm512_div_pd(_mm512_sub_pd(_mm512_loadu_pd(vl->z + f * LANES), SET1(vl->mu[f])),
-                                         SET1(vl->sd[f]));
+        const __m512d zf = _mm512_div_pd(
+            _mm512_sub_pd(_mm512_loadu_pd(vl->z + f * LANES), SET1(vl->mu[f])), SET1(vl->sd[f]));
         _mm512_storeu_pd(vl->z + f * LANES, zf);
         norm = _mm512_fmadd_pd(zf, zf, norm);
     }
@@ -1145,11 +1152,13 @@ INLINE void block_values(const Values *vl, int64_t i0, int64_t I, int64_t first,
         for (; c + 4 <= C; c += 4)
             for (int j = 0; j < 4; ++j)
                 t[j] = _mm512_fmadd_pd(_mm512_loadu_pd(e + (c + j) * LANES), SET1(wa[c + j]), t[j]);
-        for (; c < C; ++c) t[0] = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), SET1(wa[c]), t[0]);
+        for (; c < C; ++c)
+            t[0] = _mm512_fmadd_pd(_mm512_loadu_pd(e + c * LANES), SET1(wa[c]), t[0]);
         __m512d v = _mm512_add_pd(_mm512_add_pd(t[0], t[1]), _mm512_add_pd(t[2], t[3]));
         if (vl->bias) v = _mm512_add_pd(v, SET1(wa[C]));
         if (first >= 0) { /* max(v, best) keeps best where v is NaN: the NaN is blended in */
-            best = _mm512_mask_blend_pd(_mm512_cmp_pd_mask(v, v, _CMP_UNORD_Q), _mm512_max_pd(v, best), v);
+            const __mmask8 nan = _mm512_cmp_pd_mask(v, v, _CMP_UNORD_Q);
+            best = _mm512_mask_blend_pd(nan, _mm512_max_pd(v, best), v);
             continue;
         }
         _mm512_storeu_pd(vl->zn, v);
@@ -1205,7 +1214,8 @@ INLINE void mcp_values(const int D, Particles *pt, Values *vl, const double *lb,
         particle_block(D, pt, i0);
         double *z = vl->z; /* the block's belief vectors, lane-last already */
         int64_t f = 0;
-        for (int a = 0; a < D; ++a, ++f) _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->m + a * LANES));
+        for (int a = 0; a < D; ++a, ++f)
+            _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->m + a * LANES));
         for (int a = 0; a < D; ++a)
             for (int b = a; b < D; ++b, ++f)
                 _mm512_storeu_pd(z + f * LANES, _mm512_loadu_pd(pt->Pm + (a * D + b) * LANES));
