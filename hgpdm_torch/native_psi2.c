@@ -1098,10 +1098,14 @@ typedef struct {
 INLINE void values_init(Values *vl, double *work) {
     const int64_t C = vl->C, F = vl->F;
     vl->cn = work, vl->z = work + C, vl->e = vl->z + F * LANES, vl->zn = vl->e + C * LANES;
-    for (int64_t c = 0; c < C; ++c) {
-        double s = 0.0;
-        for (int64_t f = 0; f < F; ++f) s += vl->centres[c * F + f] * vl->centres[c * F + f];
-        vl->cn[c] = s;
+    for (int64_t c = 0; c < C; ++c) { /* |c|^2, eight entries at a time */
+        const double *row = vl->centres + c * F;
+        __m512d acc = _mm512_setzero_pd();
+        for (int64_t f = 0; f < F; f += W) {
+            const __m512d x = _mm512_maskz_loadu_pd(F - f < W ? LANE_MASK(F - f) : 0xFF, row + f);
+            acc = _mm512_fmadd_pd(x, x, acc);
+        }
+        vl->cn[c] = _mm512_reduce_add_pd(acc);
     }
 }
 
