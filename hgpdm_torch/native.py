@@ -14,8 +14,8 @@ The C source ships with the package and is compiled on first use with the machin
 by a hash of the source, the compiler and the CPU's features, so that a cache shared between
 unlike machines never loads code built for another CPU. It is used where:
 
-- the CPU has AVX-512F (where it was measured; elsewhere the torch path runs, which is the faster
-  one known there), on x86-64 Linux or macOS;
+- the CPU has AVX-512F and DQ (where it was measured; elsewhere the torch path runs, which is
+  the faster one known there), on x86-64 Linux or macOS;
 - the computation is float64 on the CPU and needs no gradient (autograd, float32 and GPUs take the
   torch path);
 - :class:`hgpdm_torch.settings.native_kernels` is on (default; ``HGPDM_TORCH_NATIVE=0`` turns it
@@ -87,11 +87,11 @@ def _cpu_features() -> frozenset[str]:
 
 @functools.cache
 def supported() -> bool:
-    """Whether this CPU can run the kernel: x86-64 with AVX-512F (NumPy's CPU feature
+    """Whether this CPU can run the kernel: x86-64 with AVX-512F and DQ (NumPy's CPU feature
     detection), on Linux or macOS."""
     if platform.machine().lower() not in ("x86_64", "amd64") or sys.platform == "win32":
         return False
-    return "AVX512F" in _cpu_features()
+    return {"AVX512F", "AVX512DQ"} <= _cpu_features()
 
 
 def cache_dir() -> Path:

@@ -37,8 +37,8 @@
 #include <math.h>
 #include <stdint.h>
 
-#ifndef __AVX512F__
-#error "hgpdm_torch.native needs AVX-512F (compiled with -march=native on such a CPU)"
+#if !defined(__AVX512F__) || !defined(__AVX512DQ__)
+#error "hgpdm_torch.native needs AVX-512F and DQ (compiled with -march=native on such a CPU)"
 #endif
 
 #define W 8 /* doubles per AVX-512 register */
@@ -998,6 +998,8 @@ INLINE void particle_block(const int D, const Particles *pt, int64_t i0) {
     const int64_t I = pt->I, K = pt->K, Dz = pt->Dz, R = pt->R, B = BLOCK(D, Dz, R);
     const double *shared = pt->shared;
     double *zp = pt->zp, *z = pt->z;
+    const __m512i lane_rows = _mm512_mullo_epi64(_mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0),
+                                                 _mm512_set1_epi64(LANES)); /* z [Dz, LANES] */
     __mmask8 missing = 0;
     for (int p = 0; p < LANES; ++p) { /* z = mz_g + Lz_g eps */
         const int64_t i = i0 + p < I ? i0 + p : i0;
@@ -1016,10 +1018,17 @@ INLINE void particle_block(const int D, const Particles *pt, int64_t i0) {
             }
             e = zp;
         }
-        int bad = 0;
-        for (int64_t j = 0; j < Dz; ++j) {
-            bad |= !(isfinite(e[j]) && fabs(e[j] - pt->center[j]) <= pt->limit[j]);
-            z[j * LANES + p] = e[j];
+        int bad = 0; /* usable: finite, and |z - center| <= limit (NaN compares false) */
+        for (int64_t j0 = 0; j0 < Dz; j0 += W) {
+            const __mmask8 k = Dz - j0 < W ? LANE_MASK(Dz - j0) : 0xFF;
+            const __m512d x = _mm512_maskz_loadu_pd(k, e + j0);
+            const __mmask8 finite = (__mmask8)~_mm512_fpclass_pd_mask(x, 0x99); /* NaN, inf */
+            const __m512d c = _mm512_maskz_loadu_pd(k, pt->center + j0);
+            const __m512d dev = _mm512_abs_pd(_mm512_sub_pd(x, c));
+            const __mmask8 near = _mm512_mask_cmp_pd_mask(
+                finite & k, dev, _mm512_maskz_loadu_pd(k, pt->limit + j0), _CMP_LE_OQ);
+            bad |= near != k;
+            _mm512_mask_i64scatter_pd(z + j0 * LANES + p, k, lane_rows, x, 8); /* lane p */
         }
         if (pt->zo && i0 + p < I)
             for (int64_t j = 0; j < Dz; ++j) pt->zo[i * Dz + j] = e[j];

@@ -8,8 +8,8 @@
 - one warning and the torch path where no compiler is found or the build fails;
 - a build into an empty cache folder, threads with their own buffers, and its inputs' checks.
 
-Where the kernel cannot run (no AVX-512F, no compiler) the tests that need it skip; the fallback
-tests run everywhere.
+Where the kernel cannot run (no AVX-512F and DQ, no compiler) the tests that need it skip; the
+fallback tests run everywhere.
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from .test_tiling import DX, _close, _gaussians, _iddm_posterior
 
 needs_kernel = pytest.mark.skipif(
     not native.available(),
-    reason="the compiled kernel does not run here: it needs an x86-64 CPU with AVX-512F and a C "
-    "compiler (native.available() is False)",
+    reason="the compiled kernel does not run here: it needs an x86-64 CPU with AVX-512F and DQ "
+    "and a C compiler (native.available() is False)",
 )
 
 
@@ -378,7 +378,7 @@ def test_no_compiler_warns_once_and_torch_runs(how, fresh_library, monkeypatch, 
 
 @pytest.mark.skipif(
     not (native.supported() and (shutil.which("cc") or shutil.which("gcc"))),
-    reason="needs an AVX-512F CPU and a C compiler",
+    reason="needs an AVX-512F and DQ CPU and a C compiler",
 )
 def test_builds_into_an_empty_cache(fresh_library):
     """The first use builds the library into the cache folder under its hash name, and a later

@@ -29,8 +29,8 @@ from hgpdm_torch.inference.intention import OnlineIntentionFilter
 
 pytestmark = pytest.mark.skipif(
     not native.available(),
-    reason="the compiled kernel does not run here: it needs an x86-64 CPU with AVX-512F and a C "
-    "compiler (native.available() is False)",
+    reason="the compiled kernel does not run here: it needs an x86-64 CPU with AVX-512F and DQ "
+    "and a C compiler (native.available() is False)",
 )
 
 GRID = torch.linspace(-1.2, 1.2, 9)
