@@ -267,6 +267,12 @@ def test_particle_values_are_the_values_of_the_particles(continuous_iddm, monkey
     observed[1], observed[2, 0], observed[3, 1] = math.nan, math.inf, math.nan
     observed[4, 0] = f.check.center[0] + 2 * f.check.limit[0]
     given = (shared.state, shared.log_prob, f.check, None, observed.contiguous())
+    # without a check, a row with an inf channel is treated as missing (finiteness alone), as
+    # the missing (all-NaN) row is
+    rows = observed[[1, 0]].clone()
+    rows[1, 0] = math.inf
+    unchecked = compiled.particle_values(*given[:2], None, None, rows, *parameters, 1)
+    assert unchecked.isfinite().all() and unchecked[0] == unchecked[1]
     for args in (drawn, given):
         values = planner._values(*compiled.particles(*args)[:3])
         for first in (0, 1, 3):
