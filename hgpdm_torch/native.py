@@ -226,7 +226,7 @@ def usable(*tensors: torch.Tensor) -> bool:
     grad = torch.is_grad_enabled()
     return (
         all(
-            t.device.type == "cpu" and t.dtype == torch.float64 and not (grad and t.requires_grad)
+            t.is_cpu and t.dtype == torch.float64 and not (grad and t.requires_grad)
             for t in tensors
         )
         and available()
@@ -260,9 +260,9 @@ def clear_scratch() -> None:
 
 
 def _check(name: str, t: torch.Tensor, shape: tuple[int, ...]) -> int:
-    if t.dtype != torch.float64 or t.device.type != "cpu" or not t.is_contiguous():
+    if t.dtype != torch.float64 or not t.is_cpu or not t.is_contiguous():
         raise TypeError(f"{name} must be a contiguous float64 CPU tensor, got {t.dtype} {t.device}")
-    if tuple(t.shape) != shape:
+    if t.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
     return t.data_ptr()
 
@@ -772,7 +772,7 @@ def _contraction(args: tuple) -> tuple[tuple[int, ...], list[int | None]]:
             f"multiples of 8 and 1 <= D <= {MAX_D}; got N = {n}, U = {U}, Np = {np_}, Kp = {kp}, "
             f"D = {d}"
         )
-    if cols.dtype != torch.int64 or cols.device.type != "cpu" or not cols.is_contiguous():
+    if cols.dtype != torch.int64 or not cols.is_cpu or not cols.is_contiguous():
         raise TypeError(f"cols must be a contiguous int64 CPU tensor, got {cols.dtype}")
     low, high = _index_range(cols)  # an index out of range would read outside points
     if low < 0 or high >= n:
