@@ -6,7 +6,10 @@ dimensions per pair of groups, ``S``) in one pass, eight columns at a time in AV
 (``native_psi2.c``): in torch the same work is a product, an exponential and four reductions, each
 reading and writing the 2 MB block (N = 500), and small matrix products whose inner dimension is a
 group's 5 points. The exponential is the kernel's own (within 2 ulp, :func:`exp_`, about twice
-the rate of NumPy's AVX-512 one).
+the rate of NumPy's AVX-512 one). The same source runs the online filter's whole predictive step
+(:func:`predictive_step`), Monte-Carlo planning's particles and their values
+(:func:`particle_shared`, :func:`particles`, :func:`particle_values`, :func:`rbf_values`) and
+torch's categorical and normal draws from torch's own uniforms (:func:`categorical_normal`).
 
 The C source ships with the package and is compiled on first use with the machine's C compiler
 (``$CC``, else ``cc``, ``gcc`` or ``clang``) and ``-O3 -march=native`` into a cache folder
