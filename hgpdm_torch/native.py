@@ -739,10 +739,10 @@ def _ran(code: int, d: int) -> None:
 
 
 def _work(dims: tuple[int, ...], n: int) -> int:
-    """Entries of the contraction's work space per call (``native_psi2.c``)."""
+    """Entries of the contraction's work space per call (``native_psi2.c``'s PSI2_WORK)."""
     _, _, L, up, d, _ = dims
     np_ = L * up
-    return (d + 1) * np_ + d * (d + 1) // 2 * up + (d + 1) * (n + np_)
+    return (d + 1) * np_ + d * (d + 1) // 2 * up + (d + 1) * (n + np_) + 4 * up
 
 
 _RANGES: dict[tuple[int, int], tuple[torch.Tensor, int, int]] = {}

@@ -309,16 +309,27 @@ INLINE void contract_block(const int PB, const int KV, int64_t Up, int64_t Kp, c
 #define BLOCK_CASES(PB) BLOCK_CASE(PB, 1) BLOCK_CASE(PB, 2) BLOCK_CASE(PB, 3) BLOCK_CASE(PB, 4)
 
 /* out [P, Kp] += phi over both groups of Su [P, Up] (phiT [Up, Kp]: phi[k, v], zero rows at
-   padding v; phiu [Kp]: phi[k, u]), in blocks of 5 pairs x 32 values of k. */
-static void contract(int64_t P, int64_t Up, int64_t Kp, const double *Su, const double *phiT,
+   padding v; phiu [Kp]: phi[k, u]): the values k < Kv (a multiple of 8) in blocks of 5 pairs x
+   32 values, and the Kd values from Kv as dot products over v, eight v at a time (phiR [Kd, Up]:
+   those columns of phiT transposed), where a vector of values would hold few of them. */
+static void contract(int64_t P, int64_t Up, int64_t Kp, int64_t Kv, int64_t Kd,
+                     const double *phiR, const double *Su, const double *phiT,
                      const double *phiu, double *out) {
     for (int64_t p0 = 0; p0 < P; p0 += 5)
-        for (int64_t k0 = 0; k0 < Kp; k0 += 4 * W) {
+        for (int64_t k0 = 0; k0 < Kv; k0 += 4 * W) {
             const int pb = P - p0 < 5 ? (int)(P - p0) : 5;
-            const int kv = (Kp - k0) / W < 4 ? (int)((Kp - k0) / W) : 4;
+            const int kv = (Kv - k0) / W < 4 ? (int)((Kv - k0) / W) : 4;
             switch (pb * 8 + kv) {
                 BLOCK_CASES(1) BLOCK_CASES(2) BLOCK_CASES(3) BLOCK_CASES(4) BLOCK_CASES(5)
             }
+        }
+    for (int64_t r = 0; r < Kd; ++r)
+        for (int64_t p = 0; p < P; ++p) {
+            __m512d t = _mm512_setzero_pd();
+            for (int64_t v = 0; v < Up; v += W)
+                t = _mm512_fmadd_pd(_mm512_loadu_pd(Su + p * Up + v),
+                                    _mm512_loadu_pd(phiR + r * Up + v), t);
+            out[p * Kp + Kv + r] += phiu[Kv + r] * _mm512_reduce_add_pd(t);
         }
 }
 
@@ -368,24 +379,34 @@ INLINE void exponent(const int D, int64_t N, int64_t Np, const double *X, const 
     hgpdm_exp_f64(N, p1);
 }
 
+/* Entries of one stream's contraction work space (one_stream): acc [Np], prow [D, Np],
+   Su [P, Up], left [N, D + 1], right [D + 1, Np] and phiR [4, Up]. */
+#define PSI2_WORK(D, N, Np, Up) \
+    (((D) + 1) * (Np) + (D) * ((D) + 1) / 2 * (Up) + ((D) + 1) * ((N) + (Np)) + 4 * (Up))
+
 /* One stream's psi2 contraction: its exponent factors and psi1 [N] (p1), the group sums
    T [U, Up] and out [P + 1, Kp] (module comment); work as hgpdm_psi2_groups_f64's. */
-INLINE void one_stream(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp, const double *X,
-                       const int64_t *cols, const double *mu, const double *Q, const double *c,
-                       const double *lp, const double *beta, const double *betac,
-                       const double *kinv, const double *phiT, double *T, double *out,
-                       double *p1, double *work) {
+INLINE void one_stream(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp, int64_t K,
+                       const double *X, const int64_t *cols, const double *mu, const double *Q,
+                       const double *c, const double *lp, const double *beta,
+                       const double *betac, const double *kinv, const double *phiT, double *T,
+                       double *out, double *p1, double *work) {
     const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, C = D + 1;
     double *acc = work, *prow = work + Np, *Su = prow + D * Np, *left = Su + P * Up;
-    double *right = left + N * C;
+    double *right = left + N * C, *phiR = right + C * Np;
+    /* K values of which the last K % 8 <= 4 as dot products (contract): a vector of values
+       would carry 4 to 7 zero ones */
+    const int64_t Kd = K % W && K % W <= 4 ? K % W : 0, Kv = Kd ? K - Kd : Kp;
+    for (int64_t r = 0; r < Kd; ++r)
+        for (int64_t v = 0; v < Up; ++v) phiR[r * Up + v] = phiT[v * Kp + Kv + r];
     exponent(D, N, Np, X, cols, mu, Q, c, lp, left, right, p1);
     for (int64_t j = 0; j < (P + 1) * Kp; ++j) out[j] = 0.0;
     for (int64_t u = 0; u < U; ++u, T += Up) {
         group_rows(D, L, C, Np, left + u * L * C, right, beta + u * L * D, kinv + u * L * Np, prow,
                    acc);
         group_sums(D, L, Up, acc, prow, betac, T, Su);
-        contract(P, Up, Kp, Su, phiT, phiT + u * Kp, out);
-        contract(1, Up, Kp, T, phiT, phiT + u * Kp, out + P * Kp); /* the trace row */
+        contract(P, Up, Kp, Kv, Kd, phiR, Su, phiT, phiT + u * Kp, out);
+        contract(1, Up, Kp, Kv, Kd, phiR, T, phiT, phiT + u * Kp, out + P * Kp); /* the trace */
     }
 }
 
@@ -396,7 +417,7 @@ INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up
                         double *out, double *p1, double *work) {
     const int64_t N = U * L, P = D * (D + 1) / 2;
     for (int64_t s = 0; s < S; ++s)
-        one_stream(D, U, L, Up, Kp, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s,
+        one_stream(D, U, L, Up, Kp, Kp, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s,
                    lp ? lp + s * N : 0, beta, betac, kinv, phiT, T + s * U * Up,
                    out + s * (P + 1) * Kp, p1 + s * N, work);
 }
@@ -406,7 +427,7 @@ INLINE void all_streams(const int D, int64_t S, int64_t U, int64_t L, int64_t Up
    Mb, P), c [S, 2] (c, c1), lp [S, N] or NULL, beta [N, D], betac [D, Np], kinv [N, Np],
    phiT [Up, Kp] (phi[k, v]; zero at padding v and k >= K, Kp a multiple of 8), T [S, U, Up],
    out [S, D (D + 1) / 2 + 1, Kp], p1 [S, N] (psi1 = exp(d^T P d + c1 + lp)),
-   work [(D + 1) Np + D (D + 1) / 2 Up + (D + 1) (N + Np)]. Returns 0, or 1 for D outside
+   work [PSI2_WORK(D, N, Np, Up)]. Returns 0, or 1 for D outside
    1..MAX_D (nothing written). */
 int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp,
                           const double *X, const int64_t *cols, const double *mu,
@@ -833,10 +854,10 @@ INLINE void all_steps(const int D, int64_t S, int64_t U, int64_t L, int64_t Up, 
                       double temp, const double *z, const double *lb, double *m, double *Pm,
                       double *lb_out, int64_t *status, double *work) {
     const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2;
-    double *T = work + (D + 1) * Np + P * Up + (D + 1) * (N + Np), *out = T + U * Up;
+    double *T = work + PSI2_WORK(D, N, Np, Up), *out = T + U * Up;
     double *p1 = out + (P + 1) * Kp, *tail = p1 + N;
     for (int64_t s = 0; s < S; ++s) {
-        one_stream(D, U, L, Up, Kp, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s,
+        one_stream(D, U, L, Up, Kp, K, X, cols, mu + s * D, Q + s * 4 * D * D, c + 2 * s,
                    lp ? lp + s * N : 0, beta, betac, kinv, phiT, T, out, p1, work);
         status[s] = step_tail(D, U, L, K, Kp, Dz, R, p1, beta, out, trans, meas, keep, temp,
                               z + s * Dz, lb + s * K, m + s * D, Pm + s * D * D, lb_out + s * K,
@@ -897,13 +918,14 @@ INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp,
                       const double *phiT, const double *trans, const double *meas,
                       double *shared, double *work) {
     const int64_t N = U * L, Np = L * Up, P = D * (D + 1) / 2, B = BLOCK(D, Dz, R);
-    double *T = work + (D + 1) * Np + P * Up + (D + 1) * (N + Np), *out = T + U * Up;
+    double *T = work + PSI2_WORK(D, N, Np, Up), *out = T + U * Up;
     double *p1 = out + (P + 1) * Kp, *mu_u = p1 + N, *means = mu_u + U * D;
     double *covs = means + K * D, *RP = covs + K * D * D, *S = RP + R * D, *F = S + R * R;
     double *Wm = F + R * R;
     double *cross = Wm + D * Dz, *Sz = cross + D * Dz;
     const double *Um = meas, *Rm = Um + Dz * R, *zoff = Rm + R * D + D * D, *zscale = zoff + Dz;
-    one_stream(D, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, p1, work);
+    one_stream(D, U, L, Up, Kp, K, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, p1,
+               work);
     transition_moments(D, U, L, K, Kp, p1, beta, out, trans, means, covs, mu_u);
     for (int64_t i = 0; i < Dz; ++i) /* W^T = diag(scale) U R [Dz, D] */
         for (int d = 0; d < D; ++d) {

@@ -28,12 +28,12 @@ pytestmark = pytest.mark.skipif(
 GRID = torch.linspace(-1.2, 1.2, 9)
 
 
-def _state(model, B: int = 6, forgetting: float = 0.3, temperature: float = 1.5):
+def _state(model, B: int = 6, forgetting: float = 0.3, temperature: float = 1.5, grid=GRID):
     """A filter of B streams after two real frames each, and a third frame per stream (stream 1's
     missing: a NaN row), with log beliefs that differ between streams (stream 0 excludes three
     values: -inf)."""
     f = OnlineIntentionFilter(
-        model, GRID, batch_size=B, forgetting=forgetting, temperature=temperature
+        model, grid, batch_size=B, forgetting=forgetting, temperature=temperature
     )
     z = torch.stack([s[:3] for s in model.sequences()[:B]])
     for t in range(2):
@@ -41,7 +41,7 @@ def _state(model, B: int = 6, forgetting: float = 0.3, temperature: float = 1.5)
     frame = z[:, 2].clone()
     frame[1] = math.nan
     gen = torch.Generator().manual_seed(0)
-    log_belief = 3 * torch.randn(B, len(GRID), generator=gen, dtype=torch.float64)
+    log_belief = 3 * torch.randn(B, len(grid), generator=gen, dtype=torch.float64)
     log_belief[0, :3] = -math.inf
     log_belief = torch.log_softmax(log_belief, -1)
     return f, (f.mean.clone(), f.cov.clone(), log_belief, frame, None)
@@ -55,13 +55,18 @@ def _torch_step(f, args):
         f.compiled_step = step
 
 
-@pytest.mark.parametrize("forgetting, temperature", [(0.3, 1.5), (0.0, 1.0)])
-def test_step_equals_the_torch_step(continuous_iddm, gp_rounding, forgetting, temperature):
+@pytest.mark.parametrize(
+    "forgetting, temperature, K",
+    [(0.3, 1.5, 9), (0.0, 1.0, 9), (0.3, 1.5, 12), (0.3, 1.5, 14), (0.3, 1.5, 16)],
+)
+def test_step_equals_the_torch_step(continuous_iddm, gp_rounding, forgetting, temperature, K):
     """Means, covariances and beliefs of one step: the kernel's, the torch step on the kernel's
     contraction, and the materialised torch path, within one step's rounding of each one's
     scale (probabilities: of 1); the missing stream only forgets; excluded values stay
-    excluded."""
-    f, args = _state(continuous_iddm, forgetting=forgetting, temperature=temperature)
+    excluded. K = 9, 12, 14 and 16 grid values: the contraction's last value or last four as dot
+    products, six in a vector of eight, and whole vectors."""
+    grid = torch.linspace(-1.2, 1.2, K)
+    f, args = _state(continuous_iddm, forgetting=forgetting, temperature=temperature, grid=grid)
     got = f.compiled_step(*args)
     assert got is not None
     rel = gp_rounding(f.posterior, continuous_iddm.measurement_posterior())
