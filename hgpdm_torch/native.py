@@ -253,7 +253,7 @@ def scratch(numel: int, slot: int = 0) -> torch.Tensor:
     buf = bufs.get(slot)
     if buf is None or buf.numel() < numel:
         buf = bufs[slot] = torch.empty(numel, dtype=torch.float64, device="cpu")
-    return buf[:numel]
+    return buf if buf.numel() == numel else buf[:numel]  # a call of the same size: no view
 
 
 def clear_scratch() -> None:
@@ -342,7 +342,7 @@ def rbf_forms(
     w_ptr = _check("weight", weight, (d,))
     forms = Sigma.new_empty(s, 4, d, d)
     const = Sigma.new_empty(s, 2)
-    status = torch.zeros(s, dtype=torch.int64, device=Sigma.device)
+    status = torch.empty(s, dtype=torch.int64, device=Sigma.device)  # the kernel sets each
     lib = _loaded()
     if s:
         code = lib.hgpdm_rbf_forms_f64(

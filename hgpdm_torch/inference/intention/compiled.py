@@ -171,11 +171,12 @@ class CompiledStep:
         noise: torch.Tensor,
     ) -> tuple:
         dims = (self.transition.dx, self.dz, self.rank)
-        center = noise.new_zeros(self.dz) if check is None else check.center.to(noise)
-        if check is not None and check.outlier_sd is not None:
-            limit = check.limit.to(noise)
-        else:  # finiteness alone where there is no outlier threshold
-            limit = noise.new_full((self.dz,), math.inf)
+        if check is None:  # finiteness alone (the check's limit is inf without a threshold)
+            center, limit = noise.new_zeros(self.dz), noise.new_full((self.dz,), math.inf)
+        else:
+            center, limit = check.center, check.limit
+            if center.dtype != noise.dtype:
+                center, limit = center.to(noise), limit.to(noise)
         return (
             shared, self.meas, dims, center, limit, log_belief, self.keep, self.temperature,
             draws, noise,
