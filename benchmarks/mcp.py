@@ -15,8 +15,9 @@ a shared machine is closer to what an idle core gives than the wall time:
 - ``shared``: the per-decision work every particle shares (K moment-matched predictions and
   their joints with z);
 - ``full``: :meth:`MonteCarloPlanner.decide` with all 500 particles (``early_stop=False``);
-  where the compiled kernel runs (:mod:`hgpdm_torch.native`), the shared part and the particles'
-  update are its; ``kernels off`` the same decisions with
+  where the compiled kernel runs (:mod:`hgpdm_torch.native`), the shared part, the draws from
+  torch's uniforms and the particles' update and values are its; ``kernels off`` the same
+  decisions with
   :class:`hgpdm_torch.settings.native_kernels` off (all in torch, as on a machine without the
   kernel), in the same process;
 - ``early``: with Student-t early termination (confidence 0.99, checks every 100 particles),
