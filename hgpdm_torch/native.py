@@ -41,6 +41,7 @@ import tempfile
 import threading
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -53,6 +54,7 @@ __all__ = [
     "categorical_normal",
     "clear_scratch",
     "exp_",
+    "ParticleArgs",
     "particle_block",
     "particle_shared",
     "particle_values",
@@ -509,25 +511,14 @@ def particle_shared(
     return shared, True
 
 
-def particles(
-    shared: torch.Tensor,
-    meas: torch.Tensor,
-    dims: tuple[int, int, int],
-    center: torch.Tensor,
-    limit: torch.Tensor,
-    log_belief: torch.Tensor,
-    keep: float,
-    temperature: float,
-    draws: torch.Tensor | None,
-    noise: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The online filter's update of one belief (its :func:`particle_shared` state) on I
-    observations (``native_psi2.c``): particle i observes ``z = mz_g + Lz_g noise_i`` for
-    ``g = draws[i]``, or ``z = noise_i`` where ``draws`` is ``None``; a ``z`` that the filter's
-    :class:`~hgpdm_torch.observations.ObservationCheck` would not use (``center``, ``limit``
-    ``[Dz]``) is a prediction-only step, as in the filter.
+class ParticleArgs(NamedTuple):
+    """The update of one belief (its :func:`particle_shared` state) on I observations
+    (:func:`particles`, :func:`particle_values`): particle i observes ``z = mz_g + Lz_g
+    noise_i`` for ``g = draws[i]``, or ``z = noise_i`` where ``draws`` is ``None``; a ``z`` that
+    the filter's :class:`~hgpdm_torch.observations.ObservationCheck` would not use (``center``,
+    ``limit``) is a prediction-only step, as in the filter.
 
-    Args:
+    Attributes:
         shared: ``[K, particle_block(D, Dz, R)]``.
         meas: as for :func:`predictive_step`.
         dims: ``(D, Dz, R)``.
@@ -538,37 +529,42 @@ def particles(
         temperature: as for :func:`predictive_step`.
         draws: ``[I]`` int64 grid values in ``0 .. K - 1``, or ``None``.
         noise: ``[I, Dz]`` standard normal draws, or the observations.
+    """
+
+    shared: torch.Tensor
+    meas: torch.Tensor
+    dims: tuple[int, int, int]
+    center: torch.Tensor
+    limit: torch.Tensor
+    log_belief: torch.Tensor
+    keep: float
+    temperature: float
+    draws: torch.Tensor | None
+    noise: torch.Tensor
+
+
+def particles(args: ParticleArgs) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The online filter's update of one belief on I observations (``native_psi2.c``;
+    :class:`ParticleArgs`).
 
     Returns:
         ``mean [I, D]``, ``cov [I, D, D]``, ``log_belief [I, K]`` and the observations ``z [I,
         Dz]``.
     """
-    d, dz, rank = dims
-    args = _particle_args(
-        shared, meas, dims, center, limit, log_belief, keep, temperature, draws, noise
-    )
-    num, K = noise.shape[0], log_belief.shape[0]
-    mean, cov, lb = noise.new_empty(num, d), noise.new_empty(num, d, d), noise.new_empty(num, K)
-    z = noise.new_empty(num, dz)
-    work = scratch(_particle_work(d, K, dz, rank), 4)
+    d, dz, rank = args.dims
+    num, K = args.noise.shape[0], args.log_belief.shape[0]
+    new = args.noise.new_empty
+    mean, cov, lb, z = new(num, d), new(num, d, d), new(num, K), new(num, dz)
     code = _loaded().hgpdm_mcp_particles_f64(
-        *args, mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), z.data_ptr(), work.data_ptr()
-    )
+        *_particle_ptrs(args), mean.data_ptr(), cov.data_ptr(), lb.data_ptr(), z.data_ptr(),
+        scratch(_particle_work(d, K, dz, rank), 4).data_ptr(),
+    )  # fmt: skip
     _ran(code, d)
     return mean, cov, lb, z
 
 
 def particle_values(
-    shared: torch.Tensor,
-    meas: torch.Tensor,
-    dims: tuple[int, int, int],
-    center: torch.Tensor,
-    limit: torch.Tensor,
-    log_belief: torch.Tensor,
-    keep: float,
-    temperature: float,
-    draws: torch.Tensor | None,
-    noise: torch.Tensor,
+    args: ParticleArgs,
     basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
     weights: torch.Tensor,
     first: int,
@@ -580,8 +576,7 @@ def particle_values(
     ulp); NaN where one of the values is NaN.
 
     Args:
-        shared, meas, dims, center, limit, log_belief, keep, temperature, draws, noise: as for
-            :func:`particles`.
+        args: the particles (:class:`ParticleArgs`).
         basis: as for :func:`rbf_values`.
         weights: as for :func:`rbf_values`.
         first: the first action of the maximum, in ``0 .. A - 1``.
@@ -589,44 +584,30 @@ def particle_values(
     Returns:
         ``[I]``.
     """
-    d, dz, rank = dims
-    args = _particle_args(
-        shared, meas, dims, center, limit, log_belief, keep, temperature, draws, noise
-    )
-    K = log_belief.shape[0]
+    d, dz, rank = args.dims
+    K = args.log_belief.shape[0]
     c, f, a, bias, basis_args = _basis_args(basis, weights, d, K)
     if not 0 <= first < a:
         raise ValueError(f"first must be an action in 0 .. {a - 1}, got {first}")
-    out = noise.new_empty(noise.shape[0])
+    out = args.noise.new_empty(args.noise.shape[0])
     work = scratch(_particle_work(d, K, dz, rank) + c + _LANES * (f + c + 1), 4)
     code = _loaded().hgpdm_mcp_values_f64(
-        *args, c, a, bias, *basis_args, first, out.data_ptr(), work.data_ptr()
+        *_particle_ptrs(args), c, a, bias, *basis_args, first, out.data_ptr(), work.data_ptr()
     )
     _ran(code, d)
     return out
 
 
-def _particle_args(
-    shared: torch.Tensor,
-    meas: torch.Tensor,
-    dims: tuple[int, int, int],
-    center: torch.Tensor,
-    limit: torch.Tensor,
-    log_belief: torch.Tensor,
-    keep: float,
-    temperature: float,
-    draws: torch.Tensor | None,
-    noise: torch.Tensor,
-) -> list:
-    """The particle kernels' arguments up to their outputs, checked (:func:`particles`)."""
-    d, dz, rank = dims
-    K, num = log_belief.shape[0], noise.shape[0]
+def _particle_ptrs(args: ParticleArgs) -> list:
+    """The particle kernels' arguments up to their outputs, checked."""
+    d, dz, rank = args.dims
+    K, num, draws = args.log_belief.shape[0], args.noise.shape[0], args.draws
     ptrs = [
-        _check("shared", shared, (K, particle_block(d, dz, rank))),
-        _check("meas", meas, (_meas_size(d, dz, rank),)),
-        _check("center", center, (dz,)),
-        _check("limit", limit, (dz,)),
-        _check("log_belief", log_belief, (K,)),
+        _check("shared", args.shared, (K, particle_block(d, dz, rank))),
+        _check("meas", args.meas, (_meas_size(d, dz, rank),)),
+        _check("center", args.center, (dz,)),
+        _check("limit", args.limit, (dz,)),
+        _check("log_belief", args.log_belief, (K,)),
     ]
     g_ptr = None
     if draws is not None:
@@ -636,8 +617,8 @@ def _particle_args(
         if not 0 <= int(low) <= int(high) < K:
             raise ValueError(f"draws must be grid values in 0 .. {K - 1}")
         g_ptr = draws.data_ptr()
-    noise_ptr = _check("noise", noise, (num, dz))
-    return [num, d, K, dz, rank, *ptrs, float(keep), float(temperature), g_ptr, noise_ptr]
+    noise_ptr = _check("noise", args.noise, (num, dz))
+    return [num, d, K, dz, rank, *ptrs, float(args.keep), float(args.temperature), g_ptr, noise_ptr]
 
 
 def _particle_work(d: int, K: int, dz: int, rank: int) -> int:

@@ -382,17 +382,18 @@ class ParticleProjector:
         self, shared: _Shared | _CompiledShared, num: int, generator: torch.Generator | None
     ):
         if isinstance(shared, _CompiledShared):  # drawn as below, then the kernel's update
-            return self._compiled.particles(*self._compiled_args(shared, num, generator))[:3]
+            return self._compiled.particles(self._compiled_args(shared, num, generator))[:3]
         z = self._sample_observations(shared, num, generator)
         usable = self.filter.check.usable(z)
         return self._update(shared, z, None if bool(usable.all()) else ~usable)
 
     def _compiled_args(
         self, shared: _CompiledShared, num: int, generator: torch.Generator | None
-    ) -> tuple:
+    ) -> native.ParticleArgs:
         """The compiled kernel's particle arguments: the shared state and ``num`` draws."""
         g, eps = self._draw(shared.prob, num, generator)
-        return shared.state, shared.log_prob, self.filter.check, g, eps.view(num, -1)
+        args = (shared.state, shared.log_prob, self.filter.check, g, eps.view(num, -1))
+        return self._compiled.particle_args(*args)
 
     # ----- Algorithm 4.2: particle projection -------------------------------------------------
 
@@ -535,9 +536,8 @@ class ParticleProjector:
             raise bad_observation(f"z[{i}] (particle {i})", self.filter.check.reason(z[i]))
         if isinstance(shared, _CompiledShared):  # the rows classify found bad set to NaN
             z = z.to(self.filter.dtype).masked_fill((missing | rejected)[:, None], math.nan)
-            update = self._compiled.particles(
-                shared.state, shared.log_prob, None, None, z.contiguous()
-            )[:3]
+            args = (shared.state, shared.log_prob, None, None, z.contiguous())
+            update = self._compiled.particles(self._compiled.particle_args(*args))[:3]
         else:
             update = self._update(shared, z.to(self.filter.dtype), missing | rejected)
         return ParticleUpdate(*(v.contiguous() for v in update), rejected)
@@ -733,10 +733,10 @@ class MonteCarloPlanner(ParticleProjector):
             parameters = self._native_basis(self.filter.mu0.shape[0], shared.log_prob.shape[0])
             if parameters is not None:  # each particle's best value
                 first = _first_action(self.wait_value, can_wait_next)
-                best = self._compiled.particle_values(*args, *parameters, first)
+                best = self._compiled.particle_values(args, *parameters, first)
                 if math.isfinite(float(best.sum())):  # all finite; else torch's checks raise
                     return best
-            mean, cov, log_prob = self._compiled.particles(*args)[:3]
+            mean, cov, log_prob = self._compiled.particles(args)[:3]
         else:
             mean, cov, log_prob = self._particles(shared, num, generator)
         return particle_value(self._values(mean, cov, log_prob), self.wait_value, can_wait_next)

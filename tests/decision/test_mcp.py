@@ -253,7 +253,7 @@ def _record_draws(planner, monkeypatch):
 
         def compiled(*args, **kwargs):
             out = draw(*args, **kwargs)
-            calls.append(planner._compiled.particles(*out)[3])
+            calls.append(planner._compiled.particles(out)[3])
             return out
 
         monkeypatch.setattr(planner, "_compiled_args", compiled)

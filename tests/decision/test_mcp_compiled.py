@@ -62,7 +62,10 @@ def test_particles_equal_the_torch_particles(continuous_iddm, gp_rounding, induc
     assert type(shared).__name__ == "_CompiledShared"
     got = projector.sample_beliefs(belief, 300, torch.Generator().manual_seed(2))
     g, eps = projector._draw(shared.prob, 300, torch.Generator().manual_seed(2))
-    z = projector._compiled.particles(shared.state, shared.log_prob, f.check, g, eps[..., 0])[3]
+    compiled = projector._compiled
+    z = compiled.particles(
+        compiled.particle_args(shared.state, shared.log_prob, f.check, g, eps[..., 0])
+    )[3]
     z_rows = torch.cat([z[:8], z[:1].expand(4, -1).clone()])
     z_rows[8] = math.nan  # missing
     z_rows[9, 0] = math.inf  # bad: treated as missing, flagged
@@ -151,13 +154,14 @@ def test_particle_inputs_are_checked(continuous_iddm):
     noise = torch.zeros(3, f.obs_dim, dtype=torch.float64)
     args = (shared.state, shared.log_prob, f.check)
     with pytest.raises(ValueError, match="grid values"):
-        compiled.particles(*args, torch.tensor([0, len(GRID), 1]), noise)
+        compiled.particles(compiled.particle_args(*args, torch.tensor([0, len(GRID), 1]), noise))
     with pytest.raises(TypeError, match="int64"):
-        compiled.particles(*args, torch.tensor([0, 1, 1], dtype=torch.int32), noise)
+        draws = torch.tensor([0, 1, 1], dtype=torch.int32)
+        compiled.particles(compiled.particle_args(*args, draws, noise))
     with pytest.raises(ValueError, match="noise"):
-        compiled.particles(*args, None, noise[:, :2].contiguous())
+        compiled.particles(compiled.particle_args(*args, None, noise[:, :2].contiguous()))
     with pytest.raises(TypeError, match="float64"):
-        compiled.particles(*args, None, noise.float())
+        compiled.particles(compiled.particle_args(*args, None, noise.float()))
 
 
 def test_step_uses_the_filters_classification_of_each_row(continuous_iddm, monkeypatch):
@@ -266,23 +270,24 @@ def test_particle_values_are_the_values_of_the_particles(continuous_iddm, monkey
     observed = continuous_iddm.sequences()[4][3:16].clone()
     observed[1], observed[2, 0], observed[3, 1] = math.nan, math.inf, math.nan
     observed[4, 0] = f.check.center[0] + 2 * f.check.limit[0]
-    given = (shared.state, shared.log_prob, f.check, None, observed.contiguous())
+    given = compiled.particle_args(shared.state, shared.log_prob, f.check, None, observed)
     # without a check, a row with an inf channel is treated as missing (finiteness alone), as
     # the missing (all-NaN) row is
     rows = observed[[1, 0]].clone()
     rows[1, 0] = math.inf
-    unchecked = compiled.particle_values(*given[:2], None, None, rows, *parameters, 1)
+    unchecked_args = compiled.particle_args(shared.state, shared.log_prob, None, None, rows)
+    unchecked = compiled.particle_values(unchecked_args, *parameters, 1)
     assert unchecked.isfinite().all() and unchecked[0] == unchecked[1]
     for args in (drawn, given):
-        values = planner._values(*compiled.particles(*args)[:3])
+        values = planner._values(*compiled.particles(args)[:3])
         for first in (0, 1, 3):
-            got = compiled.particle_values(*args, *parameters, first)
+            got = compiled.particle_values(args, *parameters, first)
             want = values[:, first:].max(-1).values
             torch.testing.assert_close(got, want, rtol=0, atol=tol)
         spoilt = parameters[1].clone()  # a NaN weight of action 2 spoils only its maxima
         spoilt[2, 0] = math.nan
-        assert bool(compiled.particle_values(*args, parameters[0], spoilt, 0).isnan().all())
-        assert compiled.particle_values(*args, parameters[0], spoilt, 3).isfinite().all()
+        assert bool(compiled.particle_values(args, parameters[0], spoilt, 0).isnan().all())
+        assert compiled.particle_values(args, parameters[0], spoilt, 3).isfinite().all()
     decided = planner.decide(belief, early_stop=False, generator=torch.Generator().manual_seed(4))
     monkeypatch.setattr(
         compiled, "particle_values", lambda *a: torch.full((500,), math.nan, dtype=torch.float64)
@@ -313,9 +318,9 @@ def test_rank_space_conditioning_and_its_count(continuous_iddm, gp_rounding):
     )
     shared = planner._shared(planner._check_belief(belief))
     g, eps = planner._draw(shared.prob, 64, torch.Generator().manual_seed(5))
-    mean, cov, log_prob, z = planner._compiled.particles(
-        shared.state, shared.log_prob, f.check, g, eps[..., 0]
-    )
+    compiled = planner._compiled
+    args = compiled.particle_args(shared.state, shared.log_prob, f.check, g, eps[..., 0])
+    mean, cov, log_prob, z = compiled.particles(args)
     linear = linear_measurement(f.measure)
     K, dx, dz, k = len(GRID), f.mu0.shape[0], f.obs_dim, linear.R.shape[0]
     sizes = (dx, dx * dx, dx * dx, k * dx, k * k, k, 1, 1, dz, dz * dz)

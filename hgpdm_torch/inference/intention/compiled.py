@@ -128,48 +128,20 @@ class CompiledStep:
         )  # fmt: skip
         return shared if defined else None
 
-    def particles(
+    def particle_args(
         self,
         shared: torch.Tensor,
         log_belief: torch.Tensor,
         check: ObservationCheck | None,
         draws: torch.Tensor | None,
         noise: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    ) -> native.ParticleArgs:
         """The predictive step of the belief behind ``shared`` (:meth:`particle_shared`;
         ``log_belief [K]`` normalised) on I observations, ``z = mz_g + Lz_g noise_i`` for the
         grid values ``draws [I]``, or ``z = noise [I, Dz]`` where ``draws`` is ``None``; a ``z``
         that ``check`` would not use (with ``check=None``: that is not finite, for
         observations the caller has checked and whose bad rows it has set to NaN) is a
-        prediction-only step. Returns ``mean [I, Dx]``, ``cov [I, Dx, Dx]``, ``log_belief [I,
-        K]`` and the observations ``z [I, Dz]`` (:func:`hgpdm_torch.native.particles`)."""
-        return native.particles(*self._particle_args(shared, log_belief, check, draws, noise))
-
-    def particle_values(
-        self,
-        shared: torch.Tensor,
-        log_belief: torch.Tensor,
-        check: ObservationCheck | None,
-        draws: torch.Tensor | None,
-        noise: torch.Tensor,
-        basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
-        weights: torch.Tensor,
-        first: int,
-    ) -> torch.Tensor:
-        """The best value ``[I]`` over the actions ``first ..`` of each belief :meth:`particles`
-        would return, by the radial basis ``basis`` and the linear weights ``weights``, in one
-        call (:func:`hgpdm_torch.native.particle_values`)."""
-        args = self._particle_args(shared, log_belief, check, draws, noise)
-        return native.particle_values(*args, basis, weights, first)
-
-    def _particle_args(
-        self,
-        shared: torch.Tensor,
-        log_belief: torch.Tensor,
-        check: ObservationCheck | None,
-        draws: torch.Tensor | None,
-        noise: torch.Tensor,
-    ) -> tuple:
+        prediction-only step: the arguments of :meth:`particles` and :meth:`particle_values`."""
         dims = (self.transition.dx, self.dz, self.rank)
         if check is None:  # finiteness alone (the check's limit is inf without a threshold)
             center, limit = noise.new_zeros(self.dz), noise.new_full((self.dz,), math.inf)
@@ -177,7 +149,27 @@ class CompiledStep:
             center, limit = check.center, check.limit
             if center.dtype != noise.dtype:
                 center, limit = center.to(noise), limit.to(noise)
-        return (
+        return native.ParticleArgs(
             shared, self.meas, dims, center, limit, log_belief, self.keep, self.temperature,
             draws, noise,
         )  # fmt: skip
+
+    def particles(
+        self, args: native.ParticleArgs
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``mean [I, Dx]``, ``cov [I, Dx, Dx]``, ``log_belief [I, K]`` and the observations
+        ``z [I, Dz]`` of the particles ``args`` (:meth:`particle_args`;
+        :func:`hgpdm_torch.native.particles`)."""
+        return native.particles(args)
+
+    def particle_values(
+        self,
+        args: native.ParticleArgs,
+        basis: tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, bool],
+        weights: torch.Tensor,
+        first: int,
+    ) -> torch.Tensor:
+        """The best value ``[I]`` over the actions ``first ..`` of each belief :meth:`particles`
+        would return, by the radial basis ``basis`` and the linear weights ``weights``, in one
+        call (:func:`hgpdm_torch.native.particle_values`)."""
+        return native.particle_values(args, basis, weights, first)
