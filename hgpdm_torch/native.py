@@ -288,9 +288,10 @@ def categorical_normal(
     ``torch.randn(num, dz, generator=generator, dtype=torch.float64)`` (``native_psi2.c``) from
     one draw of torch's uniforms, in torch's forms: the same grid values (its cumulative
     distribution and bisection, in float64) and normals (its Box-Muller form, with the log, sine
-    and cosine vectorised: within a few ulp of torch's, which calls libm per draw, 17 ns a draw
-    here against 5 ns), the generator left where torch's two calls leave it. One draw or fewer
-    than 16 normals (which torch draws another way): torch's own two calls.
+    and cosine vectorised: within a few ulp of torch's; torch calls libm for each, 17 ns a draw
+    on the development machine, these take 5 ns), the generator left where torch's two calls
+    leave it. One draw or fewer than 16 normals (which torch draws another way): torch's own
+    two calls.
 
     Args:
         prob: ``[K]`` float64 CPU, non-negative with a positive sum (normalised here; else
@@ -314,9 +315,8 @@ def categorical_normal(
     code = _loaded().hgpdm_draws_f64(
         num, K, ptr, n, u.data_ptr(), g.data_ptr(), eps.data_ptr(), scratch(K, 6).data_ptr()
     )
-    if code == 1:
+    if code:  # 1 (2, fewer than 16 normals, is torch's above)
         raise ValueError("prob must be non-negative and finite with a positive sum")
-    _ran(code, 1)
     return g, eps
 
 
@@ -590,7 +590,7 @@ def particle_values(
     if not 0 <= first < a:
         raise ValueError(f"first must be an action in 0 .. {a - 1}, got {first}")
     out = args.noise.new_empty(args.noise.shape[0])
-    work = scratch(_particle_work(d, K, dz, rank) + c + _LANES * (f + c + 1), 4)
+    work = scratch(_particle_work(d, K, dz, rank) + _values_work(c, f), 4)
     code = _loaded().hgpdm_mcp_values_f64(
         *_particle_ptrs(args), c, a, bias, *basis_args, first, out.data_ptr(), work.data_ptr()
     )
@@ -602,6 +602,10 @@ def _particle_ptrs(args: ParticleArgs) -> list:
     """The particle kernels' arguments up to their outputs, checked."""
     d, dz, rank = args.dims
     K, num, draws = args.log_belief.shape[0], args.noise.shape[0], args.draws
+    if not 1 <= d <= MAX_D or not 1 <= rank <= min(d, dz):
+        raise ValueError(
+            f"dims must have 1 <= D <= {MAX_D} and rank in [1, min(D, Dz)], got {args.dims}"
+        )
     ptrs = [
         _check("shared", args.shared, (K, particle_block(d, dz, rank))),
         _check("meas", args.meas, (_meas_size(d, dz, rank),)),
@@ -611,8 +615,10 @@ def _particle_ptrs(args: ParticleArgs) -> list:
     ]
     g_ptr = None
     if draws is not None:
-        if draws.dtype != torch.int64 or draws.shape != (num,) or not draws.is_contiguous():
-            raise TypeError(f"draws must be a contiguous int64 tensor [{num}]")
+        if draws.dtype != torch.int64 or not draws.is_cpu or not draws.is_contiguous():
+            raise TypeError(f"draws must be a contiguous int64 CPU tensor [{num}]")
+        if draws.shape != (num,):
+            raise ValueError(f"draws must have shape ({num},), got {tuple(draws.shape)}")
         low, high = torch.aminmax(draws) if num else (0, 0)
         if not 0 <= int(low) <= int(high) < K:
             raise ValueError(f"draws must be grid values in 0 .. {K - 1}")
@@ -624,6 +630,11 @@ def _particle_ptrs(args: ParticleArgs) -> list:
 def _particle_work(d: int, K: int, dz: int, rank: int) -> int:
     """``native_psi2.c``'s PARTICLE_WORK: a block of particles' quantities, lane-last."""
     return dz + _LANES * (2 * dz + rank + 1 + 4 * K + K * d + d + d * d)
+
+
+def _values_work(c: int, f: int) -> int:
+    """``native_psi2.c``'s VALUES_WORK: the centres' norms and a block's vectors and features."""
+    return c + _LANES * (f + c + 1)
 
 
 def rbf_values(
@@ -660,7 +671,7 @@ def rbf_values(
         _check("log_prob", log_prob, (num, K)),
     ]
     out = mean.new_empty(num, a)
-    work = scratch(c + _LANES * (f + c + 1), 5)
+    work = scratch(_values_work(c, f), 5)
     if num:
         _loaded().hgpdm_rbf_values_f64(
             num, d, K, c, a, bias, *ptrs, *basis_args, out.data_ptr(), work.data_ptr()
@@ -756,8 +767,10 @@ def _contraction(args: tuple) -> tuple[tuple[int, ...], list[int | None]]:
             f"multiples of 8 and 1 <= D <= {MAX_D}; got N = {n}, U = {U}, Np = {np_}, Kp = {kp}, "
             f"D = {d}"
         )
-    if cols.dtype != torch.int64 or not cols.is_cpu or not cols.is_contiguous():
-        raise TypeError(f"cols must be a contiguous int64 CPU tensor, got {cols.dtype}")
+    if cols.dtype != torch.int64 or not cols.is_cpu or not cols.is_contiguous() or cols.dim() != 1:
+        raise TypeError(
+            f"cols must be a contiguous 1-D int64 CPU tensor, got {cols.dtype} {tuple(cols.shape)}"
+        )
     low, high = _index_range(cols)  # an index out of range would read outside points
     if low < 0 or high >= n:
         raise ValueError(f"cols must index the {n} points, got values in [{low}, {high}]")

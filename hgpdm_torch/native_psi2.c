@@ -42,6 +42,19 @@
 #endif
 
 #define W 8 /* doubles per AVX-512 register */
+#define LANE_MASK(n) ((__mmask8)((1u << (n)) - 1u)) /* the low n < W lanes */
+#define TAIL_MASK(n, j) ((n) - (j) < W ? LANE_MASK((n) - (j)) : (__mmask8)0xFF) /* j .. n - 1 */
+
+/* Each entry point runs with subnormal results and operands flushed to zero (FTZ | DAZ) and
+   restores the caller's MXCSR: psi2 of far-apart points, a belief's probabilities of values far
+   from the data and the features of far centres underflow, and arithmetic on subnormals takes
+   microcode assists (up to ~100 times slower per operation); each changes a sum by less than
+   2.3e-308. */
+static inline unsigned int ftz_begin(void) {
+    const unsigned int csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040);
+    return csr;
+}
 #define MAX_D 8
 #define INLINE static inline __attribute__((always_inline))
 /* CALL(DD) with DD the compile-time constant equal to D (the kernels' loops over D unroll);
@@ -100,12 +113,12 @@ void hgpdm_exp_f64(int64_t n, double *x) {
     int64_t j = 0;
     for (; j + W <= n; j += W) _mm512_storeu_pd(x + j, exp8(_mm512_loadu_pd(x + j)));
     if (j < n) {
-        const __mmask8 k = (__mmask8)((1u << (n - j)) - 1u);
+        const __mmask8 k = LANE_MASK(n - j);
         _mm512_mask_storeu_pd(x + j, k, exp8(_mm512_maskz_loadu_pd(k, x + j)));
     }
 }
 
-/* ---- Standard normal draws (torch.randn's form; hgpdm_torch.native.standard_normal) ---- */
+/* ---- Torch's categorical and normal draws (hgpdm_torch.native.categorical_normal) ---- */
 
 /* log of 8 lanes of positive normal x: x = 2^k m with m in [sqrt(1/2), sqrt(2)) (getexp and
    getmant, then halved where above sqrt(2)), f = m - 1, s = f / (2 + f) and
@@ -435,17 +448,13 @@ int hgpdm_psi2_groups_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64_t D
                           const double *beta, const double *betac, const double *kinv,
                           const double *phiT, double *T, double *out, double *p1,
                           double *work) {
-    /* flush subnormal results and operands to zero: psi2 of far-apart points underflows, and
-       arithmetic on subnormals takes microcode assists (up to ~100 times slower per operation);
-       they change a sum by less than 2.3e-308 each */
-    const unsigned int csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ */
+    const unsigned int csr = ftz_begin();
     int status;
 #define PSI2(DD) \
     all_streams(DD, S, U, L, Up, Kp, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, T, out, p1, work)
     FOR_D(D, PSI2, status);
 #undef PSI2
-    _mm_setcsr(csr);
+    _mm_setcsr(csr); /* the caller's */
     return status;
 }
 
@@ -669,7 +678,6 @@ static int all_nan(int64_t Dz, const double *z) {
    and above nl read 0 and are not written); missing is a mask, bit p set where lane p's
    observation is missing. */
 #define LANES W
-#define LANE_MASK(nl) ((__mmask8)((1u << (nl)) - 1u))
 #define SET1 _mm512_set1_pd
 
 INLINE __m512d lv_load(const int nl, const double *x) {
@@ -880,17 +888,14 @@ int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64
                               const double *trans, const double *meas, double keep, double temp,
                               const double *z, const double *lb, double *m, double *Pm,
                               double *lb_out, int64_t *status, double *work) {
-    const unsigned int csr = _mm_getcsr();
-    /* FTZ | DAZ, as in hgpdm_psi2_groups_f64; in the step after the contraction it flushes
-       only values below 2.3e-308 (a belief's probability of such a value counts as 0) */
-    _mm_setcsr(csr | 0x8040);
+    const unsigned int csr = ftz_begin(); /* a belief's probability below 2.3e-308 counts as 0 */
     int code;
 #define STEP(DD)                                                                                 \
     all_steps(DD, S, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv, phiT, trans, \
               meas, keep, temp, z, lb, m, Pm, lb_out, status, work)
     FOR_D(D, STEP, code);
 #undef STEP
-    _mm_setcsr(csr);
+    _mm_setcsr(csr); /* the caller's */
     return code;
 }
 
@@ -910,6 +915,8 @@ int hgpdm_predictive_step_f64(int64_t S, int64_t U, int64_t L, int64_t Up, int64
    Sz = sym(W^T P W) + v diag(scale^2)). */
 #define BLOCK(D, Dz, R) \
     ((D) + 2 * (D) * (D) + (R) * (D) + (R) * (R) + (R) + 2 + (Dz) + (Dz) * (Dz))
+#define BLOCK_A(D) ((D) + 2 * (D) * (D))                          /* where A starts */
+#define BLOCK_MZ(D, R) (BLOCK_A(D) + (R) * (D) + (R) * (R) + (R) + 2) /* where mz starts */
 
 INLINE int mcp_shared(const int D, int64_t U, int64_t L, int64_t Up, int64_t Kp, int64_t K,
                       int64_t Dz, int64_t R, const double *X, const int64_t *cols,
@@ -971,15 +978,14 @@ int hgpdm_mcp_shared_f64(int64_t U, int64_t L, int64_t Up, int64_t D, int64_t Kp
                          const double *beta, const double *betac, const double *kinv,
                          const double *phiT, const double *trans, const double *meas,
                          double *shared, double *work) {
-    const unsigned int csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_predictive_step_f64 */
+    const unsigned int csr = ftz_begin();
     int code, failed = 0;
 #define SHARED(DD)                                                                               \
     failed = mcp_shared(DD, U, L, Up, Kp, K, Dz, R, X, cols, mu, Q, c, lp, beta, betac, kinv,    \
                         phiT, trans, meas, shared, work)
     FOR_D(D, SHARED, code);
 #undef SHARED
-    _mm_setcsr(csr);
+    _mm_setcsr(csr); /* the caller's */
     return code ? code : 2 * failed;
 }
 
@@ -1027,10 +1033,10 @@ INLINE void particle_block(const int D, const Particles *pt, int64_t i0) {
         const int64_t i = i0 + p < I ? i0 + p : i0;
         const double *e = pt->eps + i * Dz;
         if (pt->g) { /* Lz eps as a sum of Lz's columns (rows of Lz^T), eight rows of z at a time */
-            const double *mz = shared + pt->g[i] * B + D + 2 * D * D + R * D + R * R + R + 2;
+            const double *mz = shared + pt->g[i] * B + BLOCK_MZ(D, R);
             const double *LzT = mz + Dz;
             for (int64_t j0 = 0; j0 < Dz; j0 += W) {
-                const __mmask8 k = Dz - j0 < W ? LANE_MASK(Dz - j0) : 0xFF;
+                const __mmask8 k = TAIL_MASK(Dz, j0);
                 const int64_t top = Dz - j0 < W ? Dz : j0 + W; /* LzT[q, j] = 0 for j < q */
                 __m512d t = _mm512_setzero_pd();
                 for (int64_t q = 0; q < top; ++q)
@@ -1042,7 +1048,7 @@ INLINE void particle_block(const int D, const Particles *pt, int64_t i0) {
         }
         int bad = 0; /* usable: finite, and |z - center| <= limit (NaN compares false) */
         for (int64_t j0 = 0; j0 < Dz; j0 += W) {
-            const __mmask8 k = Dz - j0 < W ? LANE_MASK(Dz - j0) : 0xFF;
+            const __mmask8 k = TAIL_MASK(Dz, j0);
             const __m512d x = _mm512_maskz_loadu_pd(k, e + j0);
             const __mmask8 finite = (__mmask8)~_mm512_fpclass_pd_mask(x, 0x99); /* NaN, inf */
             const __m512d c = _mm512_maskz_loadu_pd(k, pt->center + j0);
@@ -1058,7 +1064,7 @@ INLINE void particle_block(const int D, const Particles *pt, int64_t i0) {
     }
     project(D, Dz, R, LANES, pt->meas, z, missing, pt->zs, pt->zu, pt->perp);
     for (int64_t k = 0; k < K; ++k) {
-        const double *mk = shared + k * B, *A = mk + D + 2 * D * D, *G = A + R * D;
+        const double *mk = shared + k * B, *A = mk + BLOCK_A(D), *G = A + R * D;
         const double *c = G + R * R;
         double *mo = pt->means + k * D * LANES, *lk = pt->ll + k * LANES;
         condition(D, Dz, R, LANES, A, G, c, c[R], c[R + 1], mk, pt->zu, pt->perp, mo, lk);
@@ -1097,15 +1103,13 @@ int hgpdm_mcp_particles_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t
                             const double *limit, const double *lb, double keep, double temp,
                             const int64_t *g, const double *eps, double *mean, double *cov,
                             double *lb_out, double *zo, double *work) {
-    const unsigned int csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_predictive_step_f64: a belief's
-                                 probabilities of values far from the data are subnormal */
+    const unsigned int csr = ftz_begin();
     Particles pt = {I, K, Dz, R, shared, meas, center, limit, keep, temp, g, eps, zo};
     int code;
 #define PARTICLES(DD) mcp_particles(DD, &pt, lb, mean, cov, lb_out, work)
     FOR_D(D, PARTICLES, code);
 #undef PARTICLES
-    _mm_setcsr(csr);
+    _mm_setcsr(csr); /* the caller's */
     return code;
 }
 
@@ -1133,7 +1137,7 @@ INLINE void values_init(Values *vl, double *work) {
         const double *row = vl->centres + c * F;
         __m512d acc = _mm512_setzero_pd();
         for (int64_t f = 0; f < F; f += W) {
-            const __m512d x = _mm512_maskz_loadu_pd(F - f < W ? LANE_MASK(F - f) : 0xFF, row + f);
+            const __m512d x = _mm512_maskz_loadu_pd(TAIL_MASK(F, f), row + f);
             acc = _mm512_fmadd_pd(x, x, acc);
         }
         vl->cn[c] = _mm512_reduce_add_pd(acc);
@@ -1212,14 +1216,13 @@ int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, 
                          const double *mean, const double *cov, const double *lb,
                          const double *mu, const double *sd, const double *centres, double eta,
                          const double *Wq, double *out, double *work) {
-    const unsigned int csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ: the features of far centres are subnormal */
+    const unsigned int csr = ftz_begin();
     Values vl = {D + D * (D + 1) / 2 + K, C, A, bias, mu, sd, centres, Wq, eta};
     values_init(&vl, work);
     const __m512i lane = _mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0);
     for (int64_t i0 = 0; i0 < I; i0 += LANES) {
         /* the block's beliefs (a short last block repeats its first), gathered lane-last */
-        const __mmask8 live = I - i0 < LANES ? LANE_MASK(I - i0) : 0xFF;
+        const __mmask8 live = TAIL_MASK(I, i0);
         const __m512i row = _mm512_maskz_mov_epi64(live, lane);
         const __m512i im = _mm512_mullo_epi64(row, _mm512_set1_epi64(D));
         const __m512i ic = _mm512_mullo_epi64(row, _mm512_set1_epi64(D * D));
@@ -1236,7 +1239,7 @@ int hgpdm_rbf_values_f64(int64_t I, int64_t D, int64_t K, int64_t C, int64_t A, 
             _mm512_storeu_pd(z + f * LANES, exp8(_mm512_i64gather_pd(ik, lb + i0 * K + k, 8)));
         block_values(&vl, i0, I, -1, out);
     }
-    _mm_setcsr(csr);
+    _mm_setcsr(csr); /* the caller's */
     return 0;
 }
 
@@ -1272,14 +1275,13 @@ int hgpdm_mcp_values_f64(int64_t I, int64_t D, int64_t K, int64_t Dz, int64_t R,
                          const int64_t *g, const double *eps, int64_t C, int64_t A, int64_t bias,
                          const double *mu, const double *sd, const double *centres, double eta,
                          const double *Wq, int64_t first, double *out, double *work) {
-    const unsigned int csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040); /* FTZ | DAZ, as in hgpdm_mcp_particles_f64 */
+    const unsigned int csr = ftz_begin();
     Particles pt = {I, K, Dz, R, shared, meas, center, limit, keep, temp, g, eps, 0};
     Values vl = {D + D * (D + 1) / 2 + K, C, A, bias, mu, sd, centres, Wq, eta};
     int code;
 #define VALUES(DD) mcp_values(DD, &pt, &vl, lb, first, out, work)
     FOR_D(D, VALUES, code);
 #undef VALUES
-    _mm_setcsr(csr);
+    _mm_setcsr(csr); /* the caller's */
     return code;
 }

@@ -26,6 +26,7 @@ from hgpdm_torch.decision.lspi import LinearQ
 from hgpdm_torch.decision.mcp import Belief, MonteCarloPlanner, ParticleProjector
 from hgpdm_torch.decision.stopping import belief_vector
 from hgpdm_torch.inference.intention import OnlineIntentionFilter
+from hgpdm_torch.observations import ObservationCheck
 
 pytestmark = pytest.mark.skipif(
     not native.available(),
@@ -162,6 +163,36 @@ def test_particle_inputs_are_checked(continuous_iddm):
         compiled.particles(compiled.particle_args(*args, None, noise[:, :2].contiguous()))
     with pytest.raises(TypeError, match="float64"):
         compiled.particles(compiled.particle_args(*args, None, noise.float()))
+    with pytest.raises(TypeError, match="CPU"):  # a device's pointer never reaches the kernel
+        meta = torch.zeros(3, dtype=torch.int64, device="meta")
+        compiled.particles(compiled.particle_args(*args, meta, noise))
+    d, dz, _ = compiled.particle_args(*args, None, noise).dims
+    with pytest.raises(ValueError, match="rank"):  # beyond min(D, Dz): the kernel's registers
+        compiled.particles(compiled.particle_args(*args, None, noise)._replace(dims=(d, dz, d + 1)))
+
+
+def test_a_check_without_threshold_is_finiteness_alone(continuous_iddm):
+    """A check without an outlier threshold uses every finite row, as ObservationCheck.usable
+    does, even where a channel's spread is 0 (its limit, inf times 0, is NaN)."""
+    f, belief = _belief(continuous_iddm)
+    projector = ParticleProjector(continuous_iddm, f)
+    shared = projector._shared(projector._check_belief(belief))
+    spread = f.check.spread.clone()
+    spread[0] = 0.0
+    check = ObservationCheck(f.check.center, spread, None)
+    rows = continuous_iddm.sequences()[4][3:7].clone()
+    assert bool(check.usable(rows).all())
+    compiled = projector._compiled
+    got = compiled.particles(
+        compiled.particle_args(shared.state, shared.log_prob, check, None, rows)
+    )
+    want = compiled.particles(
+        compiled.particle_args(shared.state, shared.log_prob, None, None, rows)
+    )
+    for a, b in zip(got, want, strict=True):
+        assert torch.equal(a, b)
+    forgot = torch.log_softmax(0.8 * shared.log_prob, -1)  # a missing row only forgets
+    assert not torch.allclose(got[2][0], forgot)
 
 
 def test_step_uses_the_filters_classification_of_each_row(continuous_iddm, monkeypatch):

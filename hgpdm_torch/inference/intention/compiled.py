@@ -143,8 +143,9 @@ class CompiledStep:
         observations the caller has checked and whose bad rows it has set to NaN) is a
         prediction-only step: the arguments of :meth:`particles` and :meth:`particle_values`."""
         dims = (self.transition.dx, self.dz, self.rank)
-        if check is None:  # finiteness alone (the check's limit is inf without a threshold)
-            center, limit = noise.new_zeros(self.dz), noise.new_full((self.dz,), math.inf)
+        if check is None or check.outlier_sd is None:  # finiteness alone, as check.usable
+            center = noise.new_zeros(self.dz) if check is None else check.center.to(noise)
+            limit = noise.new_full((self.dz,), math.inf)  # (inf * a zero spread is NaN)
         else:
             center, limit = check.center, check.limit
             if center.dtype != noise.dtype:
