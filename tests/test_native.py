@@ -306,7 +306,7 @@ def test_inputs_are_checked():
         native.psi2_groups(args[0].float(), *args[1:])
     with pytest.raises(TypeError, match="forms must be a contiguous"):
         native.psi2_groups(*args[:3], args[3].transpose(2, 3), *args[4:])
-    with pytest.raises(TypeError, match="cols must be a contiguous int64"):
+    with pytest.raises(TypeError, match="cols must be a contiguous 1-D int64"):
         native.psi2_groups(args[0], args[1].int(), *args[2:])
     beyond = args[1].clone()
     beyond[-1] = 18  # one past the last point
