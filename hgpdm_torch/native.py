@@ -203,8 +203,6 @@ def _library() -> ctypes.CDLL | None:
         + [ptr] * 2
     )
     lib.hgpdm_mcp_values_f64.restype = ctypes.c_int
-    lib.hgpdm_normal_f64.argtypes = [i64, ptr, ptr]
-    lib.hgpdm_normal_f64.restype = ctypes.c_int
     lib.hgpdm_draws_f64.argtypes = [i64, i64, ptr, i64, ptr, ptr, ptr, ptr]
     lib.hgpdm_draws_f64.restype = ctypes.c_int
     return lib

@@ -1,7 +1,7 @@
 /* Fused psi2 contractions for hgpdm_torch.native (AVX-512, float64).
 
    Compiled on first use by hgpdm_torch/native.py with the machine's C compiler and
-   -O3 -march=native; loaded with ctypes. Ten entry points:
+   -O3 -march=native; loaded with ctypes. Nine entry points:
 
    - hgpdm_exp_f64: exp of an array in place, within 2 ulp (see exp8);
    - hgpdm_psi2_groups_f64: for each stream s of the shared transition GP,
@@ -26,8 +26,8 @@
      basis features, linear values; block_values);
    - hgpdm_mcp_values_f64: the particles' step and their values in one pass, each particle's
      best value the only output;
-   - hgpdm_normal_f64 and hgpdm_draws_f64: torch.randn's normals (Box-Muller, vectorised log and
-     sincos) and torch.multinomial's draws from torch's own uniforms.
+   - hgpdm_draws_f64: torch.multinomial's draws and torch.randn's normals (Box-Muller,
+     vectorised log and sincos) from torch's own uniforms.
 
    Layout: points (training inputs) in group order (u, l), N = U L (padding points have zero
    weights). The columns are in the order (m, v), v padded to Up (a multiple of 8), Np = L Up:
@@ -204,18 +204,16 @@ INLINE void normal16(const double *u, double *out) {
 /* n >= 16 standard normal draws out [n] from the uniforms u [n + (16 if n % 16 else 0)] in
    [0, 1), as torch.randn forms them (float64, n >= 16): blocks of sixteen (normal16), and where
    n is not a multiple of 16 the last sixteen draws again from the sixteen uniforms after the
-   n. Returns 0, or 1 for n < 16 (nothing written). */
-int hgpdm_normal_f64(int64_t n, const double *u, double *out) {
-    if (n < 16) return 1;
+   n. */
+static void normals(int64_t n, const double *u, double *out) {
     for (int64_t i = 0; i + 16 <= n; i += 16) normal16(u + i, out + i);
     if (n % 16) normal16(u + n, out + n - 16);
-    return 0;
 }
 
 /* I categorical draws g [I] from prob [K] as torch.multinomial draws them with replacement in
    float64 (the running sum's cumulative distribution over its total, its last entry set to 1;
    each draw the first entry not below its uniform, by bisection), then n >= 16 standard normal
-   draws eps [n] (hgpdm_normal_f64), from the uniforms u [I + n + (16 if n % 16 else 0)] that
+   draws eps [n] (normals), from the uniforms u [I + n + (16 if n % 16 else 0)] that
    torch would draw for the two in that order. cdf [K] is work. Returns 0; 1 where prob has a
    negative or non-finite entry or no positive total (nothing written); 2 for n < 16. */
 int hgpdm_draws_f64(int64_t I, int64_t K, const double *prob, int64_t n, const double *u,
@@ -241,7 +239,8 @@ int hgpdm_draws_f64(int64_t I, int64_t K, const double *prob, int64_t n, const d
         }
         g[i] = lo;
     }
-    return hgpdm_normal_f64(n, u + I, eps);
+    normals(n, u + I, eps);
+    return 0;
 }
 
 /* The L rows of group u against all Np columns: acc[j] = sum_l psi2 kinv and

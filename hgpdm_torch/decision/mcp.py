@@ -369,7 +369,7 @@ class ParticleProjector:
         observations' standard normal draws ``[I, Dz, 1]`` (``None`` for ``"points"``)."""
         draw_on = prob.device if generator is None else generator.device
         moments = self.sampling == "moments"
-        if moments and draw_on.type == "cpu" and prob.is_cpu and _kernel_takes(prob):
+        if moments and draw_on.type == "cpu" and _kernel_takes(prob):  # prob float64 on the CPU
             g, eps = native.categorical_normal(prob, num, self.filter.obs_dim, generator)
             return g, eps[..., None]  # torch's draws of the two below, from one call
         g = torch.multinomial(prob.to(draw_on), num, replacement=True, generator=generator)

@@ -14,8 +14,9 @@ kernel (the streams' quadratic forms, :func:`hgpdm_torch.native.rbf_forms`, then
 
 Monte-Carlo planning's particles replay this step from one belief
 (:class:`~hgpdm_torch.decision.mcp.ParticleProjector`): :meth:`CompiledStep.particle_shared`
-computes what they share once per decision and :meth:`CompiledStep.particles` draws and updates
-a chunk of them with the same C functions.
+computes what they share once per decision; :meth:`CompiledStep.particles` updates a chunk of
+them (from :meth:`CompiledStep.particle_args`) with the same C functions, and
+:meth:`CompiledStep.particle_values` values them in the same call.
 
 The torch path stays the reference (the tests compare the two) and takes over whole chunks:
 where the kernel does not run (float32, a gradient, another device,
